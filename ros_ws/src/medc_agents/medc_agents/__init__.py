@@ -1,0 +1,1 @@
+"""medc_agents."""

@@ -1,0 +1,24 @@
+from setuptools import find_packages, setup
+
+PACKAGE = "medc_agents"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="MEDC developers",
+    maintainer_email="dev@medc.invalid",
+    description="See package.xml",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "medc-agent = medc_agents.agent_node:main",
+        ],
+    },
+)

@@ -1,0 +1,26 @@
+from setuptools import find_packages, setup
+
+PACKAGE = "medc_registry"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="MEDC developers",
+    maintainer_email="dev@medc.invalid",
+    description="See package.xml",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "medc-registry = medc_registry.cli:main",
+            "medc-bridge = medc_registry.bridge_node:main",
+            "medc-demo = medc_registry.demo:main",
+        ],
+    },
+)
