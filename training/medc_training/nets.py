@@ -1,0 +1,453 @@
+"""Actor-critic networks for the MEDC teams, described declaratively.
+
+A network maps an agent's map stack ``obs`` float32 ``[M, C, H, W]`` to action logits ``[M, A]``
+and a state value ``[M]``. One network is shared by all the agents of a team (centralized
+learning, decentralized execution): ``M`` is any batch of agent observations.
+
+Every architecture is a JSON-able *spec* built only from a closed set of layer types, so a policy
+bundle can be rebuilt from its manifest without running code from the file::
+
+    {
+      "name": "lenet5",
+      "input": {"channels": 5, "height": 30, "width": 30},
+      "layers": [
+        {"type": "conv2d", "out_channels": 6, "kernel_size": 5, "stride": 1, "padding": 2},
+        {"type": "relu"},
+        {"type": "maxpool2d", "kernel_size": 2, "stride": 2, "ceil_mode": true},
+        ...
+        {"type": "flatten"},
+        {"type": "linear", "out_features": 120},
+        ...
+        {"type": "heads", "num_actions": 8}
+      ]
+    }
+
+Layer types (``LAYER_TYPES``) and their keys:
+
+``conv2d``     ``out_channels``, ``kernel_size``, ``stride`` (1), ``padding`` (0). In-channels are
+               inferred. Parameters ``weight [out, in, k, k]``, ``bias [out]``.
+``maxpool2d``  ``kernel_size``, ``stride`` (= kernel_size), ``ceil_mode`` (false).
+``relu``, ``tanh``  no keys.
+``flatten``    no keys; turns ``[M, C, H, W]`` into ``[M, C*H*W]``.
+``linear``     ``out_features``. Parameters ``weight [out, in]``, ``bias [out]``.
+``heads``      ``num_actions``; must be the last layer, exactly once, after a flat feature
+               vector. Two linear heads: ``policy`` (``[A, F]``, ``[A]``) and ``value``
+               (``[1, F]``, ``[1]``).
+
+Every shape is derived from the spec by arithmetic (``spec_tensor_shapes``), so a loader can check
+each stored tensor's name and shape before any weights reach torch. Tensor names are
+``trunk.<i>.weight`` / ``trunk.<i>.bias`` for the i-th layer of ``layers`` and
+``policy.weight``, ``policy.bias``, ``value.weight``, ``value.bias`` for the heads.
+
+Built-in architectures (``ARCHITECTURES``):
+
+``lenet5`` (default; the paper's LeNet-5-style CNN)
+    conv 5x5, 6 maps, pad 2 -> ReLU -> maxpool 2x2 (ceil) -> conv 5x5, 16 maps, pad 2 -> ReLU ->
+    maxpool 2x2 (ceil) -> flatten -> fc 120 -> ReLU -> fc 84 -> ReLU -> heads (policy A, value 1).
+    Padding 2 keeps each convolution size-preserving and ceil-mode pooling never drops a border
+    row, so every grid from 10x10 (-> 3x3x16 features) to 30x30 (-> 8x8x16) and beyond works.
+``convnet-small``
+    conv 3x3, 16 maps, pad 1 -> ReLU -> conv 3x3, 32 maps, stride 2, pad 1 -> ReLU ->
+    conv 3x3, 32 maps, stride 2, pad 1 -> ReLU -> flatten -> fc 128 -> ReLU -> heads. All-conv
+    downsampling (no pooling), a different inductive bias from LeNet-5.
+``mlp``
+    flatten -> fc 128 -> tanh -> fc 128 -> tanh -> heads. No spatial prior at all.
+
+Initialisation is the usual one for PPO: orthogonal weights with gain sqrt(2) in the trunk, 0.01 for
+the policy head (near-uniform initial policy) and 1 for the value head; zero biases.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+LAYER_TYPES = ("conv2d", "maxpool2d", "relu", "tanh", "flatten", "linear", "heads")
+
+# Keys each layer type accepts: required keys map to None, optional ones to their default.
+_LAYER_KEYS: dict[str, dict[str, Any]] = {
+    "conv2d": {"out_channels": None, "kernel_size": None, "stride": 1, "padding": 0},
+    "maxpool2d": {"kernel_size": None, "stride": None, "ceil_mode": False},
+    "relu": {},
+    "tanh": {},
+    "flatten": {},
+    "linear": {"out_features": None},
+    "heads": {"num_actions": None},
+}
+
+# Guards against specs that would allocate absurd amounts of memory when rebuilt (a bundle from a
+# stranger is data; its spec must not be able to exhaust the machine).
+MAX_PARAMETERS = 50_000_000
+MAX_INPUT_SIDE = 4096
+MAX_CHANNELS = 4096
+MAX_ACTIONS = 4096
+
+# Large negative logit for masked-out actions: exp() of it is exactly 0, yet it stays finite so
+# entropies and log-probabilities never produce NaN (0 * -inf).
+_MASK_LOGIT = -1e9
+
+
+class SpecError(ValueError):
+    """The architecture spec is malformed, uses an unknown layer, or its shapes do not fit."""
+
+
+def _conv_out(size: int, kernel: int, stride: int, padding: int) -> int:
+    return (size + 2 * padding - kernel) // stride + 1
+
+
+def _pool_out(size: int, kernel: int, stride: int, ceil_mode: bool) -> int:
+    if not ceil_mode:
+        return (size - kernel) // stride + 1
+    out = math.ceil((size - kernel) / stride) + 1
+    # torch drops the last window if it would start entirely in the (virtual) right padding.
+    if (out - 1) * stride >= size:
+        out -= 1
+    return out
+
+
+def _positive_int(value: Any, where: str, key: str, *, minimum: int = 1, maximum: int | None = None) -> int:
+    # bool is an int subclass; true/false is never a valid size.
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SpecError(f"{where}: '{key}' must be an integer, got {value!r}")
+    if value < minimum or (maximum is not None and value > maximum):
+        bound = f"between {minimum} and {maximum}" if maximum is not None else f">= {minimum}"
+        raise SpecError(f"{where}: '{key}' must be {bound}, got {value}")
+    return value
+
+
+def _normalise_layer(raw: Any, index: int) -> dict[str, Any]:
+    """Check one layer's type and keys; return it with defaults filled in."""
+    where = f"layer {index}"
+    if not isinstance(raw, Mapping):
+        raise SpecError(f"{where}: expected an object with a 'type', got {type(raw).__name__}")
+    kind = raw.get("type")
+    if kind not in _LAYER_KEYS:
+        raise SpecError(f"{where}: unknown layer type {kind!r}; allowed: {', '.join(LAYER_TYPES)}")
+    allowed = _LAYER_KEYS[kind]
+    extra = sorted(set(raw) - set(allowed) - {"type"})
+    if extra:
+        raise SpecError(f"{where} ({kind}): unknown keys {extra}; allowed: {sorted(allowed) or 'none'}")
+    layer: dict[str, Any] = {"type": kind}
+    for key, default in allowed.items():
+        if key in raw:
+            layer[key] = raw[key]
+        elif default is None and not (kind == "maxpool2d" and key == "stride"):
+            raise SpecError(f"{where} ({kind}): missing required key '{key}'")
+        else:
+            layer[key] = default
+    if kind == "maxpool2d" and layer["stride"] is None:
+        layer["stride"] = layer["kernel_size"]
+    for key in ("out_channels", "out_features"):
+        if key in layer:
+            _positive_int(layer[key], where, key, maximum=1 << 20)
+    if kind == "heads":
+        _positive_int(layer["num_actions"], where, "num_actions", minimum=2, maximum=MAX_ACTIONS)
+    if kind in ("conv2d", "maxpool2d"):
+        _positive_int(layer["kernel_size"], where, "kernel_size", maximum=64)
+        _positive_int(layer["stride"], where, "stride", maximum=64)
+    if kind == "conv2d":
+        _positive_int(layer["padding"], where, "padding", minimum=0, maximum=64)
+    if kind == "maxpool2d" and not isinstance(layer["ceil_mode"], bool):
+        raise SpecError(f"{where} (maxpool2d): 'ceil_mode' must be true or false")
+    return layer
+
+
+def validate_spec(spec: Any) -> dict[str, Any]:
+    """Check an architecture spec completely and return a normalised copy (defaults filled in).
+
+    Raises ``SpecError`` (a ``ValueError``) naming the offending layer for: a non-object spec,
+    unknown keys, unknown layer types, missing or non-integer sizes, shapes that collapse to zero,
+    a ``linear`` applied before ``flatten``, a missing/misplaced ``heads`` layer, or a network
+    larger than ``MAX_PARAMETERS``. Nothing is allocated; this is pure arithmetic.
+    """
+    if not isinstance(spec, Mapping):
+        raise SpecError(f"architecture spec must be an object, got {type(spec).__name__}")
+    extra = sorted(set(spec) - {"name", "input", "layers"})
+    if extra:
+        raise SpecError(f"architecture spec: unknown keys {extra}; allowed: ['input', 'layers', 'name']")
+    name = spec.get("name", "custom")
+    if not isinstance(name, str) or not name or len(name) > 64:
+        raise SpecError("architecture spec: 'name' must be a non-empty string of at most 64 characters")
+    inp = spec.get("input")
+    if not isinstance(inp, Mapping) or set(inp) != {"channels", "height", "width"}:
+        raise SpecError("architecture spec: 'input' must be {'channels': C, 'height': H, 'width': W}")
+    channels = _positive_int(inp["channels"], "input", "channels", maximum=MAX_CHANNELS)
+    height = _positive_int(inp["height"], "input", "height", maximum=MAX_INPUT_SIDE)
+    width = _positive_int(inp["width"], "input", "width", maximum=MAX_INPUT_SIDE)
+    raw_layers = spec.get("layers")
+    if not isinstance(raw_layers, Sequence) or isinstance(raw_layers, str) or not raw_layers:
+        raise SpecError("architecture spec: 'layers' must be a non-empty list")
+    if len(raw_layers) > 256:
+        raise SpecError(f"architecture spec: at most 256 layers, got {len(raw_layers)}")
+    layers = [_normalise_layer(raw, i) for i, raw in enumerate(raw_layers)]
+    normalised = {
+        "name": name,
+        "input": {"channels": channels, "height": height, "width": width},
+        "layers": layers,
+    }
+    spec_tensor_shapes(normalised)  # shape propagation raises on anything that does not fit
+    return normalised
+
+
+def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
+    """Names and shapes of every parameter tensor of the network ``spec`` describes.
+
+    ``spec`` must have its defaults filled in (``validate_spec`` output). This is the single source
+    of truth a bundle loader checks stored tensors against.
+    """
+    shape: tuple[int, ...] = (spec["input"]["channels"], spec["input"]["height"], spec["input"]["width"])
+    tensors: dict[str, tuple[int, ...]] = {}
+    layers = spec["layers"]
+    total = 0
+    for i, layer in enumerate(layers):
+        kind = layer["type"]
+        where = f"layer {i} ({kind})"
+        if kind == "heads":
+            if i != len(layers) - 1:
+                raise SpecError(f"{where}: 'heads' must be the last layer")
+            if len(shape) != 1:
+                raise SpecError(f"{where}: needs flat features; add a 'flatten' layer before it")
+            features, actions = shape[0], layer["num_actions"]
+            tensors.update({
+                "policy.weight": (actions, features), "policy.bias": (actions,),
+                "value.weight": (1, features), "value.bias": (1,),
+            })
+            total += (actions + 1) * (features + 1)
+        elif kind in ("conv2d", "maxpool2d"):
+            if len(shape) != 3:
+                raise SpecError(f"{where}: needs a [C, H, W] map stack but the input is already flat")
+            c, h, w = shape
+            k, s = layer["kernel_size"], layer["stride"]
+            if kind == "conv2d":
+                p = layer["padding"]
+                oh, ow = _conv_out(h, k, s, p), _conv_out(w, k, s, p)
+                out = layer["out_channels"]
+                tensors[f"trunk.{i}.weight"] = (out, c, k, k)
+                tensors[f"trunk.{i}.bias"] = (out,)
+                total += out * c * k * k + out
+                c = out
+            else:
+                if k > h or k > w:
+                    raise SpecError(f"{where}: kernel {k} is larger than its {h}x{w} input")
+                oh = _pool_out(h, k, s, layer["ceil_mode"])
+                ow = _pool_out(w, k, s, layer["ceil_mode"])
+            if oh < 1 or ow < 1:
+                raise SpecError(
+                    f"{where}: a {h}x{w} input shrinks to {oh}x{ow}; use padding or a smaller kernel"
+                )
+            shape = (c, oh, ow)
+        elif kind == "flatten":
+            shape = (math.prod(shape),)
+        elif kind == "linear":
+            if len(shape) != 1:
+                raise SpecError(f"{where}: needs flat features; add a 'flatten' layer before it")
+            out = layer["out_features"]
+            tensors[f"trunk.{i}.weight"] = (out, shape[0])
+            tensors[f"trunk.{i}.bias"] = (out,)
+            total += out * shape[0] + out
+            shape = (out,)
+        if total > MAX_PARAMETERS:
+            raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
+    if not layers or layers[-1]["type"] != "heads":
+        raise SpecError("architecture spec: the last layer must be {'type': 'heads', 'num_actions': A}")
+    return tensors
+
+
+def _lenet5(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
+    return [
+        {"type": "conv2d", "out_channels": 6, "kernel_size": 5, "stride": 1, "padding": 2},
+        {"type": "relu"},
+        {"type": "maxpool2d", "kernel_size": 2, "stride": 2, "ceil_mode": True},
+        {"type": "conv2d", "out_channels": 16, "kernel_size": 5, "stride": 1, "padding": 2},
+        {"type": "relu"},
+        {"type": "maxpool2d", "kernel_size": 2, "stride": 2, "ceil_mode": True},
+        {"type": "flatten"},
+        {"type": "linear", "out_features": 120},
+        {"type": "relu"},
+        {"type": "linear", "out_features": 84},
+        {"type": "relu"},
+        {"type": "heads", "num_actions": num_actions},
+    ]
+
+
+def _convnet_small(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
+    return [
+        {"type": "conv2d", "out_channels": 16, "kernel_size": 3, "stride": 1, "padding": 1},
+        {"type": "relu"},
+        {"type": "conv2d", "out_channels": 32, "kernel_size": 3, "stride": 2, "padding": 1},
+        {"type": "relu"},
+        {"type": "conv2d", "out_channels": 32, "kernel_size": 3, "stride": 2, "padding": 1},
+        {"type": "relu"},
+        {"type": "flatten"},
+        {"type": "linear", "out_features": 128},
+        {"type": "relu"},
+        {"type": "heads", "num_actions": num_actions},
+    ]
+
+
+def _mlp(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
+    return [
+        {"type": "flatten"},
+        {"type": "linear", "out_features": 128},
+        {"type": "tanh"},
+        {"type": "linear", "out_features": 128},
+        {"type": "tanh"},
+        {"type": "heads", "num_actions": num_actions},
+    ]
+
+
+ARCHITECTURES: dict[str, Callable[[int, int, int, int], list[dict[str, Any]]]] = {
+    "lenet5": _lenet5,
+    "convnet-small": _convnet_small,
+    "mlp": _mlp,
+}
+"""Built-in architecture names -> layer-list builders ``(C, H, W, A) -> layers``."""
+
+
+def architecture_spec(name: str, obs_shape: Sequence[int], num_actions: int) -> dict[str, Any]:
+    """The validated declarative spec of built-in architecture ``name`` for the given shapes."""
+    if name not in ARCHITECTURES:
+        raise ValueError(f"unknown architecture {name!r}; built-in: {', '.join(ARCHITECTURES)}")
+    if len(obs_shape) != 3:
+        raise ValueError(f"obs_shape must be (C, H, W), got {tuple(obs_shape)}")
+    c, h, w = (int(x) for x in obs_shape)
+    return validate_spec({
+        "name": name,
+        "input": {"channels": c, "height": h, "width": w},
+        "layers": ARCHITECTURES[name](c, h, w, int(num_actions)),
+    })
+
+
+def _orthogonal(layer: nn.Linear | nn.Conv2d, gain: float) -> None:
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+
+
+class ActorCritic(nn.Module):
+    """Shared-trunk actor-critic built from a declarative spec (see the module docstring).
+
+    ``forward(obs [M, C, H, W]) -> (logits [M, A], value [M])``. ``spec`` returns a deep copy of
+    the normalised JSON spec; ``obs_shape`` and ``num_actions`` come from it.
+    """
+
+    def __init__(self, spec: Mapping[str, Any]) -> None:
+        super().__init__()
+        self._spec = validate_spec(spec)
+        inp = self._spec["input"]
+        self.obs_shape: tuple[int, int, int] = (inp["channels"], inp["height"], inp["width"])
+        in_shape: tuple[int, ...] = self.obs_shape
+        modules: list[nn.Module] = []
+        for layer in self._spec["layers"][:-1]:
+            kind = layer["type"]
+            if kind == "conv2d":
+                conv = nn.Conv2d(in_shape[0], layer["out_channels"], layer["kernel_size"],
+                                 stride=layer["stride"], padding=layer["padding"])
+                _orthogonal(conv, math.sqrt(2))
+                modules.append(conv)
+            elif kind == "maxpool2d":
+                modules.append(nn.MaxPool2d(layer["kernel_size"], stride=layer["stride"],
+                                            ceil_mode=layer["ceil_mode"]))
+            elif kind == "relu":
+                modules.append(nn.ReLU())
+            elif kind == "tanh":
+                modules.append(nn.Tanh())
+            elif kind == "flatten":
+                modules.append(nn.Flatten())
+            elif kind == "linear":
+                lin = nn.Linear(in_shape[0], layer["out_features"])
+                _orthogonal(lin, math.sqrt(2))
+                modules.append(lin)
+            in_shape = _shape_after(in_shape, layer)
+        self.trunk = nn.Sequential(*modules)
+        self.num_actions: int = self._spec["layers"][-1]["num_actions"]
+        self.policy = nn.Linear(in_shape[0], self.num_actions)
+        self.value = nn.Linear(in_shape[0], 1)
+        _orthogonal(self.policy, 0.01)
+        _orthogonal(self.value, 1.0)
+
+    @property
+    def spec(self) -> dict[str, Any]:
+        """The JSON-able declarative architecture (a copy; editing it does not change the net)."""
+        return copy.deepcopy(self._spec)
+
+    @property
+    def name(self) -> str:
+        return self._spec["name"]
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map ``obs`` float32 ``[M, C, H, W]`` to ``(logits [M, A], value [M])``."""
+        if obs.dim() != 4 or tuple(obs.shape[1:]) != self.obs_shape:
+            raise ValueError(
+                f"{self.name}: expected observations [M, {', '.join(map(str, self.obs_shape))}], "
+                f"got {list(obs.shape)}"
+            )
+        features = self.trunk(obs)
+        return self.policy(features), self.value(features).squeeze(-1)
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}, obs_shape={self.obs_shape}, num_actions={self.num_actions}"
+
+
+def _shape_after(shape: tuple[int, ...], layer: Mapping[str, Any]) -> tuple[int, ...]:
+    kind = layer["type"]
+    if kind == "conv2d":
+        k, s, p = layer["kernel_size"], layer["stride"], layer["padding"]
+        return (layer["out_channels"], _conv_out(shape[1], k, s, p), _conv_out(shape[2], k, s, p))
+    if kind == "maxpool2d":
+        k, s, c = layer["kernel_size"], layer["stride"], layer["ceil_mode"]
+        return (shape[0], _pool_out(shape[1], k, s, c), _pool_out(shape[2], k, s, c))
+    if kind == "flatten":
+        return (math.prod(shape),)
+    if kind == "linear":
+        return (layer["out_features"],)
+    return shape
+
+
+def make_actor_critic(
+    arch: str | Mapping[str, Any] = "lenet5",
+    obs_shape: Sequence[int] | None = None,
+    num_actions: int | None = None,
+    device: torch.device | str | None = None,
+) -> ActorCritic:
+    """Build an actor-critic from a built-in name (with ``obs_shape`` and ``num_actions``) or from a
+    declarative spec dict (its own ``input`` and ``heads`` define the shapes; if ``obs_shape`` /
+    ``num_actions`` are also given they must agree). ``device`` moves the net there.
+    """
+    if isinstance(arch, str):
+        if obs_shape is None or num_actions is None:
+            raise ValueError(f"architecture {arch!r} needs obs_shape=(C, H, W) and num_actions")
+        net = ActorCritic(architecture_spec(arch, obs_shape, num_actions))
+    elif isinstance(arch, Mapping):
+        net = ActorCritic(arch)
+        if obs_shape is not None and tuple(obs_shape) != net.obs_shape:
+            raise ValueError(f"spec input is {net.obs_shape} but obs_shape={tuple(obs_shape)}")
+        if num_actions is not None and num_actions != net.num_actions:
+            raise ValueError(f"spec has {net.num_actions} actions but num_actions={num_actions}")
+    else:
+        raise TypeError(f"arch must be an architecture name or a spec dict, got {type(arch).__name__}")
+    return net.to(device) if device is not None else net
+
+
+def masked_logits(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Logits with disallowed actions (``mask`` False) set to a large finite negative value.
+
+    ``mask`` is bool ``[..., A]`` broadcastable to ``logits``. Softmax then gives disallowed
+    actions probability exactly 0 and argmax never picks one, while staying NaN-free in entropy and
+    log-prob computations. A row with no allowed action at all becomes uniform (every entry equal);
+    environments guarantee at least one allowed move, so this is never a valid sample.
+    """
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor (True = allowed), got {mask.dtype}")
+    fill = max(_MASK_LOGIT, torch.finfo(logits.dtype).min / 2)
+    return logits.masked_fill(~mask, fill)
+
+
+def spec_to_json(spec: Mapping[str, Any]) -> str:
+    """Canonical JSON text of a spec (sorted keys, no whitespace): equal specs give equal text."""
+    return json.dumps(spec, sort_keys=True, separators=(",", ":"))
