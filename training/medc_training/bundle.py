@@ -1,0 +1,566 @@
+"""Policy bundles: one safetensors file holding a trained policy and its JSON manifest.
+
+A bundle is a plain safetensors file (readable by any safetensors tool). Its tensors are the
+actor-critic's parameters (float32, named as in ``medc_training.nets``); its metadata holds one
+entry, ``"medc.manifest"``, a JSON object:
+
+.. code-block:: text
+
+    format            "medc-policy-bundle"
+    format_version    1
+    application       one of KNOWN_APPLICATIONS ("target_localization", ...)
+    description       optional free text (what the registry shows)
+    environment       {attribute: number | bool | string}, e.g. {"agents": 3, "walls": 2, "grid": 30}
+    observation       {"channels": C, "height": H, "width": W, "channel_names": [C names]}
+    actions           [A action names], e.g. ["N", "NE", "E", "SE", "S", "SW", "W", "NW"]
+    architecture      the declarative network spec (medc_training.nets), input C x H x W, A actions
+    training          {"method", "steps", "seed", "code_version", "git_commit", ...}
+    metrics           {name: number | string | bool | null}, e.g. {"mean_episode_length": 23.4}
+
+One file means one IPFS CID: the registry stores and verifies exactly these bytes.
+
+Loading treats a bundle as untrusted data: the header is parsed and checked here before any tensor
+is decoded; nothing is unpickled and no code from the file runs; the network is rebuilt from the
+declarative spec and every stored tensor is checked against the shapes that spec implies. Anything
+wrong raises ``BundleError`` with a message saying what is wrong.
+
+Training checkpoints (``save_state`` / ``load_state``) reuse the same container for arbitrary nested
+state (model and optimizer state dicts, RNG states, counters) without pickle: tensors are stored by
+flattened name, everything else as JSON in the metadata.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import struct
+import subprocess
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load as _st_load
+from safetensors.torch import save as _st_save
+
+import medc_training
+from medc_training.nets import ActorCritic, SpecError, masked_logits, spec_tensor_shapes, validate_spec
+
+FORMAT = "medc-policy-bundle"
+FORMAT_VERSION = 1
+MANIFEST_KEY = "medc.manifest"
+
+# Kept equal to medc_training.envs.ENV_NAMES (tests check it): a bundle for an application this
+# code does not know cannot be run by it, so it is rejected rather than guessed at.
+KNOWN_APPLICATIONS = ("target_localization", "fleet_coordination", "maze_cleaning")
+
+# Target localization's observation maps and moves, in index order (the environment contract).
+_DEFAULT_NAMES: dict[str, dict[str, list[str]]] = {
+    "target_localization": {
+        "channel_names": ["own_location", "team_locations", "readings", "visit_counts", "walls"],
+        "actions": ["N", "NE", "E", "SE", "S", "SW", "W", "NW"],
+    },
+}
+
+MAX_HEADER_BYTES = 1 << 20  # the manifest and tensor table of any sane bundle fit easily in 1 MiB
+MAX_BUNDLE_BYTES = 512 << 20
+_MANIFEST_KEYS = {
+    "format", "format_version", "application", "description", "environment", "observation",
+    "actions", "architecture", "training", "metrics",
+}
+_DTYPE_SIZES = {"F32": 4}
+
+
+class BundleError(ValueError):
+    """The file or bytes are not a valid MEDC policy bundle; the message says what is wrong."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Saving
+
+
+def save_bundle(path: str | os.PathLike[str], net: ActorCritic, manifest: Mapping[str, Any]) -> Path:
+    """Write ``net`` and ``manifest`` as one bundle file at ``path`` (atomically) and return the path.
+
+    ``manifest`` needs ``application``; it may give ``description``, ``environment`` (the env's
+    ``attributes``), ``training`` and ``metrics``. ``format``/``format_version``/``architecture``
+    are filled in from ``net``; ``observation`` and ``actions`` are filled in from the net's shapes
+    and the application's channel/action names (pass them explicitly to override).
+    ``training.code_version`` and ``training.git_commit`` are added when absent. The complete
+    manifest is validated exactly as ``load_bundle`` would, so an invalid bundle is never written.
+    """
+    data = bundle_bytes(net, manifest)
+    target = Path(path)
+    _atomic_write(target, data)
+    return target
+
+
+def bundle_bytes(net: ActorCritic, manifest: Mapping[str, Any]) -> bytes:
+    """The bytes ``save_bundle`` would write (useful to publish without touching the disk)."""
+    if not isinstance(net, ActorCritic):
+        raise TypeError(f"net must be a medc_training.nets.ActorCritic, got {type(net).__name__}")
+    full = complete_manifest(net, manifest)
+    tensors = {name: t.detach().to("cpu", torch.float32).contiguous().clone()
+               for name, t in net.state_dict().items()}
+    for name, t in tensors.items():
+        if not torch.isfinite(t).all():
+            raise BundleError(f"refusing to save: tensor {name!r} has non-finite values")
+    data = _st_save(tensors, metadata={MANIFEST_KEY: json.dumps(full, sort_keys=True)})
+    _parse(data, "new bundle", decode=False)  # what we write must be what we accept
+    return data
+
+
+def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """``manifest`` with the format, architecture, observation, actions and provenance filled in."""
+    if not isinstance(manifest, Mapping):
+        raise BundleError(f"manifest must be a dict, got {type(manifest).__name__}")
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS)
+    if unknown:
+        raise BundleError(f"manifest: unknown keys {unknown}; allowed: {sorted(_MANIFEST_KEYS)}")
+    full: dict[str, Any] = json.loads(json.dumps(dict(manifest)))  # deep copy; proves JSON-able
+    app = full.get("application")
+    c, h, w = net.obs_shape
+    defaults = _DEFAULT_NAMES.get(app, {}) if isinstance(app, str) else {}
+    full["format"] = FORMAT
+    full["format_version"] = FORMAT_VERSION
+    full["architecture"] = net.spec
+    obs = dict(full.get("observation") or {})
+    obs.setdefault("channels", c)
+    obs.setdefault("height", h)
+    obs.setdefault("width", w)
+    default_channels = defaults.get("channel_names")
+    if default_channels is None or len(default_channels) != c:
+        default_channels = [f"channel_{i}" for i in range(c)]
+    obs.setdefault("channel_names", default_channels)
+    full["observation"] = obs
+    default_actions = defaults.get("actions")
+    if default_actions is None or len(default_actions) != net.num_actions:
+        default_actions = [f"action_{i}" for i in range(net.num_actions)]
+    full.setdefault("actions", default_actions)
+    full.setdefault("environment", {})
+    full.setdefault("metrics", {})
+    training = dict(full.get("training") or {})
+    training.setdefault("code_version", medc_training.__version__)
+    if "git_commit" not in training:
+        training["git_commit"] = _git_commit()
+    full["training"] = training
+    return validate_manifest(full)
+
+
+def _git_commit() -> str | None:
+    """HEAD of the repository this code runs from, or None when it is not a git checkout."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+            capture_output=True, text=True, timeout=5, check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = out.stdout.strip()
+    return commit if out.returncode == 0 and len(commit) == 40 else None
+
+
+def _atomic_write(target: Path, data: bytes) -> None:
+    # A killed writer must never leave a half-written model where a reader (or resume) looks.
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+# ---------------------------------------------------------------------------------------------
+# Manifest validation
+
+
+def _is_scalar(value: Any) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return value is None or isinstance(value, str | int | bool)
+
+
+def _check_int(value: Any, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise BundleError(f"manifest: {what} must be a positive integer, got {value!r}")
+    return value
+
+
+def _check_names(value: Any, count: int, what: str) -> None:
+    if not isinstance(value, list) or not all(isinstance(n, str) and n for n in value):
+        raise BundleError(f"manifest: {what} must be a list of non-empty strings")
+    if len(value) != count:
+        raise BundleError(f"manifest: {what} lists {len(value)} names but the network has {count}")
+    if len(set(value)) != len(value):
+        raise BundleError(f"manifest: {what} has duplicate names")
+
+
+def validate_manifest(manifest: Any) -> dict[str, Any]:
+    """Check a complete manifest (as stored in a bundle); return it with a normalised architecture.
+
+    Cross-checks the claims against each other: the observation shape and the action count must
+    be the architecture's, a ``grid`` environment attribute must match the observation's size, and
+    the application must be one this code knows.
+    """
+    if not isinstance(manifest, dict):
+        raise BundleError(f"manifest must be a JSON object, got {type(manifest).__name__}")
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS)
+    if unknown:
+        raise BundleError(f"manifest: unknown keys {unknown}; allowed: {sorted(_MANIFEST_KEYS)}")
+    missing = sorted(_MANIFEST_KEYS - {"description"} - set(manifest))
+    if missing:
+        raise BundleError(f"manifest: missing keys {missing}")
+    if manifest["format"] != FORMAT:
+        raise BundleError(f"manifest: format is {manifest['format']!r}, expected {FORMAT!r}")
+    version = manifest["format_version"]
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise BundleError(f"manifest: format_version must be an integer, got {version!r}")
+    if version != FORMAT_VERSION:
+        newer = " (written by a newer medc_training; upgrade to load it)" if version > FORMAT_VERSION else ""
+        raise BundleError(f"manifest: format_version {version} is not supported, expected "
+                          f"{FORMAT_VERSION}{newer}")
+    app = manifest["application"]
+    if app not in KNOWN_APPLICATIONS:
+        raise BundleError(f"manifest: unknown application {app!r}; known: {', '.join(KNOWN_APPLICATIONS)}")
+    if "description" in manifest and not isinstance(manifest["description"], str):
+        raise BundleError("manifest: description must be a string")
+    for section in ("environment", "training", "metrics"):
+        value = manifest[section]
+        if not isinstance(value, dict):
+            raise BundleError(f"manifest: {section} must be an object, got {type(value).__name__}")
+        # Environment attributes feed the registry's distance D_m; they must be flat scalars.
+        flat = section == "environment"
+        for key, item in value.items():
+            if flat and not _is_scalar(item):
+                raise BundleError(
+                    f"manifest: environment.{key} must be a finite number, bool or string, got {item!r}"
+                )
+            if section == "metrics" and not _is_scalar(item):
+                raise BundleError(f"manifest: metrics.{key} must be a finite number, bool, string or null")
+    try:
+        spec = validate_spec(manifest["architecture"])
+    except SpecError as exc:
+        raise BundleError(f"manifest: invalid architecture: {exc}") from None
+    obs = manifest["observation"]
+    if not isinstance(obs, dict) or set(obs) != {"channels", "height", "width", "channel_names"}:
+        raise BundleError("manifest: observation must be {channels, height, width, channel_names}")
+    shape = tuple(_check_int(obs[k], f"observation.{k}") for k in ("channels", "height", "width"))
+    net_shape = (spec["input"]["channels"], spec["input"]["height"], spec["input"]["width"])
+    if shape != net_shape:
+        raise BundleError(f"manifest: observation shape {list(shape)} does not match the architecture's "
+                          f"input {list(net_shape)}")
+    _check_names(obs["channel_names"], shape[0], "observation.channel_names")
+    num_actions = spec["layers"][-1]["num_actions"]
+    _check_names(manifest["actions"], num_actions, "actions")
+    grid = manifest["environment"].get("grid")
+    if grid is not None and (grid != shape[1] or grid != shape[2]):
+        raise BundleError(f"manifest: environment.grid is {grid!r} but the observation is "
+                          f"{shape[1]}x{shape[2]}")
+    out = dict(manifest)
+    out["architecture"] = spec
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+
+@dataclass(frozen=True)
+class PolicyBundle:
+    """A loaded, verified bundle: its manifest and the rebuilt network (in eval mode)."""
+
+    manifest: dict[str, Any]
+    net: ActorCritic
+    sha256: str
+
+    @property
+    def application(self) -> str:
+        return self.manifest["application"]
+
+    @property
+    def obs_shape(self) -> tuple[int, int, int]:
+        return self.net.obs_shape
+
+    @property
+    def num_actions(self) -> int:
+        return self.net.num_actions
+
+    @property
+    def action_names(self) -> list[str]:
+        return list(self.manifest["actions"])
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def to(self, device: torch.device | str) -> PolicyBundle:
+        """The same policy on ``device`` (a new bundle object; this one is unchanged)."""
+        net = ActorCritic(self.net.spec)
+        net.load_state_dict(self.net.state_dict())
+        return PolicyBundle(self.manifest, net.to(device).eval(), self.sha256)
+
+    def _logits(self, obs: torch.Tensor | np.ndarray, mask: torch.Tensor | np.ndarray | None) -> torch.Tensor:
+        device = self.device
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=device)
+        with torch.no_grad():
+            logits, _ = self.net(obs_t)
+        if mask is not None:
+            mask_t = torch.as_tensor(mask, dtype=torch.bool, device=device)
+            if mask_t.shape != logits.shape:
+                raise ValueError(f"mask must have shape {list(logits.shape)}, got {list(mask_t.shape)}")
+            logits = masked_logits(logits, mask_t)
+        return logits
+
+    def action_probs(self, obs: torch.Tensor | np.ndarray, mask: torch.Tensor | np.ndarray | None = None
+                     ) -> torch.Tensor:
+        """Action probabilities ``[M, A]`` for observations ``[M, C, H, W]``; disallowed moves get 0."""
+        return torch.softmax(self._logits(obs, mask), dim=-1)
+
+    def act(self, obs: torch.Tensor | np.ndarray, mask: torch.Tensor | np.ndarray | None = None,
+            greedy: bool = True, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Actions int64 ``[M]``: the most probable allowed move, or a sample when ``greedy=False``."""
+        logits = self._logits(obs, mask)
+        if greedy:
+            return logits.argmax(dim=-1)
+        return torch.multinomial(torch.softmax(logits, dim=-1), 1, generator=generator).squeeze(-1)
+
+
+def load_bundle(source: str | os.PathLike[str] | bytes | bytearray | memoryview,
+                device: torch.device | str = "cpu") -> PolicyBundle:
+    """Load and verify a bundle from a path or from its bytes; the net is on ``device`` in eval mode.
+
+    Raises ``BundleError`` for anything that is not a valid bundle (see the module docstring).
+    """
+    data, where = _read(source)
+    manifest, tensors = _parse(data, where, decode=True)
+    net = ActorCritic(manifest["architecture"])
+    net.load_state_dict(tensors, strict=True)
+    return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
+
+
+def read_manifest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> dict[str, Any]:
+    """The validated manifest of a bundle (header, manifest and tensor table checked; weights not decoded)."""
+    data, where = _read(source)
+    manifest, _ = _parse(data, where, decode=False)
+    return manifest
+
+
+def bundle_digest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> str:
+    """Hex sha256 of the bundle's bytes (no validation): a content address independent of IPFS."""
+    data, _ = _read(source)
+    return hashlib.sha256(data).hexdigest()
+
+
+def _read(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> tuple[bytes, str]:
+    if isinstance(source, bytes | bytearray | memoryview):
+        return bytes(source), "bundle bytes"
+    if not isinstance(source, str | os.PathLike):
+        raise TypeError(f"expected a path or bytes, got {type(source).__name__}")
+    path = Path(source)
+    try:
+        size = path.stat().st_size
+        if not path.is_file():
+            raise BundleError(f"{path}: not a regular file")
+        if size > MAX_BUNDLE_BYTES:
+            raise BundleError(f"{path}: {size} bytes is larger than the {MAX_BUNDLE_BYTES} byte limit")
+        return path.read_bytes(), str(path)
+    except FileNotFoundError:
+        raise BundleError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise BundleError(f"{path}: is a directory, not a bundle file") from None
+    except OSError as exc:
+        raise BundleError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    # Two entries with one name would let a reader and a checker see different tensors.
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"duplicate key {key!r}")
+        out[key] = value
+    return out
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"non-standard JSON constant {name}")
+
+
+def _parse_header(data: bytes, where: str) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """Check the safetensors container; return (manifest JSON, tensor table, data start)."""
+    if len(data) < 8:
+        raise BundleError(f"{where}: {len(data)} bytes is too short to be a safetensors file")
+    (header_len,) = struct.unpack("<Q", data[:8])
+    if header_len > MAX_HEADER_BYTES:
+        raise BundleError(f"{where}: header claims {header_len} bytes, over the {MAX_HEADER_BYTES} "
+                          "byte limit (not a bundle, or corrupted)")
+    if 8 + header_len > len(data):
+        raise BundleError(f"{where}: truncated: header needs {header_len} bytes but only "
+                          f"{len(data) - 8} follow")
+    try:
+        header = json.loads(data[8:8 + header_len].decode("utf-8"), object_pairs_hook=_no_duplicates,
+                            parse_constant=_reject_constant)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise BundleError(f"{where}: header is not valid JSON ({exc}); not a safetensors file") from None
+    if not isinstance(header, dict):
+        raise BundleError(f"{where}: header must be a JSON object")
+    meta = header.pop("__metadata__", None)
+    if not isinstance(meta, dict) or MANIFEST_KEY not in meta:
+        raise BundleError(f"{where}: no '{MANIFEST_KEY}' in the safetensors metadata: "
+                          "a safetensors file, but not a MEDC policy bundle")
+    if not isinstance(meta[MANIFEST_KEY], str):
+        raise BundleError(f"{where}: metadata '{MANIFEST_KEY}' must be a JSON string")
+    try:
+        manifest = json.loads(meta[MANIFEST_KEY], object_pairs_hook=_no_duplicates,
+                              parse_constant=_reject_constant)
+    except ValueError as exc:
+        raise BundleError(f"{where}: manifest is not valid JSON ({exc})") from None
+    return manifest, header, 8 + header_len
+
+
+def _check_table(table: dict[str, Any], data_len: int, where: str) -> None:
+    """Each entry is F32 with a shape whose size matches its byte range; ranges tile the data exactly."""
+    spans = []
+    for name, entry in table.items():
+        if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
+            raise BundleError(f"{where}: tensor {name!r}: entry must have dtype, shape, data_offsets")
+        if entry["dtype"] not in _DTYPE_SIZES:
+            raise BundleError(f"{where}: tensor {name!r} has dtype {entry['dtype']!r}; bundles hold F32 only")
+        shape, offsets = entry["shape"], entry["data_offsets"]
+        if not isinstance(shape, list) or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0
+                                                  for d in shape):
+            raise BundleError(f"{where}: tensor {name!r} has an invalid shape {shape!r}")
+        if (not isinstance(offsets, list) or len(offsets) != 2
+                or not all(isinstance(o, int) and not isinstance(o, bool) for o in offsets)
+                or not 0 <= offsets[0] <= offsets[1]):
+            raise BundleError(f"{where}: tensor {name!r} has invalid data_offsets {offsets!r}")
+        if offsets[1] - offsets[0] != math.prod(shape) * _DTYPE_SIZES[entry["dtype"]]:
+            raise BundleError(f"{where}: tensor {name!r}: shape {shape} does not fit its "
+                              f"{offsets[1] - offsets[0]} bytes")
+        spans.append((offsets[0], offsets[1], name))
+    spans.sort()
+    cursor = 0
+    for start, end, name in spans:
+        if start != cursor:
+            raise BundleError(f"{where}: tensor {name!r} data does not follow the previous tensor "
+                              "(overlap or gap): corrupted file")
+        cursor = end
+    if cursor > data_len:
+        raise BundleError(f"{where}: truncated: tensors need {cursor} data bytes but only {data_len} "
+                          "are present")
+    if cursor < data_len:
+        raise BundleError(f"{where}: {data_len - cursor} unexpected bytes after the last tensor")
+
+
+def _parse(data: bytes, where: str, decode: bool) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    raw_manifest, table, start = _parse_header(data, where)
+    _check_table(table, len(data) - start, where)
+    try:
+        manifest = validate_manifest(raw_manifest)
+    except BundleError as exc:
+        raise BundleError(f"{where}: {exc}") from None
+    expected = spec_tensor_shapes(manifest["architecture"])
+    missing = sorted(set(expected) - set(table))
+    extra = sorted(set(table) - set(expected))
+    if missing:
+        raise BundleError(f"{where}: missing tensors {missing} required by the architecture")
+    if extra:
+        raise BundleError(f"{where}: unexpected tensors {extra} not in the architecture")
+    for name, shape in expected.items():
+        stored = tuple(table[name]["shape"])
+        if stored != shape:
+            raise BundleError(f"{where}: tensor {name!r} has shape {list(stored)}, the architecture "
+                              f"needs {list(shape)}")
+    if not decode:
+        return manifest, {}
+    try:
+        tensors = _st_load(data)
+    except Exception as exc:  # safetensors raises its own error types; the header was already vetted
+        raise BundleError(f"{where}: cannot decode tensors: {exc}") from None
+    for name, tensor in tensors.items():
+        if not torch.isfinite(tensor).all():
+            raise BundleError(f"{where}: tensor {name!r} contains NaN or infinite values")
+    return manifest, tensors
+
+
+# ---------------------------------------------------------------------------------------------
+# Training checkpoints (no pickle)
+
+_STATE_KEY = "medc.state"
+
+
+def save_state(path: str | os.PathLike[str], state: Mapping[str, Any]) -> Path:
+    """Write nested training state (e.g. ``{"model": net.state_dict(), "optimizer":
+    opt.state_dict(), "rng": torch.get_rng_state(), "step": 40000}``) to one safetensors file.
+
+    Tensors and numpy arrays anywhere in the structure are stored as named tensors; dicts (any
+    str/int/float/bool/None keys), lists, tuples and JSON scalars go to the metadata as JSON.
+    The write is atomic (temp file + rename), so a run killed mid-save keeps its previous
+    checkpoint. Read it back with ``load_state``.
+    """
+    tensors: dict[str, torch.Tensor] = {}
+    skeleton = _encode(state, "s", tensors)
+    data = _st_save(tensors, metadata={_STATE_KEY: json.dumps(skeleton)})
+    target = Path(path)
+    _atomic_write(target, data)
+    return target
+
+
+def load_state(path: str | os.PathLike[str], device: torch.device | str = "cpu") -> dict[str, Any]:
+    """Read a ``save_state`` file; tensors go to ``device`` (numpy arrays come back as numpy)."""
+    data, where = _read(path)
+    try:
+        (header_len,) = struct.unpack("<Q", data[:8])
+        header = json.loads(data[8:8 + header_len])
+        skeleton = json.loads(header["__metadata__"][_STATE_KEY])
+        tensors = _st_load(data)
+    except Exception as exc:
+        raise BundleError(f"{where}: not a training checkpoint written by save_state ({exc})") from None
+    return _decode(skeleton, tensors, torch.device(device))
+
+
+def _encode(obj: Any, name: str, tensors: dict[str, torch.Tensor]) -> Any:
+    if isinstance(obj, torch.Tensor):
+        tensors[name] = obj.detach().to("cpu").contiguous().clone()
+        return {"__tensor__": name}
+    if isinstance(obj, np.ndarray):
+        tensors[name] = torch.from_numpy(np.ascontiguousarray(obj).copy())
+        return {"__ndarray__": name}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        # JSON keys are strings only; optimizer state is keyed by int parameter ids.
+        return {"__map__": [[k, _encode(v, f"{name}.{i}", tensors)] for i, (k, v) in enumerate(obj.items())]}
+    if isinstance(obj, tuple):
+        return {"__tuple__": [_encode(v, f"{name}.{i}", tensors) for i, v in enumerate(obj)]}
+    if isinstance(obj, list):
+        return [_encode(v, f"{name}.{i}", tensors) for i, v in enumerate(obj)]
+    if obj is None or isinstance(obj, str | int | float | bool):
+        return obj
+    raise TypeError(f"save_state: cannot store {type(obj).__name__} at {name!r}")
+
+
+def _decode(obj: Any, tensors: dict[str, torch.Tensor], device: torch.device) -> Any:
+    if isinstance(obj, dict):
+        if "__tensor__" in obj:
+            return tensors[obj["__tensor__"]].to(device)
+        if "__ndarray__" in obj:
+            return tensors[obj["__ndarray__"]].numpy()
+        if "__tuple__" in obj:
+            return tuple(_decode(v, tensors, device) for v in obj["__tuple__"])
+        return {k: _decode(v, tensors, device) for k, v in obj["__map__"]}
+    if isinstance(obj, list):
+        return [_decode(v, tensors, device) for v in obj]
+    return obj
