@@ -1,0 +1,63 @@
+"""The three multi-agent applications of the paper, as batched cores and PettingZoo envs.
+
+``make_batched(name, num_envs=B, device=..., seed=..., **options)`` returns the batched core
+(torch tensors, B environments stepped at once, auto-reset) that training uses;
+``make_env(name, **options)`` returns a PettingZoo ``ParallelEnv`` over one environment.
+See docs/environments.md.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from medc_training.envs.core import BatchedEnv, StepOutput
+
+ENV_NAMES: tuple[str, ...] = ("target_localization", "fleet_coordination", "maze_cleaning")
+
+__all__ = ["ENV_NAMES", "BatchedEnv", "StepOutput", "make_batched", "make_env"]
+
+
+def _core_class(name: str) -> type[BatchedEnv]:
+    if name == "target_localization":
+        from medc_training.envs.target_localization import TargetLocalization
+
+        return TargetLocalization
+    if name == "fleet_coordination":
+        from medc_training.envs.fleet_coordination import FleetCoordination
+
+        return FleetCoordination
+    if name == "maze_cleaning":
+        from medc_training.envs.maze_cleaning import MazeCleaning
+
+        return MazeCleaning
+    raise ValueError(f"unknown environment {name!r}; choose one of {', '.join(ENV_NAMES)}")
+
+
+def make_batched(
+    name: str, num_envs: int = 1, device: str = "cpu", seed: int | None = None, **options: Any
+) -> BatchedEnv:
+    """The batched core of application ``name`` with ``num_envs`` environments on ``device``.
+
+    Options per application (all keyword; unknown ones raise ValueError): see
+    docs/environments.md, e.g. target_localization: agents, walls, grid, max_steps,
+    reward_shaping, noise.
+    """
+    cls = _core_class(name)
+    try:
+        return cls(num_envs=num_envs, device=device, seed=seed, **options)
+    except TypeError as exc:
+        import inspect
+
+        allowed = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
+        raise ValueError(f"bad option for {name}: {exc}; allowed options: {', '.join(allowed)}") from exc
+
+
+def make_env(name: str, **options: Any):
+    """A PettingZoo ``ParallelEnv`` over one environment of application ``name``.
+
+    Options: those of :func:`make_batched` (except num_envs) plus ``render_mode``
+    (None or "rgb_array").
+    """
+    from medc_training.envs.parallel import GridParallelEnv
+
+    return GridParallelEnv(name, **options)

@@ -1,0 +1,97 @@
+"""Grid helpers shared by the three applications: the 8 moves, masks, batched BFS, sampling.
+
+Cells are (row, col) with row 0 at the top (north). Every function works on batched torch
+tensors on any device and contains no Python loop over the batch.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+#: The 8 one-cell moves, in action-index order: N, NE, E, SE, S, SW, W, NW, as (drow, dcol).
+ACTIONS: tuple[tuple[int, int], ...] = ((-1, 0), (-1, 1), (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1))
+ACTION_NAMES: tuple[str, ...] = ("N", "NE", "E", "SE", "S", "SW", "W", "NW")
+#: OPPOSITE[a] is the move in the opposite direction: (a + 4) % 8.
+OPPOSITE: tuple[int, ...] = tuple((a + 4) % 8 for a in range(8))
+
+_DELTA_CACHE: dict[torch.device, torch.Tensor] = {}
+
+
+def action_deltas(device: torch.device | str) -> torch.Tensor:
+    """int64 [8,2] (drow, dcol) of each move on ``device`` (cached)."""
+    device = torch.device(device)
+    if device not in _DELTA_CACHE:
+        _DELTA_CACHE[device] = torch.tensor(ACTIONS, dtype=torch.long, device=device)
+    return _DELTA_CACHE[device]
+
+
+def pad_blocked(walls: torch.Tensor) -> torch.Tensor:
+    """bool [B,H+2,W+2]: ``walls`` with a one-cell blocked border (off-grid counts as wall)."""
+    return F.pad(walls, (1, 1, 1, 1), value=True)
+
+
+def neighbour_index(positions: torch.Tensor, width: int, deltas: torch.Tensor) -> torch.Tensor:
+    """int64 [B,N,A]: flat index, in a grid padded by one cell, of each agent's cell after each move.
+
+    ``width`` is the unpadded grid width; ``positions`` int64 [B,N,2] (row, col).
+    """
+    rows = positions[..., 0:1] + 1 + deltas[:, 0]
+    cols = positions[..., 1:2] + 1 + deltas[:, 1]
+    return rows * (width + 2) + cols
+
+
+def move_mask(positions: torch.Tensor, blocked_padded: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+    """bool [B,N,A]: True where the move lands on an in-grid free cell.
+
+    ``blocked_padded`` bool [B,H+2,W+2] from :func:`pad_blocked`.
+    """
+    b, n = positions.shape[:2]
+    width = blocked_padded.shape[-1] - 2
+    idx = neighbour_index(positions, width, deltas).view(b, -1)
+    return ~blocked_padded.view(b, -1).gather(1, idx).view(b, n, -1)
+
+
+def gather_cells(grid: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    """grid [B,H,W], positions int64 [B,N,2] -> grid values at the positions, [B,N]."""
+    b = positions.shape[0]
+    width = grid.shape[-1]
+    idx = positions[..., 0] * width + positions[..., 1]
+    return grid.reshape(b, -1).gather(1, idx)
+
+
+def bfs_distance(free: torch.Tensor, sources: torch.Tensor, check_every: int = 4) -> torch.Tensor:
+    """Batched breadth-first search over 8-connected grids.
+
+    free:    bool [B,H,W] cells an agent may stand on.
+    sources: bool [B,H,W] start cells (distance 0).
+    Returns float32 [B,H,W]: number of one-cell moves (8 directions, only through free cells)
+    from the nearest source; ``inf`` for walls and unreachable cells.
+
+    Each wave is one 3x3 max-pool over the whole batch, so the cost grows with the longest
+    distance, not with the batch size.
+    """
+    free_f = free.float()
+    reached = (sources & free).float()
+    dist = torch.where(reached > 0, 0.0, float("inf"))
+    step = 0
+    while True:
+        step += 1
+        grown = F.max_pool2d(reached.unsqueeze(1), 3, stride=1, padding=1).squeeze(1) * free_f
+        new = grown - reached
+        dist = torch.where(new > 0, float(step), dist)
+        reached = grown
+        if step % check_every == 0 and not bool((new > 0).any()):
+            return dist
+
+
+def random_free_cells(free: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
+    """int64 [B,count,2]: ``count`` distinct free cells per grid, uniformly at random.
+
+    ``free`` bool [B,H,W]; every grid must have at least ``count`` free cells.
+    """
+    b, h, w = free.shape
+    scores = torch.rand((b, h * w), generator=generator, device=free.device)
+    scores = scores.masked_fill(~free.view(b, -1), -1.0)
+    idx = scores.topk(count, dim=1).indices
+    return torch.stack((idx // w, idx % w), dim=-1)

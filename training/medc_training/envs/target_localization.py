@@ -1,0 +1,486 @@
+"""Target localization (paper Section V-A, notation ``AyWz``): a team finds a radioactive source.
+
+World
+    A G×G grid of cells (default G=30, the paper's 5 km × 5 km area, one cell ≈ 167 m).
+    ``walls`` axis-aligned wall segments of random length in [max(2, G//6), max(2, G//3)]
+    cells are placed at random; segments never overlap or touch (not even diagonally, so no
+    diagonal gap between two walls exists) and the layout is resampled until every free cell
+    is reachable from every other. The target (source) and the agents start on distinct
+    random free cells.
+
+Moves
+    Actions 0..7 = N, NE, E, SE, S, SW, W, NW (:data:`ACTIONS`), one cell each. A move off
+    the grid or into a wall is invalid: it is masked out (``mask`` False) and, if taken
+    anyway, the agent stays where it is.
+
+Readings (:func:`sensor_reading`)
+    The reading of a sensor at cell p, from a source at cell s, is::
+
+        I(p) = S * A**k(p) / (1 + d(p, s)**2) + BG
+
+    d = Euclidean distance between cell centres, in cells; S = :data:`SOURCE_STRENGTH`
+    (1000 counts/s: the rate 1 cell from the source, before walls); A =
+    :data:`WALL_ATTENUATION` (0.5, each wall crossed halves the rate); k(p) = number of
+    wall segments the straight line from s to p crosses (counted as entries into wall
+    cells along the line, sampled H+W times, at most 0.71 cell apart); BG = :data:`BACKGROUND`
+    (1 count/s). The ``+1`` in the denominator keeps the reading at the source finite.
+    With ``noise=True`` the reading is a Poisson draw with mean I(p) (counts in 1 s).
+
+Observation of agent i (:func:`build_observations`), 5 maps G×G, float32 in [0, 1]:
+    0 own location (one-hot); 1 team locations (1 where any other agent stands);
+    2 readings: the latest normalised reading per cell visited by the team (0 = never
+    visited; normalised as log(1 + I) / log(1 + S + BG), clipped to [0, 1]); 3 visit
+    counts of the team, divided by :data:`VISIT_SATURATION` and clipped to 1; 4 walls.
+
+Reward, end of episode
+    Sparse team reward :data:`SUCCESS_REWARD` when an agent stands on the target cell; the
+    episode then terminates. After ``max_steps`` steps without success it is truncated.
+    With ``reward_shaping=True`` (the RS baseline) the team also gets, every step,
+    :data:`SHAPING_SCALE` × (decrease of the team's mean BFS distance to the target), where
+    the BFS distance goes around walls and is computed once per episode, at reset.
+
+The pure functions :func:`sensor_reading`, :func:`update_memory` and
+:func:`build_observations` are what the ROS simulator and agent nodes call on data they get
+from topics; the batched core below calls the very same functions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
+from medc_training.envs.grid import (
+    ACTION_NAMES,
+    ACTIONS,
+    OPPOSITE,
+    action_deltas,
+    bfs_distance,
+    gather_cells,
+    move_mask,
+    neighbour_index,
+    pad_blocked,
+    random_free_cells,
+)
+
+__all__ = [
+    "ACTIONS",
+    "ACTION_NAMES",
+    "BACKGROUND",
+    "CHANNELS",
+    "OPPOSITE",
+    "SHAPING_SCALE",
+    "SOURCE_STRENGTH",
+    "SUCCESS_REWARD",
+    "VISIT_SATURATION",
+    "WALL_ATTENUATION",
+    "TargetLocalization",
+    "build_observations",
+    "check_options",
+    "generate_layouts",
+    "max_walls",
+    "normalise_reading",
+    "sensor_reading",
+    "update_memory",
+    "wall_length_range",
+]
+
+SOURCE_STRENGTH = 1000.0
+WALL_ATTENUATION = 0.5
+BACKGROUND = 1.0
+VISIT_SATURATION = 10.0
+SUCCESS_REWARD = 10.0
+SHAPING_SCALE = 0.1
+CHANNELS: tuple[str, ...] = ("own_location", "team_locations", "readings", "visit_counts", "walls")
+
+_MAX_GRID = 256
+_MAX_AGENTS = 64
+
+
+def wall_length_range(grid: int) -> tuple[int, int]:
+    """(shortest, longest) wall segment length, in cells, on a ``grid``×``grid`` area."""
+    lo = max(2, grid // 6)
+    return lo, max(lo, grid // 3)
+
+
+def max_walls(grid: int) -> int:
+    """Most wall segments a ``grid``×``grid`` area accepts.
+
+    Each segment with the one-cell clearance around it may cover 3 × (longest + 2) cells;
+    together they may cover at most a third of the area, so that random placement of
+    non-touching segments succeeds quickly.
+    """
+    _, longest = wall_length_range(grid)
+    return (grid * grid) // (3 * 3 * (longest + 2))
+
+
+def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[int, int, int, int]:
+    """Validate the scenario options; raise ValueError saying what is allowed."""
+    grid = check_int("grid", grid, 5, _MAX_GRID)
+    agents = check_int("agents", agents, 1, min(_MAX_AGENTS, grid * grid // 4))
+    walls = check_int("walls", walls, 0, max_walls(grid))
+    max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
+    return agents, walls, grid, max_steps
+
+
+def normalise_reading(readings: torch.Tensor) -> torch.Tensor:
+    """Map raw readings (counts/s) to [0, 1]: log(1 + I) / log(1 + S + BG), clipped."""
+    scale = 1.0 / torch.log1p(torch.tensor(SOURCE_STRENGTH + BACKGROUND)).item()
+    return (torch.log1p(readings) * scale).clamp_(0.0, 1.0)
+
+
+def sensor_reading(
+    positions: torch.Tensor,
+    target: torch.Tensor,
+    walls: torch.Tensor,
+    *,
+    noise: bool = False,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Radiation readings (counts/s) of sensors at ``positions`` (formula: module docstring).
+
+    positions: int64 [B,N,2] (row, col) of the N sensors in each of B areas.
+    target:    int64 [B,2] source cell.
+    walls:     bool [B,H,W] wall cells.
+    noise:     draw Poisson counts with the exact reading as mean.
+    Returns float32 [B,N].
+    """
+    b, n = positions.shape[:2]
+    h, w = walls.shape[-2:]
+    src = target.to(torch.float32).unsqueeze(1)  # [B,1,2]
+    delta = positions.to(torch.float32) - src  # [B,N,2]
+    # H+W samples put consecutive points at most 1/sqrt(2) cell apart, so every crossing of a
+    # one-cell-thick wall strip (chord >= 1 cell) is seen; only clipped segment corners can be missed.
+    samples = h + w
+    t = (torch.arange(samples, device=positions.device, dtype=torch.float32) + 0.5) / samples
+    rows = (src[..., 0:1] + delta[..., 0:1] * t).round_()  # [B,N,S]
+    cols = (src[..., 1:2] + delta[..., 1:2] * t).round_()
+    idx = rows.mul_(w).add_(cols).long().view(b, -1)
+    inside = walls.reshape(b, -1).gather(1, idx).view(b, n, samples)
+    # Each run of consecutive wall samples is one wall crossed (the source cell is free).
+    entries = inside[..., 0].to(torch.float32) + (inside[..., 1:] > inside[..., :-1]).sum(-1)
+    dist2 = (delta * delta).sum(-1)
+    rate = SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
+    if noise:
+        rate = torch.poisson(rate, generator=generator)
+    return rate
+
+
+def update_memory(
+    reading_map: torch.Tensor,
+    visit_map: torch.Tensor,
+    positions: torch.Tensor,
+    readings: torch.Tensor,
+) -> None:
+    """Record the team's new readings, in place.
+
+    reading_map: float32 [B,H,W] latest normalised reading per cell (0 = never visited).
+    visit_map:   float32 [B,H,W] number of team visits per cell (raw counts).
+    positions:   int64 [B,N,2] where the readings were taken.
+    readings:    float32 [B,N] raw readings (counts/s) from :func:`sensor_reading`.
+    """
+    b = positions.shape[0]
+    w = reading_map.shape[-1]
+    idx = positions[..., 0] * w + positions[..., 1]
+    reading_map.view(b, -1).scatter_(1, idx, normalise_reading(readings))
+    visit_map.view(b, -1).scatter_add_(1, idx, torch.ones_like(readings))
+
+
+def build_observations(
+    positions: torch.Tensor,
+    reading_map: torch.Tensor,
+    visit_map: torch.Tensor,
+    walls: torch.Tensor,
+    out: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Every agent's 5-map observation (channels: :data:`CHANNELS`).
+
+    positions:   int64 [B,N,2] team positions (row, col).
+    reading_map: float32 [B,H,W] from :func:`update_memory`.
+    visit_map:   float32 [B,H,W] from :func:`update_memory` (raw counts).
+    walls:       bool or float [B,H,W].
+    out:         optional float32 [B,N,5,H,W] contiguous tensor to write into.
+    Returns float32 [B,N,5,H,W]; agent i's own cell is marked in channel 0 and the cells
+    of every other agent in channel 1.
+    """
+    b, n = positions.shape[:2]
+    h, w = walls.shape[-2:]
+    hw = h * w
+    if out is None:
+        out = torch.empty((b, n, 5, h, w), dtype=torch.float32, device=positions.device)
+    out[:, :, :2].zero_()
+    out[:, :, 2].copy_(reading_map.unsqueeze(1))
+    out[:, :, 3].copy_(_visit_norm(visit_map).unsqueeze(1))
+    out[:, :, 4].copy_(walls.unsqueeze(1))
+    cell = positions[..., 0] * w + positions[..., 1]  # [B,N]
+    agent_base = (torch.arange(b * n, device=positions.device).view(b, n) * 5) * hw  # [B,N]
+    flat = out.view(-1)
+    flat[agent_base + cell] = 1.0
+    if n > 1:
+        # Agent i's channel 1 gets every other agent j's cell: index [B, i, j] with j != i.
+        others = ~torch.eye(n, dtype=torch.bool, device=positions.device)
+        idx = (agent_base + hw).unsqueeze(2) + cell.unsqueeze(1)  # [B,N(i),N(j)]
+        flat[idx[:, others]] = 1.0
+    return out
+
+
+def _visit_norm(visits: torch.Tensor) -> torch.Tensor:
+    return (visits * (1.0 / VISIT_SATURATION)).clamp_(max=1.0)
+
+
+def generate_layouts(
+    count: int,
+    grid: int,
+    walls: int,
+    agents: int,
+    generator: torch.Generator,
+    device: torch.device,
+) -> dict[str, torch.Tensor]:
+    """Sample ``count`` random episode layouts at once (vectorised rejection sampling).
+
+    Returns ``walls`` bool [K,G,G], ``target`` int64 [K,2], ``positions`` int64 [K,N,2]
+    and ``distance`` float32 [K,G,G] (BFS moves to the target around walls; inf on walls).
+    """
+    lo, hi = wall_length_range(grid)
+    wall_map = torch.zeros((count, grid, grid), dtype=torch.bool, device=device)
+    target = torch.zeros((count, 2), dtype=torch.long, device=device)
+    positions = torch.zeros((count, agents, 2), dtype=torch.long, device=device)
+    distance = torch.empty((count, grid, grid), dtype=torch.float32, device=device)
+    todo = torch.arange(count, device=device)
+    for _attempt in range(10_000):
+        k = len(todo)
+        if walls > 0:
+            wm = _sample_walls(k, grid, walls, lo, hi, generator, device)
+        else:
+            wm = torch.zeros((k, grid, grid), dtype=torch.bool, device=device)
+        free = ~wm
+        cells = random_free_cells(free, agents + 1, generator)
+        src = torch.zeros_like(free)
+        src.view(k, -1)[torch.arange(k, device=device), cells[:, 0, 0] * grid + cells[:, 0, 1]] = True
+        d = bfs_distance(free, src)
+        wall_map[todo], target[todo], positions[todo], distance[todo] = wm, cells[:, 0], cells[:, 1:], d
+        # Connected: every free cell was reached from the target.
+        bad = (torch.isinf(d) & free).flatten(1).any(1)
+        if not bool(bad.any()):
+            return {"walls": wall_map, "target": target, "positions": positions, "distance": distance}
+        todo = todo[bad]
+    raise RuntimeError("could not place non-touching, connected walls; use fewer walls or a larger grid")
+
+
+def _sample_walls(
+    count: int, grid: int, walls: int, lo: int, hi: int, generator: torch.Generator, device: torch.device
+) -> torch.Tensor:
+    """bool [count,G,G] maps of ``walls`` non-touching axis-aligned segments each."""
+    segs = torch.empty((count, walls, 4), dtype=torch.long, device=device)
+    todo = torch.arange(count, device=device)
+    for _attempt in range(10_000):
+        k = len(todo)
+        u = torch.rand((k, walls, 4), generator=generator, device=device)
+        length = lo + (u[..., 0] * (hi - lo + 1)).long().clamp_(max=hi - lo)
+        vertical = u[..., 1] < 0.5
+        span_r = torch.where(vertical, length, 1)
+        span_c = torch.where(vertical, 1, length)
+        r0 = (u[..., 2] * (grid - span_r + 1)).long()
+        c0 = (u[..., 3] * (grid - span_c + 1)).long()
+        segs[todo] = torch.stack((r0, c0, r0 + span_r - 1, c0 + span_c - 1), dim=-1)
+        s = segs[todo]
+        a, b_ = s.unsqueeze(2), s.unsqueeze(1)  # [k,Z,1,4], [k,1,Z,4]
+        gap_r = torch.maximum(b_[..., 0] - a[..., 2], a[..., 0] - b_[..., 2])
+        gap_c = torch.maximum(b_[..., 1] - a[..., 3], a[..., 1] - b_[..., 3])
+        # Two segments touch (or overlap) when their Chebyshev gap is at most one cell.
+        touch = torch.maximum(gap_r, gap_c) <= 1
+        touch &= ~torch.eye(walls, dtype=torch.bool, device=device)
+        bad = touch.flatten(1).any(1)
+        if not bool(bad.any()):
+            break
+        todo = todo[bad]
+    else:
+        raise RuntimeError("could not place non-touching walls; use fewer walls or a larger grid")
+    rows = torch.arange(grid, device=device)
+    in_r = (rows >= segs[..., 0:1]) & (rows <= segs[..., 2:3])  # [K,Z,G]
+    in_c = (rows >= segs[..., 1:2]) & (rows <= segs[..., 3:4])
+    return (in_r.unsqueeze(-1) & in_c.unsqueeze(-2)).any(1)
+
+
+class TargetLocalization(BatchedEnv):
+    """Batched target localization core (see the module docstring for the rules).
+
+    ``make_batched("target_localization", num_envs=B, device="cpu", seed=0, agents=3,
+    walls=2, grid=30, max_steps=100, reward_shaping=False, noise=False, copy_obs=True)``.
+
+    The observations live in one buffer that each step updates in place, touching only the
+    cells that changed (the agents' old and new cells), and is rebuilt only for
+    environments that reset. With ``copy_obs=True`` (default) ``obs`` and ``final_obs`` are
+    fresh tensors; with ``copy_obs=False`` they are that buffer and a reused final-obs
+    buffer, valid until the next ``step``/``reset`` (copy them into rollout storage
+    before stepping again). The second mode avoids writing B·N·5·G·G floats to memory per
+    step and is the fast path for training loops that copy anyway.
+    """
+
+    name = "target_localization"
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        agents: int = 3,
+        walls: int = 2,
+        grid: int = 30,
+        max_steps: int = 100,
+        reward_shaping: bool = False,
+        noise: bool = False,
+        copy_obs: bool = True,
+    ) -> None:
+        self.num_agents, self.num_walls, self.grid, self.max_steps = check_options(
+            agents, walls, grid, max_steps
+        )
+        self.reward_shaping = check_bool("reward_shaping", reward_shaping)
+        self.noise = check_bool("noise", noise)
+        self.copy_obs = check_bool("copy_obs", copy_obs)
+        super().__init__(num_envs, device, seed)
+        self.num_actions = len(ACTIONS)
+        self.obs_shape = (len(CHANNELS), self.grid, self.grid)
+        self._deltas = action_deltas(self.device)
+        # Layouts are generated in chunks and handed out on reset: one batched BFS serves
+        # many episodes, so auto-resets cost little inside the step loop.
+        self._chunk = max(64, self.num_envs)
+        self._pool: dict[str, torch.Tensor] | None = None
+        self._pool_next = 0
+        self._started = False
+
+    @property
+    def attributes(self) -> dict[str, Any]:
+        return {
+            "agents": self.num_agents,
+            "walls": self.num_walls,
+            "grid": self.grid,
+            "max_steps": self.max_steps,
+        }
+
+    # -- episode layouts -------------------------------------------------------------------
+    def _take_layouts(self, k: int) -> dict[str, torch.Tensor]:
+        if self._pool is None or self._pool_next + k > len(self._pool["target"]):
+            fresh = generate_layouts(
+                max(self._chunk, k), self.grid, self.num_walls, self.num_agents, self.generator, self.device
+            )
+            if self._pool is not None and self._pool_next < len(self._pool["target"]):
+                fresh = {key: torch.cat((self._pool[key][self._pool_next :], v)) for key, v in fresh.items()}
+            self._pool, self._pool_next = fresh, 0
+        out = {key: v[self._pool_next : self._pool_next + k] for key, v in self._pool.items()}
+        self._pool_next += k
+        return out
+
+    def _start_episodes(self, rows: torch.Tensor | None) -> None:
+        """Load fresh layouts into ``rows`` (all environments when None) and take first readings."""
+        k = self.num_envs if rows is None else len(rows)
+        lay = self._take_layouts(k)
+        blocked = pad_blocked(lay["walls"])
+        dist_pad = torch.nn.functional.pad(lay["distance"], (1, 1, 1, 1), value=float("inf"))
+        zeros = torch.zeros((k, self.grid, self.grid), device=self.device)
+        reading_map, visit_map = zeros, zeros.clone()
+        readings = sensor_reading(
+            lay["positions"], lay["target"], lay["walls"], noise=self.noise, generator=self.generator
+        )
+        update_memory(reading_map, visit_map, lay["positions"], readings)
+        team_dist = gather_cells(lay["distance"], lay["positions"]).mean(1)
+        if rows is None:
+            self.walls, self.blocked_pad, self.dist_pad = lay["walls"].clone(), blocked, dist_pad
+            self.distance = lay["distance"].clone()
+            self.target, self.positions = lay["target"].clone(), lay["positions"].clone()
+            self.reading_map, self.visit_map = reading_map, visit_map
+            self.walls_f = lay["walls"].float()
+            self.team_dist = team_dist
+            self.t = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        else:
+            self.walls[rows], self.blocked_pad[rows], self.dist_pad[rows] = lay["walls"], blocked, dist_pad
+            self.distance[rows] = lay["distance"]
+            self.target[rows], self.positions[rows] = lay["target"], lay["positions"]
+            self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
+            self.walls_f[rows] = lay["walls"].float()
+            self.team_dist[rows] = team_dist
+            self.t[rows] = 0
+
+    # -- API -------------------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if seed is not None:
+            self._seed(seed)
+            self._pool, self._pool_next = None, 0
+        self._start_episodes(None)
+        self._started = True
+        b, n, hw = self.num_envs, self.num_agents, self.grid * self.grid
+        self._obs = build_observations(self.positions, self.reading_map, self.visit_map, self.walls_f)
+        self._final_obs = torch.zeros_like(self._obs) if not self.copy_obs else None
+        # Flat offset of channel 0 of agent (b, i) in the observation buffer.
+        self._agent_base = torch.arange(b * n, device=self.device).view(b, n) * (5 * hw)
+        self._others = ~torch.eye(n, dtype=torch.bool, device=self.device)
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
+
+    def _update_obs(self, old_cell: torch.Tensor, new_cell: torch.Tensor) -> None:
+        """Apply one step's changes to the observation buffer (only the cells that changed)."""
+        hw = self.grid * self.grid
+        flat = self._obs.view(-1)
+        base = self._agent_base  # [B,N]
+        pair_old = base.unsqueeze(2) + old_cell.unsqueeze(1)  # [B,i,j]: agent i's map at j's cell
+        pair_new = base.unsqueeze(2) + new_cell.unsqueeze(1)
+        b = new_cell.shape[0]
+        # Clear before set, so that an agent moving onto a cell another agent just left stays marked.
+        flat[base + old_cell] = 0.0
+        flat[base + new_cell] = 1.0
+        if self.num_agents > 1:
+            flat[pair_old[:, self._others] + hw] = 0.0
+            flat[pair_new[:, self._others] + hw] = 1.0
+        readings = self.reading_map.view(b, -1).gather(1, new_cell).unsqueeze(1).expand_as(pair_new)
+        visits = _visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
+        flat[pair_new + 2 * hw] = readings
+        flat[pair_new + 3 * hw] = visits
+
+    def step(self, actions: torch.Tensor) -> StepOutput:
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = self._check_actions(actions)
+        allowed = self.mask.gather(2, actions.unsqueeze(2))  # [B,N,1]
+        old_cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
+        self.positions = self.positions + self._deltas[actions] * allowed
+        new_cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
+        found = (self.positions == self.target.unsqueeze(1)).all(-1).any(-1)
+        readings = sensor_reading(
+            self.positions, self.target, self.walls, noise=self.noise, generator=self.generator
+        )
+        update_memory(self.reading_map, self.visit_map, self.positions, readings)
+        self._update_obs(old_cell, new_cell)
+        reward = found.float() * SUCCESS_REWARD
+        if self.reward_shaping:
+            team_dist = gather_cells(self.distance, self.positions).mean(1)
+            reward += SHAPING_SCALE * (self.team_dist - team_dist)
+            self.team_dist = team_dist
+        self.t += 1
+        episode_length = self.t.clone()
+        truncated = (self.t >= self.max_steps) & ~found
+        done = found | truncated
+        if bool(done.any()):
+            rows = done.nonzero().squeeze(1)
+            if self.copy_obs:
+                final_obs = self._obs.clone()
+            else:
+                final_obs = self._final_obs
+                final_obs[rows] = self._obs[rows]
+            self._start_episodes(rows)
+            self._obs[rows] = build_observations(
+                self.positions[rows], self.reading_map[rows], self.visit_map[rows], self.walls_f[rows]
+            )
+            obs = self._obs.clone() if self.copy_obs else self._obs
+        else:
+            obs = self._obs.clone() if self.copy_obs else self._obs
+            final_obs = obs if self.copy_obs else self._final_obs
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return StepOutput(obs, self.mask, reward, found, truncated, final_obs, episode_length, found.clone())
+
+    def oracle_action_scores(self) -> torch.Tensor:
+        """float32 [B,N,A]: minus the BFS distance to the target after each move; -inf if invalid."""
+        b, n = self.positions.shape[:2]
+        idx = neighbour_index(self.positions, self.grid, self._deltas).view(b, -1)
+        dist = self.dist_pad.view(b, -1).gather(1, idx).view(b, n, -1)
+        return torch.where(self.mask, -dist, float("-inf"))
