@@ -233,8 +233,6 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
                 total += out * c * k * k + out
                 c = out
             else:
-                if k > h or k > w:
-                    raise SpecError(f"{where}: kernel {k} is larger than its {h}x{w} input")
                 oh = _pool_out(h, k, s, layer["ceil_mode"])
                 ow = _pool_out(w, k, s, layer["ceil_mode"])
             if oh < 1 or ow < 1:
