@@ -51,7 +51,8 @@ if [[ -f tools/package.json ]]; then
   d=$(digest tools/package.json tools/package-lock.json)
   if ! stage_current npm "$d" || [[ ! -d tools/node_modules ]]; then
     say "installing npm tools into tools/node_modules (a few minutes on a cold cache)"
-    (cd tools && if [[ -f package-lock.json ]]; then npm ci --no-audit --no-fund --loglevel=error; else npm install --no-audit --no-fund --loglevel=error; fi)
+    # `npm install` honours package-lock.json; `npm ci` rejects js-ipfs's optional-dependency tree.
+    (cd tools && npm install --no-audit --no-fund --loglevel=error)
     mark npm "$d"
   fi
 fi
