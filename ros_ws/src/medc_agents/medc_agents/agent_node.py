@@ -1,0 +1,39 @@
+"""medc-agent: run one agent node (medc_agents.node.AgentNode) until Ctrl-C.
+
+Usage: ``medc-agent --ros-args -p agent_id:=agent_0 -p policy:=models/team/agent.safetensors``.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+from medc_sim.ros_env import ensure_interfaces
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-agent``."""
+    ensure_interfaces()
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from medc_agents.node import AgentNode
+
+    rclpy.init(args=sys.argv if argv is None else argv)
+    node = None
+    try:
+        node = AgentNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        # A second Ctrl-C (or the launcher's SIGINT) must not cut the clean-up short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

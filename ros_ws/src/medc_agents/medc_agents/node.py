@@ -1,0 +1,203 @@
+"""The agent node: one per agent; observes the team, runs its policy bundle, publishes its move.
+
+Subscribes (names and QoS: medc_sim.contract, docs/ros.md): every team member's pose and
+radiation reading, the walls map, the episode status, and its own and the team's policy topics.
+Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``.
+
+The policy is swapped at runtime by setting the ``policy`` parameter or by publishing a bundle
+path on the policy topics. A content id on the policy topic is passed to the registry bridge's
+``fetch_bundle`` service, which verifies the bundle and sends back its local path. A bundle that
+fails validation is refused (the parameter set fails with the reason) and the old one keeps
+running.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from geometry_msgs.msg import PoseStamped
+from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+from medc_interfaces.srv import FetchBundle
+from medc_sim import contract
+from medc_sim.params import declare
+from nav_msgs.msg import OccupancyGrid
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, strip_cid
+from medc_agents.team_state import TeamObserver
+
+CHANNELS = 5  # medc_training.envs.target_localization.CHANNELS
+NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
+
+
+class AgentNode(Node):
+    """One agent of the team (see the module docstring)."""
+
+    def __init__(self, node_name: str | None = None, agent_id: str | None = None, **kwargs) -> None:
+        super().__init__(node_name or f"medc_{agent_id or 'agent'}", **kwargs)
+        p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        self.agent_id = p(
+            "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
+        )
+        self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+        num_agents = p("agents", 3, "Number of agents in the team", True)
+        grid = p("grid", 30, "Grid side in cells (the policy's observation is 5 x grid x grid)", True)
+        resolution = p("resolution", 1.0, "Cell side in metres (map frame)", True)
+        self.bridge_service = p(
+            "bridge_service",
+            "/medc/registry/fetch_bundle",
+            "Registry bridge service that fetches and verifies a bundle by content id",
+            True,
+        )
+        application = p(
+            "application", "target_localization", "Application a bundle must be trained for", True
+        )
+        threads = p(
+            "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
+        )
+        # A one-observation forward pass is far too small to gain from threads; contention costs ms.
+        torch.set_num_threads(max(1, int(threads)))
+        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution)
+        self.slot = PolicySlot((CHANNELS, grid, grid), NUM_ACTIONS, application or None)
+        self.dropped = 0
+        self.decisions = 0
+        self.swap_listeners: list[Callable[[str, str | None], None]] = []
+        self._last_move: AgentMove | None = None
+        self._fetch_client = None
+
+        initial = p("policy", "", "Path of the policy bundle (.safetensors) to run; set it to swap policies")
+        if initial:
+            try:
+                self.slot.swap(initial)
+                self.get_logger().info(f"running policy {self.slot.current.description}")
+            except PolicyRejected as exc:
+                self.get_logger().error(f"initial policy refused: {exc}")
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        ns = self.namespace_
+        self.move_pub = self.create_publisher(
+            AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
+        )
+        for a in self.observer.ids:
+            self.create_subscription(
+                PoseStamped,
+                contract.pose_topic(ns, a),
+                lambda m, a=a: self._guard("pose", self.observer.add_pose, a, m),
+                contract.SENSOR_QOS,
+            )
+            self.create_subscription(
+                RadiationReading,
+                contract.radiation_topic(ns, a),
+                lambda m, a=a: self._guard("radiation", self.observer.add_reading, a, m),
+                contract.SENSOR_QOS,
+            )
+        self.create_subscription(
+            OccupancyGrid,
+            contract.map_topic(ns),
+            lambda m: self._guard("map", self.observer.add_map, m),
+            contract.LATCHED_QOS,
+        )
+        self.create_subscription(
+            EpisodeStatus, contract.status_topic(ns), self._on_status, contract.RELIABLE_QOS
+        )
+        for topic in (contract.policy_topic(ns, self.agent_id), contract.team_policy_topic(ns)):
+            self.create_subscription(String, topic, self._on_policy_msg, contract.LATCHED_QOS)
+
+    # -- team state ----------------------------------------------------------------------------
+    def _drop(self, what: str, exc: Exception) -> None:
+        self.dropped += 1
+        self.get_logger().warning(f"dropped {what} message: {exc}")
+
+    def _guard(self, what: str, fn, *args) -> None:
+        try:
+            fn(*args)
+        except ValueError as exc:
+            self._drop(what, exc)
+            return
+        self._maybe_decide()
+
+    def _on_status(self, msg: EpisodeStatus) -> None:
+        try:
+            tick = self.observer.add_status(msg)
+        except ValueError as exc:
+            self._drop("status", exc)
+            return
+        if (
+            tick is not None
+            and self.observer.answered(tick.episode, tick.step)
+            and self._last_move is not None
+        ):
+            # The simulator re-sent a step it has not got every move for: ours may have been lost.
+            self.move_pub.publish(self._last_move)
+            return
+        self._maybe_decide()
+
+    def _maybe_decide(self) -> None:
+        if self.slot.current is None or not self.observer.ready():
+            return
+        obs, mask, tick = self.observer.observe()
+        action = self.slot.act(obs, mask)
+        move = AgentMove()
+        move.header.stamp = self.get_clock().now().to_msg()
+        move.header.frame_id = contract.MAP_FRAME
+        move.agent_id = self.agent_id
+        move.episode, move.step, move.action = tick.episode, tick.step, action
+        self._last_move = move
+        self.decisions += 1
+        self.move_pub.publish(move)
+
+    # -- policy swap ---------------------------------------------------------------------------
+    def swap_policy(self, source: str) -> str:
+        """Validate and run the bundle at ``source``; returns its description.
+
+        Raises:
+            PolicyRejected: refused; the previous policy keeps running.
+        """
+        loaded = self.slot.swap(source)
+        self.get_logger().info(f"now running policy {loaded.description}")
+        for listener in self.swap_listeners:
+            listener(source, None)
+        return loaded.description
+
+    def _refused(self, source: str, exc: Exception) -> None:
+        self.get_logger().error(f"policy {source!r} refused, keeping the running one: {exc}")
+        for listener in self.swap_listeners:
+            listener(source, str(exc))
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        for param in params:
+            if param.name != "policy":
+                continue
+            try:
+                self.swap_policy(str(param.value))
+            except PolicyRejected as exc:
+                self._refused(str(param.value), exc)
+                return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _on_policy_msg(self, msg: String) -> None:
+        source = msg.data.strip()
+        if looks_like_cid(source):
+            self._request_fetch(strip_cid(source))
+            return
+        try:
+            self.swap_policy(source)
+        except PolicyRejected as exc:
+            self.dropped += 1
+            self._refused(source, exc)
+
+    def _request_fetch(self, cid: str) -> None:
+        if self._fetch_client is None:
+            self._fetch_client = self.create_client(FetchBundle, self.bridge_service)
+        if not self._fetch_client.service_is_ready():
+            self.dropped += 1
+            self._refused(
+                cid, PolicyRejected(f"registry bridge service {self.bridge_service} is not running")
+            )
+            return
+        # The bridge verifies the bundle and publishes its local path on this agent's policy topic.
+        self._fetch_client.call_async(FetchBundle.Request(cid=cid, agent_ids=[self.agent_id]))
+        self.get_logger().info(f"asked the registry bridge for bundle {cid}")

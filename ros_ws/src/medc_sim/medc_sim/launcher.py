@@ -1,0 +1,379 @@
+"""medc-launch: start the whole MEDC graph (simulator, one agent node per agent, optionally the
+registry bridge) from one YAML config, and stop it cleanly on Ctrl-C.
+
+The pip-installed ROS has no ``ros2 launch``; this is the project's launcher. By default every
+node runs as its own process through its console script (``medc-sim``, ``medc-agent``,
+``medc-bridge``); ``--in-process`` runs them all in this process on one executor.
+
+    medc-launch                               # the shipped trained team, until Ctrl-C
+    medc-launch --episodes 20                 # 20 episodes, one line each, then one JSON line
+    medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from medc_sim.ros_env import ensure_interfaces, interfaces_env, repo_root
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "launch.yaml"
+
+
+@dataclass
+class LaunchConfig:
+    """What the launcher starts (keys of the YAML config; see config/launch.yaml)."""
+
+    namespace: str = "/medc"
+    agents: int = 3
+    walls: int = 2
+    grid: int = 30
+    max_steps: int = 100
+    seed: int = 0
+    noise: bool = False
+    mode: str = "stepped"
+    rate_hz: float = 0.0
+    resolution: float = 1.0
+    policy: str = "models/team"
+    policies: dict[str, str] = field(default_factory=dict)
+    registry: dict[str, Any] = field(default_factory=lambda: {"enabled": False, "params": {}})
+
+
+def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) -> LaunchConfig:
+    """Read a launch config (default: config/launch.yaml) and apply ``overrides`` (None = keep).
+
+    Raises:
+        ValueError: unreadable YAML, unknown keys, or a value of the wrong type.
+    """
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"cannot read launch config {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"launch config {path} must be a mapping of keys to values")
+    known = {f.name: f for f in fields(LaunchConfig)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown} in {path}; allowed: {sorted(known)}")
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    cfg = LaunchConfig(**data)
+    for name, kind in (
+        ("agents", int),
+        ("walls", int),
+        ("grid", int),
+        ("max_steps", int),
+        ("seed", int),
+        ("rate_hz", (int, float)),
+        ("resolution", (int, float)),
+        ("noise", bool),
+        ("namespace", str),
+        ("policy", str),
+        ("policies", dict),
+        ("registry", dict),
+    ):
+        value = getattr(cfg, name)
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise ValueError(
+                f"{name} in {path} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
+            )
+    if cfg.mode not in ("stepped", "realtime"):
+        raise ValueError(f"mode must be 'stepped' or 'realtime', got {cfg.mode!r}")
+    cfg.rate_hz, cfg.resolution = float(cfg.rate_hz), float(cfg.resolution)
+    return cfg
+
+
+def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
+    """The bundle path each agent starts with (relative paths are taken from the repository root).
+
+    ``policy`` names one bundle for every agent, or a folder holding ``*agent_<i>*.safetensors``
+    files (one per agent) or a single bundle; ``policies`` overrides single agents.
+
+    Raises:
+        ValueError: a path does not exist, or the folder has no usable bundle.
+    """
+    root = repo_root() if root is None else root
+
+    def absolute(p: str) -> Path:
+        q = Path(p).expanduser()
+        return q if q.is_absolute() else root / q
+
+    base = absolute(cfg.policy)
+    paths: list[str] = []
+    if base.is_dir():
+        bundles = sorted(base.glob("*.safetensors"))
+        for i in range(cfg.agents):
+            own = [b for b in bundles if f"agent_{i}" in b.stem or f"agent{i}" in b.stem]
+            if own:
+                paths.append(str(own[0]))
+            elif len(bundles) >= 1:
+                paths.append(str(bundles[0]))
+            else:
+                raise ValueError(
+                    f"policy folder {base} holds no .safetensors bundle; train the team "
+                    "(see models/README.md) or pass --policy PATH"
+                )
+    elif base.is_file():
+        paths = [str(base)] * cfg.agents
+    else:
+        raise ValueError(f"policy {cfg.policy!r} ({base}) does not exist; pass --policy PATH to a bundle")
+    for agent_id, p in cfg.policies.items():
+        from medc_sim.contract import agent_index
+
+        i = agent_index(agent_id, cfg.agents)
+        if not absolute(p).is_file():
+            raise ValueError(f"policy for {agent_id}: {absolute(p)} does not exist")
+        paths[i] = str(absolute(p))
+    return paths
+
+
+def sim_parameters(cfg: LaunchConfig, episodes: int = 0) -> dict[str, Any]:
+    """Parameters of the simulator node for ``cfg``."""
+    return {
+        "namespace": cfg.namespace,
+        "agents": cfg.agents,
+        "walls": cfg.walls,
+        "grid": cfg.grid,
+        "max_steps": cfg.max_steps,
+        "seed": cfg.seed,
+        "noise": cfg.noise,
+        "mode": cfg.mode,
+        "rate_hz": cfg.rate_hz,
+        "resolution": cfg.resolution,
+        "episodes": episodes,
+    }
+
+
+def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, Any]:
+    """Parameters of agent node ``index`` for ``cfg``."""
+    return {
+        "namespace": cfg.namespace,
+        "agent_id": f"agent_{index}",
+        "agents": cfg.agents,
+        "grid": cfg.grid,
+        "resolution": cfg.resolution,
+        "policy": policy,
+    }
+
+
+def ros_args(node_name: str, params: dict[str, Any]) -> list[str]:
+    """``--ros-args`` command-line arguments that name the node and set ``params``."""
+    out = ["--ros-args", "-r", f"__node:={node_name}"]
+    for key, value in params.items():
+        if isinstance(value, bool):
+            text = "true" if value else "false"
+        elif isinstance(value, str):
+            text = json.dumps(value)  # quoted: a path or namespace stays a string
+        else:
+            text = repr(value)
+        out += ["-p", f"{key}:={text}"]
+    return out
+
+
+class EpisodeLog:
+    """Collects finished episodes and prints one line per episode."""
+
+    def __init__(self, quiet: bool = False) -> None:
+        self.lengths: list[int] = []
+        self.successes: list[bool] = []
+        self.quiet = quiet
+
+    def add(self, episode: int, length: int, success: bool) -> None:
+        self.lengths.append(int(length))
+        self.successes.append(bool(success))
+        if not self.quiet:
+            verdict = "target found" if success else "truncated"
+            print(f"episode {episode}: {length} steps, {verdict}", flush=True)
+
+    def summary(self, **extra: Any) -> dict[str, Any]:
+        n = len(self.lengths)
+        return {
+            "episodes": n,
+            "episode_lengths": self.lengths,
+            "successes": self.successes,
+            "success_rate": (sum(self.successes) / n) if n else 0.0,
+            "mean_length": (sum(self.lengths) / n) if n else 0.0,
+            **extra,
+        }
+
+
+def run_in_process(
+    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
+) -> bool:
+    """Run the graph on one executor in this process; True if ``episodes`` finished (0 = until Ctrl-C).
+
+    rclpy must be initialised by the caller.
+    """
+    import rclpy
+    from medc_agents.node import AgentNode
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from medc_sim.node import SimNode
+
+    def overrides(params: dict[str, Any]) -> list[Parameter]:
+        return [Parameter(k, value=v) for k, v in params.items()]
+
+    sim = SimNode(parameter_overrides=overrides(sim_parameters(cfg, episodes)))
+    sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
+    agents = [
+        AgentNode(node_name=f"medc_agent_{i}", parameter_overrides=overrides(agent_parameters(cfg, i, p)))
+        for i, p in enumerate(policies)
+    ]
+    executor = SingleThreadedExecutor()
+    for node in (sim, *agents):
+        executor.add_node(node)
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    try:
+        while rclpy.ok() and not sim.finished:
+            executor.spin_once(timeout_sec=0.1)
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+        return sim.finished
+    finally:
+        executor.shutdown()
+        for node in (sim, *agents):
+            node.destroy_node()
+
+
+def _child_env() -> dict[str, str]:
+    env = interfaces_env()
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _stop(children: list[subprocess.Popen], grace_s: float = 5.0) -> None:
+    """SIGINT every child still running (rclpy's clean shutdown), then kill any that hangs."""
+    for child in children:
+        if child.poll() is None:
+            child.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    for child in children:
+        try:
+            child.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+
+def run_processes(
+    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
+) -> bool:
+    """Run every node as its own process; this process listens to the episode status.
+
+    rclpy must be initialised by the caller. True if ``episodes`` finished (0 = until Ctrl-C).
+    """
+    import rclpy
+    from medc_interfaces.msg import EpisodeStatus
+
+    from medc_sim import contract
+
+    monitor = rclpy.create_node("medc_launch")
+    seen: set[int] = set()
+
+    def on_status(msg: EpisodeStatus) -> None:
+        if msg.done and msg.episode not in seen:
+            seen.add(msg.episode)
+            log.add(msg.episode, msg.episode_length, msg.success)
+
+    monitor.create_subscription(
+        EpisodeStatus, contract.status_topic(cfg.namespace), on_status, contract.RELIABLE_QOS
+    )
+    bindir = Path(sys.executable).parent
+    env = _child_env()
+    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes))]]
+    commands += [
+        [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
+        for i, p in enumerate(policies)
+    ]
+    if cfg.registry.get("enabled"):
+        params = {"namespace": cfg.namespace, **(cfg.registry.get("params") or {})}
+        commands.append([str(bindir / "medc-bridge"), *ros_args("medc_bridge", params)])
+    # Own sessions: Ctrl-C reaches the launcher only, which then stops the children in order.
+    children = [subprocess.Popen(c, env=env, start_new_session=True) for c in commands]
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    try:
+        while rclpy.ok():
+            rclpy.spin_once(monitor, timeout_sec=0.1)
+            if episodes and len(seen) >= episodes:
+                return True
+            if any(c.poll() not in (None, 0) for c in children):
+                failed = [" ".join(c.args[:1]) for c in children if c.poll() not in (None, 0)]
+                print(f"medc-launch: node process failed: {failed}", file=sys.stderr)
+                return False
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+        return False
+    finally:
+        _stop(children)
+        monitor.destroy_node()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-launch`` (see the module docstring)."""
+    parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", help=f"launch YAML (default {DEFAULT_CONFIG})")
+    parser.add_argument(
+        "--episodes", type=int, default=0, help="run N episodes, then print a JSON line and exit"
+    )
+    parser.add_argument("--in-process", action="store_true", help="all nodes in this process, one executor")
+    parser.add_argument("--seed", type=int, help="override the config's seed")
+    parser.add_argument("--policy", help="override the config's policy (bundle file or folder)")
+    parser.add_argument("--agents", type=int, help="override the config's number of agents")
+    parser.add_argument("--timeout", type=float, help="give up after this many seconds")
+    parser.add_argument("--quiet", action="store_true", help="no per-episode lines")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.episodes < 0:
+        parser.error("--episodes must be >= 0")
+    try:
+        cfg = load_config(args.config, seed=args.seed, policy=args.policy, agents=args.agents)
+        policies = resolve_policies(cfg)
+    except ValueError as exc:
+        print(f"medc-launch: {exc}", file=sys.stderr)
+        return 2
+    ensure_interfaces()
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    log = EpisodeLog(quiet=args.quiet)
+    rclpy.init(args=["medc-launch"])
+    start = time.monotonic()
+    ok = False
+    interrupted = False
+    run = run_in_process if args.in_process else run_processes
+    try:
+        ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        interrupted = True
+    finally:
+        rclpy.try_shutdown()
+    if args.episodes or interrupted:
+        print(
+            json.dumps(
+                log.summary(
+                    seed=cfg.seed,
+                    agents=cfg.agents,
+                    mode=cfg.mode,
+                    in_process=args.in_process,
+                    wall_s=round(time.monotonic() - start, 3),
+                    config=asdict(cfg) | {"policies": policies},
+                )
+            )
+        )
+    if args.episodes and not ok and not interrupted:
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

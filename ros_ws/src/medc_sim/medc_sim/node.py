@@ -1,0 +1,192 @@
+"""medc-sim: the simulator node. It plays the part of the UAV team's drivers.
+
+Publishes, per agent, its pose (geometry_msgs/PoseStamped, frame "map") and radiation reading
+(medc_interfaces/RadiationReading), both with sensor-data QoS; the walls map (nav_msgs/
+OccupancyGrid, transient local) and one medc_interfaces/EpisodeStatus per team step. Applies each
+agent's medc_interfaces/AgentMove. Topic names and QoS: medc_sim.contract and docs/ros.md.
+
+Modes:
+  stepped   waits for every agent's move, then steps (at most ``rate_hz`` steps/s; 0 = no limit).
+            While waiting it re-publishes the step every ``resend_s`` so lost sensor-data
+            messages or late-starting agents cannot stall the team.
+  realtime  steps every 1/``rate_hz`` s with the moves received; an agent without a move stays.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import torch
+from geometry_msgs.msg import PoseStamped
+from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+from nav_msgs.msg import OccupancyGrid
+from rclpy.node import Node
+
+from medc_sim import contract, messages
+from medc_sim.moves import MoveBook, MoveRejected
+from medc_sim.params import declare
+from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
+
+
+class SimNode(Node):
+    """The simulator node (see the module docstring)."""
+
+    def __init__(self, node_name: str = "medc_sim", **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+        cfg = SimConfig(
+            agents=p("agents", 3, "Number of agents in the team", True),
+            walls=p("walls", 2, "Number of wall segments", True),
+            grid=p("grid", 30, "Grid side in cells", True),
+            max_steps=p("max_steps", 100, "Steps before an episode is truncated", True),
+            seed=p("seed", 0, "Seed of the environment: same seed = same episodes as training", True),
+            noise=p("noise", False, "Poisson noise on readings", True),
+        )
+        self.mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
+        if self.mode not in ("stepped", "realtime"):
+            raise ValueError(f"mode must be 'stepped' or 'realtime', got {self.mode!r}")
+        self.rate_hz = float(
+            p(
+                "rate_hz",
+                0.0,
+                "Team steps per second (stepped: upper limit, 0 = none; "
+                "realtime: the step rate, must be > 0)",
+                True,
+            )
+        )
+        if self.mode == "realtime" and self.rate_hz <= 0:
+            raise ValueError("realtime mode needs rate_hz > 0")
+        self.resolution = float(p("resolution", 1.0, "Cell side in metres (map frame)", True))
+        self.resend_s = float(
+            p(
+                "resend_s",
+                0.5,
+                "Stepped mode: re-publish a step whose moves are missing after this many seconds",
+                True,
+            )
+        )
+        self.max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
+
+        # The environment's tensors are tiny; threads only add contention with the agent nodes.
+        torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
+        self.core = SimCore(cfg)
+        self.ids = contract.agent_ids(self.core.num_agents)
+        self.book = MoveBook(self.core.num_agents, self.core.num_actions)
+        self.dropped = 0
+        self.resends = 0
+        self.finished = False
+        self.episode_listeners: list[Callable[[EpisodeResult], None]] = []
+        self._step_stamp = None
+        self._published_at = 0.0
+        self._last_step_at = 0.0
+
+        ns = self.namespace_
+        self.pose_pubs = [
+            self.create_publisher(PoseStamped, contract.pose_topic(ns, a), contract.SENSOR_QOS)
+            for a in self.ids
+        ]
+        self.reading_pubs = [
+            self.create_publisher(RadiationReading, contract.radiation_topic(ns, a), contract.SENSOR_QOS)
+            for a in self.ids
+        ]
+        self.map_pub = self.create_publisher(OccupancyGrid, contract.map_topic(ns), contract.LATCHED_QOS)
+        self.status_pub = self.create_publisher(
+            EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
+        )
+        for a in self.ids:
+            self.create_subscription(
+                AgentMove,
+                contract.move_topic(ns, a),
+                lambda m, a=a: self._on_move(a, m),
+                contract.RELIABLE_QOS,
+            )
+
+        self._msgs = (PoseStamped, RadiationReading, OccupancyGrid, EpisodeStatus)
+        self._begin_episode()
+        if self.mode == "realtime":
+            self.create_timer(1.0 / self.rate_hz, self._realtime_tick)
+        else:
+            self.create_timer(max(self.resend_s, 0.01), self._resend_tick)
+            if self.rate_hz > 0:
+                self.create_timer(1.0 / self.rate_hz, self._rate_tick)
+        self.get_logger().info(
+            f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
+            f"seed {cfg.seed}, "
+            f"{self.mode} mode on {ns}"
+        )
+
+    # -- publishing ----------------------------------------------------------------------
+    def _begin_episode(self) -> None:
+        self._map_stamp = self.get_clock().now().to_msg()
+        self.map_pub.publish(messages.grid_msg(self.core.walls(), self._map_stamp, self.resolution))
+        self._publish_step()
+
+    def _publish_step(self) -> None:
+        """Publish the current state as a new step and wait for its moves."""
+        self._step_stamp = self.get_clock().now().to_msg()
+        self.book.open(self.core.episode, self.core.step)
+        self._send_state()
+
+    def _send_state(self) -> None:
+        stamp = self._step_stamp
+        noise = self.core.config.noise
+        for i, (cell, value) in enumerate(zip(self.core.positions(), self.core.readings())):
+            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.resolution))
+            # Poisson counts: the variance is the mean.
+            variance = value if noise else 0.0
+            self.reading_pubs[i].publish(messages.reading_msg(self.ids[i], value, variance, stamp))
+        core = self.core
+        self.status_pub.publish(
+            messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp)
+        )
+        self._published_at = time.monotonic()
+
+    def _publish_done(self, result: EpisodeResult) -> None:
+        stamp = self.get_clock().now().to_msg()
+        self.status_pub.publish(
+            messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result)
+        )
+
+    # -- stepping ------------------------------------------------------------------------
+    def _on_move(self, topic_agent: str, msg) -> None:
+        try:
+            if msg.agent_id != topic_agent:
+                raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")
+            self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action))
+        except MoveRejected as exc:
+            self.dropped += 1
+            self.get_logger().warning(f"dropped move: {exc}")
+            return
+        if self.mode == "stepped" and self.rate_hz <= 0 and self.book.complete:
+            self._advance()
+
+    def _rate_tick(self) -> None:
+        if self.book.complete:
+            self._advance()
+
+    def _resend_tick(self) -> None:
+        if not self.finished and time.monotonic() - self._published_at >= self.resend_s:
+            self.resends += 1
+            self._send_state()
+
+    def _realtime_tick(self) -> None:
+        self._advance()
+
+    def _advance(self) -> None:
+        if self.finished:
+            return
+        result = self.core.advance(self.book.actions())
+        self._last_step_at = time.monotonic()
+        if result.finished is not None:
+            self._publish_done(result.finished)
+            for listener in self.episode_listeners:
+                listener(result.finished)
+            if self.max_episodes and len(self.core.results) >= self.max_episodes:
+                self.finished = True
+                self.get_logger().info(f"{len(self.core.results)} episodes done; simulator idle")
+                return
+            self._begin_episode()
+        else:
+            self._publish_step()

@@ -1,0 +1,145 @@
+"""The simulator's world: one target-localization environment, stepped by the team's moves.
+
+No ROS in here: :class:`SimCore` is the training environment's batched core with B=1 (built
+with the same ``make_batched`` call and seed as training, so it produces the same episodes),
+plus what a real UAV would publish that the core keeps internal (positions, raw readings,
+walls). The simulator node only converts this to and from messages.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The scenario the simulator runs (the same options as ``make_batched``)."""
+
+    agents: int = 3
+    walls: int = 2
+    grid: int = 30
+    max_steps: int = 100
+    seed: int = 0
+    noise: bool = False
+
+
+@dataclass
+class EpisodeResult:
+    """How one episode ended."""
+
+    episode: int
+    length: int
+    success: bool
+    truncated: bool
+    reward: float
+
+
+@dataclass
+class StepResult:
+    """What one team step did; ``finished`` is set when it ended the episode."""
+
+    reward: float
+    finished: EpisodeResult | None = None
+
+
+@dataclass
+class SimCore:
+    """One environment (B=1) and the episode counter."""
+
+    config: SimConfig
+    env: object = field(init=False)
+    episode: int = field(init=False, default=0)
+    results: list[EpisodeResult] = field(init=False, default_factory=list)
+
+    def __post_init__(self) -> None:
+        from medc_training.envs import make_batched
+
+        c = self.config
+        self.env = make_batched(
+            "target_localization",
+            num_envs=1,
+            device="cpu",
+            seed=c.seed,
+            agents=c.agents,
+            walls=c.walls,
+            grid=c.grid,
+            max_steps=c.max_steps,
+            reward_shaping=False,
+            noise=c.noise,
+        )
+        # With noise the core's Poisson draws are not exposed; the simulator draws its own from
+        # a separate generator so that the core's layout sequence (seeded) is untouched.
+        self._noise_gen = torch.Generator().manual_seed(c.seed + 1)
+        self.env.reset()
+        self._readings = self._measure()
+
+    @property
+    def num_agents(self) -> int:
+        return self.env.num_agents
+
+    @property
+    def num_actions(self) -> int:
+        return self.env.num_actions
+
+    @property
+    def step(self) -> int:
+        """Steps taken in the current episode (0 right after reset)."""
+        return int(self.env.t[0])
+
+    def positions(self) -> list[tuple[int, int]]:
+        """Each agent's cell (row, col), in agent order."""
+        return [(int(r), int(c)) for r, c in self.env.positions[0].tolist()]
+
+    def readings(self) -> list[float]:
+        """Each agent's raw reading (counts/s) at its current cell: what the core recorded."""
+        return [float(v) for v in self._readings[0].tolist()]
+
+    def walls(self) -> torch.Tensor:
+        """bool [H,W] wall cells of the current episode."""
+        return self.env.walls[0]
+
+    def target(self) -> tuple[int, int]:
+        r, c = self.env.target[0].tolist()
+        return int(r), int(c)
+
+    def _measure(self) -> torch.Tensor:
+        from medc_training.envs.target_localization import sensor_reading
+
+        return sensor_reading(
+            self.env.positions,
+            self.env.target,
+            self.env.walls,
+            noise=self.config.noise,
+            generator=self._noise_gen,
+        )
+
+    def advance(self, actions: list[int | None]) -> StepResult:
+        """Apply one move per agent; ``None`` = the agent stays where it is.
+
+        Raises:
+            ValueError: wrong number of actions or an action outside 0..num_actions-1.
+        """
+        if len(actions) != self.num_agents:
+            raise ValueError(f"need {self.num_agents} actions, got {len(actions)}")
+        stay = [i for i, a in enumerate(actions) if a is None]
+        acts = torch.tensor([[0 if a is None else int(a) for a in actions]], dtype=torch.long)
+        if stay:
+            # The core keeps an agent in place when its move is not allowed by the mask; the mask
+            # is recomputed from the positions after every step, so this affects this step only.
+            self.env.mask[0, stay] = False
+        out = self.env.step(acts)
+        result = StepResult(reward=float(out.reward[0]))
+        if bool(out.terminated[0] | out.truncated[0]):
+            result.finished = EpisodeResult(
+                episode=self.episode,
+                length=int(out.episode_length[0]),
+                success=bool(out.success[0]),
+                truncated=bool(out.truncated[0]),
+                reward=result.reward,
+            )
+            self.results.append(result.finished)
+            self.episode += 1
+        self._readings = self._measure()
+        return result

@@ -1,0 +1,45 @@
+"""medc-sim: run the simulator node (medc_sim.node.SimNode) until Ctrl-C or ``episodes`` done.
+
+Usage: ``medc-sim --ros-args -p agents:=3 -p seed:=0 --params-file config/sim.yaml``.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+from medc_sim.ros_env import ensure_interfaces
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
+    ensure_interfaces()
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from medc_sim.node import SimNode
+
+    args = sys.argv if argv is None else argv
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        while rclpy.ok() and not node.finished:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f"medc-sim: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        # A second Ctrl-C (or the launcher's SIGINT) must not cut the clean-up short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
