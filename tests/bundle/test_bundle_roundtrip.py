@@ -59,6 +59,21 @@ def test_manifest_is_completed_from_the_net_and_the_application(tmp_path) -> Non
     assert manifest["description"] == "test expert"
 
 
+def test_unmeasured_metrics_are_stored_as_null() -> None:
+    net = make_actor_critic("mlp", (5, 10, 10), 8)
+    manifest = read_manifest(bundle_bytes(net, {**MANIFEST, "metrics": {"success_rate": float("nan"),
+                                                                        "episode_length": 12.5}}))
+    assert manifest["metrics"] == {"success_rate": None, "episode_length": 12.5}
+
+
+def test_names_come_from_the_environment_module() -> None:
+    from medc_training.envs import target_localization as tl
+
+    manifest = read_manifest(bundle_bytes(make_actor_critic("mlp", (5, 10, 10), 8), MANIFEST))
+    assert manifest["observation"]["channel_names"] == list(tl.CHANNELS)
+    assert manifest["actions"] == list(tl.ACTION_NAMES)
+
+
 def test_explicit_names_override_defaults_for_other_applications(tmp_path) -> None:
     net = make_actor_critic("mlp", (4, 10, 10), 5)
     manifest = {
@@ -117,7 +132,8 @@ def test_save_refuses_what_load_would_reject(tmp_path) -> None:
         ({**MANIFEST, "weights": "x"}, "unknown keys"),
         ({**MANIFEST, "environment": {"grid": 30}}, "environment.grid is 30"),
         ({**MANIFEST, "environment": {"walls": [1, 2]}}, "environment.walls must be"),
-        ({**MANIFEST, "metrics": {"return": float("nan")}}, "metrics.return must be"),
+        ({**MANIFEST, "metrics": {"return": [1.0]}}, "metrics.return must be"),
+        ({**MANIFEST, "metrics": {"return": np.float32(1.0)}}, "JSON values only"),
         ({**MANIFEST, "actions": ["N", "S"]}, "actions lists 2 names but the network has 8"),
     ]
     for manifest, message in cases:
@@ -141,8 +157,14 @@ def test_manifest_is_stored_as_plain_json_any_safetensors_reader_sees(tmp_path) 
     assert stored["application"] == "target_localization"
 
 
-def test_known_applications_are_the_environments() -> None:
-    envs = pytest.importorskip("medc_training.envs")
-    if not hasattr(envs, "ENV_NAMES"):
-        pytest.skip("medc_training.envs does not define ENV_NAMES yet")
-    assert tuple(envs.ENV_NAMES) == KNOWN_APPLICATIONS
+def test_bundle_of_a_real_environment_records_its_attributes() -> None:
+    from medc_training.envs import ENV_NAMES, make_batched
+
+    env = make_batched("target_localization", num_envs=2, seed=0, agents=2, walls=1, grid=10)
+    net = make_actor_critic("lenet5", env.obs_shape, env.num_actions)
+    bundle = load_bundle(bundle_bytes(net, {"application": env.name, "environment": env.attributes}))
+    assert bundle.manifest["environment"] == env.attributes
+    obs, mask = env.reset(seed=1)
+    actions = bundle.act(obs.flatten(0, 1), mask.flatten(0, 1))
+    assert mask.flatten(0, 1).gather(1, actions[:, None]).all()
+    assert tuple(ENV_NAMES) == KNOWN_APPLICATIONS

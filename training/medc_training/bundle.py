@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -50,23 +51,16 @@ from safetensors.torch import load as _st_load
 from safetensors.torch import save as _st_save
 
 import medc_training
+from medc_training.envs import ENV_NAMES
 from medc_training.nets import ActorCritic, SpecError, masked_logits, spec_tensor_shapes, validate_spec
 
 FORMAT = "medc-policy-bundle"
 FORMAT_VERSION = 1
 MANIFEST_KEY = "medc.manifest"
 
-# Kept equal to medc_training.envs.ENV_NAMES (tests check it): a bundle for an application this
-# code does not know cannot be run by it, so it is rejected rather than guessed at.
-KNOWN_APPLICATIONS = ("target_localization", "fleet_coordination", "maze_cleaning")
-
-# Target localization's observation maps and moves, in index order (the environment contract).
-_DEFAULT_NAMES: dict[str, dict[str, list[str]]] = {
-    "target_localization": {
-        "channel_names": ["own_location", "team_locations", "readings", "visit_counts", "walls"],
-        "actions": ["N", "NE", "E", "SE", "S", "SW", "W", "NW"],
-    },
-}
+# A bundle for an application this code does not know cannot be run by it, so it is rejected
+# rather than guessed at.
+KNOWN_APPLICATIONS: tuple[str, ...] = tuple(ENV_NAMES)
 
 MAX_HEADER_BYTES = 1 << 20  # the manifest and tensor table of any sane bundle fit easily in 1 MiB
 MAX_BUNDLE_BYTES = 512 << 20
@@ -123,10 +117,14 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     unknown = sorted(set(manifest) - _MANIFEST_KEYS)
     if unknown:
         raise BundleError(f"manifest: unknown keys {unknown}; allowed: {sorted(_MANIFEST_KEYS)}")
-    full: dict[str, Any] = json.loads(json.dumps(dict(manifest)))  # deep copy; proves JSON-able
+    try:
+        full: dict[str, Any] = json.loads(json.dumps(dict(manifest)))  # deep copy; proves JSON-able
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"manifest must hold JSON values only (str, int, float, bool, None, lists, "
+                          f"dicts): {exc}") from None
     app = full.get("application")
     c, h, w = net.obs_shape
-    defaults = _DEFAULT_NAMES.get(app, {}) if isinstance(app, str) else {}
+    default_channels, default_actions = _env_names(app)
     full["format"] = FORMAT
     full["format_version"] = FORMAT_VERSION
     full["architecture"] = net.spec
@@ -134,23 +132,42 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     obs.setdefault("channels", c)
     obs.setdefault("height", h)
     obs.setdefault("width", w)
-    default_channels = defaults.get("channel_names")
     if default_channels is None or len(default_channels) != c:
         default_channels = [f"channel_{i}" for i in range(c)]
     obs.setdefault("channel_names", default_channels)
     full["observation"] = obs
-    default_actions = defaults.get("actions")
     if default_actions is None or len(default_actions) != net.num_actions:
         default_actions = [f"action_{i}" for i in range(net.num_actions)]
     full.setdefault("actions", default_actions)
     full.setdefault("environment", {})
-    full.setdefault("metrics", {})
+    # A metric that was not measured (NaN) is stored as null: strict JSON has no NaN.
+    metrics = full.setdefault("metrics", {})
+    if isinstance(metrics, dict):
+        full["metrics"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                           for k, v in metrics.items()}
     training = dict(full.get("training") or {})
     training.setdefault("code_version", medc_training.__version__)
     if "git_commit" not in training:
         training["git_commit"] = _git_commit()
     full["training"] = training
     return validate_manifest(full)
+
+
+def _env_names(app: Any) -> tuple[list[str] | None, list[str] | None]:
+    """The application's observation channel and action names, from its environment module.
+
+    Each environment module ``medc_training.envs.<application>`` may define ``CHANNELS`` and
+    ``ACTION_NAMES``; the environment is the single source of truth for what its indices mean.
+    """
+    if app not in KNOWN_APPLICATIONS:
+        return None, None  # validate_manifest reports the unknown application
+    try:
+        module = importlib.import_module(f"medc_training.envs.{app}")
+    except ModuleNotFoundError:
+        return None, None
+    channels = getattr(module, "CHANNELS", None)
+    actions = getattr(module, "ACTION_NAMES", None)
+    return (list(channels) if channels else None), (list(actions) if actions else None)
 
 
 def _git_commit() -> str | None:
