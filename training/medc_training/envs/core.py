@@ -98,6 +98,14 @@ class BatchedEnv:
         """float32 [B,N,A] scripted expert's scores for the current state (-inf = invalid)."""
         raise NotImplementedError
 
+    def current_obs(self, index: int) -> torch.Tensor:
+        """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
+        return self._obs[index].clone()
+
+    def render_extras(self, index: int) -> dict[str, Any]:
+        """What a picture of environment ``index`` needs beyond the observation maps."""
+        return {}
+
     def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
         actions = torch.as_tensor(actions, device=self.device)
         if actions.shape != (self.num_envs, self.num_agents):

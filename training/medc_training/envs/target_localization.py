@@ -478,6 +478,9 @@ class TargetLocalization(BatchedEnv):
         self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
         return StepOutput(obs, self.mask, reward, found, truncated, final_obs, episode_length, found.clone())
 
+    def render_extras(self, index: int) -> dict[str, Any]:
+        return {"target": tuple(int(v) for v in self.target[index].tolist())}
+
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the BFS distance to the target after each move; -inf if invalid."""
         b, n = self.positions.shape[:2]

@@ -1,0 +1,119 @@
+"""PettingZoo conformance of every application, and the wrapper following its batched core."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from medc_training.envs import ENV_NAMES, make_batched, make_env
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+SMALL = {
+    "target_localization": {"agents": 3, "walls": 2, "grid": 12, "max_steps": 40},
+    "fleet_coordination": {"agents": 3, "customers": 4, "capacity": 2, "grid": 6, "max_steps": 40},
+    "maze_cleaning": {"agents": 2, "grid": 7, "max_steps": 40},
+}
+AVAILABLE = [n for n in ENV_NAMES if n in SMALL]
+
+
+def _available(name: str) -> bool:
+    try:
+        make_batched(name, **SMALL[name])
+    except ModuleNotFoundError:
+        return False
+    return True
+
+
+@pytest.fixture(params=AVAILABLE)
+def name(request: pytest.FixtureRequest) -> str:
+    if not _available(request.param):
+        pytest.skip(f"{request.param} not built yet")
+    return request.param
+
+
+def test_parallel_api(name: str) -> None:
+    parallel_api_test(make_env(name, seed=0, **SMALL[name]), num_cycles=200)
+
+
+def test_parallel_seed(name: str) -> None:
+    parallel_seed_test(lambda: make_env(name, **SMALL[name]), num_cycles=100)
+
+
+def test_spaces_are_the_same_object_and_obs_fit_them(name: str) -> None:
+    env = make_env(name, seed=1, **SMALL[name])
+    obs, _ = env.reset()
+    for agent in env.possible_agents:
+        assert env.observation_space(agent) is env.observation_space(agent)
+        assert env.action_space(agent) is env.action_space(agent)
+        assert env.observation_space(agent).contains(obs[agent])
+
+
+def test_wrapper_equals_batched_core_step_for_step(name: str) -> None:
+    """Same seed, same actions: the B=1 core and the ParallelEnv agree, across episode ends."""
+    core = make_batched(name, num_envs=1, seed=7, **SMALL[name])
+    env = make_env(name, seed=7, **SMALL[name])
+    obs_c, mask_c = core.reset()
+    obs_e, _ = env.reset()
+    rng = np.random.default_rng(0)
+    episodes = 0
+    for _ in range(120):
+        for i, agent in enumerate(env.possible_agents):
+            np.testing.assert_array_equal(obs_e[agent]["observation"], obs_c[0, i].numpy())
+            np.testing.assert_array_equal(obs_e[agent]["action_mask"], mask_c[0, i].numpy().astype(np.int8))
+        acts = rng.integers(0, core.num_actions, size=core.num_agents)
+        out = core.step(torch.from_numpy(acts).unsqueeze(0))
+        obs_e, rew, term, trunc, _ = env.step({a: int(acts[i]) for i, a in enumerate(env.possible_agents)})
+        assert all(r == pytest.approx(float(out.reward[0])) for r in rew.values())
+        assert all(t == bool(out.terminated[0]) for t in term.values())
+        assert all(t == bool(out.truncated[0]) for t in trunc.values())
+        if out.done[0]:
+            episodes += 1
+            for i, agent in enumerate(env.possible_agents):
+                np.testing.assert_array_equal(obs_e[agent]["observation"], out.final_obs[0, i].numpy())
+            assert env.agents == []
+            obs_e, _ = env.reset()
+        obs_c, mask_c = out.obs, out.mask
+    assert episodes >= 2
+
+
+def test_render_rgb_array(name: str) -> None:
+    env = make_env(name, seed=2, render_mode="rgb_array", **SMALL[name])
+    env.reset()
+    frame = env.render()
+    grid = SMALL[name]["grid"]
+    assert frame.dtype == np.uint8 and frame.shape == (grid * 16, grid * 16, 3)
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 3
+
+
+def test_save_observation_png(name: str, tmp_path) -> None:
+    from matplotlib.image import imread
+    from medc_training.envs.render import save_observation_png
+
+    env = make_env(name, seed=2, **SMALL[name])
+    obs, _ = env.reset()
+    path = save_observation_png(obs["agent_0"]["observation"], tmp_path / "obs.png", application=name)
+    img = imread(path)
+    assert img.shape[1] > img.shape[0] > 100
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        ({"agents": 0}, "agents"),
+        ({"grid": 3}, "grid"),
+        ({"walls": 99}, "walls"),
+        ({"max_steps": 0}, "max_steps"),
+        ({"reward_shaping": "yes"}, "reward_shaping"),
+        ({"colour": 3}, "allowed options"),
+    ],
+)
+def test_bad_target_localization_options_raise_value_error(options: dict, words: str) -> None:
+    with pytest.raises(ValueError, match=words):
+        make_env("target_localization", **options)
+
+
+def test_bad_name_and_render_mode_raise_value_error() -> None:
+    with pytest.raises(ValueError, match="target_localization"):
+        make_env("pong")
+    with pytest.raises(ValueError, match="rgb_array"):
+        make_env("target_localization", render_mode="human")
