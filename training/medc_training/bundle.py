@@ -558,7 +558,11 @@ def _encode(obj: Any, name: str, tensors: dict[str, torch.Tensor]) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, Mapping):
-        # JSON keys are strings only; optimizer state is keyed by int parameter ids.
+        bad = [k for k in obj if not (k is None or isinstance(k, str | int | float | bool))]
+        if bad:
+            raise TypeError(f"save_state: dict keys must be str, int, float, bool or None; "
+                            f"{name!r} has {bad[0]!r}")
+        # JSON object keys are strings only; optimizer state is keyed by int parameter ids.
         return {"__map__": [[k, _encode(v, f"{name}.{i}", tensors)] for i, (k, v) in enumerate(obj.items())]}
     if isinstance(obj, tuple):
         return {"__tuple__": [_encode(v, f"{name}.{i}", tensors) for i, v in enumerate(obj)]}
