@@ -1,0 +1,197 @@
+"""One documented configuration for every training method (CleanRL-style dataclass).
+
+Defaults are the paper's hyperparameter table (PPO: lr 3e-4, clip 0.2, entropy 0.01,
+γ 0.99, λ 0.95, horizon 4000, 20 epochs; MEDC: R_E 0.1, Q 0.05, R_S = QoS_i / Σ QoS_j) and
+its evaluation protocol (every 40,000 training steps, 4,000 greedy test steps). The CPU
+scale used by tests and the reproduction report overrides a few of them through
+:func:`cpu_scale`; every override is listed there.
+
+Step counting: one *training step* is one step of one environment (the whole team moves
+once). With ``num_envs`` environments stepping together, a rollout of ``horizon`` training
+steps is ``horizon // num_envs`` batched steps, and it holds ``horizon * agents`` samples
+(each agent's transition is a sample; centralized learning, decentralized execution).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+METHODS = ("sparse", "medc", "rs", "il", "frl")
+
+
+@dataclass
+class TrainConfig:
+    """Everything one training run needs. Field docstrings are the documentation."""
+
+    # --- environment ---------------------------------------------------------------
+    env: str = "target_localization"
+    """Application: one of medc_training.envs.ENV_NAMES."""
+    agents: int = 3
+    """Team size (the y in AyWz)."""
+    walls: int = 2
+    """Number of wall segments (the z in AyWz); target localization only."""
+    grid: int = 30
+    """Side of the square grid (the paper's G = 30)."""
+    max_steps: int = 100
+    """Episode length limit; reaching it truncates the episode (PPO bootstraps it)."""
+    env_options: dict = field(default_factory=dict)
+    """Extra keyword options passed to make_batched (e.g. customers for fleet coordination)."""
+
+    # --- method ----------------------------------------------------------------------
+    method: str = "sparse"
+    """sparse (MDRL-sparse), medc, rs (BFS reward shaping), il (IL-assisted RL), frl (FedAvg)."""
+    expert_rate: float = 0.1
+    """R_E: probability that an episode is expert-guided (MEDC and IL)."""
+    q_threshold: float = 0.05
+    """Q: an expert action is followed only if the agent's own probability of it is >= Q."""
+
+    # --- PPO (paper's hyperparameter table) -------------------------------------------
+    total_steps: int = 20_000_000
+    """Training steps (environment steps) for the whole run."""
+    num_envs: int = 16
+    """Environments stepped together by the batched core."""
+    horizon: int = 4000
+    """H: training steps collected per PPO update (split over num_envs)."""
+    epochs: int = 20
+    """Optimisation epochs over each rollout."""
+    minibatches: int = 4
+    """Minibatches per epoch (over the horizon * agents samples)."""
+    lr: float = 3e-4
+    """Adam learning rate."""
+    gamma: float = 0.99
+    """Discount factor γ."""
+    gae_lambda: float = 0.95
+    """GAE λ."""
+    clip: float = 0.2
+    """PPO clipping parameter ε."""
+    ent_coef: float = 0.01
+    """Entropy coefficient c2."""
+    vf_coef: float = 0.5
+    """Value-loss coefficient c1 (the paper leaves it at PPO's usual value)."""
+    max_grad_norm: float = 0.5
+    """Global gradient-norm clip."""
+    norm_adv: bool = True
+    """Normalise advantages per minibatch."""
+    bc_coef: float = 1.0
+    """Weight of the behavioural-cloning loss on expert samples (IL-assisted RL)."""
+
+    # --- network -------------------------------------------------------------------------
+    arch: str = "lenet5"
+    """Actor-critic architecture name from medc_training.nets.ARCHITECTURES."""
+
+    # --- FRL -----------------------------------------------------------------------------
+    frl_users: list = field(default_factory=list)
+    """FRL: one dict of environment attributes per user (agents/walls/...); the first user
+    whose attributes equal this run's environment is the one whose curve is reported."""
+    frl_every: int = 1
+    """K: FedAvg of the users' parameters every K updates."""
+
+    # --- evaluation ----------------------------------------------------------------------
+    eval_every: int = 40_000
+    """E: evaluate every E training steps (and once before training)."""
+    eval_steps: int = 4_000
+    """T: greedy test steps per evaluation (split over eval_envs)."""
+    eval_envs: int = 16
+    """Environments for evaluation."""
+
+    # --- run -------------------------------------------------------------------------------
+    seed: int = 0
+    """Seeds torch, numpy and the environments; runs are reproducible on one device."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    torch_threads: int = 0
+    """torch intra-op threads (0 = leave torch's default)."""
+
+    def validate(self) -> TrainConfig:
+        """Raise ValueError naming the bad field; returns self for chaining."""
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        for name in ("agents", "grid", "max_steps", "num_envs", "horizon", "epochs", "minibatches",
+                     "eval_envs", "frl_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0:
+            raise ValueError("walls, total_steps, eval_steps and eval_every must be >= 0")
+        if self.horizon < self.num_envs:
+            raise ValueError(f"horizon ({self.horizon}) must be >= num_envs ({self.num_envs})")
+        if not 0.0 <= self.expert_rate <= 1.0:
+            raise ValueError(f"expert_rate (R_E) must be in [0, 1], got {self.expert_rate}")
+        if not 0.0 <= self.q_threshold <= 1.0:
+            raise ValueError(f"q_threshold (Q) must be in [0, 1], got {self.q_threshold}")
+        return self
+
+    @property
+    def rollout_len(self) -> int:
+        """Batched steps per rollout (horizon split over the environments)."""
+        return max(1, self.horizon // self.num_envs)
+
+    @property
+    def steps_per_update(self) -> int:
+        """Training steps actually collected per update."""
+        return self.rollout_len * self.num_envs
+
+    def env_attributes(self) -> dict:
+        """The environment's descriptive features as stored in bundle manifests."""
+        attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
+        if self.env == "target_localization":
+            attrs["walls"] = self.walls
+        attrs.update(self.env_options)
+        return attrs
+
+    def to_dict(self) -> dict:
+        """JSON-able copy (for checkpoints and manifests)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TrainConfig:
+        """Inverse of to_dict; unknown keys are an error, not silently dropped."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown config fields {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**data)
+
+
+# The CPU scale: what changes from the paper so that the whole reproduction runs on a
+# 2-core machine in well under an hour. Everything not listed keeps the paper's value.
+CPU_SCALE = {
+    "grid": 10,
+    "max_steps": 50,
+    "num_envs": 16,
+    "horizon": 512,
+    "epochs": 4,
+    "minibatches": 4,
+    "eval_every": 4096,
+    "eval_steps": 800,
+    "eval_envs": 16,
+    "arch": "lenet5",
+}
+
+# The paper's scale, for a GPU.
+PAPER_SCALE = {
+    "grid": 30,
+    "max_steps": 100,
+    "num_envs": 64,
+    "horizon": 4000,
+    "epochs": 20,
+    "minibatches": 4,
+    "eval_every": 40_000,
+    "eval_steps": 4_000,
+    "eval_envs": 64,
+    "arch": "lenet5",
+    "total_steps": 20_000_000,
+}
+
+SCALES = {"cpu": CPU_SCALE, "paper": PAPER_SCALE}
+
+
+def scaled_config(scale: str, **overrides) -> TrainConfig:
+    """A TrainConfig at a named scale ('cpu' or 'paper') with overrides applied."""
+    if scale not in SCALES:
+        raise ValueError(f"scale must be one of {sorted(SCALES)}, got {scale!r}")
+    values = dict(SCALES[scale])
+    values.update(overrides)
+    return TrainConfig(**values).validate()

@@ -1,0 +1,270 @@
+"""Experts for MEDC and IL-assisted RL: anything that maps observations to action scores.
+
+An expert answers ``scores(obs [M,C,H,W], mask [M,A]) -> float32 [M,A]``: higher is better,
+``-inf`` means "not suggested" (an expert with no opinion about an action, or an invalid
+move). MEDC lets the agent take the best-ranked *suggested* action that its own policy
+finds probable enough (see :mod:`medc_training.medc`).
+
+Kinds:
+- :class:`BundleExpert` — a trained policy bundle of any architecture (scores = log-probs).
+- :class:`OracleExpert` — scripted, from the environment's BFS oracle (needs the env).
+- :class:`RandomExpert` — a random ranking of the valid moves every call.
+- :class:`BiasedExpert` — always suggests the same action, whatever it sees.
+- :class:`MaliciousExpert` — knows the right action (from an inner expert) and suggests
+  the opposite direction: its score for ``a`` is the inner score for ``OPPOSITE[a]``.
+
+Each expert carries ``attributes`` (the environment it was trained for, if known), used to
+compute R_S from the QoS formula (:func:`selection_weights`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+NEG_INF = float("-inf")
+
+
+class ExpertError(ValueError):
+    """An expert cannot be used with this environment (shape, actions, unknown spec)."""
+
+
+class Expert:
+    """Base class: subclasses implement :meth:`scores`."""
+
+    name: str = "expert"
+    attributes: dict | None = None
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Action scores [M, A] for observations [M, C, H, W] (higher = better)."""
+        raise NotImplementedError
+
+    def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """Scores for the flattened rows ``rows`` of a full [B*N] batch.
+
+        Observation-driven experts only look at those rows; the oracle needs the row index
+        to find the agent in the environment.
+        """
+        return self.scores(obs[rows], mask[rows])
+
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
+        """Raise ExpertError if this expert cannot advise on that observation/action space."""
+
+
+class BundleExpert(Expert):
+    """A trained policy bundle (any architecture) used as an expert."""
+
+    def __init__(self, bundle, name: str | None = None) -> None:
+        self.bundle = bundle
+        manifest = bundle.manifest
+        env = manifest.get("environment", {}) or {}
+        self.attributes = {k: v for k, v in env.items()
+                           if isinstance(v, int | float) and not isinstance(v, bool)}
+        self.application = manifest.get("application")
+        self.name = name or f"bundle:{manifest.get('architecture', {}).get('name', 'net')}"
+
+    @property
+    def obs_shape(self) -> tuple:
+        return tuple(self.bundle.obs_shape)
+
+    @property
+    def num_actions(self) -> int:
+        return int(self.bundle.num_actions)
+
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
+                         application: str | None = None) -> None:
+        if self.obs_shape and tuple(self.obs_shape) != tuple(obs_shape):
+            raise ExpertError(
+                f"expert {self.name} was trained on observations of shape {self.obs_shape}, but this "
+                f"environment produces {tuple(obs_shape)}; use an expert trained at the same grid size "
+                "and observation channels"
+            )
+        if self.num_actions != num_actions:
+            raise ExpertError(
+                f"expert {self.name} has {self.num_actions} actions, this environment has {num_actions}"
+            )
+        if application and self.application and application != self.application:
+            raise ExpertError(
+                f"expert {self.name} was trained for {self.application!r}, not {application!r}"
+            )
+
+    @torch.no_grad()
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        device = self.bundle.device
+        probs = self.bundle.action_probs(obs.to(device), mask.to(device)).to(obs.device)
+        scores = torch.log(probs.clamp_min(1e-12))
+        return scores.masked_fill(~mask, NEG_INF)
+
+
+class OracleExpert(Expert):
+    """Scripted expert from the environment's oracle (BFS distance to the target)."""
+
+    name = "oracle"
+
+    def __init__(self, env=None) -> None:
+        self.env = env
+        self._cache_step: int | None = None
+
+    def bind(self, env) -> OracleExpert:
+        """Attach the batched environment whose agents this oracle advises."""
+        self.env = env
+        return self
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        if self.env is None:
+            raise ExpertError("OracleExpert needs the environment: call bind(env) first")
+        full = self.env.oracle_action_scores().reshape(-1, mask.shape[-1]).to(obs.device)
+        if full.shape[0] != obs.shape[0]:
+            raise ExpertError(
+                f"OracleExpert.scores needs the full batch of {full.shape[0]} agents, got {obs.shape[0]}; "
+                "use scores_rows for a subset"
+            )
+        return full.masked_fill(~mask, NEG_INF)
+
+    def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        if self.env is None:
+            raise ExpertError("OracleExpert needs the environment: call bind(env) first")
+        full = self.env.oracle_action_scores().reshape(-1, mask.shape[-1]).to(obs.device)
+        return full[rows].masked_fill(~mask[rows], NEG_INF)
+
+
+class RandomExpert(Expert):
+    """Suggests a uniformly random ranking of the valid moves (a useless expert)."""
+
+    name = "random"
+
+    def __init__(self, generator: torch.Generator | None = None) -> None:
+        self.generator = generator
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        noise = torch.rand(mask.shape, generator=self.generator, device="cpu").to(mask.device)
+        return noise.masked_fill(~mask, NEG_INF)
+
+
+class BiasedExpert(Expert):
+    """Always suggests the same action, whatever it observes."""
+
+    def __init__(self, action: int = 0) -> None:
+        if action < 0:
+            raise ExpertError(f"biased expert action must be >= 0, got {action}")
+        self.action = int(action)
+        self.name = f"biased:{action}"
+
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
+        if self.action >= num_actions:
+            raise ExpertError(f"biased expert action {self.action} is not one of the {num_actions} actions")
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        scores = torch.full(mask.shape, NEG_INF, device=mask.device)
+        scores[:, self.action] = 0.0
+        return scores.masked_fill(~mask, NEG_INF)
+
+
+def default_opposite(num_actions: int) -> list[int]:
+    """Opposite direction of each action for the 8-move compass (N, NE, ..., NW)."""
+    if num_actions != 8:
+        raise ExpertError(
+            f"no default opposite-direction table for {num_actions} actions; pass opposite= explicitly"
+        )
+    return [(a + 4) % 8 for a in range(8)]
+
+
+class MaliciousExpert(Expert):
+    """Knows the right action (the inner expert's best) and suggests its opposite direction.
+
+    ``opposite[a]`` is the action pointing the other way from ``a``; the malicious score of
+    ``a`` is the inner expert's score of ``opposite[a]``, so its best-ranked action is the
+    opposite of the inner expert's best and the whole ranking is mirrored.
+    """
+
+    def __init__(self, inner: Expert, opposite: Sequence[int] | None = None) -> None:
+        self.inner = inner
+        self.opposite = list(opposite) if opposite is not None else None
+        self.attributes = inner.attributes
+        self.name = f"malicious({inner.name})"
+
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
+        self.inner.check_compatible(obs_shape, num_actions)
+        if self.opposite is None:
+            self.opposite = default_opposite(num_actions)
+        if sorted(self.opposite) != list(range(num_actions)):
+            raise ExpertError(f"opposite table {self.opposite} is not a permutation of {num_actions} actions")
+
+    def _mirror(self, inner_scores: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        opposite = self.opposite or default_opposite(mask.shape[-1])
+        index = torch.as_tensor(opposite, device=inner_scores.device)
+        # Score the inner expert on every move (valid or not) so that an opposite which
+        # is valid here keeps its rank even if the inner's best is blocked by a wall.
+        return inner_scores[:, index].masked_fill(~mask, NEG_INF)
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        full = torch.ones_like(mask)
+        return self._mirror(self.inner.scores(obs, full), mask)
+
+    def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        full = torch.ones_like(mask)
+        return self._mirror(self.inner.scores_rows(obs, full, rows), mask[rows])
+
+
+def distance(expert_attrs: dict, target_attrs: dict, weights: dict | None = None) -> float:
+    """D_m = Σ w_i |E_i^m − E_i^r| over the attributes both sides describe (equal weights)."""
+    keys = sorted(set(expert_attrs) & set(target_attrs))
+    total = 0.0
+    for k in keys:
+        a, b = expert_attrs[k], target_attrs[k]
+        numeric = all(isinstance(x, int | float) and not isinstance(x, bool) for x in (a, b))
+        if not numeric:
+            continue
+        total += (weights or {}).get(k, 1.0) * abs(float(a) - float(b))
+    return total
+
+
+def qos(expert_attrs: dict | None, target_attrs: dict, rep_owner: float = 0.5, rep_model: float = 0.5,
+        weights: dict | None = None, min_distance: float = 0.5) -> float:
+    """QoS_m = Rep_owner × Rep_model / D_m (paper Eq. QoS).
+
+    ``min_distance`` floors D_m: an expert trained on exactly this environment (D_m = 0)
+    gets the largest finite QoS instead of a division by zero. An expert with unknown
+    attributes counts as distance 1.
+    """
+    d = 1.0 if not expert_attrs else distance(expert_attrs, target_attrs, weights)
+    return rep_owner * rep_model / max(d, min_distance)
+
+
+def selection_weights(experts: Sequence[Expert], target_attrs: dict) -> torch.Tensor:
+    """R_S_i = QoS_i / Σ_j QoS_j for each expert (the roulette wheel's slices)."""
+    values = torch.tensor([qos(e.attributes, target_attrs) for e in experts], dtype=torch.float64)
+    return (values / values.sum()).float()
+
+
+def parse_expert(spec: str, generator: torch.Generator | None = None, device: str = "cpu") -> Expert:
+    """Build an expert from a CLI spec.
+
+    ``PATH`` (a bundle file) | ``random`` | ``biased`` or ``biased:A`` | ``malicious:PATH`` |
+    ``malicious:oracle`` | ``oracle``.
+    """
+    if spec == "random":
+        return RandomExpert(generator)
+    if spec == "oracle":
+        return OracleExpert()
+    if spec == "biased" or spec.startswith("biased:"):
+        action = spec.split(":", 1)[1] if ":" in spec else "0"
+        if not action.isdigit():
+            raise ExpertError(f"biased expert needs an action index, e.g. biased:2, got {spec!r}")
+        return BiasedExpert(int(action))
+    if spec.startswith("malicious:"):
+        inner = spec.split(":", 1)[1]
+        if inner.startswith("malicious:"):
+            raise ExpertError("malicious:malicious:... is not supported")
+        return MaliciousExpert(parse_expert(inner, generator, device))
+    path = Path(spec)
+    if not path.is_file():
+        raise ExpertError(
+            f"expert {spec!r} is neither a bundle file nor one of: random, biased[:A], oracle, "
+            "malicious:PATH, malicious:oracle"
+        )
+    from .bundle import load_bundle  # the bundle module is only needed for file experts
+
+    return BundleExpert(load_bundle(path, device=device), name=path.stem)

@@ -1,0 +1,70 @@
+"""Learning-curve figures (matplotlib, headless)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from .metrics import read_metrics
+
+
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "") -> Path:
+    """One run's evaluation episode length (and success rate) against training steps."""
+    rows = read_metrics(csv_path)
+    steps = [r["step"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(steps, [r["episode_length"] for r in rows], label="episode length (greedy eval)")
+    ax.set_xlabel("training steps")
+    ax.set_ylabel("mean episode length")
+    ax2 = ax.twinx()
+    ax2.plot(steps, [r["success_rate"] for r in rows], color="tab:green", alpha=0.6, label="success rate")
+    ax2.set_ylabel("success rate")
+    ax2.set_ylim(0, 1.05)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    return Path(png_path)
+
+
+def mean_ci(curves: Sequence[Sequence[float]], z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point mean and half-width of a normal-approximation 95% CI over seeds."""
+    arr = np.asarray(curves, dtype=float)
+    mean = np.nanmean(arr, axis=0)
+    if arr.shape[0] < 2:
+        return mean, np.zeros_like(mean)
+    half = z * np.nanstd(arr, axis=0, ddof=1) / math.sqrt(arr.shape[0])
+    return mean, half
+
+
+def plot_methods(series: dict[str, tuple[Sequence[float], Sequence[Sequence[float]]]], png_path: str | Path,
+                 title: str, ylabel: str = "mean episode length (greedy eval)") -> Path:
+    """Several methods' mean curves over seeds with 95% CI bands.
+
+    ``series`` maps a label to (steps, [curve per seed]).
+    """
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    for label, (steps, curves) in series.items():
+        n = min(len(c) for c in curves)
+        mean, half = mean_ci([c[:n] for c in curves])
+        x = np.asarray(steps[:n])
+        ax.plot(x, mean, label=f"{label} (n={len(curves)})")
+        ax.fill_between(x, mean - half, mean + half, alpha=0.2)
+    ax.set_xlabel("training steps")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    return Path(png_path)

@@ -1,0 +1,322 @@
+"""The one PPO core: centralized learning, decentralized execution, with MEDC/IL/RS hooks.
+
+Read top to bottom: :meth:`Trainer.collect` fills a rollout of ``horizon`` training steps
+(each agent acts on its own observation with the one shared actor-critic; the team reward
+is every agent's reward), :meth:`Trainer.update` runs ``epochs`` passes of clipped PPO over
+it, :meth:`Trainer.evaluate` plays ``eval_steps`` greedy steps. The methods differ only in:
+
+- ``sparse``: nothing extra (MDRL-sparse).
+- ``rs``: the environment is built with ``reward_shaping=True`` (BFS-shaped reward).
+- ``medc``: in expert-guided episodes (probability R_E per episode) the action comes from
+  :func:`medc_training.medc.follow_expert`; the stored log-prob is the agent's own.
+- ``il``: in expert-guided episodes the agents take the expert's best valid action, and those
+  samples are trained by behavioural cloning (no reward, no PPO loss).
+- ``frl``: several Trainers whose parameters are averaged (see :mod:`medc_training.frl`).
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .buffer import RolloutBuffer
+from .config import TrainConfig
+from .experts import Expert, OracleExpert, selection_weights
+from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
+from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
+from .nets import make_actor_critic, masked_logits
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, numpy and torch (CPU and CUDA) global generators."""
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+def make_env_for(cfg: TrainConfig, num_envs: int, seed: int, reward_shaping: bool):
+    """The batched environment a config describes (walls only for target localization)."""
+    from .envs import make_batched
+
+    options = dict(cfg.env_options)
+    if cfg.env == "target_localization":
+        options["walls"] = cfg.walls
+        options["reward_shaping"] = reward_shaping
+    return make_batched(cfg.env, num_envs=num_envs, device=cfg.device, seed=seed, agents=cfg.agents,
+                        grid=cfg.grid, max_steps=cfg.max_steps, **options)
+
+
+@dataclass
+class EpisodeStats:
+    """Finished-episode statistics accumulated between two log points."""
+
+    lengths: list = field(default_factory=list)
+    successes: list = field(default_factory=list)
+    returns: list = field(default_factory=list)
+
+    def add(self, lengths: torch.Tensor, successes: torch.Tensor, returns: torch.Tensor) -> None:
+        self.lengths.extend(lengths.tolist())
+        self.successes.extend(successes.float().tolist())
+        self.returns.extend(returns.tolist())
+
+    def summary(self, default_length: float) -> dict:
+        n = len(self.lengths)
+        return {
+            "episodes": n,
+            "episode_length": float(np.mean(self.lengths)) if n else float(default_length),
+            "success_rate": float(np.mean(self.successes)) if n else 0.0,
+            "episode_return": float(np.mean(self.returns)) if n else 0.0,
+        }
+
+
+class Trainer:
+    """One learner: environment, shared actor-critic, optimiser, experts, counters."""
+
+    def __init__(self, cfg: TrainConfig, experts: Sequence[Expert] = (), env=None, eval_env=None) -> None:
+        cfg.validate()
+        self.cfg = cfg
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
+        seed_everything(cfg.seed)
+        self.device = torch.device(cfg.device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError("device 'cuda' requested but torch.cuda.is_available() is False")
+        self.env = env if env is not None else make_env_for(cfg, cfg.num_envs, cfg.seed, cfg.method == "rs")
+        self.eval_env = eval_env if eval_env is not None else make_env_for(
+            cfg, cfg.eval_envs, cfg.seed + 1_000_003, False)
+        self.B, self.N, self.A = self.env.num_envs, self.env.num_agents, self.env.num_actions
+        self.obs_shape = tuple(self.env.obs_shape)
+        self.net = make_actor_critic(cfg.arch, self.obs_shape, self.A, device=self.device)
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=cfg.lr, eps=1e-5)
+        # A dedicated generator for MEDC draws and minibatch order keeps runs reproducible
+        # regardless of how many random numbers the environment or the experts consume.
+        self.generator = torch.Generator().manual_seed(cfg.seed + 7)
+        self.experts = list(experts)
+        if cfg.method in ("medc", "il") and not self.experts:
+            raise ValueError(f"method {cfg.method!r} needs at least one expert (--expert)")
+        for expert in self.experts:
+            expert.check_compatible(self.obs_shape, self.A)
+            if isinstance(expert, OracleExpert) or isinstance(getattr(expert, "inner", None), OracleExpert):
+                (expert if isinstance(expert, OracleExpert) else expert.inner).bind(self.env)
+        self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None
+        self.buffer = RolloutBuffer(cfg.rollout_len, self.B, self.N, self.obs_shape, self.A, self.device)
+        self.global_step = 0
+        self.updates = 0
+        self.stats = EpisodeStats()
+        self.follow_counts = torch.zeros(2, dtype=torch.long)  # [followed, expert agent-steps]
+        self.expert_steps = 0
+        self._last_step_mark = 0
+        self._ep_return = torch.zeros(self.B, device=self.device)
+        self.reset_envs(cfg.seed)
+
+    # ----------------------------------------------------------------- rollout -----
+    def reset_envs(self, seed: int | None) -> None:
+        """Start fresh episodes in every training environment (also after a resume)."""
+        self.obs, self.mask = self.env.reset(seed=seed)
+        self._ep_return.zero_()
+        self.expert_episode = self._draw_expert_episodes(self.B)
+
+    def _draw_expert_episodes(self, n: int) -> torch.Tensor:
+        if self.cfg.method not in ("medc", "il"):
+            return torch.zeros(n, dtype=torch.bool, device=self.device)
+        return expert_episode_draw(n, self.cfg.expert_rate, self.generator).to(self.device)
+
+    def _policy(self, obs_flat: torch.Tensor, mask_flat: torch.Tensor):
+        logits, value = self.net(obs_flat)
+        return torch.distributions.Categorical(logits=masked_logits(logits, mask_flat)), value
+
+    def _expert_actions(self, obs_flat, mask_flat, probs, actions, bc):
+        """Apply MEDC or IL to the rows of expert-guided episodes (in place)."""
+        rows = self.expert_episode.repeat_interleave(self.N).nonzero(as_tuple=True)[0]
+        if rows.numel() == 0:
+            return
+        choice = roulette_wheel(self.expert_weights, rows.numel(), self.generator)
+        scores = expert_scores_for(self.experts, choice, obs_flat, mask_flat, rows)
+        if self.cfg.method == "medc":
+            chosen, followed = follow_expert(probs[rows], scores, mask_flat[rows], self.cfg.q_threshold)
+        else:  # IL: clone the expert blindly (no Q filter), whatever its own policy says
+            chosen, followed = follow_expert(torch.ones_like(probs[rows]), scores, mask_flat[rows], 0.0)
+            bc[rows[followed]] = True
+        actions[rows[followed]] = chosen[followed]
+        self.follow_counts += torch.tensor([int(followed.sum()), rows.numel()])
+
+    @torch.no_grad()
+    def collect(self) -> None:
+        """Fill the rollout buffer with ``rollout_len`` batched steps (Algorithms 1-2)."""
+        buf, B, N = self.buffer, self.B, self.N
+        trunc_values = torch.zeros_like(buf.values)
+        for t in range(buf.steps):
+            obs_flat = self.obs.reshape(B * N, *self.obs_shape)
+            mask_flat = self.mask.reshape(B * N, self.A)
+            dist, value = self._policy(obs_flat, mask_flat)
+            actions = dist.sample()
+            bc = torch.zeros(B * N, dtype=torch.bool, device=self.device)
+            if self.experts and self.cfg.method in ("medc", "il"):
+                self._expert_actions(obs_flat, mask_flat, dist.probs, actions, bc)
+                self.expert_steps += int(self.expert_episode.sum())
+            buf.obs[t] = self.obs
+            buf.masks[t] = self.mask
+            buf.actions[t] = actions.view(B, N)
+            buf.logprobs[t] = dist.log_prob(actions).view(B, N)
+            buf.values[t] = value.view(B, N)
+            buf.bc[t] = bc.view(B, N)
+
+            out = self.env.step(actions.view(B, N))
+            reward = out.reward.to(self.device).float()
+            # IL's expert samples are stored with their reward but masked out of the PPO and
+            # value losses in update(): they teach by cloning only.
+            buf.rewards[t] = reward
+            buf.terminated[t] = out.terminated
+            buf.truncated[t] = out.truncated
+            self._ep_return += reward
+            done = out.terminated | out.truncated
+            if out.truncated.any():
+                idx = out.truncated.nonzero(as_tuple=True)[0]
+                final = out.final_obs[idx].reshape(-1, *self.obs_shape)
+                trunc_values[t, idx] = self.net(final)[1].view(-1, N)
+            if done.any():
+                idx = done.nonzero(as_tuple=True)[0]
+                self.stats.add(out.episode_length[idx].cpu(), out.success[idx].cpu(),
+                               self._ep_return[idx].cpu())
+                self._ep_return[idx] = 0.0
+                self.expert_episode[idx] = self._draw_expert_episodes(idx.numel())
+            self.obs, self.mask = out.obs, out.mask
+            self.global_step += B
+
+        last_value = self.net(self.obs.reshape(B * N, *self.obs_shape))[1].view(B, N)
+        buf.next_values[:-1] = buf.values[1:]
+        buf.next_values[-1] = last_value
+        buf.next_values = torch.where(buf.truncated.unsqueeze(-1), trunc_values, buf.next_values)
+        buf.compute_advantages(self.cfg.gamma, self.cfg.gae_lambda)
+
+    # ------------------------------------------------------------------ update -----
+    def update(self) -> dict:
+        """``epochs`` passes of clipped PPO (and BC on IL samples) over the rollout."""
+        cfg = self.cfg
+        sums: dict[str, float] = {}
+        count = 0
+        for _ in range(cfg.epochs):
+            for mb in self.buffer.minibatches(cfg.minibatches, self.generator):
+                logits, new_value = self.net(mb["obs"])
+                logits = masked_logits(logits, mb["masks"])
+                logp_all = torch.log_softmax(logits, dim=-1)
+                new_logprob = logp_all.gather(-1, mb["actions"].unsqueeze(-1)).squeeze(-1)
+                entropy = -(logp_all.exp() * logp_all).sum(-1)
+                rl = ~mb["bc"]
+                adv = mb["advantages"]
+                if cfg.norm_adv and rl.sum() > 1:
+                    sel = adv[rl]
+                    adv = (adv - sel.mean()) / (sel.std() + 1e-8)
+                pg, log_ratio = ppo_policy_loss(new_logprob, mb["logprobs"], adv, cfg.clip)
+                pg_loss = masked_mean(pg, rl)
+                v_loss = masked_mean(value_loss(new_value, mb["returns"]), rl)
+                ent = masked_mean(entropy, rl)
+                loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
+                b_loss = torch.zeros((), device=self.device)
+                if mb["bc"].any():
+                    b_loss = masked_mean(bc_loss(logits, mb["actions"]), mb["bc"])
+                    loss = loss + cfg.bc_coef * b_loss
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
+                self.optimizer.step()
+                with torch.no_grad():
+                    kl = approx_kl(log_ratio[rl]) if rl.any() else torch.zeros(())
+                    clipfrac = ((log_ratio[rl].exp() - 1).abs() > cfg.clip).float().mean() if rl.any() else kl
+                for k, v in (("policy_loss", pg_loss), ("value_loss", v_loss), ("entropy", ent),
+                             ("approx_kl", kl), ("clipfrac", clipfrac), ("bc_loss", b_loss)):
+                    sums[k] = sums.get(k, 0.0) + float(v.detach())
+                count += 1
+        self.updates += 1
+        return {k: v / max(count, 1) for k, v in sums.items()}
+
+    # -------------------------------------------------------------- evaluation -----
+    @torch.no_grad()
+    def evaluate(self, seed: int | None = None) -> dict:
+        """Greedy play for ``eval_steps`` training steps; mean length of finished episodes.
+
+        The evaluation environments restart from the same seed every time, so successive
+        evaluations (and different methods with the same seed) face the same episodes.
+        """
+        env, cfg = self.eval_env, self.cfg
+        obs, mask = env.reset(seed=cfg.seed + 1_000_003 if seed is None else seed)
+        Be, N = env.num_envs, env.num_agents
+        stats = EpisodeStats()
+        ret = torch.zeros(Be, device=self.device)
+        for _ in range(max(1, cfg.eval_steps // Be)):
+            logits, _ = self.net(obs.reshape(Be * N, *self.obs_shape))
+            actions = masked_logits(logits, mask.reshape(Be * N, self.A)).argmax(-1).view(Be, N)
+            out = env.step(actions)
+            ret += out.reward.to(self.device).float()
+            done = out.terminated | out.truncated
+            if done.any():
+                idx = done.nonzero(as_tuple=True)[0]
+                stats.add(out.episode_length[idx].cpu(), out.success[idx].cpu(), ret[idx].cpu())
+                ret[idx] = 0.0
+            obs, mask = out.obs, out.mask
+        return stats.summary(cfg.max_steps)
+
+    # -------------------------------------------------------------- the loop API ---
+    def train_update(self) -> dict:
+        """Collect one rollout and update on it; returns the update's losses."""
+        self.collect()
+        return self.update()
+
+    @property
+    def focal(self) -> Trainer:
+        """The learner whose policy is evaluated and shipped (itself; FRL picks one user)."""
+        return self
+
+    def state_dict(self) -> dict:
+        """Everything needed to resume: weights, optimiser, RNG states, counters."""
+        return {
+            "model": self.net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "numpy_rng": np.random.get_state(),
+            "global_step": self.global_step,
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`; the environments restart with fresh episodes.
+
+        The batched environments' internal state is not checkpointed: resuming starts new
+        episodes from a seed derived from the update count, so the run continues from the
+        same step with the same weights and optimiser, not bit-for-bit the same episodes.
+        """
+        self.net.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        np.random.set_state(tuple(state["numpy_rng"]))
+        self.global_step = int(state["global_step"])
+        self.updates = int(state["updates"])
+        self._last_step_mark = self.global_step
+        self.reset_envs(self.cfg.seed + 7919 * self.updates)
+
+    # --------------------------------------------------------------- reporting -----
+    def take_train_stats(self) -> dict:
+        """Training-episode statistics and expert involvement since the last call."""
+        s = self.stats.summary(self.cfg.max_steps)
+        followed, asked = self.follow_counts.tolist()
+        s["expert_follow_rate"] = followed / asked if asked else 0.0
+        s["expert_step_fraction"] = self.expert_steps / max(1, self.global_step - self._last_step_mark)
+        self._last_step_mark = self.global_step
+        self.stats = EpisodeStats()
+        self.follow_counts.zero_()
+        self.expert_steps = 0
+        return s
+
+
+def timed(fn, *args, **kwargs) -> tuple:
+    """(result, seconds) of one call."""
+    start = time.perf_counter()
+    result = fn(*args, **kwargs)
+    return result, time.perf_counter() - start

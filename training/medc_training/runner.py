@@ -1,0 +1,140 @@
+"""The run loop shared by every method: evaluate, update, log, checkpoint, ship.
+
+A *learner* is a :class:`medc_training.ppo.Trainer` or a
+:class:`medc_training.frl.FederatedGroup`; both offer ``train_update()``, ``focal`` (the
+Trainer that is evaluated and shipped), ``state_dict()``/``load_state_dict()`` and
+``global_step``. The loop checkpoints after every update (``checkpoint.safetensors``, no
+pickle), so a killed run loses at most one update when resumed with ``resume=True``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+from .bundle import load_state, save_bundle, save_state
+from .config import TrainConfig
+from .metrics import MetricsLogger
+
+CHECKPOINT = "checkpoint.safetensors"
+BUNDLE = "policy.safetensors"
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True, mininterval=1.0)
+
+
+def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,
+                 tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None) -> dict:
+    """Train ``learner`` to ``cfg.total_steps`` training steps, writing everything to ``out_dir``.
+
+    Writes ``metrics.csv`` (one row per evaluation, see medc_training.metrics), ``tb/``
+    (TensorBoard events), ``checkpoint.safetensors`` (after every update), and at the end
+    ``policy.safetensors`` (the focal learner's bundle), ``learning_curve.png`` and
+    ``summary.json``. ``max_updates`` stops early (used to simulate a killed run).
+    Returns the summary dict.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / CHECKPOINT
+    next_eval = 0
+    train_seconds = 0.0
+    if resume:
+        if not ckpt.exists():
+            raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
+        state = load_state(ckpt, device=cfg.device)
+        saved_cfg = state["config"]
+        for key in ("env", "method", "agents", "walls", "grid", "seed", "arch", "num_envs", "horizon"):
+            if saved_cfg.get(key) != getattr(cfg, key):
+                raise ValueError(f"--resume: checkpoint was made with {key}={saved_cfg.get(key)!r}, "
+                                 f"this run has {key}={getattr(cfg, key)!r}")
+        learner.load_state_dict(state["learner"])
+        next_eval = int(state["next_eval"])
+        train_seconds = float(state["train_seconds"])
+    logger = MetricsLogger(out, tensorboard=tensorboard,
+                           resume_from_step=learner.global_step if resume else None)
+    focal = learner.focal
+    bar = _progress(cfg.total_steps, learner.global_step, progress)
+    last_losses: dict = {}
+    sps = math.nan
+    updates_done = 0
+    try:
+        while True:
+            if learner.global_step >= next_eval or learner.global_step >= cfg.total_steps:
+                ev = focal.evaluate()
+                tr = focal.take_train_stats()
+                row = {
+                    "step": learner.global_step, "update": focal.updates,
+                    "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
+                    "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
+                    "expert_follow_rate": tr["expert_follow_rate"],
+                    "expert_step_fraction": tr["expert_step_fraction"],
+                    "sps": sps, "wall_time": train_seconds, **last_losses,
+                }
+                logger.log(row)
+                if bar is not None:
+                    bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}")
+                while next_eval <= learner.global_step:
+                    next_eval += max(1, cfg.eval_every)
+            stop_early = max_updates is not None and updates_done >= max_updates
+            if learner.global_step >= cfg.total_steps or stop_early:
+                break
+            before = learner.global_step
+            start = time.perf_counter()
+            last_losses = learner.train_update()
+            elapsed = time.perf_counter() - start
+            train_seconds += elapsed
+            sps = (learner.global_step - before) / elapsed if elapsed > 0 else math.nan
+            updates_done += 1
+            save_state(ckpt, {"learner": learner.state_dict(), "config": cfg.to_dict(),
+                              "next_eval": next_eval, "train_seconds": train_seconds})
+            if bar is not None:
+                bar.update(learner.global_step - before)
+    finally:
+        if bar is not None:
+            bar.close()
+        logger.close()
+
+    summary = {
+        "config": cfg.to_dict(),
+        "steps": learner.global_step,
+        "updates": focal.updates,
+        "train_seconds": train_seconds,
+        "final_episode_length": row["episode_length"],
+        "final_success_rate": row["success_rate"],
+    }
+    if save_final and learner.global_step >= cfg.total_steps:
+        manifest = bundle_manifest(focal, cfg, {"mean_episode_length": row["episode_length"],
+                                                "success_rate": row["success_rate"]})
+        save_bundle(out / BUNDLE, focal.net, manifest)
+        summary["bundle"] = BUNDLE
+        try:
+            from .plots import plot_learning_curve
+
+            plot_learning_curve(out / "metrics.csv", out / "learning_curve.png",
+                                title=f"{cfg.env} A{cfg.agents}W{cfg.walls} {cfg.method}")
+            summary["learning_curve"] = "learning_curve.png"
+        except Exception as exc:  # a plotting failure must not lose a finished run
+            summary["learning_curve_error"] = str(exc)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:
+    """The manifest of a trained policy bundle (provenance and evaluation metrics)."""
+    env_attrs = dict(getattr(trainer.env, "attributes", None) or cfg.env_attributes())
+    return {
+        "application": cfg.env,
+        "description": f"{cfg.method} policy for {cfg.env} "
+                       + ", ".join(f"{k}={v}" for k, v in env_attrs.items()),
+        "environment": env_attrs,
+        "training": {"method": cfg.method, "steps": int(trainer.global_step), "seed": cfg.seed,
+                     "arch": cfg.arch, "horizon": cfg.horizon, "epochs": cfg.epochs},
+        "metrics": {k: float(v) for k, v in metrics.items()},
+    }
