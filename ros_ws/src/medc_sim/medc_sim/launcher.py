@@ -207,16 +207,13 @@ class EpisodeLog:
         }
 
 
-def run_in_process(
-    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
-) -> bool:
-    """Run the graph on one executor in this process; True if ``episodes`` finished (0 = until Ctrl-C).
+def build_graph(cfg: LaunchConfig, policies: list[str], episodes: int = 0, record: bool = False):
+    """The simulator node and one agent node per agent, for one process (rclpy initialised).
 
-    rclpy must be initialised by the caller.
+    ``record``: the simulator keeps every applied step in ``sim.core.trace``.
+    Returns ``(sim, agents)``.
     """
-    import rclpy
     from medc_agents.node import AgentNode
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 
     from medc_sim.node import SimNode
@@ -225,11 +222,26 @@ def run_in_process(
         return [Parameter(k, value=v) for k, v in params.items()]
 
     sim = SimNode(parameter_overrides=overrides(sim_parameters(cfg, episodes)))
-    sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
+    sim.core.record = record
     agents = [
         AgentNode(node_name=f"medc_agent_{i}", parameter_overrides=overrides(agent_parameters(cfg, i, p)))
         for i, p in enumerate(policies)
     ]
+    return sim, agents
+
+
+def run_in_process(
+    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
+) -> bool:
+    """Run the graph on one executor in this process; True if ``episodes`` finished (0 = until Ctrl-C).
+
+    rclpy must be initialised by the caller.
+    """
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    sim, agents = build_graph(cfg, policies, episodes)
+    sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
     executor = SingleThreadedExecutor()
     for node in (sim, *agents):
         executor.add_node(node)

@@ -62,6 +62,9 @@ def interfaces_env(environ: dict[str, str] | None = None) -> dict[str, str]:
     prepend("LD_LIBRARY_PATH", str(prefix / "lib"))
     prepend("PYTHONPATH", str(site[0]))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    # The ROS wheels' start-up hook (ros_wheels_bootstrapper) adds their own library folders to
+    # LD_LIBRARY_PATH once per process tree; let it run again on top of ours.
+    env.pop("_ROS_WHEELS_BOOTSTRAP_COMPLETE", None)
     return env
 
 
@@ -78,6 +81,7 @@ def ensure_interfaces(argv: list[str] | None = None) -> None:
     """Return when medc_interfaces can be used here; otherwise re-exec this program with it.
 
     Call at the top of a console script's ``main`` before importing any medc_interfaces module.
+    ``argv``: the arguments to re-execute with after the interpreter (default: this process's).
 
     Raises:
         RosEnvironmentError: the package is not built, or re-executing did not help.
@@ -90,7 +94,8 @@ def ensure_interfaces(argv: list[str] | None = None) -> None:
         raise RosEnvironmentError(SETUP_HINT)
     env = interfaces_env()
     env[_REEXEC_MARK] = "1"
-    args = sys.argv if argv is None else argv
+    # orig_argv keeps the interpreter options (-c CODE, -m MODULE) that sys.argv has lost.
+    args = sys.orig_argv[1:] if argv is None else argv
     sys.stdout.flush()
     sys.stderr.flush()
     os.execve(sys.executable, [sys.executable, *args], env)

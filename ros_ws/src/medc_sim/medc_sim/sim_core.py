@@ -52,6 +52,9 @@ class SimCore:
     env: object = field(init=False)
     episode: int = field(init=False, default=0)
     results: list[EpisodeResult] = field(init=False, default_factory=list)
+    #: Every applied step as (episode, step, actions), when ``record`` is set (tests, debugging).
+    record: bool = False
+    trace: list[tuple[int, int, list[int | None]]] = field(init=False, default_factory=list)
 
     def __post_init__(self) -> None:
         from medc_training.envs import make_batched
@@ -123,6 +126,8 @@ class SimCore:
         """
         if len(actions) != self.num_agents:
             raise ValueError(f"need {self.num_agents} actions, got {len(actions)}")
+        if self.record:
+            self.trace.append((self.episode, self.step, list(actions)))
         stay = [i for i, a in enumerate(actions) if a is None]
         acts = torch.tensor([[0 if a is None else int(a) for a in actions]], dtype=torch.long)
         if stay:

@@ -1,0 +1,85 @@
+"""Fixtures of the ROS graph tests: an isolated DDS domain, rclpy, small test bundles."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+# A domain of our own (per test session) so that other people's graphs on this machine never
+# talk to ours; set before rclpy or any child process starts.
+os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+GRID = 10
+
+
+def make_bundle(
+    path: Path, seed: int, grid: int = GRID, favour: int | None = None, gain: float = 300.0
+) -> Path:
+    """Save a lenet5 bundle with random weights whose greedy choice depends strongly on the input.
+
+    ``favour``: the policy head ignores the input and always prefers that action.
+    """
+    import torch
+    from medc_training.bundle import save_bundle
+    from medc_training.nets import make_actor_critic
+
+    torch.manual_seed(seed)
+    net = make_actor_critic("lenet5", obs_shape=(5, grid, grid), num_actions=8)
+    with torch.no_grad():
+        for name, param in net.named_parameters():
+            if name.startswith("policy"):
+                param.mul_(gain)
+        if favour is not None:
+            net.policy.weight.zero_()
+            net.policy.bias.zero_()
+            net.policy.bias[favour] = 10.0
+    return save_bundle(path, net, {"application": "target_localization", "environment": {"grid": grid}})
+
+
+@pytest.fixture(scope="session")
+def bundles(tmp_path_factory) -> dict[str, Path]:
+    """Test bundles for a 10x10 grid: 'a', 'b' (different random nets), 'north' (always N), 'grid30'."""
+    d = tmp_path_factory.mktemp("bundles")
+    return {
+        "a": make_bundle(d / "a.safetensors", 1),
+        "b": make_bundle(d / "b.safetensors", 2),
+        "north": make_bundle(d / "north.safetensors", 3, favour=0),
+        "grid30": make_bundle(d / "grid30.safetensors", 4, grid=30),
+    }
+
+
+@pytest.fixture
+def rclpy_context():
+    """rclpy initialised for one test, shut down after it."""
+    import rclpy
+
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+@pytest.fixture
+def graph(rclpy_context):
+    """A factory of in-process graphs (sim + agents on one executor), all torn down after the test."""
+    from medc_sim.launcher import build_graph, load_config
+    from rclpy.executors import SingleThreadedExecutor
+
+    made = []
+
+    def make(policy: Path, episodes: int, **scenario):
+        cfg = load_config(None, policy=str(policy), **scenario)
+        sim, agents = build_graph(cfg, [str(policy)] * cfg.agents, episodes, record=True)
+        executor = SingleThreadedExecutor()
+        for node in (sim, *agents):
+            executor.add_node(node)
+        made.append((executor, [sim, *agents]))
+        return executor, sim, agents
+
+    yield make
+    for executor, nodes in made:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()

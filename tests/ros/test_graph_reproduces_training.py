@@ -1,0 +1,47 @@
+"""Same seed + same greedy policy => the ROS graph plays the training environment's episodes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from ros_helpers import reference_episodes, spin_until
+
+SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 11}
+EPISODES = 20
+
+
+@pytest.mark.ros
+def test_in_process_graph_replays_training_step_for_step(graph, bundles):
+    lengths, successes, trace = reference_episodes(bundles["a"], EPISODES, **SCENARIO)
+    executor, sim, agents = graph(bundles["a"], EPISODES, **SCENARIO)
+    assert spin_until(executor, lambda: sim.finished, 120), f"only {len(sim.core.results)} episodes"
+    assert [r.length for r in sim.core.results] == lengths
+    assert [r.success for r in sim.core.results] == successes
+    assert sim.core.trace == trace  # every move of every agent, not just the lengths
+    assert sim.dropped == 0 and all(a.dropped == 0 for a in agents)
+    assert len(set(lengths)) > 1  # the check is not trivially satisfied by all-truncated episodes
+
+
+@pytest.mark.ros
+def test_separate_processes_replay_training_episodes(bundles, tmp_path):
+    lengths, successes, _ = reference_episodes(bundles["b"], EPISODES, **SCENARIO)
+    config = tmp_path / "launch.yaml"
+    config.write_text(json.dumps({**SCENARIO, "policy": str(bundles["b"])}))  # JSON is YAML
+    launcher = Path(sys.executable).parent / "medc-launch"
+    out = subprocess.run(
+        [str(launcher), "--config", str(config), "--episodes", str(EPISODES), "--timeout", "150"],
+        capture_output=True,
+        text=True,
+        timeout=200,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = out.stdout.strip().splitlines()
+    assert sum(line.startswith("episode ") for line in lines) == EPISODES
+    result = json.loads(lines[-1])
+    assert result["episode_lengths"] == lengths
+    assert result["successes"] == successes
+    assert result["in_process"] is False

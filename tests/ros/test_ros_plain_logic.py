@@ -1,0 +1,193 @@
+"""The ROS nodes' logic on hand-built messages, without spinning a node."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from builtin_interfaces.msg import Time
+from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
+from medc_agents.team_state import TeamObserver
+from medc_sim import messages
+from medc_sim.contract import agent_index, xy_to_cell
+from medc_sim.launcher import load_config, resolve_policies, ros_args
+from medc_sim.moves import MoveBook, MoveRejected
+from medc_sim.sim_core import SimConfig, SimCore
+from medc_training.envs import make_batched
+
+IDS = ["agent_0", "agent_1", "agent_2"]
+
+
+def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
+    for o in observers:
+        for j, (cell, value) in enumerate(zip(core.positions(), core.readings())):
+            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, 1.0))
+            o.add_reading(IDS[j], messages.reading_msg(IDS[j], value, 0.0, stamp))
+        o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
+
+
+def test_agent_observation_from_messages_equals_training_observation():
+    """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step."""
+    core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5))
+    ref = make_batched("target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15)
+    ref_obs, ref_mask = ref.reset()
+    observers = [TeamObserver(a, 3, 10) for a in IDS]
+    gen = torch.Generator().manual_seed(0)
+    sec, episode, map_stamp, steps = 0, -1, None, 0
+    while len(core.results) < 6:
+        sec += 1
+        if core.episode != episode:
+            episode, map_stamp = core.episode, Time(sec=sec, nanosec=1)
+            for o in observers:
+                o.add_map(messages.grid_msg(core.walls(), map_stamp, 1.0))
+        feed_step(observers, core, Time(sec=sec), map_stamp)
+        actions = []
+        for i, o in enumerate(observers):
+            assert o.ready()
+            obs, mask, _ = o.observe()
+            assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
+            actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
+        core.advance(actions)
+        out = ref.step(torch.tensor([actions]))
+        ref_obs, ref_mask = out.obs, out.mask
+        steps += 1
+    assert steps > 30
+
+
+def test_missing_move_means_stay():
+    core = SimCore(SimConfig(agents=3, walls=0, grid=10, max_steps=50, seed=1))
+    before = core.positions()
+    core.advance([None, None, None])
+    assert core.positions() == before
+    moves = [int(core.env.mask[0, i].nonzero()[0]) for i in range(3)]
+    core.advance([moves[0], None, None])
+    after = core.positions()
+    assert after[0] != before[0] and after[1:] == before[1:]
+
+
+def test_move_book_drops_bad_moves():
+    book = MoveBook(3, 8)
+    book.open(2, 5)
+    with pytest.raises(MoveRejected, match="unknown agent"):
+        book.offer("agent_7", 2, 5, 1)
+    with pytest.raises(MoveRejected, match="episode 1 step 5"):
+        book.offer("agent_0", 1, 5, 1)  # an episode that has ended
+    with pytest.raises(MoveRejected, match=r"not in 0\.\.7"):
+        book.offer("agent_0", 2, 5, 8)
+    assert not book.complete and book.missing == [0, 1, 2]
+    for i in range(3):
+        book.offer(IDS[i], 2, 5, i)
+    assert book.complete and book.actions() == [0, 1, 2]
+
+
+def test_observer_rejects_bad_messages():
+    o = TeamObserver("agent_1", 3, 10)
+    stamp = Time(sec=1)
+    walls = torch.zeros((10, 10), dtype=torch.bool)
+    bad_map = messages.grid_msg(walls, stamp, 1.0)
+    bad_map.data = bad_map.data[:-1]
+    with pytest.raises(ValueError, match="99 cells"):
+        o.add_map(bad_map)
+    with pytest.raises(ValueError, match="8x8"):
+        o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), stamp, 1.0))
+    pose = messages.pose_msg((2, 3), stamp, 1.0)
+    pose.pose.position.x = math.nan
+    with pytest.raises(ValueError, match="not finite"):
+        o.add_pose("agent_0", pose)
+    with pytest.raises(ValueError, match="outside"):
+        o.add_pose("agent_0", messages.pose_msg((12, 3), stamp, 1.0))
+    with pytest.raises(ValueError, match="unknown agent"):
+        o.add_pose("agent_3", messages.pose_msg((2, 3), stamp, 1.0))
+    with pytest.raises(ValueError, match="names agent"):
+        o.add_reading("agent_0", messages.reading_msg("agent_2", 1.0, 0.0, stamp))
+    with pytest.raises(ValueError, match="finite"):
+        o.add_reading("agent_0", messages.reading_msg("agent_0", math.nan, 0.0, stamp))
+    with pytest.raises(ValueError, match="agents"):
+        o.add_status(messages.status_msg(["agent_0", "agent_1"], 0, 0, stamp, stamp))
+    # Nothing bad was kept: a complete good step still gives an observation.
+    o.add_map(messages.grid_msg(walls, stamp, 1.0))
+    for j in range(3):
+        o.add_pose(IDS[j], messages.pose_msg((j, j), stamp, 1.0))
+        o.add_reading(IDS[j], messages.reading_msg(IDS[j], 2.0, 0.0, stamp))
+    o.add_status(messages.status_msg(IDS, 0, 0, stamp, stamp))
+    obs, mask, tick = o.observe()
+    assert obs.shape == (5, 10, 10) and obs[0, 1, 1] == 1 and obs[1, 0, 0] == 1 and obs[1, 2, 2] == 1
+    assert (tick.episode, tick.step) == (0, 0) and mask.shape == (8,)
+
+
+def test_policy_slot_refuses_bad_bundles_and_keeps_the_old_one(bundles, tmp_path):
+    slot = PolicySlot((5, 10, 10), 8)
+    slot.swap(str(bundles["a"]))
+    garbage = tmp_path / "garbage.safetensors"
+    garbage.write_bytes(b"\x00" * 64)
+    for source, reason in [
+        ("", "empty"),
+        (str(tmp_path / "missing.safetensors"), "not an existing file"),
+        (str(tmp_path), "not an existing file"),
+        ("bad\x00path", "NUL"),
+        (str(garbage), "invalid"),
+        (str(bundles["grid30"]), "shape"),
+        ("QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG", "content id"),
+    ]:
+        with pytest.raises(PolicyRejected, match=reason):
+            slot.swap(source)
+        assert slot.current.source == str(bundles["a"])
+    assert looks_like_cid("ipfs://QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG")
+    north = PolicySlot((5, 10, 10), 8)
+    north.swap(str(bundles["north"]))
+    assert north.act(torch.zeros(5, 10, 10), torch.ones(8, dtype=torch.bool)) == 0
+    assert north.act(torch.zeros(5, 10, 10), torch.tensor([False] + [True] * 7)) != 0
+
+
+def test_contract_conversions():
+    assert agent_index("agent_2", 3) == 2
+    with pytest.raises(ValueError):
+        agent_index("agent_3", 3)
+    with pytest.raises(ValueError):
+        agent_index("robot", 3)
+    assert xy_to_cell(3.5, 2.5, 1.0, 10, 10) == (2, 3)
+    assert xy_to_cell(350.0, 250.0, 100.0, 10, 10) == (2, 3)
+
+
+def test_launch_config_is_checked(tmp_path, bundles):
+    with pytest.raises(ValueError, match="unknown key"):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("agent: 3\n")
+        load_config(bad)
+    with pytest.raises(ValueError, match="mode"):
+        load_config(None, mode="fast")
+    cfg = load_config(None, policy=str(bundles["a"]), agents=2)
+    assert resolve_policies(cfg) == [str(bundles["a"])] * 2
+    with pytest.raises(ValueError, match="does not exist"):
+        resolve_policies(load_config(None, policy=str(tmp_path / "none")))
+    args = ros_args("medc_sim", {"seed": 3, "noise": False, "namespace": "/medc"})
+    assert args == [
+        "--ros-args",
+        "-r",
+        "__node:=medc_sim",
+        "-p",
+        "seed:=3",
+        "-p",
+        "noise:=false",
+        "-p",
+        'namespace:="/medc"',
+    ]
+
+
+def test_console_script_works_without_sourcing_env_sh():
+    """A node started from a plain shell finds medc_interfaces (re-executed with the ROS paths)."""
+    plain_shell = ("LD_LIBRARY_PATH", "PYTHONPATH", "AMENT_PREFIX_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
+    env = {k: v for k, v in os.environ.items() if k not in plain_shell}
+    code = (
+        "from medc_sim.ros_env import ensure_interfaces; ensure_interfaces(); "
+        "import rclpy; from medc_interfaces.msg import RadiationReading; "
+        "rclpy.init(); n = rclpy.create_node('probe'); n.create_publisher(RadiationReading, 'r', 1); "
+        "print('ok'); n.destroy_node(); rclpy.shutdown()"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
