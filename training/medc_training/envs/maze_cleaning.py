@@ -1,0 +1,221 @@
+"""Multi-agent maze cleaning (paper Section V-D).
+
+World
+    A random maze on a G×G grid (default G=10). Rooms are the cells with both coordinates
+    even; every room but (0, 0) opens the wall cell to its north or to its west (at random;
+    along the top edge always west, along the left edge always north): a "binary tree"
+    maze, i.e. a spanning tree of the rooms, so every free cell is reachable. ``complexity``
+    in [0, 1] (default 1.0) is the fraction of the remaining wall cells between rooms that
+    are kept: 1.0 is a perfect maze (one path between any two rooms), lower values open
+    loops; cells with both coordinates odd are always wall. Every free cell starts dirty.
+    ``agents`` cleaners (default 3) start on distinct random free cells, which are cleaned.
+
+Moves
+    The 8 one-cell moves (N, NE, E, SE, S, SW, W, NW); moves off the grid or into a wall are
+    masked and, if taken anyway, leave the agent in place. A cell is cleaned when an agent
+    steps on it.
+
+Reward, end of episode
+    Team reward per step: :data:`CLEAN_REWARD` per cell cleaned minus :data:`TIME_COST`.
+    The episode terminates (success) when no dirty cell is left, and is truncated after
+    ``max_steps`` steps.
+
+Observation of agent i, 4 maps G×G in [0, 1] (:data:`CHANNELS`):
+    0 own location; 1 other agents; 2 dirty cells; 3 walls.
+
+Oracle (:meth:`MazeCleaning.oracle_action_scores`): minus the BFS distance (around walls)
+from the cell after each move to the nearest dirty cell; computed by a batched BFS on every
+call, since the dirty cells change every step.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
+from medc_training.envs.grid import (
+    ACTIONS,
+    action_deltas,
+    bfs_distance,
+    move_mask,
+    neighbour_index,
+    pad_blocked,
+    random_free_cells,
+)
+
+__all__ = [
+    "CHANNELS",
+    "CLEAN_REWARD",
+    "TIME_COST",
+    "MazeCleaning",
+    "build_maze_observations",
+    "generate_mazes",
+]
+
+CLEAN_REWARD = 1.0
+TIME_COST = 0.1
+CHANNELS: tuple[str, ...] = ("own_location", "team_locations", "dirty_cells", "walls")
+
+
+def generate_mazes(
+    count: int, grid: int, complexity: float, generator: torch.Generator, device: torch.device
+):
+    """bool [count,G,G] wall maps of random binary-tree mazes (see the module docstring)."""
+    r = torch.arange(grid, device=device).view(grid, 1)
+    c = torch.arange(grid, device=device).view(1, grid)
+    room = (r % 2 == 0) & (c % 2 == 0)
+    between = (r % 2) != (c % 2)  # wall cells that separate two rooms (or a room and the edge)
+    walls = (~room).expand(count, grid, grid).clone()
+    north = torch.rand((count, grid, grid), generator=generator, device=device) < 0.5
+    north = (north | (c == 0)) & (r > 0)  # top edge: west; left edge: north
+    west = ~north & (c > 0)
+    # A room at (r, c) opens (r - 1, c) or (r, c - 1): shift the choices onto those cells.
+    open_cells = torch.zeros_like(walls)
+    open_cells[:, :-1, :] |= (north & room)[:, 1:, :]
+    open_cells[:, :, :-1] |= (west & room)[:, :, 1:]
+    walls &= ~open_cells
+    if complexity < 1.0:
+        drop = torch.rand((count, grid, grid), generator=generator, device=device) >= complexity
+        walls &= ~(drop & between)
+    return walls
+
+
+def build_maze_observations(
+    positions: torch.Tensor, dirty: torch.Tensor, walls: torch.Tensor
+) -> torch.Tensor:
+    """Every agent's 4-map observation, float32 [B,N,4,G,G] (channels: :data:`CHANNELS`).
+
+    positions int64 [B,N,2]; dirty bool [B,G,G]; walls bool [B,G,G].
+    """
+    b, n = positions.shape[:2]
+    g = walls.shape[-1]
+    dev = positions.device
+    cell = positions[..., 0] * g + positions[..., 1]
+    out = torch.empty((b, n, len(CHANNELS), g * g), dtype=torch.float32, device=dev)
+    own = torch.zeros((b, n, g * g), device=dev).scatter_(2, cell.unsqueeze(2), 1.0)
+    out[:, :, 0] = own
+    out[:, :, 1] = (own.sum(1, keepdim=True) - own).clamp_(0.0, 1.0)
+    out[:, :, 2] = dirty.view(b, 1, -1)
+    out[:, :, 3] = walls.view(b, 1, -1)
+    return out.view(b, n, len(CHANNELS), g, g)
+
+
+class MazeCleaning(BatchedEnv):
+    """Batched maze cleaning core (rules: module docstring).
+
+    ``make_batched("maze_cleaning", num_envs=B, device="cpu", seed=0, agents=3, grid=10,
+    complexity=1.0, max_steps=100)``.
+    """
+
+    name = "maze_cleaning"
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        device: str | torch.device = "cpu",
+        seed: int | None = None,
+        agents: int = 3,
+        grid: int = 10,
+        complexity: float = 1.0,
+        max_steps: int = 100,
+        copy_obs: bool = True,
+    ) -> None:
+        self.grid = check_int("grid", grid, 3, 64)
+        # The fewest free cells a maze of this size can have: its rooms.
+        rooms = ((self.grid + 1) // 2) ** 2
+        self.num_agents = check_int("agents", agents, 1, min(16, rooms))
+        if (
+            isinstance(complexity, bool)
+            or not isinstance(complexity, int | float)
+            or not 0.0 <= complexity <= 1.0
+        ):
+            raise ValueError(f"complexity must be a number in [0, 1], got {complexity!r}")
+        self.complexity = float(complexity)
+        self.max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
+        self.copy_obs = check_bool("copy_obs", copy_obs)
+        super().__init__(num_envs, device, seed)
+        self.num_actions = len(ACTIONS)
+        self.obs_shape = (len(CHANNELS), self.grid, self.grid)
+        self._deltas = action_deltas(self.device)
+        self._started = False
+
+    @property
+    def attributes(self) -> dict[str, Any]:
+        return {
+            "agents": self.num_agents,
+            "grid": self.grid,
+            "complexity": self.complexity,
+            "max_steps": self.max_steps,
+        }
+
+    def _start_episodes(self, rows: torch.Tensor | None) -> None:
+        k = self.num_envs if rows is None else len(rows)
+        walls = generate_mazes(k, self.grid, self.complexity, self.generator, self.device)
+        positions = random_free_cells(~walls, self.num_agents, self.generator)
+        dirty = ~walls
+        cell = positions[..., 0] * self.grid + positions[..., 1]
+        dirty.view(k, -1).scatter_(1, cell, False)
+        if rows is None:
+            self.walls, self.positions, self.dirty = walls, positions, dirty
+            self.blocked_pad = pad_blocked(walls)
+            self.t = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        else:
+            self.walls[rows], self.positions[rows], self.dirty[rows] = walls, positions, dirty
+            self.blocked_pad[rows] = pad_blocked(walls)
+            self.t[rows] = 0
+
+    def _observe(self) -> torch.Tensor:
+        return build_maze_observations(self.positions, self.dirty, self.walls)
+
+    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if seed is not None:
+            self._seed(seed)
+        self._start_episodes(None)
+        self._started = True
+        self._obs = self._observe()
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
+
+    def step(self, actions: torch.Tensor) -> StepOutput:
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = self._check_actions(actions)
+        allowed = self.mask.gather(2, actions.unsqueeze(2))
+        self.positions = self.positions + self._deltas[actions] * allowed
+        b = self.num_envs
+        cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
+        before = self.dirty.view(b, -1).sum(1)
+        self.dirty.view(b, -1).scatter_(1, cell, False)
+        left = self.dirty.view(b, -1).sum(1)
+        reward = CLEAN_REWARD * (before - left).float() - TIME_COST
+        success = left == 0
+        self.t += 1
+        episode_length = self.t.clone()
+        truncated = (self.t >= self.max_steps) & ~success
+        done = success | truncated
+        obs = self._observe()
+        final_obs = obs
+        if bool(done.any()):
+            rows = done.nonzero().squeeze(1)
+            self._start_episodes(rows)
+            final_obs = obs.clone()
+            obs[rows] = self._observe()[rows]
+        self._obs = obs
+        if self.copy_obs:
+            obs = obs.clone()
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return StepOutput(
+            obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
+        )
+
+    def oracle_action_scores(self) -> torch.Tensor:
+        """float32 [B,N,A]: minus the BFS distance to the nearest dirty cell after each move."""
+        b, n = self.positions.shape[:2]
+        dist = bfs_distance(~self.walls, self.dirty)
+        dist = torch.where(torch.isinf(dist), 0.0, dist)  # nothing dirty left: any move will do
+        dist_pad = torch.nn.functional.pad(dist, (1, 1, 1, 1), value=0.0)
+        idx = neighbour_index(self.positions, self.grid, self._deltas).view(b, -1)
+        scores = -dist_pad.view(b, -1).gather(1, idx).view(b, n, -1)
+        return torch.where(self.mask, scores, float("-inf"))
