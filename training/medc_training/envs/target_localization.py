@@ -46,6 +46,7 @@ from topics; the batched core below calls the very same functions.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -94,6 +95,7 @@ SUCCESS_REWARD = 10.0
 SHAPING_SCALE = 0.1
 CHANNELS: tuple[str, ...] = ("own_location", "team_locations", "readings", "visit_counts", "walls")
 
+_READING_SCALE = 1.0 / math.log1p(SOURCE_STRENGTH + BACKGROUND)
 _MAX_GRID = 256
 _MAX_AGENTS = 64
 
@@ -126,8 +128,7 @@ def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[i
 
 def normalise_reading(readings: torch.Tensor) -> torch.Tensor:
     """Map raw readings (counts/s) to [0, 1]: log(1 + I) / log(1 + S + BG), clipped."""
-    scale = 1.0 / torch.log1p(torch.tensor(SOURCE_STRENGTH + BACKGROUND)).item()
-    return (torch.log1p(readings) * scale).clamp_(0.0, 1.0)
+    return (torch.log1p(readings) * _READING_SCALE).clamp_(0.0, 1.0)
 
 
 def sensor_reading(
