@@ -54,3 +54,28 @@ def spin_until(executor, condition, timeout_s: float) -> bool:
             return False
         executor.spin_once(timeout_sec=0.05)
     return True
+
+
+def replay_masks(trace, *, seed: int, agents: int, walls: int, grid: int, max_steps: int):
+    """The move masks [N,A] the agents had at each step of ``trace``, by replaying it in the env."""
+    import torch
+    from medc_training.envs import make_batched
+
+    env = make_batched(
+        "target_localization",
+        num_envs=1,
+        device="cpu",
+        seed=seed,
+        agents=agents,
+        walls=walls,
+        grid=grid,
+        max_steps=max_steps,
+        reward_shaping=False,
+        noise=False,
+    )
+    _, mask = env.reset()
+    masks = []
+    for _, _, actions in trace:
+        masks.append(mask[0].clone())
+        mask = env.step(torch.tensor([actions])).mask
+    return masks

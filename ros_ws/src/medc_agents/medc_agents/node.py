@@ -13,6 +13,7 @@ running.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable
 
 import torch
@@ -62,7 +63,8 @@ class AgentNode(Node):
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution)
         self.slot = PolicySlot((CHANNELS, grid, grid), NUM_ACTIONS, application or None)
-        self.dropped = 0
+        #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
+        self.dropped_by: Counter[str] = Counter()
         self.decisions = 0
         self.swap_listeners: list[Callable[[str, str | None], None]] = []
         self._last_move: AgentMove | None = None
@@ -108,7 +110,7 @@ class AgentNode(Node):
 
     # -- team state ----------------------------------------------------------------------------
     def _drop(self, what: str, exc: Exception) -> None:
-        self.dropped += 1
+        self.dropped_by[what] += 1
         self.get_logger().warning(f"dropped {what} message: {exc}")
 
     def _guard(self, what: str, fn, *args) -> None:
@@ -149,6 +151,11 @@ class AgentNode(Node):
         self.decisions += 1
         self.move_pub.publish(move)
 
+    @property
+    def dropped(self) -> int:
+        """Messages dropped as invalid, in all."""
+        return sum(self.dropped_by.values())
+
     # -- policy swap ---------------------------------------------------------------------------
     def swap_policy(self, source: str) -> str:
         """Validate and run the bundle at ``source``; returns its description.
@@ -186,14 +193,14 @@ class AgentNode(Node):
         try:
             self.swap_policy(source)
         except PolicyRejected as exc:
-            self.dropped += 1
+            self.dropped_by["policy"] += 1
             self._refused(source, exc)
 
     def _request_fetch(self, cid: str) -> None:
         if self._fetch_client is None:
             self._fetch_client = self.create_client(FetchBundle, self.bridge_service)
         if not self._fetch_client.service_is_ready():
-            self.dropped += 1
+            self.dropped_by["policy"] += 1
             self._refused(
                 cid, PolicyRejected(f"registry bridge service {self.bridge_service} is not running")
             )

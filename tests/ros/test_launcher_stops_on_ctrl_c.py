@@ -1,0 +1,38 @@
+"""medc-launch runs the graph as separate processes and stops all of them on Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+
+@pytest.mark.ros
+def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
+    config = tmp_path / "launch.yaml"
+    config.write_text(f"grid: 10\nwalls: 1\nmax_steps: 20\nseed: 5\npolicy: {bundles['a']}\n")
+    launcher = Path(sys.executable).parent / "medc-launch"
+    proc = subprocess.Popen(
+        [str(launcher), "--config", str(config)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
+    try:
+        first = proc.stdout.readline()  # blocks until the first episode ends
+        assert first.startswith("episode 0:"), first
+        proc.send_signal(signal.SIGINT)
+        start = time.monotonic()
+        rest, _ = proc.communicate(timeout=30)
+        assert time.monotonic() - start < 15
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0
+    summary = json.loads(rest.strip().splitlines()[-1])
+    assert summary["episodes"] >= 1 and summary["episode_lengths"][0] == int(first.split()[2])
+    # No node of this graph survives its launcher.
+    leftovers = subprocess.run(["pgrep", "-f", str(config)], capture_output=True, text=True).stdout.split()
+    assert leftovers == []
