@@ -93,13 +93,22 @@ HEADS = {"type": "heads", "num_actions": 8}
     ([{"type": "conv2d", "out_channels": 4}, {"type": "flatten"}, HEADS], "missing required key"),
     ([{"type": "flatten"}, {"type": "linear", "out_features": 2.5}, HEADS], "must be an integer"),
     ([{"type": "flatten"}, {"type": "linear", "out_features": True}, HEADS], "must be an integer"),
-    ([{"type": "flatten"}, {"type": "linear", "out_features": 1 << 20}, HEADS], "exceeds"),
+    ([{"type": "flatten"}, {"type": "linear", "out_features": 1 << 16},
+      {"type": "linear", "out_features": 1000}, HEADS], "exceeds .* parameters"),
     ([{"type": "flatten"}, {"type": "heads", "num_actions": 1}], "num_actions"),
     ([{"type": "flatten"}, {"type": "conv2d", "out_channels": 4, "kernel_size": 3}, HEADS], "already flat"),
 ])
 def test_invalid_specs_are_rejected_with_the_reason(layers: list, message: str) -> None:
     with pytest.raises(SpecError, match=message):
         validate_spec(_spec(layers))
+
+
+def test_specs_that_would_exhaust_memory_are_rejected_before_allocation() -> None:
+    wide = [{"type": "conv2d", "out_channels": 1 << 16, "kernel_size": 1}, {"type": "flatten"}, HEADS]
+    with pytest.raises(SpecError, match="values per observation exceeds"):
+        validate_spec(_spec(wide, side=30))
+    with pytest.raises(SpecError, match="between 1 and 65536"):
+        validate_spec(_spec([{"type": "flatten"}, {"type": "linear", "out_features": 1 << 17}, HEADS]))
 
 
 def test_spec_top_level_is_checked() -> None:

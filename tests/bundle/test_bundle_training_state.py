@@ -22,7 +22,7 @@ def _train_steps(net, opt, steps: int, seed: int) -> None:
 
 def test_resumed_optimizer_continues_exactly_like_an_uninterrupted_run(tmp_path) -> None:
     torch.manual_seed(0)
-    net = make_actor_critic("lenet5", (5, 10, 10), 8)
+    net = make_actor_critic("convnet-small", (5, 10, 10), 8)
     opt = torch.optim.Adam(net.parameters(), lr=3e-4, eps=1e-5)
     _train_steps(net, opt, 3, seed=1)
     path = save_state(tmp_path / "ckpt.safetensors",
@@ -32,7 +32,7 @@ def test_resumed_optimizer_continues_exactly_like_an_uninterrupted_run(tmp_path)
 
     state = load_state(path)
     assert state["step"] == 3
-    resumed = make_actor_critic("lenet5", (5, 10, 10), 8)
+    resumed = make_actor_critic("convnet-small", (5, 10, 10), 8)
     resumed.load_state_dict(state["model"])
     resumed_opt = torch.optim.Adam(resumed.parameters(), lr=3e-4, eps=1e-5)
     resumed_opt.load_state_dict(state["optimizer"])

@@ -87,6 +87,7 @@ MAX_PARAMETERS = 50_000_000
 MAX_INPUT_SIDE = 4096
 MAX_CHANNELS = 4096
 MAX_ACTIONS = 4096
+MAX_ACTIVATIONS = 1 << 24  # elements of any one layer's output for a single observation (64 MiB)
 
 # Large negative logit for masked-out actions: exp() of it is exactly 0, yet it stays finite so
 # entropies and log-probabilities never produce NaN (0 * -inf).
@@ -145,7 +146,7 @@ def _normalise_layer(raw: Any, index: int) -> dict[str, Any]:
         layer["stride"] = layer["kernel_size"]
     for key in ("out_channels", "out_features"):
         if key in layer:
-            _positive_int(layer[key], where, key, maximum=1 << 20)
+            _positive_int(layer[key], where, key, maximum=1 << 16)
     if kind == "heads":
         _positive_int(layer["num_actions"], where, "num_actions", minimum=2, maximum=MAX_ACTIONS)
     if kind in ("conv2d", "maxpool2d"):
@@ -197,6 +198,9 @@ def validate_spec(spec: Any) -> dict[str, Any]:
 
 def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
     """Names and shapes of every parameter tensor of the network ``spec`` describes.
+
+    Raises ``SpecError`` when the layers do not fit together or the network is too large (more
+    than ``MAX_PARAMETERS`` parameters, or a layer output above ``MAX_ACTIVATIONS`` values).
 
     ``spec`` must have its defaults filled in (``validate_spec`` output). This is the single source
     of truth a bundle loader checks stored tensors against.
@@ -252,6 +256,9 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
             shape = (out,)
         if total > MAX_PARAMETERS:
             raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
+        if math.prod(shape) > MAX_ACTIVATIONS:
+            raise SpecError(f"{where}: its output of {math.prod(shape):,} values per observation exceeds "
+                            f"{MAX_ACTIVATIONS:,}")
     if not layers or layers[-1]["type"] != "heads":
         raise SpecError("architecture spec: the last layer must be {'type': 'heads', 'num_actions': A}")
     return tensors

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -89,10 +90,15 @@ def main(argv: list[str] | None = None) -> int:
     except BundleError as exc:
         print(f"medc-inspect: invalid bundle: {exc}", file=sys.stderr)
         return 1
-    if args.json:
-        print(json.dumps(manifest, indent=2, sort_keys=True))
-    else:
-        print(format_manifest(manifest, sha256, parameters, Path(args.bundle).stat().st_size))
+    text = (json.dumps(manifest, indent=2, sort_keys=True) if args.json
+            else format_manifest(manifest, sha256, parameters, Path(args.bundle).stat().st_size))
+    try:
+        print(text)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # `medc-inspect B | head` closing the pipe early is not an error of the bundle.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
     return 0
 
 
