@@ -217,12 +217,12 @@ def build_observations(
     cell = positions[..., 0] * w + positions[..., 1]  # [B,N]
     agent_base = (torch.arange(b * n, device=positions.device).view(b, n) * 5) * hw  # [B,N]
     flat = out.view(-1)
-    flat[agent_base + cell] = 1.0
+    flat.index_fill_(0, (agent_base + cell).view(-1), 1.0)
     if n > 1:
         # Agent i's channel 1 gets every other agent j's cell: index [B, i, j] with j != i.
         others = ~torch.eye(n, dtype=torch.bool, device=positions.device)
         idx = (agent_base + hw).unsqueeze(2) + cell.unsqueeze(1)  # [B,N(i),N(j)]
-        flat[idx[:, others]] = 1.0
+        flat.index_fill_(0, idx[:, others].view(-1), 1.0)
     return out
 
 
@@ -427,16 +427,18 @@ class TargetLocalization(BatchedEnv):
         pair_old = base.unsqueeze(2) + old_cell.unsqueeze(1)  # [B,i,j]: agent i's map at j's cell
         pair_new = base.unsqueeze(2) + new_cell.unsqueeze(1)
         b = new_cell.shape[0]
-        # Clear before set, so that an agent moving onto a cell another agent just left stays marked.
-        flat[base + old_cell] = 0.0
-        flat[base + new_cell] = 1.0
+        # Clear before set, so that an agent moving onto a cell another agent just left stays
+        # marked. index_fill_/index_copy_ on the flat view are much cheaper than advanced
+        # indexing; duplicate indices only ever carry equal values.
+        flat.index_fill_(0, (base + old_cell).view(-1), 0.0)
+        flat.index_fill_(0, (base + new_cell).view(-1), 1.0)
         if self.num_agents > 1:
-            flat[pair_old[:, self._others] + hw] = 0.0
-            flat[pair_new[:, self._others] + hw] = 1.0
+            flat.index_fill_(0, pair_old[:, self._others].view(-1) + hw, 0.0)
+            flat.index_fill_(0, pair_new[:, self._others].view(-1) + hw, 1.0)
         readings = self.reading_map.view(b, -1).gather(1, new_cell).unsqueeze(1).expand_as(pair_new)
         visits = _visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
-        flat[pair_new + 2 * hw] = readings
-        flat[pair_new + 3 * hw] = visits
+        flat.index_copy_(0, (pair_new + 2 * hw).view(-1), readings.reshape(-1))
+        flat.index_copy_(0, (pair_new + 3 * hw).view(-1), visits.reshape(-1))
 
     def step(self, actions: torch.Tensor) -> StepOutput:
         if not self._started:
