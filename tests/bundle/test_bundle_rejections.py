@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import functools
 import io
 import json
 import pickle
@@ -12,6 +13,8 @@ import struct
 import pytest
 import torch
 from bundle_forge import forge, raw_header, rewrite_header, valid_parts
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from medc_training.bundle import (
     MANIFEST_KEY,
     MAX_HEADER_BYTES,
@@ -256,3 +259,40 @@ def test_errors_name_the_file(tmp_path, parts) -> None:
     with pytest.raises(BundleError, match=re.escape(str(path))):
         load_bundle(path)
     assert json.loads(json.dumps(read_manifest(forge(tensors, manifest))))  # sanity: the valid one is JSON
+
+
+# --- fuzzing ---------------------------------------------------------------------------------
+
+@functools.cache
+def _fuzz_seed() -> bytes:
+    tensors, manifest = valid_parts("lenet5", grid=10)
+    return forge(tensors, manifest)
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_any_corruption_loads_cleanly_or_raises_bundle_error(data: st.DataObject) -> None:
+    """Random byte edits anywhere (mostly in the header) never escape as another exception."""
+    good = _fuzz_seed()
+    n = struct.unpack("<Q", good[:8])[0]
+    buf = bytearray(good)
+    for _ in range(data.draw(st.integers(1, 4), label="edits")):
+        if not buf:
+            break
+        # Bias towards the header, where an edit changes structure rather than just a weight.
+        pos = data.draw(st.one_of(st.integers(0, min(8 + n, len(buf)) - 1), st.integers(0, len(buf) - 1)),
+                        label="position")
+        action = data.draw(st.sampled_from(["flip", "delete", "insert", "truncate"]), label="edit")
+        if action == "flip":
+            buf[pos] ^= 1 << data.draw(st.integers(0, 7), label="bit")
+        elif action == "delete":
+            del buf[pos]
+        elif action == "insert":
+            buf.insert(pos, data.draw(st.integers(0, 255), label="byte"))
+        else:
+            del buf[pos:]
+    try:
+        bundle = load_bundle(bytes(buf))
+    except BundleError:
+        return
+    assert bundle.net(torch.zeros(1, *bundle.obs_shape))[0].shape == (1, bundle.num_actions)
