@@ -1,0 +1,394 @@
+"""One chain client for the registry contracts: embedded eth-tester or any JSON-RPC node.
+
+* :meth:`ChainClient.embedded` runs py-evm in process (eth-tester); nothing persists.
+* :meth:`ChainClient.connect` talks to a JSON-RPC URL (anvil, Besu, Quorum, geth) and signs
+  locally with the given private keys; ``poa=True`` adds web3's ``ExtraDataToPOAMiddleware`` for
+  clique/IBFT/QBFT consortium chains whose blocks carry long ``extraData``.
+
+Every transaction is signed once; :meth:`ChainClient.transact` re-sends the *same* signed bytes
+when the node times out or restarts and then looks the receipt up by hash, so a retry can never
+pay twice (the nonce is fixed). Reverts with the contracts' custom errors become
+:class:`ContractRevert` with the error's name, its arguments and a readable message.
+"""
+
+from __future__ import annotations
+
+import ast
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from eth_abi import decode as abi_decode
+from eth_account import Account
+from eth_utils import keccak, to_checksum_address
+from web3 import Web3
+from web3.exceptions import TimeExhausted, TransactionNotFound
+
+from .compile import load_artifact
+
+#: Contracts whose ABIs (and custom errors) the client knows.
+CONTRACT_NAMES = ("UsersManager", "ModelsManager", "ReentrantWithdrawer")
+
+#: Readable explanations of the contracts' custom errors.
+ERROR_HINTS = {
+    "AlreadyRegistered": "this account is already registered",
+    "UnregisteredUser": "the account is not registered: run register first",
+    "NotAdmin": "only the deployer may do this",
+    "NotManager": "only the Models Manager contract may update user records",
+    "ManagerAlreadySet": "the Users Manager is already bound to a Models Manager",
+    "ZeroAddress": "the zero address is not allowed",
+    "ZeroCount": "the number of models must be positive",
+    "ReviewOutOfRange": "a review must be between 0 and 1",
+    "ReviewsExceedAllocations": "more reviews than allocations",
+    "UnknownModel": "no model with that id",
+    "UnknownApplication": "no model has been shared for that application",
+    "UnknownAllocation": "no allocation with that id",
+    "EmptyApplication": "the application name is empty",
+    "InvalidCid": "the CID is empty or too long",
+    "TooManyFeatures": "too many environment features",
+    "FeatureCountMismatch": "the number of environment features differs from the application's",
+    "InvalidWeights": "weights must be one per feature and sum to 1",
+    "PriceTooLarge": "the price does not fit in 128 bits",
+    "InvalidCount": "the number of models requested must be positive",
+    "NoEligibleModels": "no model meets the requirements (application, reputations, not your own)",
+    "InsufficientPayment": "the payment is less than the price of the allocated models",
+    "NotAllocatedRequester": "only the requester the model was allocated to may review it",
+    "AlreadyReviewed": "this allocation has already been reviewed",
+    "NothingToWithdraw": "nothing is owed to this account",
+    "TransferFailed": "the payout transfer was rejected by the receiver",
+}
+
+
+#: Node answers meaning an earlier attempt of the same signed transaction got through.
+_ALREADY_SENT = ("already known", "known transaction", "nonce too low", "already imported")
+
+
+class ChainError(RuntimeError):
+    """The chain could not be reached or a transaction did not go through."""
+
+
+class ContractRevert(ChainError):
+    """A contract call reverted; ``error`` is the custom error's name, ``values`` its arguments."""
+
+    def __init__(self, error: str, values: dict[str, Any] | None = None, raw: str = "") -> None:
+        self.error = error
+        self.values = values or {}
+        self.raw = raw
+        hint = ERROR_HINTS.get(error, "")
+        args = ", ".join(f"{k}={v}" for k, v in self.values.items())
+        super().__init__(f"{error}({args})" + (f": {hint}" if hint else ""))
+
+
+@dataclass(frozen=True)
+class TxResult:
+    """A mined, successful transaction."""
+
+    tx_hash: str
+    gas_used: int
+    block_number: int
+    receipt: Any
+    contract_address: str | None = None
+
+
+def _error_table() -> dict[bytes, tuple[str, list[str], list[str]]]:
+    table: dict[bytes, tuple[str, list[str], list[str]]] = {}
+    for name in CONTRACT_NAMES:
+        for item in load_artifact(name)["abi"]:
+            if item.get("type") != "error":
+                continue
+            types = [i["type"] for i in item["inputs"]]
+            selector = keccak(text=f"{item['name']}({','.join(types)})")[:4]
+            table[selector] = (item["name"], [i["name"] for i in item["inputs"]], types)
+    return table
+
+
+_ERRORS: dict[bytes, tuple[str, list[str], list[str]]] | None = None
+
+
+def _revert_bytes(exc: BaseException) -> bytes | None:
+    """Revert data carried by a web3 / eth-tester exception, if any."""
+    data = getattr(exc, "data", None)
+    if isinstance(data, dict):
+        data = data.get("data")
+    if isinstance(data, str) and data.startswith("0x"):
+        return bytes.fromhex(data[2:])
+    if isinstance(data, bytes | bytearray):
+        return bytes(data)
+    for arg in getattr(exc, "args", ()):
+        if isinstance(arg, bytes | bytearray):
+            return bytes(arg)
+        if isinstance(arg, str):
+            # eth-tester: "execution reverted: b'...'" ; JSON-RPC nodes: "...: 0x..."
+            for marker in ("b'", 'b"'):
+                idx = arg.find(marker)
+                if idx >= 0:
+                    try:
+                        value = ast.literal_eval(arg[idx:])
+                    except (ValueError, SyntaxError):
+                        continue
+                    if isinstance(value, bytes):
+                        return value
+            idx = arg.rfind("0x")
+            if idx >= 0:
+                hexpart = arg[idx + 2 :].split()[0].strip("'\",")
+                try:
+                    return bytes.fromhex(hexpart)
+                except ValueError:
+                    pass
+    return None
+
+
+def decode_revert(exc: BaseException) -> ContractRevert | None:
+    """The :class:`ContractRevert` for a reverted call's exception, or None if it is not a revert."""
+    global _ERRORS
+    if _ERRORS is None:
+        _ERRORS = _error_table()
+    data = _revert_bytes(exc)
+    if data is None:
+        text = str(exc)
+        if "revert" in text.lower():
+            return ContractRevert("Reverted", {"reason": text})
+        return None
+    if len(data) >= 4 and data[:4] in _ERRORS:
+        name, names, types = _ERRORS[data[:4]]
+        values = abi_decode(types, data[4:]) if types else ()
+        return ContractRevert(name, dict(zip(names, values)), "0x" + data.hex())
+    if data[:4] == bytes.fromhex("08c379a0"):  # Error(string)
+        return ContractRevert("Error", {"reason": abi_decode(["string"], data[4:])[0]}, "0x" + data.hex())
+    if data[:4] == bytes.fromhex("4e487b71"):  # Panic(uint256)
+        return ContractRevert("Panic", {"code": abi_decode(["uint256"], data[4:])[0]}, "0x" + data.hex())
+    return ContractRevert("Reverted", {"data": "0x" + data.hex()}, "0x" + data.hex())
+
+
+def _is_transient(exc: BaseException) -> bool:
+    """Connection-level failures worth a retry (node restarting, timeouts)."""
+    import requests
+
+    transient = (ConnectionError, TimeoutError, OSError, requests.exceptions.RequestException, TimeExhausted)
+    return isinstance(exc, transient)
+
+
+class ChainClient:
+    """Signs and sends transactions to the MEDC contracts; reads their state.
+
+    Use :meth:`embedded` or :meth:`connect` rather than the constructor.
+    """
+
+    def __init__(
+        self,
+        w3: Web3,
+        private_keys: Sequence[str],
+        *,
+        description: str,
+        retries: int = 3,
+        receipt_timeout: float = 120.0,
+        backoff: float = 0.25,
+    ) -> None:
+        if not private_keys:
+            raise ValueError("at least one private key is needed to sign transactions")
+        self.w3 = w3
+        self.accounts = [Account.from_key(k) for k in private_keys]
+        self.description = description
+        self.retries = retries
+        self.receipt_timeout = receipt_timeout
+        self.backoff = backoff
+
+    # ------------------------------------------------------------ construction
+    @classmethod
+    def embedded(cls, **kwargs: Any) -> ChainClient:
+        """An in-process eth-tester (py-evm) chain with ten funded accounts. Nothing persists."""
+        from web3 import EthereumTesterProvider
+
+        provider = EthereumTesterProvider()
+        w3 = Web3(provider)
+        keys = [k.to_hex() for k in provider.ethereum_tester.backend.account_keys]
+        return cls(w3, keys, description="embedded eth-tester (py-evm, in process)", **kwargs)
+
+    @classmethod
+    def connect(
+        cls, url: str, private_keys: Sequence[str], *, poa: bool = False, timeout: float = 30.0, **kwargs: Any
+    ) -> ChainClient:
+        """A JSON-RPC node at ``url`` (http/https), signing locally with ``private_keys``.
+
+        ``poa=True`` for consortium chains (Besu/Quorum clique, IBFT 2.0, QBFT) whose block
+        ``extraData`` is longer than Ethereum's 32 bytes.
+        """
+        from web3 import HTTPProvider
+        from web3.middleware import ExtraDataToPOAMiddleware
+
+        if not url.startswith(("http://", "https://")):
+            raise ValueError(f"JSON-RPC URL must start with http:// or https://, got {url!r}")
+        w3 = Web3(HTTPProvider(url, request_kwargs={"timeout": timeout}))
+        if poa:
+            w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
+        client = cls(w3, private_keys, description=f"JSON-RPC {url}" + (" (PoA)" if poa else ""), **kwargs)
+        client._retry(lambda: w3.eth.chain_id, f"reach the node at {url}")
+        return client
+
+    # ------------------------------------------------------------ accounts
+    @property
+    def addresses(self) -> list[str]:
+        """Checksummed addresses of the signing accounts."""
+        return [a.address for a in self.accounts]
+
+    def account(self, who: int | str) -> Any:
+        """The signing account by index or address."""
+        if isinstance(who, int):
+            if not 0 <= who < len(self.accounts):
+                raise ValueError(f"account index {who} out of range (0..{len(self.accounts) - 1})")
+            return self.accounts[who]
+        addr = to_checksum_address(who)
+        for acct in self.accounts:
+            if acct.address == addr:
+                return acct
+        raise ValueError(f"no private key for {addr}")
+
+    def add_key(self, private_key: str) -> str:
+        """Add a signing key; returns its address."""
+        acct = Account.from_key(private_key)
+        if acct.address not in self.addresses:
+            self.accounts.append(acct)
+        return acct.address
+
+    def balance(self, address: str) -> int:
+        """Balance in wei."""
+        return self._retry(lambda: self.w3.eth.get_balance(to_checksum_address(address)), "read a balance")
+
+    # ------------------------------------------------------------ contracts
+    def contract(self, name: str, address: str | None = None) -> Any:
+        """A web3 contract object for artifact ``name`` (at ``address`` when given)."""
+        art = load_artifact(name)
+        if address is None:
+            return self.w3.eth.contract(abi=art["abi"], bytecode=art["bytecode"])
+        return self.w3.eth.contract(address=to_checksum_address(address), abi=art["abi"])
+
+    def deploy(self, name: str, *args: Any, sender: int | str = 0) -> TxResult:
+        """Deploy artifact ``name`` with constructor ``args``; ``contract_address`` is set."""
+        result = self.transact(self.contract(name).constructor(*args), sender=sender)
+        if not result.contract_address:
+            raise ChainError(f"deploying {name} produced no contract address")
+        return result
+
+    def has_code(self, address: str) -> bool:
+        """Whether a contract is deployed at ``address``."""
+        return len(self._retry(lambda: self.w3.eth.get_code(to_checksum_address(address)), "read code")) > 0
+
+    def call(self, fn: Any, sender: int | str | None = None, value: int = 0) -> Any:
+        """Run a view / simulated call; reverts raise :class:`ContractRevert`."""
+        tx: dict[str, Any] = {}
+        if sender is not None:
+            tx["from"] = self.account(sender).address
+        if value:
+            tx["value"] = value
+        try:
+            return self._retry(lambda: fn.call(tx), "call a contract")
+        except ChainError:
+            raise
+        except Exception as exc:
+            revert = decode_revert(exc)
+            if revert is not None:
+                raise revert from None
+            raise
+
+    def transact(self, fn: Any, sender: int | str = 0, value: int = 0, gas: int | None = None) -> TxResult:
+        """Sign, send and wait for ``fn`` (a contract function or constructor call).
+
+        The revert check runs first (gas estimation), so a failing call raises
+        :class:`ContractRevert` without spending anything. Transient node failures are retried
+        with the same signed transaction.
+        """
+        acct = self.account(sender)
+        params: dict[str, Any] = {"from": acct.address, "value": value}
+        try:
+            params["nonce"] = self._retry(
+                lambda: self.w3.eth.get_transaction_count(acct.address, "pending"), "read the nonce"
+            )
+            params["chainId"] = self._retry(lambda: self.w3.eth.chain_id, "read the chain id")
+            if gas is not None:
+                params["gas"] = gas
+            tx = self._retry(lambda: fn.build_transaction(params), "prepare a transaction")
+        except ChainError:
+            raise
+        except Exception as exc:
+            revert = decode_revert(exc)
+            if revert is not None:
+                raise revert from None
+            raise
+        if gas is None:
+            # Estimation is exact for this state; headroom covers state that changes before mining.
+            tx["gas"] = int(tx["gas"] * 1.25) + 20_000
+        signed = acct.sign_transaction(tx)
+        return self.send_raw(signed.raw_transaction, fn=fn, sender=acct.address, value=value)
+
+    def send_raw(self, raw: bytes, fn: Any = None, sender: str | None = None, value: int = 0) -> TxResult:
+        """Send signed bytes (re-sent unchanged on transient failures) and wait for the receipt."""
+        tx_hash = "0x" + keccak(raw).hex()
+        last: BaseException | None = None
+        for attempt in range(self.retries + 1):
+            try:
+                self.w3.eth.send_raw_transaction(raw)
+            except Exception as exc:
+                msg = str(exc).lower()
+                # Already in the pool or mined by an earlier attempt: fine, fall through to the receipt.
+                if not any(s in msg for s in _ALREADY_SENT):
+                    if not _is_transient(exc):
+                        revert = decode_revert(exc)
+                        if revert is not None:
+                            raise revert from None
+                        raise ChainError(f"transaction rejected by the node: {exc}") from None
+                    last = exc
+                    time.sleep(self.backoff * 2**attempt)
+                    if self._receipt_or_none(tx_hash) is None:
+                        continue
+            try:
+                receipt = self.w3.eth.wait_for_transaction_receipt(tx_hash, timeout=self.receipt_timeout)
+            except Exception as exc:
+                if not _is_transient(exc):
+                    raise
+                last = exc
+                time.sleep(self.backoff * 2**attempt)
+                receipt = self._receipt_or_none(tx_hash)
+                if receipt is None:
+                    continue
+            if receipt["status"] != 1:
+                raise self._failure(receipt, fn, sender, value)
+            address = receipt.get("contractAddress")
+            return TxResult(tx_hash, receipt["gasUsed"], receipt["blockNumber"], receipt, address)
+        raise ChainError(
+            f"transaction {tx_hash} not confirmed after {self.retries + 1} attempts ({last}); "
+            "it was signed once, so re-running cannot pay twice: check it with its hash"
+        )
+
+    # ------------------------------------------------------------ helpers
+    def _receipt_or_none(self, tx_hash: str) -> Any:
+        try:
+            return self.w3.eth.get_transaction_receipt(tx_hash)
+        except TransactionNotFound:
+            return None
+        except Exception as exc:
+            if _is_transient(exc):
+                return None
+            raise
+
+    def _failure(self, receipt: Any, fn: Any, sender: str | None, value: int) -> ChainError:
+        if fn is not None and sender is not None and hasattr(fn, "call"):
+            try:
+                fn.call({"from": sender, "value": value}, block_identifier=receipt["blockNumber"] - 1)
+            except Exception as exc:
+                revert = decode_revert(exc)
+                if revert is not None:
+                    return revert
+        return ChainError(f"transaction {receipt['transactionHash'].hex()} reverted (out of gas or revert)")
+
+    def _retry(self, op: Callable[[], Any], what: str) -> Any:
+        last: BaseException | None = None
+        for attempt in range(self.retries + 1):
+            try:
+                return op()
+            except Exception as exc:
+                if not _is_transient(exc):
+                    raise
+                last = exc
+                time.sleep(self.backoff * 2**attempt)
+        raise ChainError(f"could not {what} after {self.retries + 1} attempts: {last}")

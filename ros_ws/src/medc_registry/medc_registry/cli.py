@@ -1,0 +1,420 @@
+"""``medc-registry``: the registry's command line, following the paper's time sequence.
+
+State lives in a home directory (``--home``, ``$MEDC_HOME`` or ``./.medc``): ``registry.json``
+records the chain (JSON-RPC URL, contract addresses), the content store and, for a node started
+here, the anvil process and its state file. Every command except ``start``, ``deploy``, ``cid`` and
+``gas-report`` reads it and stops with a clear message when no chain is configured — the CLI never
+falls back to a throwaway chain.
+
+    medc-registry start                       # persistent local anvil + contracts + local content store
+    medc-registry register --account 1
+    medc-registry share model.safetensors --application target_localization \\
+        --env agents=1 --env walls=3 --price 0.001 --account 1
+    medc-registry request --application target_localization --env agents=3 --env walls=2 \\
+        --count 2 --account 2
+    medc-registry fetch CID -o expert.safetensors --account 2
+    medc-registry review ALLOCATION_ID 0.8 --account 2
+    medc-registry withdraw --account 1
+    medc-registry status
+    medc-registry stop
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import sys
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+from typing import Any
+
+from .chain import ChainClient, ChainError
+from .cid import compute_cid
+from .content import ContentStore, ContentStoreError, KuboContentStore, LocalContentStore
+from .registry import Deployment, Registry, deploy_contracts, format_eth
+
+STATE_FILE = "registry.json"
+
+
+class CliError(RuntimeError):
+    """A user-facing error: printed without a traceback, exit status 2."""
+
+
+# ---------------------------------------------------------------- state
+def home_dir(args: argparse.Namespace) -> Path:
+    """The state directory."""
+    return Path(args.home or os.environ.get("MEDC_HOME") or ".medc").resolve()
+
+
+def load_state(home: Path) -> dict[str, Any]:
+    """``registry.json`` (CliError when absent)."""
+    path = home / STATE_FILE
+    if not path.is_file():
+        raise CliError(
+            f"no registry configured in {home}: run `medc-registry start` (local anvil node) or "
+            "`medc-registry deploy --rpc URL --key-file FILE` first, or pass --home DIR"
+        )
+    return json.loads(path.read_text())
+
+
+def save_state(home: Path, state: dict[str, Any]) -> None:
+    """Write ``registry.json`` atomically."""
+    home.mkdir(parents=True, exist_ok=True)
+    tmp = home / (STATE_FILE + ".tmp")
+    tmp.write_text(json.dumps(state, indent=2) + "\n")
+    os.replace(tmp, home / STATE_FILE)
+
+
+def _keys(home: Path, state: dict[str, Any]) -> list[str]:
+    keys: list[str] = []
+    env_key = os.environ.get("MEDC_PRIVATE_KEY")
+    if env_key:
+        keys.append(env_key.strip())
+    key_file = state.get("key_file")
+    if key_file:
+        keys += [ln.strip() for ln in Path(key_file).read_text().splitlines() if ln.strip()]
+    if state.get("node"):
+        cfg = home / "anvil-accounts.json"
+        if cfg.is_file():
+            keys += json.loads(cfg.read_text()).get("private_keys", [])
+    if not keys:
+        raise CliError("no signing keys: set MEDC_PRIVATE_KEY or deploy with --key-file")
+    return keys
+
+
+def open_chain(home: Path, state: dict[str, Any]) -> ChainClient:
+    """A client for the configured chain (CliError when the node does not answer)."""
+    try:
+        return ChainClient.connect(
+            state["rpc_url"], _keys(home, state), poa=state.get("poa", False), timeout=10
+        )
+    except ChainError as exc:
+        hint = " (run `medc-registry start` to restart the local node)" if state.get("node") else ""
+        raise CliError(f"chain at {state['rpc_url']} is not reachable{hint}: {exc}") from None
+
+
+def open_store(home: Path, state: dict[str, Any]) -> ContentStore:
+    """The configured content store."""
+    content = state.get("content", {"kind": "local", "root": str(home / "content")})
+    if content["kind"] == "kubo":
+        return KuboContentStore(content["url"])
+    return LocalContentStore(content["root"])
+
+
+def open_registry(args: argparse.Namespace) -> Registry:
+    """The registry for ``--account`` from the recorded state."""
+    home = home_dir(args)
+    state = load_state(home)
+    chain = open_chain(home, state)
+    dep = Deployment(state["users_manager"], state["models_manager"])
+    if not chain.has_code(dep.models):
+        raise CliError(
+            f"no Models Manager contract at {dep.models} on {state['rpc_url']}: the chain's state was lost; "
+            f"remove {home / STATE_FILE} and run `medc-registry start` again"
+        )
+    try:
+        return Registry(chain, open_store(home, state), dep, args.account)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+# ---------------------------------------------------------------- parsing helpers
+def parse_eth(text: str) -> int:
+    """``"0.001"`` ETH (or ``"1000wei"``) -> wei."""
+    text = text.strip().lower()
+    try:
+        if text.endswith("wei"):
+            value = int(text[:-3])
+        else:
+            value = Decimal(text.removesuffix("eth")) * 10**18
+            if value != value.to_integral_value():
+                raise CliError(f"{text!r} has more than 18 decimals")
+            value = int(value)
+    except (InvalidOperation, ValueError):
+        raise CliError(f"not an amount: {text!r} (use ETH like 0.001, or wei like 1000wei)") from None
+    if value < 0:
+        raise CliError(f"amount must not be negative: {text!r}")
+    return value
+
+
+def parse_pairs(items: list[str] | None, kind: type, what: str) -> dict[str, Any]:
+    """``["agents=3", "walls=2"]`` -> ``{"agents": 3, "walls": 2}``."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise CliError(f"{what} must look like NAME=VALUE, got {item!r}")
+        try:
+            out[name] = kind(value)
+        except ValueError:
+            raise CliError(f"{what} {name!r}: {value!r} is not a valid {kind.__name__}") from None
+    return out
+
+
+def _qos(value: float) -> str:
+    return "inf (exact match)" if math.isinf(value) else f"{value:.4f}"
+
+
+# ---------------------------------------------------------------- commands
+def cmd_start(args: argparse.Namespace) -> int:
+    from .nodes import NodeError, _rpc_ready, start_anvil
+
+    home = home_dir(args)
+    state_path = home / STATE_FILE
+    state = json.loads(state_path.read_text()) if state_path.is_file() else None
+    if state and not state.get("node"):
+        raise CliError(f"{home} is configured for an external chain ({state['rpc_url']}); use another --home")
+    if state and _rpc_ready(state["rpc_url"]):
+        print(f"already running: {state['rpc_url']} (pid {state['node']['pid']})")
+        return 0
+    port = args.port or (state["node"]["port"] if state else None)
+    try:
+        node = start_anvil(home, state_file=home / "anvil-state.json", port=port, detach=True)
+    except NodeError as exc:
+        if port and not args.port:
+            node = start_anvil(home, state_file=home / "anvil-state.json", detach=True)
+        else:
+            raise CliError(str(exc)) from None
+    node_info = {"pid": node.pid, "port": int(node.url.rsplit(":", 1)[1]), "state_file": "anvil-state.json"}
+    if state:
+        state["rpc_url"] = node.url
+        state["node"] = node_info
+        chain = open_chain(home, state)
+        if not chain.has_code(state["models_manager"]):
+            raise CliError(f"restarted the node but its saved state lost the contracts; remove {state_path}")
+        save_state(home, state)
+        print(f"restarted anvil at {node.url} (pid {node.pid}); contracts at {state['models_manager']}")
+        return 0
+    state = {"rpc_url": node.url, "poa": False, "node": node_info}
+    chain = open_chain(home, state)
+    dep = deploy_contracts(chain)
+    state.update(
+        users_manager=dep.users,
+        models_manager=dep.models,
+        chain_id=chain.w3.eth.chain_id,
+        content={"kind": "kubo", "url": args.ipfs_api}
+        if args.ipfs_api
+        else {"kind": "local", "root": str(home / "content")},
+    )
+    save_state(home, state)
+    print(f"anvil at {node.url} (pid {node.pid}), state in {home}")
+    print(f"UsersManager  {dep.users}\nModelsManager {dep.models}")
+    print(f"{len(chain.accounts)} funded development accounts: use --account 0..{len(chain.accounts) - 1}")
+    return 0
+
+
+def cmd_deploy(args: argparse.Namespace) -> int:
+    home = home_dir(args)
+    if (home / STATE_FILE).exists():
+        raise CliError(f"{home / STATE_FILE} exists; use another --home for a second deployment")
+    key_file = str(Path(args.key_file).resolve())
+    state: dict[str, Any] = {"rpc_url": args.rpc, "poa": args.poa, "key_file": key_file}
+    chain = open_chain(home, state)
+    dep = deploy_contracts(chain, sender=args.account)
+    state.update(
+        users_manager=dep.users,
+        models_manager=dep.models,
+        chain_id=chain.w3.eth.chain_id,
+        content={"kind": "kubo", "url": args.ipfs_api}
+        if args.ipfs_api
+        else {"kind": "local", "root": str(home / "content")},
+    )
+    save_state(home, state)
+    print(f"deployed on {args.rpc}: UsersManager {dep.users}, ModelsManager {dep.models}")
+    return 0
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    home = home_dir(args)
+    state = load_state(home)
+    node = state.get("node")
+    if not node:
+        raise CliError("this registry uses an external chain; nothing to stop")
+    try:
+        os.kill(node["pid"], signal.SIGTERM)  # anvil dumps its state on SIGTERM
+        print(f"stopped anvil (pid {node['pid']}); state kept in {home}")
+    except ProcessLookupError:
+        print("the node was not running")
+    return 0
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    reg.register_user()
+    print(f"registered {reg.address} (reputation {reg.user().reputation:.2f})")
+    return 0
+
+
+def cmd_share(args: argparse.Namespace) -> int:
+    data = Path(args.file).read_bytes()
+    env = parse_pairs(args.env, int, "--env")
+    if not env:
+        raise CliError("give the environment features, e.g. --env agents=3 --env walls=2")
+    reg = open_registry(args)
+    m = reg.share_model(
+        data, args.application, env, parse_eth(args.price), args.description, args.cid_version
+    )
+    print(
+        f"model {m.model_id} shared: CID {m.cid}, {args.application} {m.env_features}, "
+        f"price {format_eth(m.price_wei)}"
+    )
+    return 0
+
+
+def cmd_request(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    env = parse_pairs(args.env, int, "--env")
+    weights = parse_pairs(args.weight, float, "--weight") or None
+    payment = parse_eth(args.payment) if args.payment else None
+    allocs = reg.request_models(
+        args.application, env, weights, args.count, args.min_model_rep, args.min_owner_rep, payment
+    )
+    print(f"{len(allocs)} model(s) allocated:")
+    print(
+        f"{'alloc':>5}  {'model':>5}  {'QoS':>17}  {'D_m':>6}  {'price':>12}  {'rep':>5}  environment / CID"
+    )
+    for a in allocs:
+        print(
+            f"{a.allocation_id:>5}  {a.model_id:>5}  {_qos(a.qos):>17}  {a.distance:>6.3f}  "
+            f"{format_eth(a.price_wei):>12}  {a.model.reputation:>5.2f}  {a.model.env_features} {a.cid}"
+        )
+    return 0
+
+
+def cmd_fetch(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    data = reg.fetch(args.cid)
+    if args.output:
+        Path(args.output).write_bytes(data)
+        print(f"{len(data)} bytes verified against {args.cid} -> {args.output}")
+    else:
+        sys.stdout.buffer.write(data)
+    return 0
+
+
+def cmd_review(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    reg.review(args.allocation_id, args.value)
+    _, model_id, _ = reg.allocation(args.allocation_id)
+    m = reg.model(model_id)
+    print(f"reviewed allocation {args.allocation_id}: model {model_id} reputation now {m.reputation:.3f}")
+    return 0
+
+
+def cmd_withdraw(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    amount = reg.withdraw()
+    print(f"withdrew {format_eth(amount)} to {reg.address}")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    s = reg.status()
+    if args.json:
+        print(json.dumps(s))
+        return 0
+    print(f"chain          {s['chain']} (chain id {s['chain_id']}, block {s['block']})")
+    print(f"contracts      UsersManager {s['users_manager']}, ModelsManager {s['models_manager']}")
+    print(f"content store  {s['content_store']}")
+    print(f"account        {s['account']}  balance {format_eth(s['balance_wei'])}")
+    reg_text = f"reputation {s['reputation']:.3f}" if s["registered"] else "not registered"
+    print(f"               {reg_text}, owed {format_eth(s['owed_wei'])}")
+    print(f"registry       {s['models_shared']} models, {s['allocations']} allocations, "
+          f"escrow {format_eth(s['contract_balance_wei'])}")  # fmt: skip
+    return 0
+
+
+def cmd_models(args: argparse.Namespace) -> int:
+    reg = open_registry(args)
+    for m in reg.list_models(args.application):
+        print(
+            f"{m.model_id:>4}  {m.application}  {m.env_features}  rep {m.reputation:.3f} "
+            f"({m.alloc_count} alloc)  {format_eth(m.price_wei)}  owner {m.owner}  {m.cid}"
+        )
+    return 0
+
+
+def cmd_cid(args: argparse.Namespace) -> int:
+    print(compute_cid(Path(args.file).read_bytes(), args.cid_version))
+    return 0
+
+
+def cmd_gas_report(args: argparse.Namespace) -> int:
+    from .gas import main as gas_main
+
+    return gas_main(as_json=args.json)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser (exposed for tests and docs)."""
+    p = argparse.ArgumentParser(prog="medc-registry", description="MEDC model registry (contracts + IPFS)")
+    p.add_argument("--home", help="state directory (default $MEDC_HOME or ./.medc)")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def add(name: str, fn, help_: str, account: bool = True) -> argparse.ArgumentParser:
+        sp = sub.add_parser(name, help=help_, description=help_)
+        sp.set_defaults(func=fn)
+        if account:
+            sp.add_argument("--account", type=int, default=0, help="signing account index (default 0)")
+        return sp
+
+    sp = add("start", cmd_start, "start (or restart) a persistent local anvil node and deploy", account=False)
+    sp.add_argument("--port", type=int, help="JSON-RPC port on 127.0.0.1 (default: a free one)")
+    sp.add_argument("--ipfs-api", help="use a Kubo RPC endpoint instead of the local content store")
+    sp = add("deploy", cmd_deploy, "deploy the contracts on an existing JSON-RPC chain")
+    sp.add_argument("--rpc", required=True, help="JSON-RPC URL")
+    sp.add_argument("--key-file", required=True, help="file with one hex private key per line")
+    sp.add_argument("--poa", action="store_true", help="Besu/Quorum PoA chain (long extraData)")
+    sp.add_argument("--ipfs-api", help="Kubo RPC endpoint (default: local content store)")
+    add("stop", cmd_stop, "stop the local node started by `start` (its state is kept)", account=False)
+    add("register", cmd_register, "register the account (addUser)")
+    sp = add("share", cmd_share, "upload a model file and share it (addModel)")
+    sp.add_argument("file")
+    sp.add_argument("--application", required=True)
+    sp.add_argument("--env", action="append", metavar="NAME=INT", help="environment feature (repeat)")
+    sp.add_argument("--price", default="0", help="price per allocation in ETH (e.g. 0.001) or NNNwei")
+    sp.add_argument("--description", help="free text stored with the model")
+    sp.add_argument("--cid-version", type=int, choices=(0, 1), default=0)
+    sp = add("request", cmd_request, "request models (allocateModels) and pay for them")
+    sp.add_argument("--application", required=True)
+    sp.add_argument("--env", action="append", metavar="NAME=INT", help="your environment's feature (repeat)")
+    sp.add_argument("--weight", action="append", metavar="NAME=FLOAT", help="feature weight, sum 1 (repeat)")
+    sp.add_argument("--count", type=int, default=1)
+    sp.add_argument("--min-model-rep", type=float, default=0.0)
+    sp.add_argument("--min-owner-rep", type=float, default=0.0)
+    sp.add_argument("--payment", help="amount to send (default: the exact price); excess is refundable")
+    sp = add("fetch", cmd_fetch, "download a model file, verified against its CID")
+    sp.add_argument("cid")
+    sp.add_argument("-o", "--output", help="file to write (default: stdout)")
+    sp = add("review", cmd_review, "review an allocated model (updateModelRep)")
+    sp.add_argument("allocation_id", type=int)
+    sp.add_argument("value", type=float, help="review in [0, 1]")
+    add("withdraw", cmd_withdraw, "withdraw payments and refunds owed to the account")
+    sp = add("status", cmd_status, "show the chain, contracts and the account's standing")
+    sp.add_argument("--json", action="store_true")
+    sp = add("models", cmd_models, "list shared models")
+    sp.add_argument("--application")
+    sp = add("cid", cmd_cid, "print the CID `ipfs add --only-hash` gives for FILE", account=False)
+    sp.add_argument("file")
+    sp.add_argument("--cid-version", type=int, choices=(0, 1), default=0)
+    sp = add("gas-report", cmd_gas_report, "measure every function's gas next to the paper", account=False)
+    sp.add_argument("--json", action="store_true", help="one JSON object instead of tables")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``medc-registry``."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (CliError, ChainError, ContentStoreError, ValueError, OSError) as exc:
+        print(f"medc-registry {args.command}: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
