@@ -62,6 +62,8 @@ class GridParallelEnv(ParallelEnv):
             for a in self.possible_agents
         }
         self._action_spaces = {a: spaces.Discrete(self.core.num_actions) for a in self.possible_agents}
+        self.observation_spaces = self._observation_spaces
+        self.action_spaces = self._action_spaces
         self._pending: tuple[torch.Tensor, torch.Tensor] | None = None
         self._last_frame: np.ndarray | None = None
 

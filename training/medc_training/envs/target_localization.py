@@ -310,6 +310,12 @@ class TargetLocalization(BatchedEnv):
     ``make_batched("target_localization", num_envs=B, device="cpu", seed=0, agents=3,
     walls=2, grid=30, max_steps=100, reward_shaping=False, noise=False, copy_obs=True)``.
 
+    State tensors a simulator may read (row ``b`` = environment b): ``positions`` [B,N,2],
+    ``target`` [B,2], ``walls`` bool [B,G,G], ``distance`` [B,G,G] (BFS field), ``t`` [B]
+    (steps taken in the current episode), ``mask`` [B,N,A], ``readings`` [B,N] (the raw
+    readings, counts/s, the agents took at their current cells, noise included: exactly what
+    the core recorded in ``reading_map``/``visit_map`` [B,G,G]).
+
     The observations live in one buffer that each step updates in place, touching only the
     cells that changed (the agents' old and new cells), and is rebuilt only for
     environments that reset. With ``copy_obs=True`` (default) ``obs`` and ``final_obs`` are
@@ -393,6 +399,7 @@ class TargetLocalization(BatchedEnv):
             self.reading_map, self.visit_map = reading_map, visit_map
             self.walls_f = lay["walls"].float()
             self.team_dist = team_dist
+            self.readings = readings
             self.t = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         else:
             self.walls[rows], self.blocked_pad[rows], self.dist_pad[rows] = lay["walls"], blocked, dist_pad
@@ -401,6 +408,7 @@ class TargetLocalization(BatchedEnv):
             self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
             self.walls_f[rows] = lay["walls"].float()
             self.team_dist[rows] = team_dist
+            self.readings[rows] = readings
             self.t[rows] = 0
 
     # -- API -------------------------------------------------------------------------------
@@ -453,6 +461,7 @@ class TargetLocalization(BatchedEnv):
             self.positions, self.target, self.walls, noise=self.noise, generator=self.generator
         )
         update_memory(self.reading_map, self.visit_map, self.positions, readings)
+        self.readings = readings
         self._update_obs(old_cell, new_cell)
         reward = found.float() * SUCCESS_REWARD
         if self.reward_shaping:
