@@ -37,7 +37,8 @@ LATCHED_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 
-_AGENT_ID = re.compile(r"^agent_(\d+)$")
+#: What an agent id looks like: agent_<i>, i = the agent's index in the environment.
+AGENT_ID_PATTERN = re.compile(r"^agent_(\d+)$")
 
 
 def agent_ids(num_agents: int) -> list[str]:
@@ -53,7 +54,7 @@ def agent_index(agent_id: str, num_agents: int) -> int:
     Raises:
         ValueError: not of the form ``agent_<i>`` with ``0 <= i < num_agents``.
     """
-    m = _AGENT_ID.match(agent_id)
+    m = AGENT_ID_PATTERN.match(agent_id)
     if not m or int(m.group(1)) >= num_agents:
         raise ValueError(f"unknown agent id {agent_id!r}: expected agent_0 .. agent_{num_agents - 1}")
     return int(m.group(1))

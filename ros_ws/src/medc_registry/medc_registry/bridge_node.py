@@ -1,0 +1,316 @@
+"""medc-bridge: the registry bridge node. It exposes the MEDC registry to the ROS graph.
+
+Services (medc_interfaces/srv, under ``<namespace>/registry/``):
+  request_experts  request experts meeting requirements (the Models Manager allocates them and
+                   this bridge's account pays)
+  fetch_bundle     fetch a bundle by CID from the content store, verify it (content hash, then
+                   bundle validation) and hand it to agent nodes: its local path is published on
+                   ``<namespace>/<agent_id>/policy``, which makes the agent swap to it
+  submit_review    review an allocation (by id, or the latest one of a CID)
+
+The registry logic lives in :class:`RegistryBridge` (plain Python, tested without ROS); the node
+only translates services. Connection parameters: ``chain`` ("embedded" or a JSON-RPC URL on
+loopback), ``users_manager``/``models_manager`` contract addresses, ``private_key_file``,
+``content`` (a local store folder or an IPFS API URL on loopback), ``cache_dir``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from medc_sim.ros_env import ensure_interfaces
+
+_LOOPBACK = ("http://127.0.0.1", "http://localhost", "http://[::1]")
+
+
+class BridgeError(ValueError):
+    """A bridge request that cannot be served; the message says why."""
+
+
+class RegistryBridge:
+    """The registry operations the bridge serves, over one :class:`medc_registry.Registry`."""
+
+    def __init__(self, registry: Any, cache_dir: str | os.PathLike[str]) -> None:
+        self.registry = registry
+        self.cache_dir = Path(cache_dir)
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        #: Latest allocation id per CID requested through this bridge (for reviews by CID).
+        self.allocations: dict[str, int] = {}
+
+    @staticmethod
+    def _json_object(text: str, what: str) -> dict[str, Any] | None:
+        if not text.strip():
+            return None
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise BridgeError(f"{what} is not valid JSON: {exc}") from exc
+        if not isinstance(value, dict):
+            raise BridgeError(
+                f"{what} must be a JSON object (feature name -> value), got {type(value).__name__}"
+            )
+        return value
+
+    def request(
+        self,
+        application: str,
+        requirements_json: str,
+        weights_json: str = "",
+        count: int = 1,
+        min_model_rep: float = 0.0,
+        min_owner_rep: float = 0.0,
+    ) -> list[Any]:
+        """Request up to ``count`` experts; returns the registry's allocations, best first.
+
+        Raises:
+            BridgeError: malformed requirements or weights, or the registry refused.
+        """
+        requirements = self._json_object(requirements_json, "requirements_json")
+        if requirements is None:
+            raise BridgeError('requirements_json is required, e.g. {"agents": 3, "walls": 2}')
+        weights = self._json_object(weights_json, "weights_json")
+        try:
+            allocs = self.registry.request_models(
+                application,
+                requirements,
+                weights,
+                count=max(1, int(count)),
+                min_model_rep=min_model_rep,
+                min_owner_rep=min_owner_rep,
+            )
+        except (ValueError, RuntimeError) as exc:  # ChainError and ContractRevert are RuntimeErrors
+            raise BridgeError(f"registry refused the request: {exc}") from exc
+        for a in allocs:
+            self.allocations[a.cid] = a.allocation_id
+        return allocs
+
+    def fetch(self, cid: str) -> tuple[Path, dict[str, Any]]:
+        """Fetch ``cid``, verify it, and store it as ``<cache_dir>/<cid>.safetensors``.
+
+        Returns (path, manifest). The content store checks the bytes against the CID; the bundle
+        loader then validates the file (manifest, tensor names and shapes) without unpickling.
+
+        Raises:
+            BridgeError: malformed CID, not found, content mismatch, or an invalid bundle.
+        """
+        from medc_training.bundle import BundleError, load_bundle
+
+        from medc_registry.cid import ContentMismatchError
+        from medc_registry.content import ContentStoreError
+
+        cid = cid.strip().removeprefix("ipfs://")
+        if not cid or "/" in cid or "\x00" in cid or cid.startswith("."):
+            raise BridgeError(f"{cid!r} is not a content id")
+        try:
+            data = self.registry.fetch(cid)
+        except (ContentStoreError, ContentMismatchError, ValueError) as exc:
+            raise BridgeError(f"cannot fetch {cid}: {exc}") from exc
+        try:
+            bundle = load_bundle(data)
+        except BundleError as exc:
+            raise BridgeError(f"content {cid} is not a valid policy bundle: {exc}") from exc
+        path = self.cache_dir / f"{cid}.safetensors"
+        # Write then rename, so an agent never reads a half-written file.
+        with tempfile.NamedTemporaryFile(dir=self.cache_dir, delete=False, suffix=".part") as tmp:
+            tmp.write(data)
+        os.replace(tmp.name, path)
+        return path, bundle.manifest
+
+    def review(self, allocation_id: int, cid: str, score: float) -> str:
+        """Review an allocation (``allocation_id``, or the latest one of ``cid`` via this bridge).
+
+        Returns the transaction hash.
+
+        Raises:
+            BridgeError: no such allocation, a score outside [0, 1], or the registry refused.
+        """
+        if not (math.isfinite(score) and 0.0 <= score <= 1.0):
+            raise BridgeError(f"score must be in [0, 1], got {score}")
+        if not allocation_id:
+            if cid not in self.allocations:
+                raise BridgeError(f"no allocation of {cid!r} made through this bridge; give allocation_id")
+            allocation_id = self.allocations[cid]
+        try:
+            result = self.registry.review(int(allocation_id), float(score))
+        except (ValueError, RuntimeError) as exc:
+            raise BridgeError(f"registry refused the review: {exc}") from exc
+        return str(result.tx_hash)
+
+
+def connect_registry(
+    chain: str,
+    content: str,
+    users_manager: str = "",
+    models_manager: str = "",
+    private_key_file: str = "",
+    account: int = 0,
+) -> Any:
+    """A :class:`medc_registry.Registry` from the bridge's connection parameters.
+
+    ``chain="embedded"`` starts an in-process chain with fresh contracts (demos and tests).
+    Otherwise ``chain`` is a JSON-RPC URL on this machine, the contract addresses are required,
+    and the signing key is read from ``private_key_file`` (never passed as a parameter, which
+    any node of the graph could read).
+
+    Raises:
+        BridgeError: a missing or non-loopback endpoint, or a missing key file.
+    """
+    from medc_registry import ChainClient, KuboContentStore, LocalContentStore, Registry
+    from medc_registry.registry import Deployment
+
+    if content.startswith("http"):
+        if not content.startswith(_LOOPBACK):
+            raise BridgeError(f"content API {content!r} must be on loopback (127.0.0.1)")
+        store = KuboContentStore(content)
+    else:
+        store = LocalContentStore(content or tempfile.mkdtemp(prefix="medc-bridge-store-"))
+    if chain == "embedded":
+        reg = Registry.embedded(account=account)
+        return Registry(reg.chain, store, reg.deployment, account)
+    if not chain.startswith(_LOOPBACK):
+        raise BridgeError(f"chain {chain!r} must be 'embedded' or a JSON-RPC URL on loopback")
+    if not (users_manager and models_manager):
+        raise BridgeError(
+            "users_manager and models_manager contract addresses are required with a JSON-RPC chain"
+        )
+    try:
+        key = Path(private_key_file).read_text().strip()
+    except OSError as exc:
+        raise BridgeError(f"cannot read private_key_file {private_key_file!r}: {exc}") from exc
+    client = ChainClient.connect(chain, [key])
+    return Registry(client, store, Deployment(users_manager, models_manager), 0)
+
+
+def bridge_node_class():
+    """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
+    from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
+    from medc_sim import contract
+    from medc_sim.params import declare
+    from rclpy.node import Node
+    from std_msgs.msg import String
+
+    class BridgeNode(Node):
+        """ROS services over a :class:`RegistryBridge` (see the module docstring)."""
+
+        def __init__(self, registry: Any = None, node_name: str = "medc_bridge", **kwargs: Any) -> None:
+            super().__init__(node_name, **kwargs)
+            p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+            self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+            chain = p(
+                "chain", "embedded", "'embedded' (in-process test chain) or a JSON-RPC URL on loopback", True
+            )
+            content = p("content", "", "Content store: a local folder, or an IPFS API URL on loopback", True)
+            users = p("users_manager", "", "UsersManager contract address (JSON-RPC chain)", True)
+            models = p("models_manager", "", "ModelsManager contract address (JSON-RPC chain)", True)
+            key_file = p("private_key_file", "", "File holding the bridge account's private key", True)
+            account = p("account", 0, "Account index on the embedded chain", True)
+            cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
+            if registry is None:
+                registry = connect_registry(chain, content, users, models, key_file, account)
+            self.bridge = RegistryBridge(registry, cache or tempfile.mkdtemp(prefix="medc-bundles-"))
+            ns = self.namespace_.rstrip("/")
+            self.create_service(RequestExperts, f"{ns}/registry/request_experts", self._on_request)
+            self.create_service(FetchBundle, f"{ns}/registry/fetch_bundle", self._on_fetch)
+            self.create_service(SubmitReview, f"{ns}/registry/submit_review", self._on_review)
+            self._policy_pubs: dict[str, Any] = {}
+            self._String = String
+            self.get_logger().info(
+                f"registry bridge on {ns}/registry/*, caching bundles in {self.bridge.cache_dir}"
+            )
+
+        def _policy_pub(self, agent_id: str):
+            if agent_id not in self._policy_pubs:
+                self._policy_pubs[agent_id] = self.create_publisher(
+                    self._String, contract.policy_topic(self.namespace_, agent_id), contract.LATCHED_QOS
+                )
+            return self._policy_pubs[agent_id]
+
+        def _on_request(self, req, res):
+            try:
+                allocs = self.bridge.request(
+                    req.application,
+                    req.requirements_json,
+                    req.weights_json,
+                    req.count,
+                    req.min_model_reputation,
+                    req.min_owner_reputation,
+                )
+            except BridgeError as exc:
+                res.ok, res.message = False, str(exc)
+                self.get_logger().warning(f"request_experts refused: {exc}")
+                return res
+            res.ok = True
+            res.message = f"{len(allocs)} expert(s) allocated"
+            res.allocation_ids = [int(a.allocation_id) for a in allocs]
+            res.model_ids = [int(a.model_id) for a in allocs]
+            res.cids = [a.cid for a in allocs]
+            res.qos = [float(a.qos) for a in allocs]
+            res.descriptions = [a.model.description for a in allocs]
+            res.price_wei = str(sum(int(a.price_wei) for a in allocs))
+            return res
+
+        def _on_fetch(self, req, res):
+            try:
+                ids = list(req.agent_ids)
+                for agent_id in ids:
+                    if not contract.AGENT_ID_PATTERN.match(agent_id):
+                        raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
+                path, manifest = self.bridge.fetch(req.cid)
+            except BridgeError as exc:
+                res.ok, res.message = False, str(exc)
+                self.get_logger().warning(f"fetch_bundle refused: {exc}")
+                return res
+            for agent_id in ids:
+                self._policy_pub(agent_id).publish(self._String(data=str(path)))
+            res.ok, res.path, res.manifest_json = True, str(path), json.dumps(manifest)
+            res.message = f"verified {req.cid}" + (f", handed to {', '.join(ids)}" if ids else "")
+            self.get_logger().info(res.message)
+            return res
+
+        def _on_review(self, req, res):
+            try:
+                res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
+            except BridgeError as exc:
+                res.ok, res.message = False, str(exc)
+                self.get_logger().warning(f"submit_review refused: {exc}")
+                return res
+            res.ok, res.message = True, "review recorded"
+            return res
+
+    return BridgeNode
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
+    ensure_interfaces()
+    import signal
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=sys.argv if argv is None else argv)
+    node = None
+    try:
+        node = bridge_node_class()()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except BridgeError as exc:
+        print(f"medc-bridge: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
