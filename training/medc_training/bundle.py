@@ -324,7 +324,7 @@ class PolicyBundle:
 
     def to(self, device: torch.device | str) -> PolicyBundle:
         """The same policy on ``device`` (a new bundle object; this one is unchanged)."""
-        net = ActorCritic(self.net.spec)
+        net = ActorCritic(self.net.spec, initialize=False)
         net.load_state_dict(self.net.state_dict())
         return PolicyBundle(self.manifest, net.to(device).eval(), self.sha256)
 
@@ -362,7 +362,7 @@ def load_bundle(source: str | os.PathLike[str] | bytes | bytearray | memoryview,
     """
     data, where = _read(source)
     manifest, tensors = _parse(data, where, decode=True)
-    net = ActorCritic(manifest["architecture"])
+    net = ActorCritic(manifest["architecture"], initialize=False)  # every weight is overwritten
     net.load_state_dict(tensors, strict=True)
     return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
 

@@ -334,15 +334,21 @@ def _orthogonal(layer: nn.Linear | nn.Conv2d, gain: float) -> None:
     nn.init.zeros_(layer.bias)
 
 
+def _no_init(layer: nn.Linear | nn.Conv2d, gain: float) -> None:
+    pass
+
+
 class ActorCritic(nn.Module):
     """Shared-trunk actor-critic built from a declarative spec (see the module docstring).
 
     ``forward(obs [M, C, H, W]) -> (logits [M, A], value [M])``. ``spec`` returns a deep copy of
-    the normalised JSON spec; ``obs_shape`` and ``num_actions`` come from it.
+    the normalised JSON spec; ``obs_shape`` and ``num_actions`` come from it. ``initialize=False``
+    skips the orthogonal initialisation (for a loader that overwrites every weight anyway).
     """
 
-    def __init__(self, spec: Mapping[str, Any]) -> None:
+    def __init__(self, spec: Mapping[str, Any], initialize: bool = True) -> None:
         super().__init__()
+        init = _orthogonal if initialize else _no_init
         self._spec = validate_spec(spec)
         inp = self._spec["input"]
         self.obs_shape: tuple[int, int, int] = (inp["channels"], inp["height"], inp["width"])
@@ -353,7 +359,7 @@ class ActorCritic(nn.Module):
             if kind == "conv2d":
                 conv = nn.Conv2d(in_shape[0], layer["out_channels"], layer["kernel_size"],
                                  stride=layer["stride"], padding=layer["padding"])
-                _orthogonal(conv, math.sqrt(2))
+                init(conv, math.sqrt(2))
                 modules.append(conv)
             elif kind == "maxpool2d":
                 modules.append(nn.MaxPool2d(layer["kernel_size"], stride=layer["stride"],
@@ -366,15 +372,15 @@ class ActorCritic(nn.Module):
                 modules.append(nn.Flatten())
             elif kind == "linear":
                 lin = nn.Linear(in_shape[0], layer["out_features"])
-                _orthogonal(lin, math.sqrt(2))
+                init(lin, math.sqrt(2))
                 modules.append(lin)
             in_shape = _shape_after(in_shape, layer)
         self.trunk = nn.Sequential(*modules)
         self.num_actions: int = self._spec["layers"][-1]["num_actions"]
         self.policy = nn.Linear(in_shape[0], self.num_actions)
         self.value = nn.Linear(in_shape[0], 1)
-        _orthogonal(self.policy, 0.01)
-        _orthogonal(self.value, 1.0)
+        init(self.policy, 0.01)
+        init(self.value, 1.0)
 
     @property
     def spec(self) -> dict[str, Any]:
