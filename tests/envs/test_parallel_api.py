@@ -94,6 +94,8 @@ def test_save_observation_png(name: str, tmp_path) -> None:
         ({"max_steps": 0}, "max_steps"),
         ({"reward_shaping": "yes"}, "reward_shaping"),
         ({"colour": 3}, "allowed options"),
+        ({"device": "tpu9"}, "device"),
+        ({"seed": -1}, "seed"),
     ],
 )
 def test_bad_target_localization_options_raise_value_error(options: dict, words: str) -> None:
@@ -133,6 +135,17 @@ def test_every_application_describes_itself() -> None:
         "complexity": 0.5,
         "max_steps": 100,
     }
+
+
+def test_cuda_device_works_or_is_refused_clearly() -> None:
+    if torch.cuda.is_available():
+        env = make_batched("target_localization", num_envs=4, device="cuda", seed=0, grid=10, walls=1)
+        obs, mask = env.reset()
+        out = env.step(env.oracle_action_scores().argmax(-1))
+        assert obs.device.type == out.obs.device.type == mask.device.type == "cuda"
+    else:
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            make_batched("target_localization", device="cuda")
 
 
 def test_bad_name_and_render_mode_raise_value_error() -> None:

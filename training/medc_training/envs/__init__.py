@@ -8,6 +8,7 @@ See docs/environments.md.
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 from medc_training.envs.core import BatchedEnv, StepOutput
@@ -43,13 +44,12 @@ def make_batched(
     reward_shaping, noise.
     """
     cls = _core_class(name)
-    try:
-        return cls(num_envs=num_envs, device=device, seed=seed, **options)
-    except TypeError as exc:
-        import inspect
-
-        allowed = [p for p in inspect.signature(cls.__init__).parameters if p != "self"]
-        raise ValueError(f"bad option for {name}: {exc}; allowed options: {', '.join(allowed)}") from exc
+    common = ("self", "num_envs", "device", "seed")
+    allowed = [p for p in inspect.signature(cls.__init__).parameters if p not in common]
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise ValueError(f"unknown option(s) {unknown} for {name}; allowed options: {', '.join(allowed)}")
+    return cls(num_envs=num_envs, device=device, seed=seed, **options)
 
 
 def make_env(name: str, **options: Any):

@@ -74,6 +74,8 @@ class BatchedEnv:
             raise ValueError(
                 f"device must be a torch device such as 'cpu' or 'cuda', got {device!r}"
             ) from exc
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device {device!r} requested but CUDA is not available here; use 'cpu'")
         self.generator = torch.Generator(device=self.device)
         self._seed(seed)
 
