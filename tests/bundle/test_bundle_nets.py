@@ -120,7 +120,7 @@ def test_spec_top_level_is_checked() -> None:
         make_actor_critic("resnet", (5, 10, 10), 8)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, database=None)
 @given(side=st.integers(4, 31), kernel=st.integers(1, 4), stride=st.integers(1, 3), ceil=st.booleans(),
        conv_k=st.integers(1, 5), pad=st.integers(0, 2))
 def test_shape_arithmetic_matches_torch(side: int, kernel: int, stride: int, ceil: bool, conv_k: int,
@@ -146,7 +146,7 @@ def test_shape_arithmetic_matches_torch(side: int, kernel: int, stride: int, cei
     assert net.trunk(x).shape[1] == spec_tensor_shapes(net.spec)["policy.weight"][1]
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=80, deadline=None, database=None)
 @given(data=st.data(), rows=st.integers(1, 6))
 def test_masked_logits_never_allow_an_invalid_action(data: st.DataObject, rows: int) -> None:
     values = st.floats(-1e6, 1e6, allow_nan=False, width=32)

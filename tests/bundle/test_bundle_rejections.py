@@ -269,7 +269,7 @@ def _fuzz_seed() -> bytes:
     return forge(tensors, manifest)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, database=None)
 @given(data=st.data())
 def test_any_corruption_loads_cleanly_or_raises_bundle_error(data: st.DataObject) -> None:
     """Random byte edits anywhere (mostly in the header) never escape as another exception."""

@@ -168,3 +168,14 @@ def test_bundle_of_a_real_environment_records_its_attributes() -> None:
     actions = bundle.act(obs.flatten(0, 1), mask.flatten(0, 1))
     assert mask.flatten(0, 1).gather(1, actions[:, None]).all()
     assert tuple(ENV_NAMES) == KNOWN_APPLICATIONS
+
+
+def test_same_policy_and_manifest_give_the_same_bytes() -> None:
+    # One policy, one CID: re-publishing an unchanged model must not create a new registry entry.
+    net = make_actor_critic("lenet5", (5, 10, 10), 8)
+    manifest = {**MANIFEST, "training": {**MANIFEST["training"], "git_commit": None}}
+    first = bundle_bytes(net, manifest)
+    assert bundle_bytes(net, manifest) == first
+    reloaded = load_bundle(first)
+    assert bundle_bytes(reloaded.net, {k: v for k, v in reloaded.manifest.items()
+                                       if k not in ("format", "format_version", "architecture")}) == first
