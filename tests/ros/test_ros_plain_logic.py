@@ -30,10 +30,13 @@ def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
         o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
 
 
-def test_agent_observation_from_messages_equals_training_observation():
+@pytest.mark.parametrize("noise", [False, True])
+def test_agent_observation_from_messages_equals_training_observation(noise):
     """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step."""
-    core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5))
-    ref = make_batched("target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15)
+    core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5, noise=noise))
+    ref = make_batched(
+        "target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15, noise=noise
+    )
     ref_obs, ref_mask = ref.reset()
     observers = [TeamObserver(a, 3, 10) for a in IDS]
     gen = torch.Generator().manual_seed(0)

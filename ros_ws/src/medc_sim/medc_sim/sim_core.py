@@ -72,11 +72,7 @@ class SimCore:
             reward_shaping=False,
             noise=c.noise,
         )
-        # With noise the core's Poisson draws are not exposed; the simulator draws its own from
-        # a separate generator so that the core's layout sequence (seeded) is untouched.
-        self._noise_gen = torch.Generator().manual_seed(c.seed + 1)
         self.env.reset()
-        self._readings = self._measure()
 
     @property
     def num_agents(self) -> int:
@@ -96,8 +92,9 @@ class SimCore:
         return [(int(r), int(c)) for r, c in self.env.positions[0].tolist()]
 
     def readings(self) -> list[float]:
-        """Each agent's raw reading (counts/s) at its current cell: what the core recorded."""
-        return [float(v) for v in self._readings[0].tolist()]
+        """Each agent's raw reading (counts/s) at its current cell, noise included: exactly what the
+        core recorded in its memory, so the agents rebuild the core's observation."""
+        return [float(v) for v in self.env.readings[0].tolist()]
 
     def walls(self) -> torch.Tensor:
         """bool [H,W] wall cells of the current episode."""
@@ -106,17 +103,6 @@ class SimCore:
     def target(self) -> tuple[int, int]:
         r, c = self.env.target[0].tolist()
         return int(r), int(c)
-
-    def _measure(self) -> torch.Tensor:
-        from medc_training.envs.target_localization import sensor_reading
-
-        return sensor_reading(
-            self.env.positions,
-            self.env.target,
-            self.env.walls,
-            noise=self.config.noise,
-            generator=self._noise_gen,
-        )
 
     def advance(self, actions: list[int | None]) -> StepResult:
         """Apply one move per agent; ``None`` = the agent stays where it is.
@@ -146,5 +132,4 @@ class SimCore:
             )
             self.results.append(result.finished)
             self.episode += 1
-        self._readings = self._measure()
         return result

@@ -1,0 +1,107 @@
+"""The registry bridge node against the embedded registry: request, fetch + verify, hand to an
+agent, review; bad requests are answered with a reason and the node keeps serving."""
+
+from __future__ import annotations
+
+import pytest
+from medc_sim import contract
+from ros_helpers import spin_until
+from std_msgs.msg import String
+
+SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 8}
+
+
+@pytest.fixture
+def registry(tmp_path, bundles):
+    from medc_registry import Registry
+
+    reg = Registry.embedded(str(tmp_path / "store"))
+    owner, user = reg.as_user(1), reg.as_user(2)
+    owner.register_user()
+    user.register_user()
+    env = {"agents": 3, "walls": 1}
+    good = owner.share_model(bundles["north"].read_bytes(), "target_localization", env, price=10**15)
+    bad = owner.share_model(
+        b"not a bundle at all", "target_localization", {"agents": 1, "walls": 3}, price=10**15
+    )
+    return user, good, bad
+
+
+@pytest.mark.ros
+def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path):
+    import rclpy
+    from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
+    from medc_registry.bridge_node import bridge_node_class
+
+    user, good, bad = registry
+    executor, sim, agents = graph(bundles["a"], 0, **SCENARIO)
+    bridge = bridge_node_class()(
+        registry=user,
+        parameter_overrides=[rclpy.parameter.Parameter("cache_dir", value=str(tmp_path / "cache"))],
+    )
+    client_node = rclpy.create_node("operator")
+    for node in (bridge, client_node):
+        executor.add_node(node)
+    ns = contract.DEFAULT_NAMESPACE
+
+    def call(srv_type, name, **fields):
+        client = client_node.create_client(srv_type, f"{ns}/registry/{name}")
+        assert spin_until(executor, client.service_is_ready, 10)
+        future = client.call_async(srv_type.Request(**fields))
+        assert spin_until(executor, future.done, 30)
+        return future.result()
+
+    try:
+        res = call(
+            RequestExperts,
+            "request_experts",
+            application="target_localization",
+            requirements_json='{"agents": 3, "walls": 1}',
+            count=1,
+        )
+        assert res.ok, res.message
+        assert list(res.cids) == [good.cid] and int(res.price_wei) == 10**15
+
+        # Bad requests get a reason; the node keeps serving.
+        res_bad = call(
+            RequestExperts,
+            "request_experts",
+            application="target_localization",
+            requirements_json="[3, 1",
+            count=1,
+        )
+        assert not res_bad.ok and "JSON" in res_bad.message
+        unknown = call(FetchBundle, "fetch_bundle", cid="QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG")
+        assert not unknown.ok
+        junk = call(FetchBundle, "fetch_bundle", cid=bad.cid, agent_ids=["agent_1"])
+        assert not junk.ok and "not a valid policy bundle" in junk.message
+        assert not call(FetchBundle, "fetch_bundle", cid="../../etc/passwd").ok
+        assert not call(FetchBundle, "fetch_bundle", cid=good.cid, agent_ids=["robot_7"]).ok
+
+        # Fetch + verify + hand to agent_0: it swaps to the verified file.
+        fetched = call(FetchBundle, "fetch_bundle", cid=good.cid, agent_ids=["agent_0"])
+        assert fetched.ok, fetched.message
+        assert fetched.path.endswith(f"{good.cid}.safetensors")
+        assert spin_until(executor, lambda: agents[0].slot.current.source == fetched.path, 10)
+        assert agents[1].slot.current.source == str(bundles["a"])  # the junk never reached agent_1
+
+        # An agent given a CID on its policy topic asks the bridge itself.
+        pub = client_node.create_publisher(String, contract.policy_topic(ns, "agent_2"), contract.LATCHED_QOS)
+        pub.publish(String(data=f"ipfs://{good.cid}"))
+        assert spin_until(executor, lambda: agents[2].slot.current.source == fetched.path, 15)
+
+        review = call(SubmitReview, "submit_review", cid=good.cid, score=0.9)
+        assert review.ok, review.message
+        assert review.tx_hash
+        assert user.allocation(res.allocation_ids[0])[2] is True  # reviewed on chain
+        again = call(SubmitReview, "submit_review", allocation_id=res.allocation_ids[0], score=0.5)
+        assert not again.ok  # one review per allocation
+        assert not call(SubmitReview, "submit_review", cid=good.cid, score=1.5).ok
+
+        n = len(sim.core.trace)
+        assert spin_until(executor, lambda: len(sim.core.trace) >= n + 5, 30)  # the team keeps playing
+    finally:
+        executor.remove_node(bridge)
+        executor.remove_node(client_node)
+        bridge.destroy_node()
+        client_node.destroy_node()
