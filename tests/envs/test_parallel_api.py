@@ -153,3 +153,11 @@ def test_bad_name_and_render_mode_raise_value_error() -> None:
         make_env("pong")
     with pytest.raises(ValueError, match="rgb_array"):
         make_env("target_localization", render_mode="human")
+
+
+def test_render_command_writes_area_and_maps_for_every_application(tmp_path) -> None:
+    from medc_training.envs.render import main
+
+    assert main([str(tmp_path), "--steps", "3"]) == 0
+    written = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert written == sorted(f"{n}_{kind}.png" for n in ENV_NAMES for kind in ("area", "agent_0"))

@@ -136,3 +136,43 @@ def save_frame_png(frame: np.ndarray, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     imsave(path, frame)
     return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m medc_training.envs.render OUT_DIR``: Fig. 5-style pictures of each application.
+
+    Plays a few random valid moves in each environment, then writes ``<name>_area.png`` (the
+    area) and ``<name>_agent_0.png`` (agent 0's observation maps) under OUT_DIR.
+    """
+    import argparse
+
+    import numpy as np
+
+    from medc_training.envs import ENV_NAMES, make_env
+
+    p = argparse.ArgumentParser(prog="python -m medc_training.envs.render", description=main.__doc__)
+    p.add_argument("out_dir", type=Path)
+    p.add_argument("--steps", type=int, default=25, help="random moves before the picture")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    for name in ENV_NAMES:
+        env = make_env(name, seed=args.seed, render_mode="rgb_array")
+        obs, _ = env.reset()
+        for _ in range(args.steps):
+            acts = {a: int(rng.choice(np.flatnonzero(obs[a]["action_mask"]))) for a in env.agents}
+            nxt, *_ = env.step(acts)
+            if not env.agents:
+                break
+            obs = nxt
+        area = save_frame_png(env.render(), args.out_dir / f"{name}_area.png")
+        maps = save_observation_png(
+            obs["agent_0"]["observation"], args.out_dir / f"{name}_agent_0.png", application=name
+        )
+        print(area)
+        print(maps)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
