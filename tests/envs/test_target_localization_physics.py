@@ -170,3 +170,26 @@ def test_reward_shaping_rewards_getting_closer() -> None:
 def test_max_walls_is_enforced() -> None:
     with pytest.raises(ValueError, match="walls"):
         make_batched("target_localization", grid=10, walls=max_walls(10) + 1)
+
+
+def test_walls_only_ever_attenuate_readings_on_random_layouts() -> None:
+    gen = torch.Generator().manual_seed(9)
+    lay = generate_layouts(128, 16, 3, 4, gen, torch.device("cpu"))
+    with_walls = sensor_reading(lay["positions"], lay["target"], lay["walls"])
+    open_area = sensor_reading(lay["positions"], lay["target"], torch.zeros_like(lay["walls"]))
+    assert (with_walls <= open_area + 1e-4).all()
+    # The ratio (minus background) is a power of the attenuation: whole walls only.
+    k = torch.log((with_walls - BACKGROUND) / (open_area - BACKGROUND)) / math.log(WALL_ATTENUATION)
+    assert torch.allclose(k, k.round(), atol=1e-3)
+    assert (k.round() > 0).any()
+
+
+def test_mask_is_exactly_in_grid_and_free_on_random_layouts() -> None:
+    env = make_batched("target_localization", num_envs=64, seed=8, agents=4, walls=3, grid=14)
+    _, mask = env.reset()
+    dest = env.positions.unsqueeze(2) + torch.tensor(ACTIONS)  # [B,N,A,2]
+    inside = ((dest >= 0) & (dest < 14)).all(-1)
+    clamped = dest.clamp(0, 13)
+    free = ~env.walls[torch.arange(64).view(64, 1, 1), clamped[..., 0], clamped[..., 1]]
+    assert torch.equal(mask, inside & free)
+    assert not mask.all()  # some moves are blocked somewhere
