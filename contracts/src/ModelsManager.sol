@@ -63,7 +63,8 @@ contract ModelsManager {
 
     error UnregisteredUser(address user);
     error UnknownModel(uint256 modelId);
-    error UnknownApplication(string application);
+    /// @dev No argument: eth-tester reads ABI-encoded string payloads as revert reasons.
+    error UnknownApplication();
     error UnknownAllocation(uint256 allocationId);
     error EmptyApplication();
     error InvalidCid(uint256 length);
@@ -161,7 +162,7 @@ contract ModelsManager {
     ) external payable returns (uint256[] memory modelIds, uint256 firstAllocationId) {
         if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
         uint32 appId = _appIdOf[keccak256(bytes(application))];
-        if (appId == 0) revert UnknownApplication(application);
+        if (appId == 0) revert UnknownApplication();
         if (count == 0) revert InvalidCount();
         uint256 p = _featureCount[appId];
         if (requirements.length != p) revert FeatureCountMismatch(p, requirements.length);

@@ -153,6 +153,7 @@ class Registry:
         self.deployment = deployment
         self._account = chain.account(account)
         self.users = chain.contract("UsersManager", deployment.users)
+        self._feature_cache: dict[str, tuple[str, ...]] = {}
         self.models = chain.contract("ModelsManager", deployment.models)
 
     # ------------------------------------------------------------ construction
@@ -168,7 +169,9 @@ class Registry:
 
     def as_user(self, account: int | str) -> Registry:
         """The same registry acting as another signing account (index or address)."""
-        return Registry(self.chain, self.store, self.deployment, account)
+        other = Registry(self.chain, self.store, self.deployment, account)
+        other._feature_cache = self._feature_cache  # per application, fixed once set on chain
+        return other
 
     @property
     def address(self) -> str:
@@ -269,9 +272,13 @@ class Registry:
         return [m for m in out if application is None or m.application == application]
 
     def _feature_names(self, application: str) -> tuple[str, ...] | None:
+        """Feature names of ``application`` (fixed by its first model), None if it has none."""
+        if application in self._feature_cache:
+            return self._feature_cache[application]
         for i in range(self.model_count()):
             m = self.model(i)
             if m.application == application:
+                self._feature_cache[application] = m.features
                 return m.features
         return None
 
@@ -322,12 +329,17 @@ class Registry:
     ) -> tuple[list[int], int]:
         """Which models a request would get now and their total price in wei (no transaction)."""
         args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        budget = sum(m.price_wei for m in self.list_models(application))
-        budget = min(budget, self.chain.balance(self.address))
-        ids, _ = self.chain.call(
-            self.models.functions.allocateModels(*args), sender=self.address, value=budget
-        )
-        return list(ids), sum(self.model(i).price_wei for i in ids)
+        fn = self.models.functions.allocateModels(*args)
+        try:
+            ids, _ = self.chain.call(fn, sender=self.address, value=0)
+            return list(ids), 0
+        except ContractRevert as exc:
+            if exc.error != "InsufficientPayment":
+                raise
+            # The revert names the exact price of what would be allocated.
+            required = exc.values["required"]
+        ids, _ = self.chain.call(fn, sender=self.address, value=required)
+        return list(ids), required
 
     def request_models(
         self,
