@@ -161,3 +161,18 @@ def test_render_command_writes_area_and_maps_for_every_application(tmp_path) -> 
     assert main([str(tmp_path), "--steps", "3"]) == 0
     written = sorted(p.name for p in tmp_path.glob("*.png"))
     assert written == sorted(f"{n}_{kind}.png" for n in ENV_NAMES for kind in ("area", "agent_0"))
+
+
+def test_cores_create_every_tensor_on_their_own_device(name: str) -> None:
+    """With the default device set elsewhere ("meta"), a tensor made without device= would
+    break the CPU run: this is how the CUDA path stays correct without a GPU here."""
+    torch.set_default_device("meta")
+    try:
+        extra = {"reward_shaping": True, "noise": True} if name == "target_localization" else {}
+        env = make_batched(name, num_envs=4, device="cpu", seed=0, **SMALL[name], **extra)
+        env.reset()
+        for _ in range(45):
+            out = env.step(env.oracle_action_scores().argmax(-1))
+        assert out.obs.device.type == out.final_obs.device.type == out.reward.device.type == "cpu"
+    finally:
+        torch.set_default_device("cpu")
