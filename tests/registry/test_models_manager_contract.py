@@ -202,10 +202,13 @@ def test_events_on_every_state_change(registry, users):
     tx = chain.transact(
         mmc.functions.allocateModels(APP, [3, 2], [], 1, 0, 0), sender=users[3].address, value=2 * PRICE
     )
-    names = [e.event for e in (
-        *mmc.events.ModelAllocated().process_receipt(tx.receipt, errors=DISCARD),
-        *mmc.events.PaymentCredited().process_receipt(tx.receipt, errors=DISCARD),
-    )]  # fmt: skip
+    names = [
+        e.event
+        for e in (
+            *mmc.events.ModelAllocated().process_receipt(tx.receipt, errors=DISCARD),
+            *mmc.events.PaymentCredited().process_receipt(tx.receipt, errors=DISCARD),
+        )
+    ]
     assert names == ["ModelAllocated", "PaymentCredited", "PaymentCredited"]  # owner share + refund
     info = registry.users.events.UserInfoUpdated().process_receipt(tx.receipt, errors=DISCARD)[0]["args"]
     assert info["user"] == users[0].address and info["allocCount"] == 1
