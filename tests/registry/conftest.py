@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import pytest
 from medc_registry import ChainClient, LocalContentStore, Registry, deploy_contracts
-from medc_registry.chain import ContractRevert
-
-APP = "target_localization"
-PRICE = 10**15  # 0.001 ETH
 
 
 @pytest.fixture(scope="session")
@@ -36,9 +32,3 @@ def users(registry):
     for u in out:
         u.register_user()
     return out
-
-
-def revert_of(excinfo: pytest.ExceptionInfo) -> ContractRevert:
-    """The ContractRevert of a pytest.raises block."""
-    assert isinstance(excinfo.value, ContractRevert)
-    return excinfo.value

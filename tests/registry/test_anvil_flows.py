@@ -6,11 +6,11 @@ import threading
 import time
 
 import pytest
-from conftest import APP, PRICE
 from medc_registry import ChainClient, LocalContentStore, Registry, deploy_contracts
 from medc_registry.chain import ChainError, ContractRevert
 from medc_registry.cli import main as cli_main
 from medc_registry.nodes import NodeError, free_port, start_anvil
+from registry_helpers import APP, PRICE
 
 pytestmark = pytest.mark.anvil
 

@@ -6,9 +6,9 @@ import os
 
 import httpx
 import pytest
-from conftest import APP, PRICE
 from medc_registry import ContentIntegrityError, ContentNotFoundError, KuboContentStore, Registry, compute_cid
 from medc_registry.nodes import NodeError, start_js_ipfs
+from registry_helpers import APP, PRICE
 
 pytestmark = pytest.mark.ipfs
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 import pytest
-from conftest import APP, PRICE, revert_of
 from medc_registry.chain import ContractRevert
+from registry_helpers import APP, PRICE, revert_of
 from web3.logs import DISCARD
 
 ONE = 10**18

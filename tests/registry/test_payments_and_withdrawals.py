@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import pytest
-from conftest import APP, PRICE, revert_of
 from medc_registry.chain import ContractRevert, decode_error_data
+from registry_helpers import APP, PRICE, revert_of
 from web3.logs import DISCARD
 
 

@@ -8,10 +8,10 @@
 from __future__ import annotations
 
 import pytest
-from conftest import APP, PRICE
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from medc_registry.chain import ContractRevert
+from registry_helpers import APP, PRICE
 
 ACCOUNTS = [1, 2, 3, 4, 5]  # 5 never registers
 envs = st.fixed_dictionaries({"agents": st.integers(0, 4), "walls": st.integers(0, 3)})

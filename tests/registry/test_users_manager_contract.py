@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import pytest
-from conftest import revert_of
 from medc_registry.chain import ContractRevert
+from registry_helpers import revert_of
 
 ONE = 10**18
 
