@@ -4,9 +4,10 @@ The artifacts under ``contracts/artifacts/`` (ABI + creation bytecode per contra
 the registry runs without a compiler; ``python -m medc_registry.compile`` regenerates them and a test
 checks they match a fresh compile whenever ``tools/node_modules/solc`` is present.
 
-Compiler settings are fixed here: solc 0.8.28, optimizer on (200 runs), evmVersion ``cancun``
-(accepted by eth-tester's py-evm, anvil and current Besu/Quorum), no metadata hash so the
-bytecode does not depend on file paths or comments' whitespace outside the sources.
+Compiler settings are fixed here: solc 0.8.28, evmVersion ``cancun`` (accepted by eth-tester's
+py-evm, anvil and current Besu/Quorum), the via-IR pipeline with the optimizer at 50 runs (the
+allocation loop needs via-IR; few runs favour deployment size), and no CBOR metadata, so the
+bytecode depends only on the code, not on comments or file paths.
 """
 
 from __future__ import annotations
