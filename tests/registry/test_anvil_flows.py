@@ -111,6 +111,8 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
     model.write_bytes(b"expert policy bundle bytes")
     assert cli_main([*home, "status"]) == 2
     assert "no registry configured" in capsys.readouterr().err
+    with pytest.raises(RuntimeError, match="medc-registry start"):
+        Registry.from_home(str(tmp_path / "home"))
     assert cli_main([*home, "start"]) == 0
     try:
         assert cli_main([*home, "register", "--account", "1"]) == 0
@@ -136,5 +138,8 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
         assert cli_main([*home, "status", "--account", "1"]) == 0
         out = capsys.readouterr().out
         assert "reputation 0.800" in out and "1 models, 1 allocations" in out
+        # The Python API opens the same recorded registry.
+        owner = Registry.from_home(str(tmp_path / "home"), account=1)
+        assert owner.user().reputation == pytest.approx(0.8) and owner.list_models()[0].cid == cid
     finally:
         cli_main([*home, "stop"])

@@ -167,6 +167,19 @@ class Registry:
         store = LocalContentStore(store_dir or tempfile.mkdtemp(prefix="medc-store-"))
         return cls(chain, store, deploy_contracts(chain), account)
 
+    @classmethod
+    def from_home(cls, home: str | None = None, account: int | str = 0) -> Registry:
+        """The registry recorded by ``medc-registry start`` / ``deploy`` in ``home``.
+
+        ``home`` defaults to ``$MEDC_HOME`` or ``./.medc``. Raises ``RuntimeError`` with the command
+        to run when no chain is configured there or its node does not answer.
+        """
+        import argparse
+
+        from .cli import open_registry
+
+        return open_registry(argparse.Namespace(home=home, account=account))
+
     def as_user(self, account: int | str) -> Registry:
         """The same registry acting as another signing account (index or address)."""
         other = Registry(self.chain, self.store, self.deployment, account)
