@@ -154,6 +154,8 @@ class Registry:
         self._account = chain.account(account)
         self.users = chain.contract("UsersManager", deployment.users)
         self._feature_cache: dict[str, tuple[str, ...]] = {}
+        #: The last transaction this registry sent (hash, gasUsed, receipt), e.g. for gas figures.
+        self.last_tx: TxResult | None = None
         self.models = chain.contract("ModelsManager", deployment.models)
 
     # ------------------------------------------------------------ construction
@@ -192,7 +194,8 @@ class Registry:
         return self._account.address
 
     def _tx(self, fn: Any, value: int = 0) -> TxResult:
-        return self.chain.transact(fn, sender=self.address, value=value)
+        self.last_tx = self.chain.transact(fn, sender=self.address, value=value)
+        return self.last_tx
 
     # ------------------------------------------------------------ users
     def register_user(self) -> TxResult:
