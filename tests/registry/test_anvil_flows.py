@@ -143,3 +143,18 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
         assert owner.user().reputation == pytest.approx(0.8) and owner.list_models()[0].cid == cid
     finally:
         cli_main([*home, "stop"])
+
+
+def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):
+    keys = tmp_path / "keys.txt"
+    keys.write_text("\n".join(anvil.extra["private_keys"][5:8]) + "\n")
+    home = ["--home", str(tmp_path / "ext")]
+    assert cli_main([*home, "deploy", "--rpc", anvil.url, "--key-file", str(keys), "--poa"]) == 0
+    assert "deployed on" in capsys.readouterr().out
+    assert cli_main([*home, "deploy", "--rpc", anvil.url, "--key-file", str(keys)]) == 2  # never twice
+    assert cli_main([*home, "register", "--account", "1"]) == 0
+    assert cli_main([*home, "status", "--json", "--account", "1"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    assert '"registered": true' in out and "(PoA)" in out
+    assert cli_main([*home, "stop"]) == 2  # an external chain is not ours to stop
+    assert "external chain" in capsys.readouterr().err
