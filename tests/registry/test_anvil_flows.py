@@ -9,6 +9,7 @@ import pytest
 from medc_registry import ChainClient, LocalContentStore, Registry, deploy_contracts
 from medc_registry.chain import ChainError, ContractRevert
 from medc_registry.cli import main as cli_main
+from medc_registry.gas import APPLICATION, CID, DESCRIPTION
 from medc_registry.nodes import NodeError, free_port, start_anvil
 from registry_helpers import APP, PRICE
 
@@ -158,3 +159,24 @@ def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):
     assert '"registered": true' in out and "(PoA)" in out
     assert cli_main([*home, "stop"]) == 2  # an external chain is not ours to stop
     assert "external chain" in capsys.readouterr().err
+
+
+def test_gas_is_the_same_on_anvil_cancun_and_eth_tester_prague(anvil, embedded_chain):
+    tester = embedded_chain[0].w3.provider.ethereum_tester
+    snap = tester.take_snapshot()
+    try:
+        figures = []
+        for chain in (ChainClient.connect(anvil.url, anvil.extra["private_keys"]), embedded_chain[0]):
+            dep = deploy_contracts(chain)
+            umc, mmc = chain.contract("UsersManager", dep.users), chain.contract("ModelsManager", dep.models)
+            gas = [dep.gas["UsersManager"], dep.gas["ModelsManager"]]
+            gas.append(chain.transact(umc.functions.addUser(), sender=8).gas_used)
+            chain.transact(umc.functions.addUser(), sender=9)
+            add = mmc.functions.addModel(APPLICATION, CID, DESCRIPTION, [1, 3], PRICE)
+            gas.append(chain.transact(add, sender=8).gas_used)
+            alloc = mmc.functions.allocateModels(APPLICATION, [3, 2], [], 1, 0, 0)
+            gas.append(chain.transact(alloc, sender=9, value=PRICE).gas_used)
+            figures.append(gas)
+        assert figures[0] == figures[1]
+    finally:
+        tester.revert_to_snapshot(snap)
