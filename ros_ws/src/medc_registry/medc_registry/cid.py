@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 CHUNK_SIZE = 262_144
@@ -191,7 +192,7 @@ def _cid_bytes(cid: Cid) -> bytes:
     return _varint(1) + _varint(cid.codec) + cid.multihash
 
 
-def iter_blocks(data: bytes, cid_version: int = 0):
+def iter_blocks(data: bytes, cid_version: int = 0) -> Iterator[tuple[Cid, bytes]]:
     """Yield ``(cid, block_bytes)`` for every block of the file's DAG, root last."""
     if cid_version not in (0, 1):
         raise ValueError(f"cid_version must be 0 or 1, got {cid_version!r}")

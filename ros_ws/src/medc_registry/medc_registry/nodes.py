@@ -79,6 +79,7 @@ class NodeProcess:
 
     @property
     def pid(self) -> int:
+        """Process id of the node."""
         return self.proc.pid
 
     def stop(self, timeout: float = 10.0) -> None:
