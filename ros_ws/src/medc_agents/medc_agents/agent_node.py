@@ -15,6 +15,7 @@ def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-agent``."""
     ensure_interfaces()
     import rclpy
+    from medc_sim.executors import make_executor
     from rclpy.executors import ExternalShutdownException
 
     from medc_agents.node import AgentNode
@@ -23,7 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = AgentNode()
-        rclpy.spin(node)
+        executor = make_executor()
+        executor.add_node(node)
+        # spin_once in a loop (not spin()): Ctrl-C and the launcher's SIGINT are seen within 0.1 s.
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -19,17 +19,20 @@ class MoveBook:
         self.num_actions = num_actions
         self.episode = -1
         self.step = -1
+        self.previous = (-1, -1)
         self._moves: list[int | None] = [None] * num_agents
 
     def open(self, episode: int, step: int) -> None:
         """Start collecting moves for (``episode``, ``step``); earlier moves are forgotten."""
+        self.previous = (self.episode, self.step)
         self.episode, self.step = episode, step
         self._moves = [None] * self.num_agents
 
-    def offer(self, agent_id: str, episode: int, step: int, action: int) -> int:
+    def offer(self, agent_id: str, episode: int, step: int, action: int) -> int | None:
         """Record one agent's move; returns the agent's index.
 
-        A repeated move for the same step (a resend) replaces the first one.
+        A repeated move for the same step (a resend) replaces the first one; one for the step
+        just closed (an agent answering a re-sent step late) is ignored and returns None.
 
         Raises:
             MoveRejected: unknown agent, a move for another episode or step (e.g. one that has
@@ -39,6 +42,8 @@ class MoveBook:
             idx = agent_index(agent_id, self.num_agents)
         except ValueError as exc:
             raise MoveRejected(str(exc)) from exc
+        if (episode, step) == self.previous and (episode, step) != (self.episode, self.step):
+            return None
         if (episode, step) != (self.episode, self.step):
             raise MoveRejected(
                 f"move from {agent_id} for episode {episode} step {step}, but the simulator is at "

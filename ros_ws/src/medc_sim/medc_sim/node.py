@@ -15,6 +15,7 @@ Modes:
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 
 import torch
@@ -80,6 +81,9 @@ class SimNode(Node):
         self.episode_listeners: list[Callable[[EpisodeResult], None]] = []
         self._step_stamp = None
         self._published_at = 0.0
+        self._step_t0: float | None = None
+        #: Seconds from publishing a step to receiving the team's last move, per step (latest 100k).
+        self.latencies: deque[float] = deque(maxlen=100_000)
         self._last_step_at = 0.0
 
         ns = self.namespace_
@@ -127,6 +131,7 @@ class SimNode(Node):
         """Publish the current state as a new step and wait for its moves."""
         self._step_stamp = self.get_clock().now().to_msg()
         self.book.open(self.core.episode, self.core.step)
+        self._step_t0 = time.perf_counter()
         self._send_state()
 
     def _send_state(self) -> None:
@@ -154,11 +159,16 @@ class SimNode(Node):
         try:
             if msg.agent_id != topic_agent:
                 raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")
-            self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action))
+            if self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action)) is None:
+                return  # a re-sent move for the step just applied: harmless
         except MoveRejected as exc:
             self.dropped += 1
             self.get_logger().warning(f"dropped move: {exc}")
             return
+        if self.book.complete and self._step_t0 is not None:
+            # Team decision latency: this step's state published -> the last move received.
+            self.latencies.append(time.perf_counter() - self._step_t0)
+            self._step_t0 = None
         if self.mode == "stepped" and self.rate_hz <= 0 and self.book.complete:
             self._advance()
 

@@ -17,6 +17,7 @@ def main(argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from medc_sim.executors import make_executor
     from medc_sim.node import SimNode
 
     args = sys.argv if argv is None else argv
@@ -24,8 +25,10 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = SimNode()
+        executor = make_executor()
+        executor.add_node(node)
         while rclpy.ok() and not node.finished:
-            rclpy.spin_once(node, timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:

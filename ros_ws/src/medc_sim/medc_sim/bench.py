@@ -1,0 +1,182 @@
+"""medc-bench ros: how fast the ROS graph decides, with real DDS and one process per agent.
+
+Measures, with the simulator in this process and every agent node as its own ``medc-agent``
+process (the deployment a real team has):
+
+* team decision latency, p50/p99: the simulator publishes a step -> it has received every
+  agent's move; for 3 and 10 agents;
+* the highest stepped rate sustained for ``--duration`` seconds with 3 agents: stepped mode
+  with no rate limit, team steps per second over the whole window.
+
+Targets on the reference machine (2 CPU cores): p99 < 20 ms with 10 agents, >= 50 team
+steps/s with 3 agents. The last line printed is one JSON object with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * (len(ordered) - 1))))]
+
+
+def _bench_bundle(grid: int, folder: Path) -> Path:
+    """A lenet5 bundle for the grid (random weights: the cost of a decision does not depend on them)."""
+    import torch
+    from medc_training.bundle import save_bundle
+    from medc_training.nets import make_actor_critic
+
+    torch.manual_seed(0)
+    net = make_actor_critic("lenet5", obs_shape=(5, grid, grid), num_actions=8)
+    return save_bundle(
+        folder / f"bench_lenet5_{grid}.safetensors", net, {"application": "target_localization"}
+    )
+
+
+def run_graph(
+    agents: int,
+    bundle: Path,
+    *,
+    steps: int = 0,
+    duration: float = 0.0,
+    warmup: int = 20,
+    grid: int = 30,
+    walls: int = 2,
+    seed: int = 0,
+) -> dict:
+    """Run the simulator here and ``agents`` agent processes; stop after ``steps`` measured steps
+    or ``duration`` seconds (after ``warmup`` steps). Returns latencies and throughput."""
+
+    from medc_sim.executors import make_executor
+    from medc_sim.launcher import (
+        _child_env,
+        _stop,
+        agent_parameters,
+        load_config,
+        ros_args,
+        sim_parameters,
+    )
+    from medc_sim.node import SimNode
+
+    cfg = load_config(None, agents=agents, grid=grid, walls=walls, seed=seed, policy=str(bundle))
+    from rclpy.parameter import Parameter
+
+    sim = SimNode(parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
+    executor = make_executor()
+    executor.add_node(sim)
+    bindir = Path(sys.executable).parent
+    import subprocess
+
+    children = [
+        subprocess.Popen(
+            [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, str(bundle)))],
+            env=_child_env(),
+            start_new_session=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for i in range(agents)
+    ]
+    try:
+        deadline = time.monotonic() + 120
+        while len(sim.latencies) < warmup:
+            executor.spin_once(timeout_sec=0.05)
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"the agents did not start answering within 120 s ({len(sim.latencies)} steps)"
+                )
+        sim.latencies.clear()
+        resends = sim.resends
+        start = time.perf_counter()
+        while (steps and len(sim.latencies) < steps) or (duration and time.perf_counter() - start < duration):
+            executor.spin_once(timeout_sec=0.05)
+        elapsed = time.perf_counter() - start
+        lat = list(sim.latencies)
+        return {
+            "agents": agents,
+            "steps": len(lat),
+            "seconds": round(elapsed, 3),
+            "team_steps_per_s": round(len(lat) / elapsed, 2),
+            "latency_ms_p50": round(1000 * _percentile(lat, 50), 3),
+            "latency_ms_p99": round(1000 * _percentile(lat, 99), 3),
+            "latency_ms_mean": round(1000 * statistics.fmean(lat), 3),
+            "resends": sim.resends - resends,
+            "dropped": sim.dropped,
+        }
+    finally:
+        _stop(children)
+        executor.shutdown()
+        sim.destroy_node()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``medc-bench ros``."""
+    parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=500, help="measured steps per latency run")
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds of the sustained-rate run")
+    parser.add_argument("--policy", help="bundle to run (default: a lenet5 for the 30x30 grid)")
+    parser.add_argument("--quick", action="store_true", help="100 steps and 10 s (a smoke run)")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.quick:
+        args.steps, args.duration = 100, 10.0
+
+    from medc_sim.ros_env import ensure_interfaces
+
+    ensure_interfaces()
+    import rclpy
+
+    # A domain of its own, unless the caller chose one: no cross-talk with a running graph.
+    os.environ.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
+    import torch
+
+    torch.set_num_threads(1)
+    rclpy.init(args=["medc-bench-ros"])
+    results: dict = {
+        "benchmark": "ros",
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "deployment": "simulator in-process, one medc-agent process per agent, FastDDS",
+    }
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            bundle = Path(args.policy) if args.policy else _bench_bundle(30, Path(tmp))
+            results["policy"] = str(args.policy or "lenet5 (random weights), 30x30 grid")
+            for n in (3, 10):
+                r = run_graph(n, bundle, steps=args.steps)
+                print(
+                    f"latency, {n} agents: p50 {r['latency_ms_p50']} ms, p99 {r['latency_ms_p99']} ms "
+                    f"over {r['steps']} steps ({r['team_steps_per_s']} team steps/s)",
+                    flush=True,
+                )
+                results[f"latency_{n}_agents"] = r
+            r = run_graph(3, bundle, duration=args.duration)
+            print(
+                f"sustained stepped rate, 3 agents: {r['team_steps_per_s']} team steps/s over "
+                f"{r['seconds']} s ({r['steps']} steps)",
+                flush=True,
+            )
+            results["sustained_3_agents"] = r
+    finally:
+        rclpy.try_shutdown()
+    results["latency_p99_ms_10_agents"] = results["latency_10_agents"]["latency_ms_p99"]
+    results["sustained_team_steps_per_s_3_agents"] = results["sustained_3_agents"]["team_steps_per_s"]
+    results["targets_met"] = {
+        "p99_below_20ms_10_agents": results["latency_p99_ms_10_agents"] < 20.0,
+        "at_least_50_steps_per_s_3_agents": results["sustained_team_steps_per_s_3_agents"] >= 50.0,
+    }
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
