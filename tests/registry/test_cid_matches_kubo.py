@@ -8,8 +8,10 @@ import pytest
 from medc_registry.cid import (
     CHUNK_SIZE,
     MAX_LINKS,
+    Cid,
     CidError,
     ContentMismatchError,
+    assemble,
     compute_cid,
     iter_blocks,
     parse_cid,
@@ -94,3 +96,23 @@ def test_verify_refuses_a_single_flipped_byte(version):
         verify(bytes(data), cid)
     with pytest.raises(ContentMismatchError):
         verify(bytes(data[:-1]), cid)
+
+
+@pytest.mark.parametrize("version", [0, 1])
+def test_assemble_reads_any_dag_and_refuses_a_tampered_block(version):
+    data = bytes(range(251)) * 5000  # 5 chunks under one root
+    blocks = dict(iter_blocks(data, version))
+    cid = compute_cid(data, version)
+    assert assemble(cid, blocks.__getitem__) == data
+    leaf = next(c for c in blocks if c.encode() != cid)
+    blocks[leaf] = blocks[leaf][:-1] + bytes([blocks[leaf][-1] ^ 1])
+    with pytest.raises(ContentMismatchError, match="does not match its CID"):
+        assemble(cid, blocks.__getitem__)
+
+
+def test_assemble_refuses_a_directory():
+    # A dag-pb node whose UnixFS type is Directory (1).
+    block = bytes([0x0A, 0x02, 0x08, 0x01])
+    cid = Cid(0, 0x70, hashlib.sha256(block).digest())
+    with pytest.raises(CidError, match="not a file"):
+        assemble(cid, lambda _: block)

@@ -8,14 +8,15 @@ most 174 links per node, dag-pb nodes carrying UnixFS ``Data`` messages, sha2-25
   raw leaf; printed in base32 (``bafy...`` for dag-pb roots, ``bafk...`` for raw).
 
 Only the small pieces of protobuf, multihash, multibase and CID encoding this needs are written
-here; :func:`verify` recomputes the CID of fetched bytes with the layout the CID's version implies.
+here; :func:`verify` recomputes the CID of fetched bytes with the layout the CID's version implies,
+and :func:`assemble` reads any UnixFS file DAG block by block, checking every block's hash.
 """
 
 from __future__ import annotations
 
 import base64
 import hashlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 CHUNK_SIZE = 262_144
@@ -243,3 +244,80 @@ def verify(data: bytes, cid: str) -> bytes:
             "refusing tampered or wrong content"
         )
     return data
+
+
+# ---------------------------------------------------------------- reading a DAG block by block
+def _fields(block: bytes) -> Iterator[tuple[int, int | bytes]]:
+    """Top-level protobuf fields (number, varint value or length-delimited bytes)."""
+    pos = 0
+    while pos < len(block):
+        key, pos = _read_varint(block, pos)
+        num, wire = key >> 3, key & 7
+        if wire == 0:
+            value, pos = _read_varint(block, pos)
+            yield num, value
+        elif wire == 2:
+            length, pos = _read_varint(block, pos)
+            if pos + length > len(block):
+                raise CidError("truncated protobuf field")
+            yield num, block[pos : pos + length]
+            pos += length
+        else:
+            raise CidError(f"unsupported protobuf wire type {wire}")
+
+
+def _cid_from_bytes(raw: bytes) -> Cid:
+    if len(raw) == 34 and raw[0] == _SHA2_256 and raw[1] == 32:
+        return Cid(0, _DAG_PB, raw[2:])
+    version, pos = _read_varint(raw, 0)
+    codec, pos = _read_varint(raw, pos)
+    hash_code, pos = _read_varint(raw, pos)
+    length, pos = _read_varint(raw, pos)
+    if version != 1 or codec not in (_DAG_PB, _RAW) or hash_code != _SHA2_256 or length != 32:
+        raise CidError("link to an unsupported CID kind (only sha2-256 dag-pb/raw)")
+    return Cid(1, codec, raw[pos : pos + 32])
+
+
+def assemble(cid: str | Cid, get_block: Callable[[Cid], bytes], max_blocks: int = 1_000_000) -> bytes:
+    """The file under ``cid``, read block by block with every block checked against its CID.
+
+    Works for any chunking or DAG layout (not only Kubo's defaults) of a UnixFS file made of
+    dag-pb and raw blocks hashed with sha2-256. ``get_block`` returns a block's bytes.
+
+    Raises:
+        ContentMismatchError: a block does not hash to the CID that links to it.
+        CidError: a block is not a UnixFS file node (e.g. a directory) or is malformed.
+    """
+    root = parse_cid(cid) if isinstance(cid, str) else cid
+    out = bytearray()
+    stack = [root]
+    seen = 0
+    while stack:
+        node = stack.pop()
+        seen += 1
+        if seen > max_blocks:
+            raise CidError(f"DAG has more than {max_blocks} blocks")
+        block = get_block(node)
+        if hashlib.sha256(block).digest() != node.digest:
+            raise ContentMismatchError(
+                f"block {node.encode()} of {root.encode()} does not match its CID; refusing tampered content"
+            )
+        if node.codec == _RAW:
+            out += block
+            continue
+        links: list[Cid] = []
+        data = b""
+        for num, value in _fields(block):
+            if num == 2 and isinstance(value, bytes):
+                link = dict(_fields(value))
+                links.append(_cid_from_bytes(link[1]))
+            elif num == 1 and isinstance(value, bytes):
+                data = value
+        unixfs = dict(_fields(data)) if data else {}
+        kind = unixfs.get(1, 0)
+        if kind not in (0, _UNIXFS_FILE):
+            raise CidError(f"{root.encode()} is not a file (UnixFS type {kind})")
+        payload = unixfs.get(2, b"")
+        out += payload if isinstance(payload, bytes) else b""
+        stack.extend(reversed(links))  # depth first, left to right
+    return bytes(out)

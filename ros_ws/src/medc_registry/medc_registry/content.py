@@ -1,8 +1,9 @@
 """Content stores for model files: an embedded local store and a Kubo RPC (``/api/v0``) client.
 
 Both hand out the CID Kubo's ``ipfs add`` gives for the same bytes, and both verify every fetch
-against the CID before returning it (:func:`medc_registry.cid.verify`): a store that returns
-tampered bytes raises :class:`ContentIntegrityError` instead.
+against the CID before returning it (:func:`medc_registry.cid.verify`, or block by block with
+:func:`medc_registry.cid.assemble` for other DAG layouts): a store that returns tampered bytes
+raises :class:`ContentIntegrityError` instead.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Protocol
 
 import httpx
 
-from .cid import CidError, ContentMismatchError, compute_cid, parse_cid, verify
+from .cid import Cid, CidError, ContentMismatchError, assemble, compute_cid, parse_cid, verify
 
 
 class ContentStoreError(RuntimeError):
@@ -166,9 +167,26 @@ class KuboContentStore:
         return cid
 
     def fetch(self, cid: str) -> bytes:
-        """``ipfs cat``, verified against the CID."""
+        """The file's bytes, verified against the CID.
+
+        Fast path: ``cat`` and recompute the CID with Kubo's default layout. Content added with
+        another layout (chunker, raw-leaves setting) is then read block by block with
+        ``block/get``, each block checked against the CID linking to it.
+        """
         resp = self._post("/cat", params={"arg": _parsed(cid)})
-        return _checked(resp.content, cid)
+        try:
+            return verify(resp.content, cid)
+        except ContentMismatchError:
+            pass
+        try:
+            return assemble(cid, self._block)
+        except ContentMismatchError as exc:
+            raise ContentIntegrityError(str(exc)) from None
+        except CidError as exc:
+            raise ContentStoreError(f"cannot read {cid} as a file: {exc}") from None
+
+    def _block(self, cid: Cid) -> bytes:
+        return self._post("/block/get", params={"arg": cid.encode()}).content
 
     def pin(self, cid: str) -> None:
         """``ipfs pin add``."""
