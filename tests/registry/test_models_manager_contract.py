@@ -191,7 +191,9 @@ def test_review_reverts(registry, users):
     )
     with pytest.raises(ValueError, match="between 0 and 1"):
         r.review(alloc.allocation_id, 1.5)
-    r.review(alloc.allocation_id, 0.7)
+    with pytest.raises(ValueError, match="allocation id"):
+        r.review("0", 0.5)
+    r.review(alloc, 0.7)  # the Allocation itself works too
     _raises("AlreadyReviewed", r.review, alloc.allocation_id, 0.7)
     _raises("UnknownAllocation", registry.allocation, 99)
 

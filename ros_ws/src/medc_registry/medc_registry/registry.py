@@ -404,8 +404,16 @@ class Registry:
         return self.store.fetch(cid)
 
     # ------------------------------------------------------------ reviews and payments
-    def review(self, allocation_id: int, value: float) -> TxResult:
-        """Review an allocation with ``value`` in [0, 1] (paper: updateModelRep)."""
+    def review(self, allocation: int | Allocation, value: float) -> TxResult:
+        """Review an allocation (its id or the :class:`Allocation`) with ``value`` in [0, 1].
+
+        Paper: updateModelRep. Only the requester it was allocated to may review it, once.
+        """
+        allocation_id = allocation.allocation_id if isinstance(allocation, Allocation) else allocation
+        if isinstance(allocation_id, bool) or not isinstance(allocation_id, int) or allocation_id < 0:
+            raise ValueError(
+                f"allocation must be an allocation id (int >= 0) or an Allocation, got {allocation!r}"
+            )
         return self._tx(self.models.functions.updateModelRep(allocation_id, to_fixed(value, "review")))
 
     def owed(self, address: str | None = None) -> int:
