@@ -233,9 +233,18 @@ def cmd_stop(args: argparse.Namespace) -> int:
     node = state.get("node")
     if not node:
         raise CliError("this registry uses an external chain; nothing to stop")
+    pid = node["pid"]
     try:
-        os.kill(node["pid"], signal.SIGTERM)  # anvil dumps its state on SIGTERM
-        print(f"stopped anvil (pid {node['pid']}); state kept in {home}")
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        cmdline = []
+    # The pid may have been reused since `start` (e.g. after a reboot): only signal our anvil.
+    if not cmdline or not cmdline[0].endswith(b"anvil") or str(home).encode() not in b" ".join(cmdline):
+        print("the node was not running")
+        return 0
+    try:
+        os.kill(pid, signal.SIGTERM)  # anvil dumps its state on SIGTERM
+        print(f"stopped anvil (pid {pid}); state kept in {home}")
     except ProcessLookupError:
         print("the node was not running")
     return 0
