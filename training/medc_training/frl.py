@@ -55,7 +55,8 @@ def poisoned_parameters(kind: str, state: dict[str, torch.Tensor], trainer: Trai
 class FederatedGroup:
     """U Trainers trained in lock-step with FedAvg every ``every`` updates."""
 
-    def __init__(self, cfg: TrainConfig, users: Sequence[dict] | None = None) -> None:
+    def __init__(self, cfg: TrainConfig, users: Sequence[dict] | None = None,
+                 side_users: Sequence[int] = ()) -> None:
         users = list(users if users is not None else (cfg.frl_users or
                      [{"agents": a, "walls": w} for a, w in PAPER_USERS]))
         if not users:
@@ -91,6 +92,11 @@ class FederatedGroup:
         shapes = {t.obs_shape for t in self.trainers}
         if len(shapes) != 1:
             raise ValueError(f"FRL users must share one observation shape to average models, got {shapes}")
+        for i in side_users:
+            if not 0 <= i < len(self.trainers) or i == focal_index:
+                raise ValueError(f"FRL side user {i} must be another user's index "
+                                 f"(0..{len(self.trainers) - 1})")
+        self.side_users = list(side_users)
         self.average()  # every user starts from the same global model, as in FedAvg
 
     @property
@@ -101,6 +107,19 @@ class FederatedGroup:
     def global_step(self) -> int:
         """Training steps of the focal user (each user trains this many)."""
         return self.focal.global_step
+
+    def user_name(self, i: int) -> str:
+        """AyWz for target localization users, ``user<i>`` otherwise."""
+        c = self.trainers[i].cfg
+        return f"A{c.agents}W{c.walls}" if c.env == "target_localization" else f"user{i}"
+
+    def side_names(self) -> list[str]:
+        """Names of the extra users whose evaluation curves the run loop records."""
+        return [self.user_name(i) for i in self.side_users]
+
+    def side_evaluate(self) -> dict[str, dict]:
+        """Greedy evaluation of each side user (see Trainer.evaluate)."""
+        return {self.user_name(i): self.trainers[i].evaluate() for i in self.side_users}
 
     def average(self) -> None:
         """FedAvg the shared parameters and load the global model into every user."""

@@ -49,10 +49,10 @@ class MetricsLogger:
     """
 
     def __init__(self, out_dir: str | Path, tensorboard: bool = True,
-                 resume_from_step: int | None = None) -> None:
+                 resume_from_step: int | None = None, csv_name: str = "metrics.csv") -> None:
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.csv_path = self.out_dir / "metrics.csv"
+        self.csv_path = self.out_dir / csv_name
         if resume_from_step is not None and self.csv_path.exists():
             kept = [r for r in self._raw_rows() if int(float(r["step"])) < resume_from_step]
             self._write_rows(kept)

@@ -181,8 +181,11 @@ class Trainer:
                 trunc_values[t, idx] = self.net(final)[1].view(-1, N)
             if done.any():
                 idx = done.nonzero(as_tuple=True)[0]
-                self.stats.add(out.episode_length[idx].cpu(), out.success[idx].cpu(),
-                               self._ep_return[idx].cpu())
+                # Training statistics describe the agents' own (unguided) episodes only, so
+                # that MEDC/IL curves are not flattered by the experts' steps.
+                own = idx[~self.expert_episode[idx]]
+                self.stats.add(out.episode_length[own].cpu(), out.success[own].cpu(),
+                               self._ep_return[own].cpu())
                 self._ep_return[idx] = 0.0
                 self.expert_episode[idx] = self._draw_expert_episodes(idx.numel())
             self.obs, self.mask = out.obs, out.mask

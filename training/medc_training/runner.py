@@ -60,6 +60,11 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     logger = MetricsLogger(out, tensorboard=tensorboard,
                            resume_from_step=learner.global_step if resume else None)
     focal = learner.focal
+    # FRL can report other users' curves too (e.g. the A3W3 user of the same federation).
+    side_loggers: dict[str, MetricsLogger] = {}
+    for name in getattr(learner, "side_names", lambda: [])():
+        side_loggers[name] = MetricsLogger(out, tensorboard=False, csv_name=f"metrics_{name}.csv",
+                                           resume_from_step=learner.global_step if resume else None)
     bar = _progress(cfg.total_steps, learner.global_step, progress)
     last_losses: dict = {}
     sps = math.nan
@@ -78,6 +83,11 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
                     "sps": sps, "wall_time": train_seconds, **last_losses,
                 }
                 logger.log(row)
+                if side_loggers:
+                    for name, ev in learner.side_evaluate().items():
+                        side_loggers[name].log({"step": learner.global_step, "update": focal.updates,
+                                                "episode_length": ev["episode_length"],
+                                                "success_rate": ev["success_rate"]})
                 if bar is not None:
                     bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}")
                 while next_eval <= learner.global_step:
@@ -100,6 +110,8 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         if bar is not None:
             bar.close()
         logger.close()
+        for side in side_loggers.values():
+            side.close()
 
     summary = {
         "config": cfg.to_dict(),
