@@ -1,0 +1,592 @@
+"""`medc-demo` (what `make demo` runs): the paper's framework time sequence, end to end.
+
+On the embedded defaults (an in-process Ethereum chain, a local IPFS-compatible content store):
+
+1. users register with the Users Manager Contract;
+2. owners share expert bundles trained by this code (models/experts): each bundle goes to the
+   content store and is added to the Models Manager Contract with its environment details;
+3. a requester with an A3W2 environment asks for experts, pays, and gets them allocated by QoS;
+   the bundles are fetched by CID and verified;
+4. the requester trains with MEDC (the experts weighted by R_S = QoS_i / sum QoS_j) and, for the
+   same budget and seed, with the sparse reward alone;
+5. the requester reviews each expert (by how well it plays the requester's environment);
+   reputations change; owners withdraw their payments;
+6. the ROS 2 graph (simulator + one policy node per agent, separate processes over DDS) runs
+   the newly trained policy for a few episodes, printed live;
+7. a summary, a Markdown report with figures, and one JSON line.
+
+``--quick`` shrinks the budgets (the end-to-end test runs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ETHER = 10**18
+PRICE_WEI = ETHER // 100  # 0.01 ETH per allocated model
+APPLICATION = "target_localization"
+
+
+def _repo_root() -> Path:
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "models").is_dir() and (parent / "training").is_dir():
+            return parent
+    raise RuntimeError("cannot find the MEDC repository root (models/ and training/) above " + str(here))
+
+
+class Narrator:
+    """Prints numbered steps with elapsed time, so a person can follow the run live."""
+
+    def __init__(self) -> None:
+        self.t0 = time.monotonic()
+        self.timings: dict[str, float] = {}
+        self._step: str | None = None
+        self._step_t = self.t0
+
+    def step(self, title: str) -> None:
+        now = time.monotonic()
+        if self._step is not None:
+            self.timings[self._step] = round(now - self._step_t, 2)
+        self._step, self._step_t = title, now
+        print(f"\n\033[1m[{now - self.t0:6.1f}s] {title}\033[0m", flush=True)
+
+    def say(self, text: str) -> None:
+        print(f"    {text}", flush=True)
+
+    def finish(self) -> float:
+        now = time.monotonic()
+        if self._step is not None:
+            self.timings[self._step] = round(now - self._step_t, 2)
+        return now - self.t0
+
+
+def _eth(wei: int) -> str:
+    return f"{wei / ETHER:.4f} ETH"
+
+
+def _features(manifest: dict) -> dict[str, int]:
+    env = manifest.get("environment", {})
+    return {"agents": int(env["agents"]), "walls": int(env["walls"])}
+
+
+def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int) -> dict:
+    """Greedy play of ``bundle`` for every agent of AyWz; mean episode length and success rate."""
+    import torch
+    from medc_training.envs import make_batched
+
+    n_envs = min(episodes, 32)
+    env = make_batched(
+        APPLICATION, num_envs=n_envs, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps
+    )
+    obs, mask = env.reset(seed=seed)
+    lengths: list[int] = []
+    successes: list[bool] = []
+    with torch.no_grad():
+        while len(lengths) < episodes:
+            flat = obs.reshape(n_envs * agents, *env.obs_shape)
+            actions = bundle.act(flat, mask.reshape(n_envs * agents, -1), greedy=True).view(n_envs, agents)
+            out = env.step(actions)
+            done = (out.terminated | out.truncated).nonzero(as_tuple=True)[0]
+            lengths += out.episode_length[done].tolist()
+            successes += out.success[done].tolist()
+            obs, mask = out.obs, out.mask
+    lengths, successes = lengths[:episodes], successes[:episodes]
+    return {"episode_length": sum(lengths) / len(lengths), "success_rate": sum(successes) / len(successes)}
+
+
+def random_policy_length(
+    agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int
+) -> float:
+    """Mean episode length of uniformly random valid moves (the floor a trained team must beat)."""
+    import torch
+    from medc_training.envs import make_batched
+
+    env = make_batched(
+        APPLICATION, num_envs=32, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps
+    )
+    gen = torch.Generator().manual_seed(seed)
+    _, mask = env.reset(seed=seed)
+    lengths: list[int] = []
+    while len(lengths) < episodes:
+        probs = mask.float() / mask.float().sum(-1, keepdim=True)
+        actions = torch.multinomial(probs.view(-1, probs.shape[-1]), 1, generator=gen).view(mask.shape[:2])
+        out = env.step(actions)
+        done = (out.terminated | out.truncated).nonzero(as_tuple=True)[0]
+        lengths += out.episode_length[done].tolist()
+        mask = out.mask
+    return sum(lengths[:episodes]) / episodes
+
+
+def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
+    """Play one greedy episode in the ParallelEnv and draw the team's paths over the area."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from medc_training.envs import make_env
+
+    env = make_env(
+        APPLICATION, agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, max_steps=cfg.max_steps, seed=seed
+    )
+    obs, _ = env.reset(seed=seed)
+    core = env.unwrapped.core if hasattr(env.unwrapped, "core") else None
+    paths: list[list[tuple[int, int]]] = [[] for _ in env.agents]
+
+    def record() -> None:
+        if core is not None:
+            for i, p in enumerate(core.positions[0].tolist()):
+                paths[i].append(tuple(p))
+
+    record()
+    steps, success = 0, False
+    agents = list(env.agents)
+    while env.agents:
+        batch = np.stack([obs[a]["observation"] for a in agents])
+        masks = np.stack([obs[a]["action_mask"] for a in agents]).astype(bool)
+        acts = bundle.act(batch, masks, greedy=True).tolist()
+        obs, _, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, acts)})
+        steps += 1
+        record()
+        if any(terms.values()):
+            success = True
+        if any(terms.values()) or any(truncs.values()):
+            break
+    frame = env.render() if getattr(env, "render_mode", None) == "rgb_array" else None
+    fig, ax = plt.subplots(figsize=(5, 5))
+    if core is not None:
+        walls = core.walls[0].cpu().numpy()
+        ax.imshow(walls, cmap="Greys", origin="upper")
+        ty, tx = core.target[0].tolist()
+        ax.plot(tx, ty, marker="*", color="red", markersize=18, label="target")
+        for i, trail in enumerate(paths):
+            ys, xs = zip(*trail)
+            ax.plot(xs, ys, "-o", markersize=3, label=f"agent {i}")
+    elif frame is not None:
+        ax.imshow(frame)
+    ax.set_title(f"One episode with the trained team: {steps} steps, {'found' if success else 'not found'}")
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    env.close()
+    return {"steps": steps, "success": success}
+
+
+def curves_png(runs: dict[str, Path], path: Path, title: str) -> None:
+    """Evaluation episode length against training steps, one line per run."""
+    import csv
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, csv_path in runs.items():
+        with open(csv_path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        ax.plot(
+            [int(r["step"]) for r in rows],
+            [float(r["episode_length"]) for r in rows],
+            "-o",
+            markersize=3,
+            label=name,
+        )
+    ax.set_xlabel("training steps")
+    ax.set_ylabel("mean episode length (greedy test)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    import torch
+    from medc_training.bundle import load_bundle, read_manifest
+    from medc_training.config import scaled_config
+    from medc_training.experts import BundleExpert
+    from medc_training.ppo import Trainer
+    from medc_training.runner import run_training
+
+    from medc_registry.registry import Registry
+
+    root = _repo_root()
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(max(1, args.threads))
+    say = Narrator()
+    gas: dict[str, list[int]] = {}
+
+    def spent(fn: str, g: int) -> None:
+        gas.setdefault(fn, []).append(int(g))
+
+    steps = args.steps or (12_288 if args.quick else 61_440)
+    episodes = args.episodes or (5 if args.quick else 10)
+    count = 3
+
+    # 1. ---------------------------------------------------------------- users register
+    say.step("1. Users register with the Users Manager Contract (embedded chain, local IPFS store)")
+    reg = Registry.embedded(str(out / "ipfs-store"))
+    for name, g in reg.deployment.gas.items():
+        spent(f"deploy {name}", g)
+    say.say(
+        f"chain: {reg.chain.description}; UsersManager {reg.deployment.users}, "
+        f"ModelsManager {reg.deployment.models}"
+    )
+    names = ["lab-north (owner)", "lab-south (owner)", "lab-east (owner)", "requester"]
+    users = {name: reg.as_user(i + 1) for i, name in enumerate(names)}
+    for name, user in users.items():
+        tx = user.register_user()
+        spent("addUser", tx.gas_used)
+        say.say(f"{name:18s} {user.address}  reputation {user.user().reputation:.2f}  gas {tx.gas_used:,}")
+    owners = [users[n] for n in names[:3]]
+    requester = users["requester"]
+
+    # 2. ---------------------------------------------------------------- owners share experts
+    say.step("2. Owners share expert bundles: content store (CID) + Models Manager Contract")
+    expert_files = sorted((root / "models" / "experts").glob("*.safetensors"))
+    if not expert_files:
+        raise RuntimeError("models/experts holds no bundles; regenerate them (see models/README.md)")
+    shared = []
+    for i, path in enumerate(expert_files):
+        data = path.read_bytes()
+        manifest = read_manifest(data)
+        if manifest.get("application") != APPLICATION:
+            continue
+        feats = _features(manifest)
+        owner = owners[i % len(owners)]
+        model = owner.share_model(
+            data,
+            APPLICATION,
+            feats,
+            PRICE_WEI,
+            description={"file": path.name, "arch": manifest["architecture"].get("name", "")},
+        )
+        spent("addModel", owner.last_tx.gas_used)
+        shared.append(model)
+        owner_name = names[owners.index(owner)]
+        say.say(
+            f"model {model.model_id}: {path.name:22s} A{feats['agents']}W{feats['walls']}  "
+            f"{len(data) / 1024:6.0f} KiB  CID {model.cid}  by {owner_name}"
+        )
+
+    # 3. ---------------------------------------------------------------- request, pay, fetch, verify
+    target = {"agents": 3, "walls": 2}
+    say.step(f"3. The requester (A{target['agents']}W{target['walls']}) requests {count} experts and pays")
+    before_rep = {m.model_id: m.reputation for m in shared}
+    before_owner_rep = {names[owners.index(o)]: o.user().reputation for o in owners}
+    ids, price = requester.quote(APPLICATION, target, count=count)
+    say.say(f"quote: models {ids} for {_eth(price)}")
+    allocations = requester.request_models(APPLICATION, target, count=count, payment=price)
+    spent("allocateModels", requester.last_tx.gas_used)
+    say.say(f"{'alloc':>5} {'model':>5} {'env':>6} {'D_m':>5} {'QoS':>8} {'price':>12}  CID")
+    experts, qos_values = [], []
+    for a in allocations:
+        env = a.model.env_features
+        q = a.qos if math.isfinite(a.qos) else float("inf")
+        env_name = f"A{env['agents']}W{env['walls']}"
+        say.say(
+            f"{a.allocation_id:>5} {a.model_id:>5} {env_name:>6} "
+            f"{a.distance:5.2f} {q:8.3f} {_eth(a.price_wei):>12}  {a.cid}"
+        )
+        data = requester.fetch(a.cid)  # verified against the CID before it is returned
+        bundle = load_bundle(data)  # validated: data, never code
+        experts.append(BundleExpert(bundle, name=f"model-{a.model_id}"))
+        qos_values.append(q)
+        say.say(
+            f"      fetched {len(data):,} bytes, CID verified, bundle valid "
+            f"({bundle.manifest['architecture'].get('name', '?')}, sha256 {bundle.sha256[:12]}...)"
+        )
+    qos_order_ok = all(qos_values[i] >= qos_values[i + 1] for i in range(len(qos_values) - 1))
+    finite = [q for q in qos_values if math.isfinite(q)]
+    cap = (max(finite) * 2) if finite else 1.0
+    weights = torch.tensor([q if math.isfinite(q) else cap for q in qos_values], dtype=torch.float64)
+    r_s = (weights / weights.sum()).float()
+    say.say("R_S (roulette-wheel slices) = " + ", ".join(f"{x:.2f}" for x in r_s.tolist()))
+
+    # 4. ---------------------------------------------------------------- train: MEDC vs sparse
+    say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone")
+    results: dict[str, dict] = {}
+    policy_paths: dict[str, Path] = {}
+    for method in ("medc", "sparse"):
+        cfg = scaled_config(
+            "cpu",
+            agents=target["agents"],
+            walls=target["walls"],
+            method=method,
+            total_steps=steps,
+            seed=args.seed,
+        )
+        trainer = Trainer(cfg, experts if method == "medc" else [])
+        if method == "medc":
+            trainer.expert_weights = r_s
+        t = time.monotonic()
+        summary = run_training(trainer, cfg, out / method, progress=not args.no_progress)
+        summary["wall_s"] = round(time.monotonic() - t, 1)
+        results[method] = summary
+        policy_paths[method] = out / method / "policy.safetensors"
+        say.say(
+            f"{method:6s}: final greedy episode length {summary['final_episode_length']:.1f}, "
+            f"success {summary['final_success_rate']:.0%}, {summary['wall_s']:.0f} s"
+        )
+    curves_png(
+        {
+            "MEDC (allocated experts)": out / "medc" / "metrics.csv",
+            "MDRL-sparse": out / "sparse" / "metrics.csv",
+        },
+        out / "learning_curves.png",
+        f"A3W2, grid {cfg.grid}: MEDC vs sparse, seed {args.seed}",
+    )
+    say.say(f"learning curves: {out / 'learning_curves.png'}")
+
+    # 5. ---------------------------------------------------------------- reviews, reputations, payments
+    say.step("5. The requester reviews the experts; reputations update; owners withdraw")
+    reviews = []
+    for a, expert in zip(allocations, experts):
+        played = play_bundle(
+            expert.bundle,
+            target["agents"],
+            target["walls"],
+            cfg.grid,
+            cfg.max_steps,
+            episodes=32,
+            seed=args.seed + 99,
+        )
+        value = round(float(played["success_rate"]), 3)
+        tx = requester.review(a.allocation_id, value)
+        spent("updateModelRep", tx.gas_used)
+        reviews.append(
+            {
+                "allocation": a.allocation_id,
+                "model": a.model_id,
+                "review": value,
+                "expert_success_on_A3W2": played["success_rate"],
+            }
+        )
+        say.say(f"model {a.model_id}: success {played['success_rate']:.0%} on A3W2 -> review {value:.3f}")
+    rep_table = []
+    for m in shared:
+        after = reg.model(m.model_id)
+        rep_table.append({"model": m.model_id, "before": before_rep[m.model_id], "after": after.reputation})
+    for row in rep_table:
+        if row["before"] != row["after"]:
+            say.say(f"model {row['model']} reputation {row['before']:.3f} -> {row['after']:.3f}")
+    owner_reps = []
+    payments = []
+    for o in owners:
+        name = names[owners.index(o)]
+        rep_after = o.user().reputation
+        owner_reps.append({"owner": name, "before": before_owner_rep[name], "after": rep_after})
+        owed = o.owed()
+        withdrawn = o.withdraw() if owed else 0
+        if owed:
+            spent("withdraw", o.last_tx.gas_used)
+        payments.append({"owner": name, "withdrawn_wei": withdrawn})
+        say.say(
+            f"{name:18s} reputation {before_owner_rep[name]:.3f} -> {rep_after:.3f}; "
+            f"withdrew {_eth(withdrawn)}"
+        )
+    contract_balance = reg.chain.balance(reg.deployment.models)
+    say.say(f"Models Manager balance after withdrawals: {_eth(contract_balance)} (owed to nobody)")
+
+    # 6. ---------------------------------------------------------------- the ROS 2 graph
+    random_len = random_policy_length(
+        target["agents"], target["walls"], cfg.grid, cfg.max_steps, 200, seed=args.seed + 5
+    )
+    graph: dict[str, Any] = {"skipped": True}
+    if not args.no_ros:
+        say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
+        graph = run_graph(policy_paths["medc"], target, cfg, episodes, args.seed, out)
+        graph["skipped"] = False
+        say.say(
+            f"graph: mean episode length {graph['mean_length']:.1f} vs random policy {random_len:.1f}; "
+            f"success {graph['success_rate']:.0%}"
+        )
+
+    # 7. ---------------------------------------------------------------- summary and report
+    say.step("7. Summary and report")
+    trained = load_bundle(policy_paths["medc"].read_bytes())
+    traj = trajectory_png(trained, cfg, args.seed + 7, out / "trajectory.png")
+    total_s = say.finish()
+    summary = {
+        "ok": True,
+        "quick": bool(args.quick),
+        "seconds": round(total_s, 1),
+        "out": str(out),
+        "allocations": [
+            {
+                "allocation": a.allocation_id,
+                "model": a.model_id,
+                "qos": q if math.isfinite(q) else "inf",
+                "distance": a.distance,
+                "price_wei": a.price_wei,
+                "cid": a.cid,
+            }
+            for a, q in zip(allocations, qos_values)
+        ],
+        "qos_order_ok": qos_order_ok,
+        "paid_wei": price,
+        "payments": payments,
+        "models_manager_balance_wei": contract_balance,
+        "reviews": reviews,
+        "model_reputations": rep_table,
+        "owner_reputations": owner_reps,
+        "training": {
+            m: {k: r[k] for k in ("steps", "final_episode_length", "final_success_rate", "wall_s")}
+            for m, r in results.items()
+        },
+        "random_policy_episode_length": random_len,
+        "graph": {
+            k: graph[k]
+            for k in ("skipped", "episodes", "mean_length", "success_rate", "episode_lengths")
+            if k in graph
+        },
+        "trajectory": traj,
+        "gas": {k: v for k, v in gas.items()},
+        "timings_s": say.timings,
+    }
+    write_report(out, summary, cfg)
+    say.say(f"report: {out / 'report.md'}")
+    return summary
+
+
+def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path) -> dict:
+    """Run ``medc-launch`` (simulator + one agent node per agent, each its own process) for
+    ``episodes`` episodes with ``policy``; its per-episode lines are shown live."""
+    import subprocess
+
+    import yaml
+
+    launch_yaml = out / "launch.yaml"
+    launch_yaml.write_text(yaml.safe_dump({
+        "agents": target["agents"], "walls": target["walls"], "grid": cfg.grid, "max_steps": cfg.max_steps,
+        "seed": seed, "mode": "stepped", "policy": str(policy),
+    }))
+    cmd = [str(Path(sys.executable).parent / "medc-launch"), "--config", str(launch_yaml),
+           "--episodes", str(episodes), "--timeout", "300"]
+    last_json = None
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            line = line.rstrip()
+            if line.startswith("{"):
+                last_json = line
+            elif line.startswith("episode "):
+                print(f"      {line}", flush=True)
+        rc = proc.wait()
+    if rc != 0 or last_json is None:
+        raise RuntimeError(f"medc-launch exited with {rc}; run it by hand to see why: {' '.join(cmd)}")
+    return json.loads(last_json)
+
+
+def write_report(out: Path, s: dict, cfg) -> None:
+    """report.md: allocation, payments, reputations, learning, graph results, gas, figures."""
+    lines = [
+        "# MEDC demo report",
+        "",
+        f"Run {'(quick)' if s['quick'] else ''} in {s['seconds']:.0f} s; environment A3W2 on a "
+        f"{cfg.grid}x{cfg.grid} grid, episodes capped at {cfg.max_steps} steps.",
+        "",
+        "## Allocation (Models Manager Contract, greedy by QoS)",
+        "",
+        "| allocation | model | D_m | QoS | price | CID |",
+        "|---|---|---|---|---|---|",
+    ]
+    for a in s["allocations"]:
+        q = a["qos"] if isinstance(a["qos"], str) else f"{a['qos']:.3f}"
+        lines.append(
+            f"| {a['allocation']} | {a['model']} | {a['distance']:.2f} | {q} | "
+            f"{a['price_wei'] / ETHER:.4f} ETH | `{a['cid']}` |"
+        )
+    lines += [
+        "",
+        f"Paid {s['paid_wei'] / ETHER:.4f} ETH; after withdrawals the contract holds "
+        f"{s['models_manager_balance_wei'] / ETHER:.4f} ETH.",
+        "",
+        "## Reviews and reputations",
+        "",
+        "| model | review | reputation before | after |",
+        "|---|---|---|---|",
+    ]
+    reps = {r["model"]: r for r in s["model_reputations"]}
+    for r in s["reviews"]:
+        rep = reps[r["model"]]
+        lines.append(f"| {r['model']} | {r['review']:.3f} | {rep['before']:.3f} | {rep['after']:.3f} |")
+    lines += ["", "| owner | reputation before | after | withdrawn |", "|---|---|---|---|"]
+    paid = {p["owner"]: p["withdrawn_wei"] for p in s["payments"]}
+    for o in s["owner_reputations"]:
+        lines.append(
+            f"| {o['owner']} | {o['before']:.3f} | {o['after']:.3f} | {paid[o['owner']] / ETHER:.4f} ETH |"
+        )
+    lines += [
+        "",
+        "## Learning (same budget, same seed)",
+        "",
+        "| method | steps | final episode length | success | wall s |",
+        "|---|---|---|---|---|",
+    ]
+    for m, r in s["training"].items():
+        lines.append(
+            f"| {m} | {r['steps']:,} | {r['final_episode_length']:.1f} | {r['final_success_rate']:.0%} | "
+            f"{r['wall_s']:.0f} |"
+        )
+    lines += ["", "![learning curves](learning_curves.png)", "", "## The ROS 2 graph", ""]
+    g = s["graph"]
+    if g.get("skipped"):
+        lines.append("Skipped (--no-ros).")
+    else:
+        lines.append(
+            f"{g['episodes']} episodes: lengths {g['episode_lengths']}, mean {g['mean_length']:.1f}, "
+            f"success {g['success_rate']:.0%}; a random policy averages "
+            f"{s['random_policy_episode_length']:.1f} steps."
+        )
+    lines += [
+        "",
+        "![one episode](trajectory.png)",
+        "",
+        "## Gas used",
+        "",
+        "| function | gas (each call) |",
+        "|---|---|",
+    ]
+    for fn, values in s["gas"].items():
+        lines.append(f"| {fn} | {', '.join(f'{v:,}' for v in values)} |")
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.json").write_text(json.dumps(s, indent=2, default=str) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
+    p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, help="training steps per method (default 61,440; quick 12,288)")
+    p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        summary = run(args)
+    except (RuntimeError, ValueError, FileNotFoundError) as exc:
+        print(f"medc-demo: error: {exc}", file=sys.stderr)
+        print(json.dumps({"ok": False, "error": str(exc)}))
+        return 1
+    print(json.dumps(summary, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
