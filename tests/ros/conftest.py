@@ -64,14 +64,14 @@ def rclpy_context():
 @pytest.fixture
 def graph(rclpy_context):
     """A factory of in-process graphs (sim + agents on one executor), all torn down after the test."""
-    from medc_sim.launcher import build_graph, load_config
+    from medc_sim.launcher import build_graph, load_config, resolve_policies
     from rclpy.executors import SingleThreadedExecutor
 
     made = []
 
     def make(policy: Path, episodes: int, **scenario):
         cfg = load_config(None, policy=str(policy), **scenario)
-        sim, agents = build_graph(cfg, [str(policy)] * cfg.agents, episodes, record=True)
+        sim, agents = build_graph(cfg, resolve_policies(cfg), episodes, record=True)
         executor = SingleThreadedExecutor()
         for node in (sim, *agents):
             executor.add_node(node)

@@ -6,6 +6,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -170,8 +171,23 @@ def test_launch_config_is_checked(tmp_path, bundles):
         load_config(None, mode="fast")
     cfg = load_config(None, policy=str(bundles["a"]), agents=2)
     assert resolve_policies(cfg) == [str(bundles["a"])] * 2
+    assert (cfg.grid, cfg.max_steps) == (10, 100)  # grid from the bundle's manifest, max_steps default
     with pytest.raises(ValueError, match="does not exist"):
         resolve_policies(load_config(None, policy=str(tmp_path / "none")))
+    with pytest.raises(ValueError, match="shape"):
+        resolve_policies(load_config(None, policy=str(bundles["a"]), grid=30))
+    team = tmp_path / "team"
+    team.mkdir()
+    for name in ("a", "north"):
+        (team / f"team_agent_{1 if name == 'north' else 0}.safetensors").write_bytes(
+            bundles[name].read_bytes()
+        )
+    paths = resolve_policies(load_config(None, policy=str(team), agents=3))
+    assert [Path(p).name for p in paths] == [
+        "team_agent_0.safetensors",
+        "team_agent_1.safetensors",
+        "team_agent_0.safetensors",
+    ]
     args = ros_args("medc_sim", {"seed": 3, "noise": False, "namespace": "/medc"})
     assert args == [
         "--ros-args",

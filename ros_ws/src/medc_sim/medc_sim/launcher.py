@@ -28,6 +28,8 @@ import yaml
 from medc_sim.ros_env import ensure_interfaces, interfaces_env, repo_root
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "launch.yaml"
+#: Scenario used when neither the config nor the policy's manifest says otherwise.
+SCENARIO_DEFAULTS = {"agents": 3, "walls": 2, "grid": 30, "max_steps": 100}
 
 
 @dataclass
@@ -35,10 +37,11 @@ class LaunchConfig:
     """What the launcher starts (keys of the YAML config; see config/launch.yaml)."""
 
     namespace: str = "/medc"
-    agents: int = 3
-    walls: int = 2
-    grid: int = 30
-    max_steps: int = 100
+    # None = taken from the policy bundle's manifest (the scenario it was trained on).
+    agents: int | None = None
+    walls: int | None = None
+    grid: int | None = None
+    max_steps: int | None = None
     seed: int = 0
     noise: bool = False
     mode: str = "stepped"
@@ -83,6 +86,8 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
         ("registry", dict),
     ):
         value = getattr(cfg, name)
+        if value is None and name in SCENARIO_DEFAULTS:
+            continue
         if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             raise ValueError(
                 f"{name} in {path} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
@@ -93,53 +98,100 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
     return cfg
 
 
+def _absolute(path: str, root: Path) -> Path:
+    q = Path(path).expanduser()
+    return q if q.is_absolute() else root / q
+
+
+def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
+    """Fill the scenario keys left unset from the manifest of the bundle at ``base`` (file or folder)."""
+    from medc_training.bundle import BundleError, read_manifest
+
+    missing = [k for k in SCENARIO_DEFAULTS if getattr(cfg, k) is None]
+    if not missing:
+        return
+    sample = base if base.is_file() else next(iter(sorted(base.glob("*.safetensors"))), None)
+    env: dict[str, Any] = {}
+    if sample is not None:
+        try:
+            env = read_manifest(sample).get("environment") or {}
+        except BundleError as exc:
+            raise ValueError(f"policy {sample} is not a valid bundle: {exc}") from exc
+    for key in missing:
+        value = env.get(key)
+        setattr(
+            cfg,
+            key,
+            int(value) if isinstance(value, int) and not isinstance(value, bool) else SCENARIO_DEFAULTS[key],
+        )
+
+
+def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
+    """Every bundle must take this scenario's observation, or its agent would refuse it."""
+    from medc_training.bundle import BundleError, read_manifest
+
+    for path in sorted(set(paths)):
+        try:
+            obs = read_manifest(path).get("observation") or {}
+        except BundleError as exc:
+            raise ValueError(f"policy {path} is not a valid bundle: {exc}") from exc
+        shape = (obs.get("channels"), obs.get("height"), obs.get("width"))
+        if shape != (5, cfg.grid, cfg.grid):
+            raise ValueError(
+                f"policy {path} takes observations of shape {shape}, but a {cfg.grid}x{cfg.grid} grid gives "
+                f"(5, {cfg.grid}, {cfg.grid}); set grid: {obs.get('height')} or use a bundle trained on "
+                "this grid"
+            )
+
+
 def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     """The bundle path each agent starts with (relative paths are taken from the repository root).
 
     ``policy`` names one bundle for every agent, or a folder holding ``*agent_<i>*.safetensors``
-    files (one per agent) or a single bundle; ``policies`` overrides single agents.
+    files (one per agent) or a single bundle; ``policies`` overrides single agents. Scenario keys
+    left unset in ``cfg`` (agents, walls, grid, max_steps) are filled in from the bundle's manifest.
 
     Raises:
-        ValueError: a path does not exist, or the folder has no usable bundle.
+        ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
+        fit the scenario's observation shape.
     """
+    from medc_sim.contract import agent_index
+
     root = repo_root() if root is None else root
-
-    def absolute(p: str) -> Path:
-        q = Path(p).expanduser()
-        return q if q.is_absolute() else root / q
-
-    base = absolute(cfg.policy)
+    base = _absolute(cfg.policy, root)
+    if not base.exists():
+        raise ValueError(
+            f"policy {cfg.policy!r} ({base}) does not exist; train the team (models/README.md) "
+            "or pass --policy PATH to a bundle"
+        )
+    _complete_scenario(cfg, base)
     paths: list[str] = []
     if base.is_dir():
         bundles = sorted(base.glob("*.safetensors"))
+        if not bundles:
+            raise ValueError(
+                f"policy folder {base} holds no .safetensors bundle; train the team "
+                "(see models/README.md) or pass --policy PATH"
+            )
         for i in range(cfg.agents):
             own = [b for b in bundles if f"agent_{i}" in b.stem or f"agent{i}" in b.stem]
-            if own:
-                paths.append(str(own[0]))
-            elif len(bundles) >= 1:
-                paths.append(str(bundles[0]))
-            else:
-                raise ValueError(
-                    f"policy folder {base} holds no .safetensors bundle; train the team "
-                    "(see models/README.md) or pass --policy PATH"
-                )
-    elif base.is_file():
-        paths = [str(base)] * cfg.agents
+            paths.append(str(own[0] if own else bundles[0]))
     else:
-        raise ValueError(f"policy {cfg.policy!r} ({base}) does not exist; pass --policy PATH to a bundle")
+        paths = [str(base)] * cfg.agents
     for agent_id, p in cfg.policies.items():
-        from medc_sim.contract import agent_index
-
         i = agent_index(agent_id, cfg.agents)
-        if not absolute(p).is_file():
-            raise ValueError(f"policy for {agent_id}: {absolute(p)} does not exist")
-        paths[i] = str(absolute(p))
+        if not _absolute(p, root).is_file():
+            raise ValueError(f"policy for {agent_id}: {_absolute(p, root)} does not exist")
+        paths[i] = str(_absolute(p, root))
+    _check_fits(cfg, paths)
     return paths
 
 
-def sim_parameters(cfg: LaunchConfig, episodes: int = 0) -> dict[str, Any]:
-    """Parameters of the simulator node for ``cfg``."""
+def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 0) -> dict[str, Any]:
+    """Parameters of the simulator node for ``cfg``; ``extra_listeners``: status subscribers besides
+    the agents (e.g. the launcher) that must be there before the first step."""
     return {
+        "wait_for_subscribers": cfg.agents + extra_listeners,
         "namespace": cfg.namespace,
         "agents": cfg.agents,
         "walls": cfg.walls,
@@ -303,7 +355,9 @@ def run_processes(
     )
     bindir = Path(sys.executable).parent
     env = _child_env()
-    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes))]]
+    commands = [
+        [str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes, extra_listeners=1))]
+    ]
     commands += [
         [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
         for i, p in enumerate(policies)

@@ -107,8 +107,18 @@ class SimNode(Node):
                 contract.RELIABLE_QOS,
             )
 
-        self._msgs = (PoseStamped, RadiationReading, OccupancyGrid, EpisodeStatus)
-        self._begin_episode()
+        self.wait_for = int(
+            p(
+                "wait_for_subscribers",
+                cfg.agents,
+                "Publish the first step once this many nodes "
+                "subscribe to the episode status (the agents; a launcher adds itself)",
+                True,
+            )
+        )
+        self.started = False
+        self._start_deadline = time.monotonic() + 30.0
+        self._start_timer = self.create_timer(0.02, self._try_start)
         if self.mode == "realtime":
             self.create_timer(1.0 / self.rate_hz, self._realtime_tick)
         else:
@@ -122,6 +132,18 @@ class SimNode(Node):
         )
 
     # -- publishing ----------------------------------------------------------------------
+    def _try_start(self) -> None:
+        """Start once the team listens: a step published before discovery would be lost."""
+        listeners = self.status_pub.get_subscription_count()
+        if listeners < self.wait_for and time.monotonic() < self._start_deadline:
+            return
+        if listeners < self.wait_for:
+            self.get_logger().warning(f"starting with {listeners} of {self.wait_for} expected subscribers")
+        self._start_timer.cancel()
+        self.destroy_timer(self._start_timer)
+        self.started = True
+        self._begin_episode()
+
     def _begin_episode(self) -> None:
         self._map_stamp = self.get_clock().now().to_msg()
         self.map_pub.publish(messages.grid_msg(self.core.walls(), self._map_stamp, self.resolution))
@@ -173,16 +195,17 @@ class SimNode(Node):
             self._advance()
 
     def _rate_tick(self) -> None:
-        if self.book.complete:
+        if self.started and self.book.complete:
             self._advance()
 
     def _resend_tick(self) -> None:
-        if not self.finished and time.monotonic() - self._published_at >= self.resend_s:
+        if self.started and not self.finished and time.monotonic() - self._published_at >= self.resend_s:
             self.resends += 1
             self._send_state()
 
     def _realtime_tick(self) -> None:
-        self._advance()
+        if self.started:
+            self._advance()
 
     def _advance(self) -> None:
         if self.finished:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 
 from medc_sim.ros_env import ensure_interfaces
 
@@ -28,6 +29,10 @@ def main(argv: list[str] | None = None) -> int:
         executor = make_executor()
         executor.add_node(node)
         while rclpy.ok() and not node.finished:
+            executor.spin_once(timeout_sec=0.1)
+        # Linger a moment so the last episode's status reaches late readers (reliable resends).
+        linger = time.monotonic() + 1.0
+        while rclpy.ok() and time.monotonic() < linger:
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
