@@ -45,3 +45,26 @@ def test_separate_processes_replay_training_episodes(bundles, tmp_path):
     assert result["episode_lengths"] == lengths
     assert result["successes"] == successes
     assert result["in_process"] is False
+
+
+@pytest.mark.ros
+def test_default_launch_config_runs_the_shipped_team_as_trained(graph, repo_root):
+    """`medc-launch` with no config: the shipped team, its manifest's scenario, training's episodes."""
+    from medc_sim.launcher import load_config, resolve_policies
+
+    cfg = load_config(None)
+    team = resolve_policies(cfg)
+    assert all(Path(p).parent == repo_root / "models" / "team" for p in team)
+    scenario = {
+        "agents": cfg.agents,
+        "walls": cfg.walls,
+        "grid": cfg.grid,
+        "max_steps": cfg.max_steps,
+        "seed": cfg.seed,
+    }
+    lengths, successes, trace = reference_episodes(Path(team[0]), EPISODES, **scenario)
+    executor, sim, _ = graph(Path(team[0]), EPISODES, **scenario)
+    assert spin_until(executor, lambda: sim.finished, 120)
+    assert [r.length for r in sim.core.results] == lengths
+    assert sim.core.trace == trace
+    assert sum(r.success for r in sim.core.results) == sum(successes) > EPISODES // 2  # it localizes
