@@ -1,4 +1,4 @@
-"""medc-bench ros: how fast the ROS graph decides, with real DDS and one process per agent.
+"""medc-bench ros: how fast the ROS graph decides, over real DDS (FastDDS via rclpy).
 
 Measures, with the simulator in this process and the agent nodes either each in its own
 ``medc-agent`` process (the deployment a real team has) or all on the simulator's executor:
@@ -69,12 +69,14 @@ def run_graph(
         agent_parameters,
         build_graph,
         load_config,
+        resolve_policies,
         ros_args,
         sim_parameters,
     )
     from medc_sim.node import SimNode
 
     cfg = load_config(None, agents=agents, grid=grid, walls=walls, seed=seed, policy=str(bundle))
+    resolve_policies(cfg)  # fills max_steps from the bundle and checks it fits the grid
     executor = make_executor()
     children: list[subprocess.Popen] = []
     if in_process:
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=500, help="measured steps per latency run")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of the sustained-rate run")
-    parser.add_argument("--policy", help="bundle to run (default: a lenet5 for the 30x30 grid)")
+    parser.add_argument("--policy", help="bundle to run, on its grid (default: a lenet5 for the 30x30 grid)")
     parser.add_argument("--quick", action="store_true", help="100 steps and 10 s (a smoke run)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.quick:
@@ -162,12 +164,20 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            bundle = Path(args.policy) if args.policy else _bench_bundle(30, Path(tmp))
-            results["policy"] = str(args.policy or "lenet5 (random weights), 30x30 grid")
+            if args.policy:
+                from medc_training.bundle import read_manifest
+
+                bundle = Path(args.policy)
+                grid = int(read_manifest(bundle)["observation"]["height"])
+            else:
+                grid = 30
+                bundle = _bench_bundle(grid, Path(tmp))
+            results["policy"] = str(args.policy or "lenet5 (random weights)")
+            results["grid"] = grid
             for in_process in (False, True):
                 where = "in-process" if in_process else "processes"
                 for n in (3, 10):
-                    r = run_graph(n, bundle, in_process=in_process, steps=args.steps)
+                    r = run_graph(n, bundle, in_process=in_process, steps=args.steps, grid=grid)
                     print(
                         f"latency, {n} agents, {where}: p50 {r['latency_ms_p50']} ms, "
                         f"p99 {r['latency_ms_p99']} ms "
@@ -175,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
                         flush=True,
                     )
                     results[f"latency_{n}_agents_{where}"] = r
-                r = run_graph(3, bundle, in_process=in_process, duration=args.duration)
+                r = run_graph(3, bundle, in_process=in_process, duration=args.duration, grid=grid)
                 print(
                     f"sustained stepped rate, 3 agents, {where}: {r['team_steps_per_s']} team steps/s over "
                     f"{r['seconds']} s ({r['steps']} steps)",
