@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -232,7 +233,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     def spent(fn: str, g: int) -> None:
         gas.setdefault(fn, []).append(int(g))
 
-    steps = args.steps or (12_288 if args.quick else 61_440)
+    steps = args.steps or (40_960 if args.quick else 204_800)
     episodes = args.episodes or (5 if args.quick else 10)
     count = 3
 
@@ -318,28 +319,30 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     # 4. ---------------------------------------------------------------- train: MEDC vs sparse
     say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone")
+    # The sparse baseline runs beside MEDC as its own `medc-train` process (one core each).
     results: dict[str, dict] = {}
-    policy_paths: dict[str, Path] = {}
-    for method in ("medc", "sparse"):
-        cfg = scaled_config(
-            "cpu",
-            agents=target["agents"],
-            walls=target["walls"],
-            method=method,
-            total_steps=steps,
-            seed=args.seed,
-        )
-        trainer = Trainer(cfg, experts if method == "medc" else [])
-        if method == "medc":
-            trainer.expert_weights = r_s
-        t = time.monotonic()
-        summary = run_training(trainer, cfg, out / method, progress=not args.no_progress)
-        summary["wall_s"] = round(time.monotonic() - t, 1)
-        results[method] = summary
-        policy_paths[method] = out / method / "policy.safetensors"
+    policy_paths = {m: out / m / "policy.safetensors" for m in ("medc", "sparse")}
+    cfg = scaled_config("cpu", agents=target["agents"], walls=target["walls"], method="medc",
+                        total_steps=steps, seed=args.seed, torch_threads=1)
+    sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--agents", str(target["agents"]),
+                  "--walls", str(target["walls"]), "--method", "sparse", "--steps", str(steps),
+                  "--seed", str(args.seed), "--threads", "1", "--quiet", "--out", str(out / "sparse")]
+    t = time.monotonic()
+    with subprocess.Popen(sparse_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sparse:
+        trainer = Trainer(cfg, experts)
+        trainer.expert_weights = r_s
+        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress)
+        results["medc"]["wall_s"] = round(time.monotonic() - t, 1)
+        sparse_out, sparse_err = sparse.communicate()
+    if sparse.returncode != 0:
+        detail = sparse_err.strip()[-500:]
+        raise RuntimeError(f"the sparse baseline failed ({' '.join(sparse_cmd)}): {detail}")
+    results["sparse"] = json.loads(sparse_out.strip().splitlines()[-1])
+    results["sparse"]["wall_s"] = round(time.monotonic() - t, 1)
+    for method, summary in results.items():
         say.say(
             f"{method:6s}: final greedy episode length {summary['final_episode_length']:.1f}, "
-            f"success {summary['final_success_rate']:.0%}, {summary['wall_s']:.0f} s"
+            f"success {summary['final_success_rate']:.0%}, done after {summary['wall_s']:.0f} s"
         )
     curves_png(
         {
@@ -406,14 +409,24 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         target["agents"], target["walls"], cfg.grid, cfg.max_steps, 200, seed=args.seed + 5
     )
     graph: dict[str, Any] = {"skipped": True}
+    graph_team: dict[str, Any] = {"skipped": True}
+    team_path = root / "models" / "team" / "A3W2.safetensors"
     if not args.no_ros:
         say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
         graph = run_graph(policy_paths["medc"], target, cfg, episodes, args.seed, out)
         graph["skipped"] = False
         say.say(
-            f"graph: mean episode length {graph['mean_length']:.1f} vs random policy {random_len:.1f}; "
+            f"new policy: mean episode length {graph['mean_length']:.1f} (random moves: {random_len:.1f}); "
             f"success {graph['success_rate']:.0%}"
         )
+        if team_path.is_file():
+            say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
+            graph_team = run_graph(team_path, target, cfg, episodes, args.seed, out)
+            graph_team["skipped"] = False
+            say.say(
+                f"shipped team: mean episode length {graph_team['mean_length']:.1f} "
+                f"(random moves: {random_len:.1f}); success {graph_team['success_rate']:.0%}"
+            )
 
     # 7. ---------------------------------------------------------------- summary and report
     say.step("7. Summary and report")
@@ -448,11 +461,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             for m, r in results.items()
         },
         "random_policy_episode_length": random_len,
-        "graph": {
-            k: graph[k]
-            for k in ("skipped", "episodes", "mean_length", "success_rate", "episode_lengths")
-            if k in graph
-        },
+        "graph": _graph_summary(graph),
+        "graph_shipped_team": _graph_summary(graph_team),
         "trajectory": traj,
         "gas": {k: v for k, v in gas.items()},
         "timings_s": say.timings,
@@ -460,6 +470,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     write_report(out, summary, cfg)
     say.say(f"report: {out / 'report.md'}")
     return summary
+
+
+def _graph_summary(graph: dict) -> dict:
+    keys = ("skipped", "episodes", "mean_length", "success_rate", "episode_lengths", "wall_s")
+    return {k: graph[k] for k in keys if k in graph}
 
 
 def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path) -> dict:
@@ -572,7 +587,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, help="training steps per method (default 61,440; quick 12,288)")
+    p.add_argument("--steps", type=int, help="training steps per method (default 204,800; quick 40,960)")
     p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
