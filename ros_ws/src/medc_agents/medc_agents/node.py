@@ -68,6 +68,7 @@ class AgentNode(Node):
         self.decisions = 0
         self.swap_listeners: list[Callable[[str, str | None], None]] = []
         self._last_move: AgentMove | None = None
+        self._unanswered: tuple | None = None  # (obs, mask, tick) the policy failed on
         self._fetch_client = None
 
         initial = p("policy", "", "Path of the policy bundle (.safetensors) to run; set it to swap policies")
@@ -127,21 +128,32 @@ class AgentNode(Node):
         except ValueError as exc:
             self._drop("status", exc)
             return
-        if (
-            tick is not None
-            and self.observer.answered(tick.episode, tick.step)
-            and self._last_move is not None
-        ):
-            # The simulator re-sent a step it has not got every move for: ours may have been lost.
-            self.move_pub.publish(self._last_move)
+        if tick is not None and self.observer.answered(tick.episode, tick.step):
+            # The simulator re-sent a step it has not got every move for: ours may have been lost,
+            # or the policy failed on it.
+            last = self._last_move
+            if last is not None and (last.episode, last.step) == (tick.episode, tick.step):
+                self.move_pub.publish(last)
+            elif self._unanswered is not None and self._unanswered[2] == tick:
+                self._decide(*self._unanswered)
             return
         self._maybe_decide()
 
     def _maybe_decide(self) -> None:
         if self.slot.current is None or not self.observer.ready():
             return
-        obs, mask, tick = self.observer.observe()
-        action = self.slot.act(obs, mask)
+        self._decide(*self.observer.observe())
+
+    def _decide(self, obs, mask, tick) -> None:
+        try:
+            action = self.slot.act(obs, mask)
+        except (RuntimeError, ValueError) as exc:
+            # A policy failing on one observation must not take the node down; the observation
+            # is kept and retried when the simulator re-sends the step.
+            self.get_logger().error(f"policy failed on episode {tick.episode} step {tick.step}: {exc}")
+            self._unanswered = (obs, mask, tick)
+            return
+        self._unanswered = None
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME
