@@ -69,13 +69,15 @@ def graph(rclpy_context):
 
     made = []
 
-    def make(policy: Path, episodes: int, **scenario):
+    def make(policy: Path, episodes: int, shared_feed: bool = True, **scenario):
         cfg = load_config(None, policy=str(policy), **scenario)
-        sim, agents = build_graph(cfg, resolve_policies(cfg), episodes, record=True)
+        sim, agents, nodes = build_graph(
+            cfg, resolve_policies(cfg), episodes, record=True, shared_feed=shared_feed
+        )
         executor = SingleThreadedExecutor()
-        for node in (sim, *agents):
+        for node in nodes:
             executor.add_node(node)
-        made.append((executor, [sim, *agents]))
+        made.append((executor, nodes))
         return executor, sim, agents
 
     yield make

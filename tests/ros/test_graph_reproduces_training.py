@@ -15,9 +15,10 @@ EPISODES = 20
 
 
 @pytest.mark.ros
-def test_in_process_graph_replays_training_step_for_step(graph, bundles):
+@pytest.mark.parametrize("shared_feed", [True, False], ids=["shared-feed", "own-subscriptions"])
+def test_in_process_graph_replays_training_step_for_step(graph, bundles, shared_feed):
     lengths, successes, trace = reference_episodes(bundles["a"], EPISODES, **SCENARIO)
-    executor, sim, agents = graph(bundles["a"], EPISODES, **SCENARIO)
+    executor, sim, agents = graph(bundles["a"], EPISODES, shared_feed=shared_feed, **SCENARIO)
     assert spin_until(executor, lambda: sim.finished, 120), f"only {len(sim.core.results)} episodes"
     assert [r.length for r in sim.core.results] == lengths
     assert [r.success for r in sim.core.results] == successes

@@ -20,7 +20,8 @@ SCENARIO = {
 
 @pytest.mark.ros
 def test_realtime_mode_keeps_the_rate_and_a_silent_agent_stays(graph, bundles):
-    executor, sim, agents = graph(bundles["a"], 0, **SCENARIO)
+    # Own subscriptions per agent, so that taking agent_2 off the executor silences it entirely.
+    executor, sim, agents = graph(bundles["a"], 0, shared_feed=False, **SCENARIO)
     silent = agents[2]
     executor.remove_node(silent)  # agent_2 crashed: no moves from it any more
     assert spin_until(executor, lambda: len(sim.core.trace) >= 3, 30)

@@ -37,7 +37,15 @@ NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
 class AgentNode(Node):
     """One agent of the team (see the module docstring)."""
 
-    def __init__(self, node_name: str | None = None, agent_id: str | None = None, **kwargs) -> None:
+    def __init__(
+        self,
+        node_name: str | None = None,
+        agent_id: str | None = None,
+        feed: TeamFeed | None = None,
+        **kwargs,
+    ) -> None:
+        """``feed``: take the team's messages from a :class:`TeamFeed` shared by the agent nodes of
+        this process, instead of subscribing to them itself."""
         super().__init__(node_name or f"medc_{agent_id or 'agent'}", **kwargs)
         p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         self.agent_id = p(
@@ -84,32 +92,28 @@ class AgentNode(Node):
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
-        for a in self.observer.ids:
-            self.create_subscription(
-                PoseStamped,
-                contract.pose_topic(ns, a),
-                lambda m, a=a: self._guard("pose", self.observer.add_pose, a, m),
-                contract.SENSOR_QOS,
-            )
-            self.create_subscription(
-                RadiationReading,
-                contract.radiation_topic(ns, a),
-                lambda m, a=a: self._guard("radiation", self.observer.add_reading, a, m),
-                contract.SENSOR_QOS,
-            )
-        self.create_subscription(
-            OccupancyGrid,
-            contract.map_topic(ns),
-            lambda m: self._guard("map", self.observer.add_map, m),
-            contract.LATCHED_QOS,
-        )
-        self.create_subscription(
-            EpisodeStatus, contract.status_topic(ns), self._on_status, contract.RELIABLE_QOS
-        )
+        if feed is None:
+            subscribe_team(self, ns, num_agents, [self])
+        else:
+            if (feed.namespace, feed.num_agents) != (ns, num_agents):
+                raise ValueError(
+                    f"team feed serves {feed.num_agents} agents on {feed.namespace}, "
+                    f"agent {self.agent_id} is one of {num_agents} on {ns}"
+                )
+            feed.agents.append(self)
         for topic in (contract.policy_topic(ns, self.agent_id), contract.team_policy_topic(ns)):
             self.create_subscription(String, topic, self._on_policy_msg, contract.LATCHED_QOS)
 
     # -- team state ----------------------------------------------------------------------------
+    def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
+        self._guard("pose", self.observer.add_pose, agent_id, msg)
+
+    def on_reading(self, agent_id: str, msg: RadiationReading) -> None:
+        self._guard("radiation", self.observer.add_reading, agent_id, msg)
+
+    def on_map(self, msg: OccupancyGrid) -> None:
+        self._guard("map", self.observer.add_map, msg)
+
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
         self.get_logger().warning(f"dropped {what} message: {exc}")
@@ -122,7 +126,7 @@ class AgentNode(Node):
             return
         self._maybe_decide()
 
-    def _on_status(self, msg: EpisodeStatus) -> None:
+    def on_status(self, msg: EpisodeStatus) -> None:
         try:
             tick = self.observer.add_status(msg)
         except ValueError as exc:
@@ -220,3 +224,51 @@ class AgentNode(Node):
         # The bridge verifies the bundle and publishes its local path on this agent's policy topic.
         self._fetch_client.call_async(FetchBundle.Request(cid=cid, agent_ids=[self.agent_id]))
         self.get_logger().info(f"asked the registry bridge for bundle {cid}")
+
+
+def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[AgentNode]) -> None:
+    """Subscribe ``node`` to the team's poses, readings, map and status, for ``agents``.
+
+    Each message is handed to every agent in ``agents`` (the list may grow later).
+    """
+    for a in contract.agent_ids(num_agents):
+        node.create_subscription(
+            PoseStamped,
+            contract.pose_topic(namespace, a),
+            lambda m, a=a: [agent.on_pose(a, m) for agent in agents],
+            contract.SENSOR_QOS,
+        )
+        node.create_subscription(
+            RadiationReading,
+            contract.radiation_topic(namespace, a),
+            lambda m, a=a: [agent.on_reading(a, m) for agent in agents],
+            contract.SENSOR_QOS,
+        )
+    node.create_subscription(
+        OccupancyGrid,
+        contract.map_topic(namespace),
+        lambda m: [agent.on_map(m) for agent in agents],
+        contract.LATCHED_QOS,
+    )
+    node.create_subscription(
+        EpisodeStatus,
+        contract.status_topic(namespace),
+        lambda m: [agent.on_status(m) for agent in agents],
+        contract.RELIABLE_QOS,
+    )
+
+
+class TeamFeed(Node):
+    """One set of team subscriptions shared by the agent nodes of one process.
+
+    With N agents in one process, each of their own subscriptions would receive and deserialize
+    every team message: N x (2N + 2) deliveries per step. Sharing them makes it 2N + 2; each agent
+    still checks every message itself and keeps its own memory, policy and move topic.
+    """
+
+    def __init__(self, namespace: str, num_agents: int, node_name: str = "medc_team_feed", **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self.namespace = namespace
+        self.num_agents = num_agents
+        self.agents: list[AgentNode] = []
+        subscribe_team(self, namespace, num_agents, self.agents)

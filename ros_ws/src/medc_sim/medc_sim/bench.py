@@ -80,10 +80,10 @@ def run_graph(
     executor = make_executor()
     children: list[subprocess.Popen] = []
     if in_process:
-        sim, agent_nodes = build_graph(cfg, [str(bundle)] * agents)
+        sim, _, nodes = build_graph(cfg, [str(bundle)] * agents)
     else:
         sim = SimNode(parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
-        agent_nodes = []
+        nodes = [sim]
         bindir = Path(sys.executable).parent
         children = [
             subprocess.Popen(
@@ -98,7 +98,7 @@ def run_graph(
             )
             for i in range(agents)
         ]
-    for node in (sim, *agent_nodes):
+    for node in nodes:
         executor.add_node(node)
     try:
         deadline = time.monotonic() + 120
@@ -130,7 +130,7 @@ def run_graph(
     finally:
         _stop(children)
         executor.shutdown()
-        for node in (sim, *agent_nodes):
+        for node in nodes:
             node.destroy_node()
 
 
