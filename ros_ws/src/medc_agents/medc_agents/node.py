@@ -126,7 +126,12 @@ class AgentNode(Node):
             return
         self._maybe_decide()
 
-    def on_status(self, msg: EpisodeStatus) -> None:
+    def on_status(self, msg: EpisodeStatus, defer: bool = False):
+        """Take an episode status; decide if everything for the step is there.
+
+        ``defer``: instead of deciding, return ``(obs, mask, tick)`` for the caller to decide
+        (a TeamFeed batches the team's forward passes) and to finish with :meth:`publish_move`.
+        """
         try:
             tick = self.observer.add_status(msg)
         except ValueError as exc:
@@ -140,8 +145,13 @@ class AgentNode(Node):
                 self.move_pub.publish(last)
             elif self._unanswered is not None and self._unanswered[2] == tick:
                 self._decide(*self._unanswered)
-            return
+            return None
+        if defer:
+            if self.slot.current is None or not self.observer.ready():
+                return None
+            return self.observer.observe()
         self._maybe_decide()
+        return None
 
     def _maybe_decide(self) -> None:
         if self.slot.current is None or not self.observer.ready():
@@ -157,12 +167,16 @@ class AgentNode(Node):
             self.get_logger().error(f"policy failed on episode {tick.episode} step {tick.step}: {exc}")
             self._unanswered = (obs, mask, tick)
             return
+        self.publish_move(tick, action)
+
+    def publish_move(self, tick, action: int) -> None:
+        """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
         self._unanswered = None
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME
         move.agent_id = self.agent_id
-        move.episode, move.step, move.action = tick.episode, tick.step, action
+        move.episode, move.step, move.action = tick.episode, tick.step, int(action)
         self._last_move = move
         self.decisions += 1
         self.move_pub.publish(move)
@@ -253,9 +267,33 @@ def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[Age
     node.create_subscription(
         EpisodeStatus,
         contract.status_topic(namespace),
-        lambda m: [agent.on_status(m) for agent in agents],
+        lambda m: decide_together(agents, m) if len(agents) > 1 else [agent.on_status(m) for agent in agents],
         contract.RELIABLE_QOS,
     )
+
+
+def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
+    """Hand ``msg`` to every agent; those ready to decide and running the same bundle object
+    decide in one batched forward pass (the same greedy choice as one by one)."""
+    groups: dict[int, list] = {}
+    for agent in agents:
+        prepared = agent.on_status(msg, defer=True)
+        if prepared is not None:
+            groups.setdefault(id(agent.slot.current.bundle), []).append((agent, *prepared))
+    for members in groups.values():
+        bundle = members[0][0].slot.current.bundle
+        obs = torch.stack([m[1] for m in members])
+        mask = torch.stack([m[2] for m in members])
+        try:
+            with torch.no_grad():
+                actions = bundle.act(obs, mask, greedy=True).tolist()
+        except (RuntimeError, ValueError):
+            # Fall back to one by one: each agent logs and keeps its own failure.
+            for agent, o, mk, tick in members:
+                agent._decide(o, mk, tick)
+            continue
+        for (agent, _, _, tick), action in zip(members, actions):
+            agent.publish_move(tick, action)
 
 
 class TeamFeed(Node):

@@ -104,6 +104,35 @@ def load_policy(
     return LoadedPolicy(bundle=bundle, source=str(path))
 
 
+#: Validated bundles by (path, size, mtime): agents of one process loading the same file share one
+#: PolicyBundle (loaded and checked once), which also lets a TeamFeed batch their forward passes.
+_LOADED: dict[tuple[str, int, int, tuple, int, str | None], LoadedPolicy] = {}
+
+
+def load_policy_cached(
+    source: str,
+    obs_shape: tuple[int, int, int],
+    num_actions: int,
+    application: str | None = "target_localization",
+) -> LoadedPolicy:
+    """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
+    try:
+        st = Path(source).expanduser().stat()
+        key = (
+            str(Path(source).expanduser().resolve()),
+            st.st_size,
+            st.st_mtime_ns,
+            tuple(obs_shape),
+            num_actions,
+            application,
+        )
+    except (OSError, ValueError):
+        return load_policy(source, obs_shape, num_actions, application)  # raises the precise reason
+    if key not in _LOADED:
+        _LOADED[key] = load_policy(source, obs_shape, num_actions, application)
+    return _LOADED[key]
+
+
 class PolicySlot:
     """The running policy of one agent, replaced only by a bundle that validates."""
 
@@ -124,7 +153,7 @@ class PolicySlot:
         Raises:
             PolicyRejected: the bundle was refused; the previous policy is still running.
         """
-        loaded = load_policy(source, self.obs_shape, self.num_actions, self.application)
+        loaded = load_policy_cached(source, self.obs_shape, self.num_actions, self.application)
         self.current = loaded
         return loaded
 
