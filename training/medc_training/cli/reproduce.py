@@ -32,13 +32,14 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10")
+PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
 BUDGETS = {
-    "cpu": {"steps": 40_000, "expert_steps": 60_000, "team_steps": 150_000, "fleet_maze_steps": 20_000},
+    "cpu": {"steps": 40_000, "expert_steps": 60_000, "team_steps": 150_000, "fleet_maze_steps": 20_000,
+            "long_steps": 200_000},
     "paper": {"steps": 20_000_000, "expert_steps": 20_000_000, "team_steps": 20_000_000,
-              "fleet_maze_steps": 20_000_000},
+              "fleet_maze_steps": 20_000_000, "long_steps": 20_000_000},
 }
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
@@ -261,6 +262,20 @@ class Plan:
                 jobs.append(self.run(fig, "A3W2-frl8-3faulty", seed, cfg))
         return jobs
 
+    def long_runs(self) -> list[dict]:
+        """Supplement: A3W2 sparse vs MEDC (6 experts) vs MEDC with the scripted oracle as the one
+        expert, 5x longer than the figure runs, at most 3 seeds."""
+        jobs = []
+        for seed in range(min(self.seeds, 3)):
+            base = self.cfg(env="target_localization", agents=3, walls=2, seed=seed,
+                            total_steps=self.budget["long_steps"])
+            jobs.append(self.run("long", "long-A3W2-sparse", seed, {**base, "method": "sparse"}))
+            jobs.append(self.run("long", "long-A3W2-medc-six", seed, {**base, "method": "medc"},
+                                 [self.expert_path(n) for n in SIX]))
+            jobs.append(self.run("long", "long-A3W2-medc-oracle", seed, {**base, "method": "medc"},
+                                 ["oracle"]))
+        return jobs
+
     def _faulty_spec(self, name: str) -> str:
         kind = FAULTY_USERS.get(name)
         if kind == "random":
@@ -365,6 +380,8 @@ def verdict(better: list[float], worse: list[float], tolerance: float = 0.0) -> 
     c = compare(better, worse)
     if not better or not worse:
         return "not run"
+    if c["diff"] == 0:
+        return "no difference"
     if c["diff"] + c["half"] < -tolerance:
         return "held"
     if c["diff"] < 0:
@@ -543,6 +560,20 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                           r.claim(f"{app} ({what}): MEDC beats FRL", f"{short}-medc{tag}", frl),
                           r.claim(f"{app} ({what}): MEDC beats IL", f"{short}-medc{tag}", f"{short}-il{tag}"),
                       ]))
+    # --- Supplement: longer runs
+    data = r.figure("long_A3W2.png", f"Supplement: A3W2, {budget['long_steps']:,} steps", {
+        "MDRL-sparse": "long-A3W2-sparse", "MEDC (6 experts)": "long-A3W2-medc-six",
+        "MEDC (scripted oracle expert)": "long-A3W2-medc-oracle"})
+    if data:
+        r.add(f"### Supplement — longer runs (A3W2, {budget['long_steps']:,} steps)\n\n"
+              "![long](long_A3W2.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
+                  r.claim("MEDC (6 trained experts) beats MDRL-sparse over a longer run",
+                          "long-A3W2-medc-six", "long-A3W2-sparse"),
+                  r.claim("MEDC with a perfect (oracle) expert beats MDRL-sparse", "long-A3W2-medc-oracle",
+                          "long-A3W2-sparse"),
+              ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
+              "something a user could share, and is run only to separate 'MEDC does not help' from 'our "
+              "experts are too weak to help'.")
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
     header = f"""# Reproduction report — scale `{scale}`
@@ -584,6 +615,9 @@ with equal reputations (0.5) and D_m =
 |Δagents| + |Δwalls| (+ |Δgrid|, 0 here), floored at 0.5.
 
 """
+    notes = out / "discussion.md"
+    if notes.exists():  # hand-written interpretation, kept across regenerations of the report
+        header += "## Discussion\n\n" + notes.read_text().strip() + "\n\n## Figures and claims\n\n"
     return r.write(header)
 
 
@@ -615,6 +649,11 @@ def main(argv: list[str] | None = None) -> int:
               "fleet_maze_steps": args.other_steps}
     plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds)
     command = "medc-reproduce " + " ".join(argv if argv is not None else sys.argv[1:])
+    record = out / "command.txt"
+    if phases != ["report"]:
+        record.write_text(command + "\n")
+    elif record.exists():  # a rebuilt report names the command that made its runs
+        command = record.read_text().strip() + f"\n# report rebuilt with: {command}"
     elapsed: dict[str, float] = {}
 
     def timed(name, jobs):
@@ -633,6 +672,8 @@ def main(argv: list[str] | None = None) -> int:
             tl_jobs += plan.tl(fig)
     if "fig10" in phases and not args.no_other_apps:
         tl_jobs += plan.other_apps()
+    if "long" in phases:
+        tl_jobs += plan.long_runs()
     if tl_jobs:
         unique = {j["out"]: j for j in tl_jobs}  # sparse baselines are shared by several figures
         # the longest jobs first so the pool's tail is short

@@ -1,0 +1,55 @@
+"""medc-reproduce: the experiment plan matches the paper's figures; claim verdicts are honest."""
+
+from pathlib import Path
+
+import pytest
+from medc_training.cli.reproduce import FRL_USERS, SIX, Plan, compare, t95, verdict
+from medc_training.cli.train import parse_users
+
+
+def _plan(tmp_path, seeds=2):
+    return Plan("cpu", seeds, tmp_path / "out", Path("models"))
+
+
+def test_fig6_runs_free_complex_and_combined_experts_against_sparse(tmp_path):
+    jobs = _plan(tmp_path).tl("fig6")
+    names = {j["name"] for j in jobs}
+    for w in (2, 3):
+        for run in ("sparse", "medc-free", "medc-complex", "medc-combined"):
+            assert {f"A3W{w}-{run}/seed0", f"A3W{w}-{run}/seed1"} <= names
+    combined = next(j for j in jobs if j["name"] == "A3W2-medc-combined/seed0")
+    assert [Path(e).stem for e in combined["experts"]] == ["A1W0", "A1W3"]
+
+
+def test_fig8_uses_the_papers_six_experts_and_eight_frl_users(tmp_path):
+    jobs = _plan(tmp_path, seeds=1).tl("fig8")
+    medc = next(j for j in jobs if j["name"] == "A3W2-medc-six/seed0")
+    assert tuple(Path(e).stem for e in medc["experts"]) == SIX
+    frl = next(j for j in jobs if j["name"] == "A3W2-frl8/seed0")
+    assert [(u["agents"], u["walls"]) for u in frl["config"]["frl_users"]] == list(FRL_USERS)
+
+
+def test_fig9_has_three_faulty_users_in_medc_and_frl(tmp_path):
+    jobs = _plan(tmp_path, seeds=1).tl("fig9")
+    medc = next(j for j in jobs if j["name"] == "A3W2-medc-six-3faulty/seed0")
+    faulty = [e for e in medc["experts"] if e in ("random", "biased:0") or e.startswith("malicious:")]
+    assert len(faulty) == 3 and len(medc["experts"]) == 6
+    frl = next(j for j in jobs if j["name"] == "A3W2-frl8-3faulty/seed0")
+    faults = sorted(u["fault"] for u in frl["config"]["frl_users"] if "fault" in u)
+    assert faults == ["biased", "malicious", "random"]
+
+
+def test_verdicts_need_the_ci_to_exclude_zero():
+    assert verdict([10.0, 11.0, 10.5], [20.0, 21.0, 20.5]) == "held"
+    assert verdict([10.0, 30.0], [20.0, 21.0]) == "direction only (CI overlaps 0)"
+    assert verdict([25.0, 26.0], [20.0, 21.0]) == "did not hold"
+    assert verdict([50.0, 50.0], [50.0, 50.0]) == "no difference"
+    c = compare([1.0, 3.0], [2.0, 2.0])
+    assert c["diff"] == pytest.approx(0.0) and c["half"] == pytest.approx(t95(1) * 1.0)
+
+
+def test_frl_user_list_parsing():
+    assert parse_users("A1W0,A3W2:malicious") == [{"agents": 1, "walls": 0},
+                                                  {"agents": 3, "walls": 2, "fault": "malicious"}]
+    with pytest.raises(ValueError, match="AyWz"):
+        parse_users("A3W2:sneaky")
