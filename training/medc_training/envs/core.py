@@ -140,3 +140,66 @@ def check_bool(name: str, value: Any) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"{name} must be True or False, got {value!r}")
     return value
+
+
+class GridTaskEnv(BatchedEnv):
+    """Episode bookkeeping shared by the cores whose whole state is redrawn at each episode
+    start (fleet coordination, maze cleaning): reset, moves, the step clock, truncation and
+    auto-reset with ``final_obs``.
+
+    A subclass provides ``_start_episodes(rows | None)`` (new episodes in those rows, or in
+    all), ``_observe()`` (float32 [B,N,C,H,W]) and keeps ``positions``, ``blocked_pad``,
+    ``_deltas``, ``max_steps`` and ``copy_obs``; its ``step`` calls :meth:`_move` first and
+    returns :meth:`_finish_step`.
+    """
+
+    _started = False
+
+    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        from medc_training.envs.grid import move_mask
+
+        if seed is not None:
+            self._seed(seed)
+        self._start_episodes(None)
+        self._started = True
+        self._obs = self._observe()
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
+
+    def _move(self, actions: torch.Tensor) -> None:
+        """Validate ``actions`` and move every agent whose move is allowed (others stay)."""
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = self._check_actions(actions)
+        allowed = self.mask.gather(2, actions.unsqueeze(2))
+        self.positions = self.positions + self._deltas[actions] * allowed
+
+    def _finish_step(self, reward: torch.Tensor, success: torch.Tensor) -> StepOutput:
+        """Advance the clock, end finished episodes (success, or truncation at ``max_steps``),
+        start new ones in their rows, and package the step."""
+        from medc_training.envs.grid import move_mask
+
+        self.t += 1
+        episode_length = self.t.clone()
+        truncated = (self.t >= self.max_steps) & ~success
+        done = success | truncated
+        obs = self._observe()
+        final_obs = obs
+        if bool(done.any()):
+            rows = done.nonzero().squeeze(1)
+            self._start_episodes(rows)
+            final_obs = obs.clone()
+            obs[rows] = self._observe()[rows]
+        self._obs = obs
+        if self.copy_obs:
+            obs = obs.clone()
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return StepOutput(
+            obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
+        )
+
+    def _start_episodes(self, rows: torch.Tensor | None) -> None:
+        raise NotImplementedError
+
+    def _observe(self) -> torch.Tensor:
+        raise NotImplementedError

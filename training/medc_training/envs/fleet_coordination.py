@@ -37,8 +37,8 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
-from medc_training.envs.grid import ACTIONS, action_deltas, move_mask, pad_blocked, random_free_cells
+from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_int
+from medc_training.envs.grid import ACTIONS, action_deltas, pad_blocked, random_free_cells
 
 __all__ = [
     "CHANNELS",
@@ -105,7 +105,7 @@ def build_fleet_observations(
     return out.view(b, n, len(CHANNELS), grid, grid)
 
 
-class FleetCoordination(BatchedEnv):
+class FleetCoordination(GridTaskEnv):
     """Batched fleet coordination core (rules: module docstring).
 
     ``make_batched("fleet_coordination", num_envs=B, device="cpu", seed=0, agents=3,
@@ -179,21 +179,8 @@ class FleetCoordination(BatchedEnv):
             self.positions, self.origin, self.destination, self.status, self.carrier, self.capacity, self.grid
         )
 
-    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        if seed is not None:
-            self._seed(seed)
-        self._start_episodes(None)
-        self._started = True
-        self._obs = self._observe()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
-
     def step(self, actions: torch.Tensor) -> StepOutput:
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
-        actions = self._check_actions(actions)
-        allowed = self.mask.gather(2, actions.unsqueeze(2))
-        self.positions = self.positions + self._deltas[actions] * allowed
+        self._move(actions)
         g = self.grid
         cell = self.positions[..., 0] * g + self.positions[..., 1]  # [B,N]
         o_cell = self.origin[..., 0] * g + self.origin[..., 1]
@@ -212,24 +199,7 @@ class FleetCoordination(BatchedEnv):
             picked += take.sum(-1)
         success = (self.status == DELIVERED).all(-1)
         reward = PICKUP_REWARD * picked - TIME_COST + DELIVERY_BONUS * success.float()
-        self.t += 1
-        episode_length = self.t.clone()
-        truncated = (self.t >= self.max_steps) & ~success
-        done = success | truncated
-        obs = self._observe()
-        final_obs = obs
-        if bool(done.any()):
-            rows = done.nonzero().squeeze(1)
-            self._start_episodes(rows)
-            final_obs = obs.clone()
-            obs[rows] = self._observe()[rows]
-        self._obs = obs
-        if self.copy_obs:
-            obs = obs.clone()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return StepOutput(
-            obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
-        )
+        return self._finish_step(reward, success)
 
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the moves, after each action, to the vehicle's nearest goal."""

@@ -34,12 +34,11 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
+from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_int
 from medc_training.envs.grid import (
     ACTIONS,
     action_deltas,
     bfs_distance,
-    move_mask,
     neighbour_index,
     pad_blocked,
     random_free_cells,
@@ -102,7 +101,7 @@ def build_maze_observations(
     return out.view(b, n, len(CHANNELS), g, g)
 
 
-class MazeCleaning(BatchedEnv):
+class MazeCleaning(GridTaskEnv):
     """Batched maze cleaning core (rules: module docstring).
 
     ``make_batched("maze_cleaning", num_envs=B, device="cpu", seed=0, agents=3, grid=10,
@@ -169,21 +168,8 @@ class MazeCleaning(BatchedEnv):
     def _observe(self) -> torch.Tensor:
         return build_maze_observations(self.positions, self.dirty, self.walls)
 
-    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        if seed is not None:
-            self._seed(seed)
-        self._start_episodes(None)
-        self._started = True
-        self._obs = self._observe()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
-
     def step(self, actions: torch.Tensor) -> StepOutput:
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
-        actions = self._check_actions(actions)
-        allowed = self.mask.gather(2, actions.unsqueeze(2))
-        self.positions = self.positions + self._deltas[actions] * allowed
+        self._move(actions)
         b = self.num_envs
         cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
         before = self.dirty.view(b, -1).sum(1)
@@ -191,24 +177,7 @@ class MazeCleaning(BatchedEnv):
         left = self.dirty.view(b, -1).sum(1)
         reward = CLEAN_REWARD * (before - left).float() - TIME_COST
         success = left == 0
-        self.t += 1
-        episode_length = self.t.clone()
-        truncated = (self.t >= self.max_steps) & ~success
-        done = success | truncated
-        obs = self._observe()
-        final_obs = obs
-        if bool(done.any()):
-            rows = done.nonzero().squeeze(1)
-            self._start_episodes(rows)
-            final_obs = obs.clone()
-            obs[rows] = self._observe()[rows]
-        self._obs = obs
-        if self.copy_obs:
-            obs = obs.clone()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return StepOutput(
-            obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
-        )
+        return self._finish_step(reward, success)
 
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the BFS distance to the nearest dirty cell after each move."""
