@@ -31,6 +31,9 @@ def main(argv: list[str] | None = None) -> int:
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:  # a parameter out of range, e.g. agent_id agent_7 in a team of 3
+        print(f"medc-agent: {exc}", file=sys.stderr)
+        return 2
     finally:
         # A second Ctrl-C (or the launcher's SIGINT) must not cut the clean-up short.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
