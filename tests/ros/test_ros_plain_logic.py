@@ -215,3 +215,13 @@ def test_console_script_works_without_sourcing_env_sh():
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"
+
+
+def test_console_script_without_a_built_interface_package_says_what_to_do(tmp_path):
+    plain_shell = ("LD_LIBRARY_PATH", "PYTHONPATH", "AMENT_PREFIX_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
+    env = {k: v for k, v in os.environ.items() if k not in plain_shell}
+    env["MEDC_ROOT"] = str(tmp_path)  # a checkout where scripts/build_interfaces.sh never ran
+    script = Path(sys.executable).parent / "medc-sim"
+    out = subprocess.run([str(script)], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2
+    assert "bash scripts/setup.sh" in out.stderr and "Traceback" not in out.stderr

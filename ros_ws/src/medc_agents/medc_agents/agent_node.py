@@ -8,12 +8,12 @@ from __future__ import annotations
 import signal
 import sys
 
-from medc_sim.ros_env import ensure_interfaces
+from medc_sim.ros_env import require_interfaces
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-agent``."""
-    ensure_interfaces()
+    require_interfaces()
     import rclpy
     from medc_sim.executors import make_executor
     from rclpy.executors import ExternalShutdownException

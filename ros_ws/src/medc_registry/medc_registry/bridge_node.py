@@ -24,7 +24,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from medc_sim.ros_env import ensure_interfaces
+from medc_sim.ros_env import require_interfaces
 
 _LOOPBACK = ("http://127.0.0.1", "http://localhost", "http://[::1]")
 
@@ -288,7 +288,7 @@ def bridge_node_class():
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
-    ensure_interfaces()
+    require_interfaces()
     import signal
 
     import rclpy

@@ -145,9 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.steps, args.duration = 100, 10.0
 
-    from medc_sim.ros_env import ensure_interfaces
+    from medc_sim.ros_env import require_interfaces
 
-    ensure_interfaces()
+    require_interfaces()
     import rclpy
 
     # A domain of its own, unless the caller chose one: no cross-talk with a running graph.

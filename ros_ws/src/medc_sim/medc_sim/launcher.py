@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from medc_sim.ros_env import ensure_interfaces, interfaces_env, repo_root
+from medc_sim.ros_env import interfaces_env, repo_root, require_interfaces
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "launch.yaml"
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
@@ -418,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)
         return 2
-    ensure_interfaces()
+    require_interfaces()
     import rclpy
     from rclpy.executors import ExternalShutdownException
 

@@ -99,3 +99,12 @@ def ensure_interfaces(argv: list[str] | None = None) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     os.execve(sys.executable, [sys.executable, *args], env)
+
+
+def require_interfaces() -> None:
+    """:func:`ensure_interfaces` for console scripts: on failure, print what to do and exit 2."""
+    try:
+        ensure_interfaces()
+    except RosEnvironmentError as exc:
+        print(f"{Path(sys.argv[0]).name}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -9,12 +9,12 @@ import signal
 import sys
 import time
 
-from medc_sim.ros_env import ensure_interfaces
+from medc_sim.ros_env import require_interfaces
 
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
-    ensure_interfaces()
+    require_interfaces()
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
