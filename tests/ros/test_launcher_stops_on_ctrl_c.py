@@ -15,7 +15,11 @@ import pytest
 @pytest.mark.ros
 def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     config = tmp_path / "launch.yaml"
-    config.write_text(f"grid: 10\nwalls: 1\nmax_steps: 20\nseed: 5\npolicy: {bundles['a']}\n")
+    cache = tmp_path / "bridge-cache"
+    config.write_text(
+        f"grid: 10\nwalls: 1\nmax_steps: 20\nseed: 5\npolicy: {bundles['a']}\n"
+        f"registry: {{enabled: true, params: {{cache_dir: {cache}}}}}\n"
+    )
     launcher = Path(sys.executable).parent / "medc-launch"
     proc = subprocess.Popen(
         [str(launcher), "--config", str(config)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
@@ -33,6 +37,7 @@ def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     assert proc.returncode == 0
     summary = json.loads(rest.strip().splitlines()[-1])
     assert summary["episodes"] >= 1 and summary["episode_lengths"][0] == int(first.split()[2])
-    # No node of this graph survives its launcher.
-    leftovers = subprocess.run(["pgrep", "-f", str(config)], capture_output=True, text=True).stdout.split()
-    assert leftovers == []
+    # No node of this graph survives its launcher: agents (named by their policy), bridge (its cache).
+    for pattern in (str(bundles["a"]), str(cache)):
+        leftovers = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout.split()
+        assert leftovers == [], pattern

@@ -447,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
             )
         )
-    if args.episodes and not ok and not interrupted:
+    if not ok and not interrupted:  # a node process failed, or --timeout ran out
         return 1
     return 0
 
