@@ -225,3 +225,25 @@ def test_console_script_without_a_built_interface_package_says_what_to_do(tmp_pa
     out = subprocess.run([str(script)], env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
     assert "bash scripts/setup.sh" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_bridge_connects_only_to_loopback_endpoints(tmp_path):
+    from medc_registry.bridge_node import BridgeError, RegistryBridge, connect_registry
+
+    with pytest.raises(BridgeError, match="loopback"):
+        connect_registry("http://10.0.0.5:8545", str(tmp_path))
+    with pytest.raises(BridgeError, match="loopback"):
+        connect_registry("embedded", "http://ipfs.example.com:5001")
+    with pytest.raises(BridgeError, match="contract addresses"):
+        connect_registry("http://127.0.0.1:8545", str(tmp_path))
+    bridge = RegistryBridge(registry=None, cache_dir=tmp_path / "cache")
+    with pytest.raises(BridgeError, match="JSON object"):
+        bridge.request("target_localization", "[1, 2]")
+    with pytest.raises(BridgeError, match="required"):
+        bridge.request("target_localization", "")
+    with pytest.raises(BridgeError, match=r"\[0, 1\]"):
+        bridge.review(0, "Qm", 1.5)
+    with pytest.raises(BridgeError, match="no allocation"):
+        bridge.review(0, "QmUnknown", 0.5)
+    with pytest.raises(BridgeError, match="not a content id"):
+        bridge.fetch("../secrets")
