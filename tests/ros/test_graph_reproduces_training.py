@@ -28,13 +28,15 @@ def test_in_process_graph_replays_training_step_for_step(graph, bundles, shared_
 
 
 @pytest.mark.ros
-def test_separate_processes_replay_training_episodes(bundles, tmp_path):
+@pytest.mark.parametrize("in_process", [False, True], ids=["processes", "launcher-in-process"])
+def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
     lengths, successes, _ = reference_episodes(bundles["b"], EPISODES, **SCENARIO)
     config = tmp_path / "launch.yaml"
     config.write_text(json.dumps({**SCENARIO, "policy": str(bundles["b"])}))  # JSON is YAML
     launcher = Path(sys.executable).parent / "medc-launch"
     out = subprocess.run(
-        [str(launcher), "--config", str(config), "--episodes", str(EPISODES), "--timeout", "150"],
+        [str(launcher), "--config", str(config), "--episodes", str(EPISODES), "--timeout", "150"]
+        + (["--in-process"] if in_process else []),
         capture_output=True,
         text=True,
         timeout=200,
@@ -45,7 +47,7 @@ def test_separate_processes_replay_training_episodes(bundles, tmp_path):
     result = json.loads(lines[-1])
     assert result["episode_lengths"] == lengths
     assert result["successes"] == successes
-    assert result["in_process"] is False
+    assert result["in_process"] is in_process
 
 
 @pytest.mark.ros

@@ -37,6 +37,14 @@ LATCHED_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 
+#: Episode results: every one kept (up to 1000) for readers that join late or fall behind.
+RESULTS_QOS = QoSProfile(
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
 #: What an agent id looks like: agent_<i>, i = the agent's index in the environment.
 AGENT_ID_PATTERN = re.compile(r"^agent_(\d+)$")
 
@@ -98,6 +106,11 @@ def map_topic(namespace: str) -> str:
 def status_topic(namespace: str) -> str:
     """medc_interfaces/EpisodeStatus, RELIABLE_QOS: one per team step, after poses and readings."""
     return f"{_ns(namespace)}/episode"
+
+
+def results_topic(namespace: str) -> str:
+    """medc_interfaces/EpisodeStatus, RESULTS_QOS: the closing status (done) of every episode."""
+    return f"{_ns(namespace)}/episode_result"
 
 
 def cell_to_xy(row: int, col: int, resolution: float) -> tuple[float, float]:

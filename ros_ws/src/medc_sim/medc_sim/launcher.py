@@ -361,14 +361,13 @@ def run_processes(
             seen.add(msg.episode)
             log.add(msg.episode, msg.episode_length, msg.success)
 
+    # The results topic keeps every episode's result for readers that start late or fall behind.
     monitor.create_subscription(
-        EpisodeStatus, contract.status_topic(cfg.namespace), on_status, contract.RELIABLE_QOS
+        EpisodeStatus, contract.results_topic(cfg.namespace), on_status, contract.RESULTS_QOS
     )
     bindir = Path(sys.executable).parent
     env = _child_env()
-    commands = [
-        [str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes, extra_listeners=1))]
-    ]
+    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes))]]
     commands += [
         [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
         for i, p in enumerate(policies)

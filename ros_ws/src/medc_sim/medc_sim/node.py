@@ -96,6 +96,9 @@ class SimNode(Node):
             for a in self.ids
         ]
         self.map_pub = self.create_publisher(OccupancyGrid, contract.map_topic(ns), contract.LATCHED_QOS)
+        self.results_pub = self.create_publisher(
+            EpisodeStatus, contract.results_topic(ns), contract.RESULTS_QOS
+        )
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
@@ -172,9 +175,9 @@ class SimNode(Node):
 
     def _publish_done(self, result: EpisodeResult) -> None:
         stamp = self.get_clock().now().to_msg()
-        self.status_pub.publish(
-            messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result)
-        )
+        msg = messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result)
+        self.status_pub.publish(msg)
+        self.results_pub.publish(msg)
 
     # -- stepping ------------------------------------------------------------------------
     def _on_move(self, topic_agent: str, msg) -> None:
