@@ -80,7 +80,9 @@ class FederatedGroup:
                                   "walls": user.get("walls", cfg.walls),
                                   "env_options": user.get("env_options", cfg.env_options),
                                   "seed": cfg.seed + 101 * i})
-            self.trainers.append(Trainer(ucfg))
+            trainer = Trainer(ucfg)
+            trainer.eval_seed = cfg.seed + 1_000_003  # the same test episodes as a single learner
+            self.trainers.append(trainer)
             self.faults.append(fault)
             same_env = (ucfg.agents, ucfg.walls, ucfg.env_options) == (cfg.agents, cfg.walls, cfg.env_options)
             if focal_index is None and fault is None and same_env:

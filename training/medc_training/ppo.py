@@ -89,6 +89,8 @@ class Trainer:
         self.env = env if env is not None else make_env_for(cfg, cfg.num_envs, cfg.seed, cfg.method == "rs")
         self.eval_env = eval_env if eval_env is not None else make_env_for(
             cfg, cfg.eval_envs, cfg.seed + 1_000_003, False)
+        # Evaluation restarts from this seed every time (FRL sets one seed for all its users).
+        self.eval_seed = cfg.seed + 1_000_003
         self.B, self.N, self.A = self.env.num_envs, self.env.num_agents, self.env.num_actions
         self.obs_shape = tuple(self.env.obs_shape)
         self.net = make_actor_critic(cfg.arch, self.obs_shape, self.A, device=self.device)
@@ -247,7 +249,7 @@ class Trainer:
         evaluations (and different methods with the same seed) face the same episodes.
         """
         env, cfg = self.eval_env, self.cfg
-        obs, mask = env.reset(seed=cfg.seed + 1_000_003 if seed is None else seed)
+        obs, mask = env.reset(seed=self.eval_seed if seed is None else seed)
         Be, N = env.num_envs, env.num_agents
         stats = EpisodeStats()
         ret = torch.zeros(Be, device=self.device)

@@ -209,7 +209,7 @@ class Plan:
                        total_steps=steps, seed=1000 + len(name) * 7 + agents, method="il", expert_rate=1.0,
                        max_steps=max_steps or self.base["max_steps"])
         out = self.out / "expert-training" / name
-        if (out / "summary.json").exists() and retrain:
+        if (out / "summary.json").exists() and (retrain or not target.exists()):
             (out / "summary.json").unlink()
         return {"name": f"expert {name}", "fig": "experts", "config": cfg, "experts": ["oracle"],
                 "out": str(out), "save_final": True, "bundle_to": str(target)}
@@ -374,19 +374,22 @@ def compare(a: list[float], b: list[float]) -> dict:
     return {"diff": ma - mb, "half": t95(df) * se}
 
 
-def verdict(better: list[float], worse: list[float], tolerance: float = 0.0) -> str:
-    """'held' if ``better`` has a lower learning score than ``worse`` with the 95% CI of the
-    difference below -tolerance; 'direction only' if lower but the CI crosses; else 'not held'."""
-    c = compare(better, worse)
+def verdict(better: list[float], worse: list[float]) -> str:
+    """How the paper's claim "``better`` learns faster than ``worse``" fared (lower learning
+    score is better): held / contradicted when the 95% CI of the difference excludes 0, else
+    not resolved, saying which way the means lean."""
     if not better or not worse:
         return "not run"
+    c = compare(better, worse)
     if c["diff"] == 0:
         return "no difference"
-    if c["diff"] + c["half"] < -tolerance:
+    if c["diff"] + c["half"] < 0:
         return "held"
+    if c["diff"] - c["half"] > 0:
+        return "contradicted (CI excludes 0 the other way)"
     if c["diff"] < 0:
-        return "direction only (CI overlaps 0)"
-    return "did not hold"
+        return "not resolved (means lean the paper's way; CI includes 0)"
+    return "not resolved (means lean against the paper; CI includes 0)"
 
 
 class Report:
@@ -593,9 +596,10 @@ mean length of the finished test episodes (max {plan.base['max_steps']} when the
 is plotted.
 Each claim compares *learning scores*: the mean evaluation episode length over the whole run
 (the area under the learning curve divided by its length; lower = faster and better learning),
-per seed, as a difference of means with a 95% CI. "held" means the CI of the difference
-excludes 0 in the paper's direction; "direction only" means the means agree with the paper but
-the CI includes 0; "did not hold" means the means disagree.
+per seed, as a difference of means with a 95% CI (Welch standard error, Student t). "held" /
+"contradicted" mean the CI of the difference excludes 0 in / against the paper's direction;
+"not resolved" means the CI includes 0 (the note says which way the means lean); "no
+difference" means identical scores (e.g. every episode hit the step limit).
 
 **Scale.** Training steps per run: {budget['steps']:,} (fleet/maze {budget['fleet_maze_steps']:,}); experts
 {budget['expert_steps']:,}; shipped team {budget['team_steps']:,}. Hyperparameters that differ from the
