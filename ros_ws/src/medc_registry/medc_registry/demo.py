@@ -233,7 +233,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     def spent(fn: str, g: int) -> None:
         gas.setdefault(fn, []).append(int(g))
 
-    steps = args.steps or (40_960 if args.quick else 204_800)
+    steps = args.steps or (40_960 if args.quick else 409_600)
     episodes = args.episodes or (5 if args.quick else 10)
     count = 3
 
@@ -587,7 +587,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, help="training steps per method (default 204,800; quick 40,960)")
+    p.add_argument("--steps", type=int, help="training steps per method (default 409,600; quick 40,960)")
     p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
