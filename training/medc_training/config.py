@@ -177,13 +177,13 @@ CPU_SCALE = {
 PAPER_SCALE = {
     "grid": 30,
     "max_steps": 100,
-    "num_envs": 64,
+    "num_envs": 50,          # 50 x 80 steps = the paper's horizon of exactly 4000
     "horizon": 4000,
     "epochs": 20,
     "minibatches": 4,
     "eval_every": 40_000,
     "eval_steps": 4_000,
-    "eval_envs": 64,
+    "eval_envs": 20,         # 200 steps each, so a 100-step episode always finishes
     "arch": "lenet5",
     "total_steps": 20_000_000,
 }

@@ -1,6 +1,6 @@
 """`medc-reproduce`: the paper's experiments (Figs. 6-11) at a named scale, several seeds.
 
-    medc-reproduce --scale cpu --seeds 3 --out docs/reproduction
+    medc-reproduce --scale cpu --seeds 4 --other-seeds 2 --out docs/reproduction
     medc-reproduce --scale cpu --only experts          # (re)train models/experts and models/team
 
 Phases (``--only`` picks some; default all):
@@ -630,7 +630,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="medc-reproduce", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     p.add_argument("--scale", choices=sorted(BUDGETS), default="cpu")
-    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--seeds", type=int, default=4, help="seeds per target-localization run (default 4)")
     p.add_argument("--out", default="docs/reproduction")
     p.add_argument("--only", action="append", choices=(*PHASES, "report"),
                    help="phase(s) to run (repeatable; default all). 'report' only rebuilds report.md")
@@ -640,7 +640,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--expert-steps", type=int, help="override the training steps of each expert")
     p.add_argument("--team-steps", type=int, help="override the training steps of the shipped team")
     p.add_argument("--other-steps", type=int, help="override the training steps of fleet/maze runs")
-    p.add_argument("--other-seeds", type=int, help="seeds for Figs. 10-11 (default: --seeds)")
+    p.add_argument("--other-seeds", type=int, default=2, help="seeds for Figs. 10-11 (default 2)")
     p.add_argument("--retrain", action="store_true", help="retrain experts even if bundles exist")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
     args = p.parse_args(argv)
