@@ -54,3 +54,12 @@ def test_frl_user_list_parsing():
                                                   {"agents": 3, "walls": 2, "fault": "malicious"}]
     with pytest.raises(ValueError, match="AyWz"):
         parse_users("A3W2:sneaky")
+
+
+def test_long_supplement_names_carry_their_step_count(tmp_path):
+    plan = Plan("cpu", 4, tmp_path / "out", Path("models"), {"long_steps": 1_000_000})
+    jobs = plan.long_runs()
+    assert len(jobs) == 9  # at most 3 seeds x (sparse, MEDC six, MEDC oracle)
+    assert {j["name"].split("/")[0] for j in jobs} == {
+        "long1M-A3W2-sparse", "long1M-A3W2-medc-six", "long1M-A3W2-medc-oracle"}
+    assert all(j["config"]["total_steps"] == 1_000_000 for j in jobs)

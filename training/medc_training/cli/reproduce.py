@@ -80,6 +80,11 @@ OTHER_APPS = {
 }
 
 
+def long_tag(steps: int) -> str:
+    """Run-name prefix of a supplementary long run, e.g. long200k."""
+    return f"long{steps // 1000}k" if steps % 1_000_000 else f"long{steps // 1_000_000}M"
+
+
 # ------------------------------------------------------------------------------ jobs ----
 def _worker_init() -> None:
     import torch
@@ -264,15 +269,16 @@ class Plan:
 
     def long_runs(self) -> list[dict]:
         """Supplement: A3W2 sparse vs MEDC (6 experts) vs MEDC with the scripted oracle as the one
-        expert, 5x longer than the figure runs, at most 3 seeds."""
+        expert, for ``long_steps`` steps (run names carry the step count), at most 3 seeds."""
+        steps = self.budget["long_steps"]
+        tag = long_tag(steps)
         jobs = []
         for seed in range(min(self.seeds, 3)):
-            base = self.cfg(env="target_localization", agents=3, walls=2, seed=seed,
-                            total_steps=self.budget["long_steps"])
-            jobs.append(self.run("long", "long-A3W2-sparse", seed, {**base, "method": "sparse"}))
-            jobs.append(self.run("long", "long-A3W2-medc-six", seed, {**base, "method": "medc"},
+            base = self.cfg(env="target_localization", agents=3, walls=2, seed=seed, total_steps=steps)
+            jobs.append(self.run("long", f"{tag}-A3W2-sparse", seed, {**base, "method": "sparse"}))
+            jobs.append(self.run("long", f"{tag}-A3W2-medc-six", seed, {**base, "method": "medc"},
                                  [self.expert_path(n) for n in SIX]))
-            jobs.append(self.run("long", "long-A3W2-medc-oracle", seed, {**base, "method": "medc"},
+            jobs.append(self.run("long", f"{tag}-A3W2-medc-oracle", seed, {**base, "method": "medc"},
                                  ["oracle"]))
         return jobs
 
@@ -563,20 +569,25 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                           r.claim(f"{app} ({what}): MEDC beats FRL", f"{short}-medc{tag}", frl),
                           r.claim(f"{app} ({what}): MEDC beats IL", f"{short}-medc{tag}", f"{short}-il{tag}"),
                       ]))
-    # --- Supplement: longer runs
-    data = r.figure("long_A3W2.png", f"Supplement: A3W2, {budget['long_steps']:,} steps", {
-        "MDRL-sparse": "long-A3W2-sparse", "MEDC (6 experts)": "long-A3W2-medc-six",
-        "MEDC (scripted oracle expert)": "long-A3W2-medc-oracle"})
-    if data:
-        r.add(f"### Supplement — longer runs (A3W2, {budget['long_steps']:,} steps)\n\n"
-              "![long](long_A3W2.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
-                  r.claim("MEDC (6 trained experts) beats MDRL-sparse over a longer run",
-                          "long-A3W2-medc-six", "long-A3W2-sparse"),
-                  r.claim("MEDC with a perfect (oracle) expert beats MDRL-sparse", "long-A3W2-medc-oracle",
-                          "long-A3W2-sparse"),
-              ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
-              "something a user could share, and is run only to separate 'MEDC does not help' from 'our "
-              "experts are too weak to help'.")
+    # --- Supplement: longer runs (every step count found on disk)
+    tags = sorted({d.name.split("-A3W2-")[0] for d in (out / "runs").glob("long*-A3W2-sparse")},
+                  key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))
+    for tag in tags:
+        steps_text = tag[4:]
+        data = r.figure(f"{tag}_A3W2.png", f"Supplement: A3W2, {steps_text} steps", {
+            "MDRL-sparse": f"{tag}-A3W2-sparse", "MEDC (6 experts)": f"{tag}-A3W2-medc-six",
+            "MEDC (scripted oracle expert)": f"{tag}-A3W2-medc-oracle"})
+        if data:
+            r.add(f"### Supplement — longer runs (A3W2, {steps_text} steps)\n\n"
+                  f"![{tag}]({tag}_A3W2.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
+                      r.claim(f"MEDC (6 trained experts) beats MDRL-sparse over {steps_text} steps",
+                              f"{tag}-A3W2-medc-six", f"{tag}-A3W2-sparse"),
+                      r.claim(f"MEDC with a perfect (oracle) expert beats MDRL-sparse over {steps_text} "
+                              "steps",
+                              f"{tag}-A3W2-medc-oracle", f"{tag}-A3W2-sparse"),
+                  ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
+                  "something a user could share, and is run only to separate 'MEDC does not help' from "
+                  "'our experts are too weak to help'.")
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
     header = f"""# Reproduction report — scale `{scale}`
@@ -640,6 +651,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--expert-steps", type=int, help="override the training steps of each expert")
     p.add_argument("--team-steps", type=int, help="override the training steps of the shipped team")
     p.add_argument("--other-steps", type=int, help="override the training steps of fleet/maze runs")
+    p.add_argument("--long-steps", type=int, help="training steps of the supplementary long runs")
     p.add_argument("--other-seeds", type=int, default=2, help="seeds for Figs. 10-11 (default 2)")
     p.add_argument("--retrain", action="store_true", help="retrain experts even if bundles exist")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
@@ -650,12 +662,15 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     phases = args.only or list(PHASES)
     budget = {"steps": args.steps, "expert_steps": args.expert_steps, "team_steps": args.team_steps,
-              "fleet_maze_steps": args.other_steps}
+              "fleet_maze_steps": args.other_steps, "long_steps": args.long_steps}
     plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds)
     command = "medc-reproduce " + " ".join(argv if argv is not None else sys.argv[1:])
     record = out / "command.txt"
     if phases != ["report"]:
-        record.write_text(command + "\n")
+        # The first full command plus any later ones that added runs (e.g. longer supplements).
+        lines = record.read_text().splitlines() if record.exists() else []
+        if command not in lines:
+            record.write_text("\n".join([*lines, command]) + "\n")
     elif record.exists():  # a rebuilt report names the command that made its runs
         command = record.read_text().strip() + f"\n# report rebuilt with: {command}"
     elapsed: dict[str, float] = {}
