@@ -2,7 +2,7 @@
 
 import torch
 from medc_training.config import TrainConfig
-from medc_training.experts import BiasedExpert
+from medc_training.experts import BiasedExpert, RandomExpert
 from medc_training.frl import FederatedGroup
 from medc_training.nets import masked_logits
 from medc_training.ppo import Trainer
@@ -37,7 +37,26 @@ def test_medc_skips_expert_moves_below_q():
     cfg = TrainConfig(method="medc", expert_rate=1.0, q_threshold=0.99, **TINY)
     trainer = Trainer(cfg, [BiasedExpert(2)])
     trainer.collect()
-    assert trainer.take_train_stats()["expert_follow_rate"] == 0.0
+    stats = trainer.take_train_stats()
+    assert stats["expert_follow_rate"] == 0.0 and stats["expert_top_rate"] == 0.0
+
+
+def test_expert_top_rate_falls_when_the_policy_disagrees_with_the_expert():
+    cfg = TrainConfig(method="medc", expert_rate=1.0, **TINY)
+    trainer = Trainer(cfg, [RandomExpert(torch.Generator().manual_seed(0))])
+    trainer.collect()
+    fresh = trainer.take_train_stats()
+    assert fresh["expert_follow_rate"] == 1.0 and fresh["expert_top_rate"] == 1.0
+    with torch.no_grad():  # a policy certain of one move: every other move drops below Q
+        trainer.net.policy.weight.zero_()
+        trainer.net.policy.bias.zero_()
+        trainer.net.policy.bias[4] = 20.0
+    trainer.collect()
+    sharp = trainer.take_train_stats()
+    # A random ranking rarely puts S first; the agent still takes an eligible move (S) every
+    # time, so "followed" stays 1 while the expert's own first choice is seldom taken.
+    assert sharp["expert_follow_rate"] == 1.0
+    assert sharp["expert_top_rate"] < 0.5
 
 
 def test_il_clones_the_expert_with_bc_and_learns_its_move():

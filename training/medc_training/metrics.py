@@ -12,8 +12,8 @@ from pathlib import Path
 
 CSV_COLUMNS = (
     "step", "update", "episode_length", "success_rate", "train_episode_length", "train_success_rate",
-    "expert_follow_rate", "expert_step_fraction", "policy_loss", "value_loss", "entropy", "approx_kl",
-    "clipfrac", "bc_loss", "sps", "wall_time",
+    "expert_follow_rate", "expert_top_rate", "expert_step_fraction", "policy_loss", "value_loss", "entropy",
+    "approx_kl", "clipfrac", "bc_loss", "sps", "wall_time",
 )
 
 TB_NAMES = {
@@ -22,6 +22,7 @@ TB_NAMES = {
     "train_episode_length": "charts/train_episodic_length",
     "train_success_rate": "charts/train_success_rate",
     "expert_follow_rate": "charts/expert_follow_rate",
+    "expert_top_rate": "charts/expert_top_rate",
     "expert_step_fraction": "charts/expert_step_fraction",
     "policy_loss": "losses/policy_loss",
     "value_loss": "losses/value_loss",

@@ -110,7 +110,7 @@ class Trainer:
         self.global_step = 0
         self.updates = 0
         self.stats = EpisodeStats()
-        self.follow_counts = torch.zeros(2, dtype=torch.long)  # [followed, expert agent-steps]
+        self.follow_counts = torch.zeros(3, dtype=torch.long)  # [followed, guided agent-steps, took top]
         self.expert_steps = 0
         self._last_step_mark = 0
         self._ep_return = torch.zeros(self.B, device=self.device)
@@ -145,7 +145,13 @@ class Trainer:
             chosen, followed = follow_expert(torch.ones_like(probs[rows]), scores, mask_flat[rows], 0.0)
             bc[rows[followed]] = True
         actions[rows[followed]] = chosen[followed]
-        self.follow_counts += torch.tensor([int(followed.sum()), rows.numel()])
+        # The paper's "expert involvement": how often the move taken is the expert's own first
+        # choice. A full-ranking expert always has *some* eligible move, so "followed" alone
+        # stays at 1; the top-choice rate falls as the policy sharpens and Q filters the best.
+        top = scores.masked_fill(~mask_flat[rows], float("-inf")).argmax(-1)
+        has_top = torch.isfinite(scores.masked_fill(~mask_flat[rows], float("-inf"))).any(-1)
+        took_top = followed & has_top & (chosen == top)
+        self.follow_counts += torch.tensor([int(followed.sum()), rows.numel(), int(took_top.sum())])
 
     @torch.no_grad()
     def collect(self) -> None:
@@ -310,8 +316,9 @@ class Trainer:
     def take_train_stats(self) -> dict:
         """Training-episode statistics and expert involvement since the last call."""
         s = self.stats.summary(self.cfg.max_steps)
-        followed, asked = self.follow_counts.tolist()
+        followed, asked, top = self.follow_counts.tolist()
         s["expert_follow_rate"] = followed / asked if asked else 0.0
+        s["expert_top_rate"] = top / asked if asked else 0.0
         s["expert_step_fraction"] = self.expert_steps / max(1, self.global_step - self._last_step_mark)
         self._last_step_mark = self.global_step
         self.stats = EpisodeStats()

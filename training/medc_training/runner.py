@@ -78,7 +78,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
                     "step": learner.global_step, "update": focal.updates,
                     "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
                     "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
-                    "expert_follow_rate": tr["expert_follow_rate"],
+                    "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
                     "expert_step_fraction": tr["expert_step_fraction"],
                     "sps": sps, "wall_time": train_seconds, **last_losses,
                 }
