@@ -494,15 +494,18 @@ def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Pa
     last_json = None
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
         assert proc.stdout is not None
+        tail: list[str] = []
         for line in proc.stdout:
             line = line.rstrip()
+            tail = [*tail[-29:], line]
             if line.startswith("{"):
                 last_json = line
             elif line.startswith("episode "):
                 print(f"      {line}", flush=True)
         rc = proc.wait()
     if rc != 0 or last_json is None:
-        raise RuntimeError(f"medc-launch exited with {rc}; run it by hand to see why: {' '.join(cmd)}")
+        shown = "\n".join(tail)
+        raise RuntimeError(f"medc-launch exited with {rc} ({' '.join(cmd)}); its last output:\n{shown}")
     return json.loads(last_json)
 
 

@@ -11,6 +11,9 @@ import time
 
 from medc_sim.ros_env import require_interfaces
 
+#: How long a finished simulator waits for a reader of its episode results before exiting.
+RESULTS_READER_WAIT_S = 15.0
+
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
@@ -30,7 +33,12 @@ def main(argv: list[str] | None = None) -> int:
         executor.add_node(node)
         while rclpy.ok() and not node.finished:
             executor.spin_once(timeout_sec=0.1)
-        # Linger a moment so the last episode's status reaches late readers (reliable resends).
+        # The episode results are latched, but only while this process lives: a reader that is
+        # still being discovered (a loaded machine can take seconds) would miss them all. Wait
+        # (bounded) for at least one results reader, then linger so reliable resends complete.
+        deadline = time.monotonic() + RESULTS_READER_WAIT_S
+        while rclpy.ok() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
         linger = time.monotonic() + 1.0
         while rclpy.ok() and time.monotonic() < linger:
             executor.spin_once(timeout_sec=0.1)
