@@ -126,52 +126,51 @@ def random_policy_length(
 
 
 def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
-    """Play one greedy episode in the ParallelEnv and draw the team's paths over the area."""
+    """Play one greedy episode in the ParallelEnv and draw the team's paths over the area
+    (squares: start cells)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
     from medc_training.envs import make_env
+    from medc_training.envs.grid import action_deltas
 
     env = make_env(
         APPLICATION, agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, max_steps=cfg.max_steps, seed=seed
     )
     obs, _ = env.reset(seed=seed)
-    core = env.unwrapped.core if hasattr(env.unwrapped, "core") else None
-    paths: list[list[tuple[int, int]]] = [[] for _ in env.agents]
-
-    def record() -> None:
-        if core is not None:
-            for i, p in enumerate(core.positions[0].tolist()):
-                paths[i].append(tuple(p))
-
-    record()
+    core = env.unwrapped.core  # the batched core (B = 1) under the PettingZoo wrapper
+    # The core starts a new episode as soon as this one ends: take the layout now.
+    walls = core.walls[0].cpu().numpy().copy()
+    ty, tx = core.target[0].tolist()
+    paths: list[list[tuple[int, int]]] = [[tuple(p)] for p in core.positions[0].tolist()]
     steps, success = 0, False
     agents = list(env.agents)
     while env.agents:
         batch = np.stack([obs[a]["observation"] for a in agents])
         masks = np.stack([obs[a]["action_mask"] for a in agents]).astype(bool)
         acts = bundle.act(batch, masks, greedy=True).tolist()
+        before = core.positions[0].tolist()
         obs, _, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, acts)})
         steps += 1
-        record()
-        if any(terms.values()):
-            success = True
         if any(terms.values()) or any(truncs.values()):
+            success = any(terms.values())
+            # The last move, from the positions before it (the core has already reset).
+            deltas = action_deltas("cpu").tolist()
+            for i, (pos, m) in enumerate(zip(before, masks)):
+                dr, dc = deltas[acts[i]] if m[acts[i]] else (0, 0)
+                paths[i].append((pos[0] + dr, pos[1] + dc))
             break
-    frame = env.render() if getattr(env, "render_mode", None) == "rgb_array" else None
+        for i, p in enumerate(core.positions[0].tolist()):
+            paths[i].append(tuple(p))
     fig, ax = plt.subplots(figsize=(5, 5))
-    if core is not None:
-        walls = core.walls[0].cpu().numpy()
-        ax.imshow(walls, cmap="Greys", origin="upper")
-        ty, tx = core.target[0].tolist()
-        ax.plot(tx, ty, marker="*", color="red", markersize=18, label="target")
-        for i, trail in enumerate(paths):
-            ys, xs = zip(*trail)
-            ax.plot(xs, ys, "-o", markersize=3, label=f"agent {i}")
-    elif frame is not None:
-        ax.imshow(frame)
+    ax.imshow(walls, cmap="Greys", origin="upper")
+    ax.plot(tx, ty, marker="*", color="red", markersize=18, label="target")
+    for i, trail in enumerate(paths):
+        ys, xs = zip(*trail)
+        ax.plot(xs, ys, "-o", markersize=3, label=f"agent {i}")
+        ax.plot(xs[0], ys[0], "s", color=ax.lines[-1].get_color(), markersize=7)
     ax.set_title(f"One episode with the trained team: {steps} steps, {'found' if success else 'not found'}")
     ax.legend(loc="upper right", fontsize=7)
     ax.set_xticks([])
