@@ -63,3 +63,12 @@ def test_long_supplement_names_carry_their_step_count(tmp_path):
     assert {j["name"].split("/")[0] for j in jobs} == {
         "long1M-A3W2-sparse", "long1M-A3W2-medc-six", "long1M-A3W2-medc-oracle"}
     assert all(j["config"]["total_steps"] == 1_000_000 for j in jobs)
+
+
+def test_device_reaches_every_run_and_bad_devices_are_refused(tmp_path):
+    plan = Plan("paper", 1, tmp_path / "out", Path("models"), device="cuda:0")
+    jobs = plan.tl("fig8") + plan.expert_jobs(retrain=True)
+    assert jobs and all(j["config"]["device"] == "cuda:0" for j in jobs)
+    assert all(j["config"]["device"] == "cpu" for j in _plan(tmp_path).tl("fig6"))
+    with pytest.raises(ValueError, match="device"):
+        Plan("cpu", 1, tmp_path / "out", Path("models"), device="tpu")

@@ -110,7 +110,8 @@ def run_job(job: dict) -> dict:
         learner = FederatedGroup(cfg, side_users=job.get("side_users", ()))
     else:
         gen = torch.Generator().manual_seed(cfg.seed + 13)
-        learner = Trainer(cfg, [parse_expert(s, generator=gen) for s in job.get("experts", [])])
+        learner = Trainer(cfg, [parse_expert(s, generator=gen, device=cfg.device)
+                                for s in job.get("experts", [])])
     resume = (out / "checkpoint.safetensors").exists()
     try:
         summary = run_training(learner, cfg, out, resume=resume, tensorboard=False,
@@ -158,14 +159,14 @@ class Plan:
     """Builds the job list of each phase for one scale and output folder."""
 
     def __init__(self, scale: str, seeds: int, out: Path, models: Path, budget: dict | None = None,
-                 other_seeds: int | None = None) -> None:
+                 other_seeds: int | None = None, device: str = "cpu") -> None:
         from ..config import scaled_config
 
         self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
         self.other_seeds = seeds if other_seeds is None else other_seeds
         self.budget = dict(BUDGETS[scale])
         self.budget.update({k: v for k, v in (budget or {}).items() if v})
-        self.base = scaled_config(scale).to_dict()
+        self.base = scaled_config(scale, device=device).to_dict()
 
     def cfg(self, **overrides) -> dict:
         return {**self.base, **overrides}
@@ -655,6 +656,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--other-seeds", type=int, default=2, help="seeds for Figs. 10-11 (default 2)")
     p.add_argument("--retrain", action="store_true", help="retrain experts even if bundles exist")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
+    p.add_argument("--device", default="cpu",
+                   help="torch device of every run: cpu or cuda (with cuda, --jobs 1)")
     args = p.parse_args(argv)
     if args.seeds < 1:
         p.error("--seeds must be >= 1")
@@ -663,7 +666,10 @@ def main(argv: list[str] | None = None) -> int:
     phases = args.only or list(PHASES)
     budget = {"steps": args.steps, "expert_steps": args.expert_steps, "team_steps": args.team_steps,
               "fleet_maze_steps": args.other_steps, "long_steps": args.long_steps}
-    plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds)
+    try:
+        plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds, device=args.device)
+    except ValueError as exc:
+        p.error(str(exc))
     command = "medc-reproduce " + " ".join(argv if argv is not None else sys.argv[1:])
     record = out / "command.txt"
     if phases != ["report"]:
