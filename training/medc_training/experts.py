@@ -19,6 +19,7 @@ compute R_S from the QoS formula (:func:`selection_weights`).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -31,15 +32,15 @@ class ExpertError(ValueError):
     """An expert cannot be used with this environment (shape, actions, unknown spec)."""
 
 
-class Expert:
+class Expert(ABC):
     """Base class: subclasses implement :meth:`scores`."""
 
     name: str = "expert"
     attributes: dict | None = None
 
+    @abstractmethod
     def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Action scores [M, A] for observations [M, C, H, W] (higher = better)."""
-        raise NotImplementedError
 
     def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         """Scores for the flattened rows ``rows`` of a full [B*N] batch.
@@ -50,7 +51,11 @@ class Expert:
         return self.scores(obs[rows], mask[rows])
 
     def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
-        """Raise ExpertError if this expert cannot advise on that observation/action space."""
+        """Raise ExpertError if this expert cannot advise on that observation/action space.
+
+        The default accepts any space: random advice fits every environment.
+        """
+        return None
 
 
 class BundleExpert(Expert):

@@ -10,6 +10,7 @@ PPO can bootstrap truncated episodes.
 from __future__ import annotations
 
 import secrets
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,7 +52,7 @@ class StepOutput:
         return self.terminated | self.truncated
 
 
-class BatchedEnv:
+class BatchedEnv(ABC):
     """Interface shared by the three batched cores (see the concrete classes).
 
     Attributes: ``num_envs``, ``num_agents``, ``num_actions``, ``obs_shape`` (C, H, W),
@@ -85,20 +86,21 @@ class BatchedEnv:
         self.generator.manual_seed(check_int("seed", seed, 0, 2**63 - 1))
 
     @property
+    @abstractmethod
     def attributes(self) -> dict[str, Any]:
-        raise NotImplementedError
+        """The environment's descriptive features (what a model registry compares)."""
 
+    @abstractmethod
     def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Start a new episode in every environment; returns (obs [B,N,C,H,W], mask [B,N,A])."""
-        raise NotImplementedError
 
+    @abstractmethod
     def step(self, actions: torch.Tensor) -> StepOutput:
         """Apply one action per agent (int64 [B,N]); finished environments auto-reset."""
-        raise NotImplementedError
 
+    @abstractmethod
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A] scripted expert's scores for the current state (-inf = invalid)."""
-        raise NotImplementedError
 
     def current_obs(self, index: int) -> torch.Tensor:
         """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
@@ -198,8 +200,10 @@ class GridTaskEnv(BatchedEnv):
             obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
         )
 
+    @abstractmethod
     def _start_episodes(self, rows: torch.Tensor | None) -> None:
-        raise NotImplementedError
+        """Draw new episodes in ``rows`` (all environments when None)."""
 
+    @abstractmethod
     def _observe(self) -> torch.Tensor:
-        raise NotImplementedError
+        """float32 [B,N,C,H,W]: every agent's observation of the current state."""
