@@ -5,6 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int):
+    """The noise-free target-localization core (B = 1) that the simulator node runs."""
+    from medc_training.envs import make_batched
+
+    return make_batched("target_localization", num_envs=1, device="cpu", seed=seed, agents=agents,
+                        walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False, noise=False)
+
+
 def reference_episodes(
     bundle: Path, episodes: int, *, seed: int, agents: int, walls: int, grid: int, max_steps: int
 ):
@@ -14,21 +22,9 @@ def reference_episodes(
     """
     import torch
     from medc_training.bundle import load_bundle
-    from medc_training.envs import make_batched
 
     policy = load_bundle(bundle)
-    env = make_batched(
-        "target_localization",
-        num_envs=1,
-        device="cpu",
-        seed=seed,
-        agents=agents,
-        walls=walls,
-        grid=grid,
-        max_steps=max_steps,
-        reward_shaping=False,
-        noise=False,
-    )
+    env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps)
     obs, mask = env.reset()
     lengths, successes, trace, step = [], [], [], 0
     with torch.no_grad():
@@ -59,20 +55,8 @@ def spin_until(executor, condition, timeout_s: float) -> bool:
 def replay_masks(trace, *, seed: int, agents: int, walls: int, grid: int, max_steps: int):
     """The move masks [N,A] the agents had at each step of ``trace``, by replaying it in the env."""
     import torch
-    from medc_training.envs import make_batched
 
-    env = make_batched(
-        "target_localization",
-        num_envs=1,
-        device="cpu",
-        seed=seed,
-        agents=agents,
-        walls=walls,
-        grid=grid,
-        max_steps=max_steps,
-        reward_shaping=False,
-        noise=False,
-    )
+    env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps)
     _, mask = env.reset()
     masks = []
     for _, _, actions in trace:
