@@ -289,27 +289,11 @@ def bridge_node_class():
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
     require_interfaces()
-    import signal
+    from medc_sim.executors import run_node
+    from rclpy.executors import SingleThreadedExecutor
 
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    rclpy.init(args=sys.argv if argv is None else argv)
-    node = None
-    try:
-        node = bridge_node_class()()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except BridgeError as exc:
-        print(f"medc-bridge: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node("medc-bridge", argv, lambda: bridge_node_class()(), errors=(BridgeError,),
+                    executor_factory=SingleThreadedExecutor)
 
 
 if __name__ == "__main__":

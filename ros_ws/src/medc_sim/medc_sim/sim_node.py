@@ -5,7 +5,6 @@ Usage: ``medc-sim --ros-args -p agents:=3 -p seed:=0 --params-file config/sim.ya
 
 from __future__ import annotations
 
-import signal
 import sys
 import time
 
@@ -15,46 +14,31 @@ from medc_sim.ros_env import require_interfaces
 RESULTS_READER_WAIT_S = 15.0
 
 
+def spin_episodes(node, executor) -> None:
+    """Spin until the requested episodes are done (or shutdown), then let readers collect the
+    results before the process exits."""
+    import rclpy
+
+    while rclpy.ok() and not node.finished:
+        executor.spin_once(timeout_sec=0.1)
+    # The episode results are latched, but only while this process lives: a reader that is
+    # still being discovered (a loaded machine can take seconds) would miss them all. Wait
+    # (bounded) for at least one results reader, then linger so reliable resends complete.
+    deadline = time.monotonic() + RESULTS_READER_WAIT_S
+    while rclpy.ok() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.1)
+    linger = time.monotonic() + 1.0
+    while rclpy.ok() and time.monotonic() < linger:
+        executor.spin_once(timeout_sec=0.1)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
     require_interfaces()
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    from medc_sim.executors import make_executor
+    from medc_sim.executors import run_node
     from medc_sim.node import SimNode
 
-    args = sys.argv if argv is None else argv
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        executor = make_executor()
-        executor.add_node(node)
-        while rclpy.ok() and not node.finished:
-            executor.spin_once(timeout_sec=0.1)
-        # The episode results are latched, but only while this process lives: a reader that is
-        # still being discovered (a loaded machine can take seconds) would miss them all. Wait
-        # (bounded) for at least one results reader, then linger so reliable resends complete.
-        deadline = time.monotonic() + RESULTS_READER_WAIT_S
-        while rclpy.ok() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.1)
-        linger = time.monotonic() + 1.0
-        while rclpy.ok() and time.monotonic() < linger:
-            executor.spin_once(timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:
-        print(f"medc-sim: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        # A second Ctrl-C (or the launcher's SIGINT) must not cut the clean-up short.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        if node is not None:
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-    return 0
+    return run_node("medc-sim", argv, SimNode, spin=spin_episodes)
 
 
 if __name__ == "__main__":
