@@ -72,3 +72,17 @@ def test_device_reaches_every_run_and_bad_devices_are_refused(tmp_path):
     assert all(j["config"]["device"] == "cpu" for j in _plan(tmp_path).tl("fig6"))
     with pytest.raises(ValueError, match="device"):
         Plan("cpu", 1, tmp_path / "out", Path("models"), device="tpu")
+
+
+def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp_path):
+    from medc_training.cli.reproduce import OTHER_GRID, OTHER_MAX_STEPS
+
+    plan = _plan(tmp_path, seeds=1)
+    jobs = plan.other_apps()
+    assert {j["config"]["env"] for j in jobs} == {"fleet_coordination", "maze_cleaning"}
+    for job in jobs:
+        cfg = job["config"]
+        assert (cfg["grid"], cfg["max_steps"]) == (OTHER_GRID, OTHER_MAX_STEPS) == (10, 400)
+        assert cfg["eval_greedy"] is False
+        # every evaluation environment can finish at least one full-length episode
+        assert cfg["eval_steps"] // cfg["eval_envs"] >= cfg["max_steps"]

@@ -94,6 +94,10 @@ class TrainConfig:
     """T: greedy test steps per evaluation (split over eval_envs)."""
     eval_envs: int = 16
     """Environments for evaluation."""
+    eval_greedy: bool = True
+    """Test actions are the policy's argmax (True) or sampled from it (False). A memoryless
+    greedy policy repeats itself forever in coverage tasks (fleet coordination, maze cleaning:
+    the same observation gives the same move), so those are evaluated on sampled actions."""
 
     # --- run -------------------------------------------------------------------------------
     seed: int = 0

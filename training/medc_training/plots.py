@@ -15,12 +15,14 @@ import numpy as np
 from .metrics import read_metrics
 
 
-def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "") -> Path:
+def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "",
+                        greedy: bool = True) -> Path:
     """One run's evaluation episode length (and success rate) against training steps."""
     rows = read_metrics(csv_path)
     steps = [r["step"] for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot(steps, [r["episode_length"] for r in rows], label="episode length (greedy eval)")
+    ax.plot(steps, [r["episode_length"] for r in rows],
+            label=f"episode length ({'greedy' if greedy else 'sampled'} eval)")
     ax.set_xlabel("training steps")
     ax.set_ylabel("mean episode length")
     ax2 = ax.twinx()

@@ -249,19 +249,28 @@ class Trainer:
     # -------------------------------------------------------------- evaluation -----
     @torch.no_grad()
     def evaluate(self, seed: int | None = None) -> dict:
-        """Greedy play for ``eval_steps`` training steps; mean length of finished episodes.
+        """Test play for ``eval_steps`` training steps (greedy, or sampled when
+        ``cfg.eval_greedy`` is False); mean length of finished episodes.
 
         The evaluation environments restart from the same seed every time, so successive
         evaluations (and different methods with the same seed) face the same episodes.
         """
         env, cfg = self.eval_env, self.cfg
-        obs, mask = env.reset(seed=self.eval_seed if seed is None else seed)
+        seed = self.eval_seed if seed is None else seed
+        obs, mask = env.reset(seed=seed)
         Be, N = env.num_envs, env.num_agents
         stats = EpisodeStats()
         ret = torch.zeros(Be, device=self.device)
+        # Sampled evaluation draws from its own generator (Gumbel-max), restarted from the
+        # evaluation seed, so it neither consumes nor depends on the training random streams.
+        gen = None if cfg.eval_greedy else torch.Generator(device=self.device).manual_seed(seed)
         for _ in range(max(1, cfg.eval_steps // Be)):
             logits, _ = self.net(obs.reshape(Be * N, *self.obs_shape))
-            actions = masked_logits(logits, mask.reshape(Be * N, self.A)).argmax(-1).view(Be, N)
+            logits = masked_logits(logits, mask.reshape(Be * N, self.A))
+            if gen is not None:
+                uniform = torch.rand(logits.shape, generator=gen, device=self.device)
+                logits = logits - torch.log(-torch.log(uniform.clamp_min(1e-20)))
+            actions = logits.argmax(-1).view(Be, N)
             out = env.step(actions)
             ret += out.reward.to(self.device).float()
             done = out.terminated | out.truncated

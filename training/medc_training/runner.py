@@ -130,7 +130,8 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             from .plots import plot_learning_curve
 
             plot_learning_curve(out / "metrics.csv", out / "learning_curve.png",
-                                title=f"{cfg.env} A{cfg.agents}W{cfg.walls} {cfg.method}")
+                                title=f"{cfg.env} A{cfg.agents}W{cfg.walls} {cfg.method}",
+                                greedy=cfg.eval_greedy)
             summary["learning_curve"] = "learning_curve.png"
         except Exception as exc:  # a plotting failure must not lose a finished run
             summary["learning_curve_error"] = str(exc)

@@ -36,7 +36,7 @@ PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
 BUDGETS = {
-    "cpu": {"steps": 40_000, "expert_steps": 60_000, "team_steps": 150_000, "fleet_maze_steps": 20_000,
+    "cpu": {"steps": 40_000, "expert_steps": 60_000, "team_steps": 150_000, "fleet_maze_steps": 100_000,
             "long_steps": 200_000},
     "paper": {"steps": 20_000_000, "expert_steps": 20_000_000, "team_steps": 20_000_000,
               "fleet_maze_steps": 20_000_000, "long_steps": 20_000_000},
@@ -59,8 +59,15 @@ PROPER5 = ("A1W0", "A3W0", "A2W1", "A2W2", "A3W1")            # Fig. 7 "proper e
 FRL_USERS = ((1, 0), (3, 0), (2, 1), (2, 2), (2, 3), (3, 1), (3, 2), (3, 3))
 FAULTY_USERS = {"A2W1": "random", "A2W2": "biased", "A3W1": "malicious"}  # Fig. 9: 3 of the 8
 
-# Fleet coordination and maze cleaning keep their environments' own 100-step limit.
-OTHER_MAX_STEPS = 100
+# Fleet coordination and maze cleaning: the paper's 10x10 grid at every scale. The paper gives
+# no step limit; 400 lets a uniformly random team finish some episodes (measured on 64
+# episodes: maze complexity 1.0 42%, fleet with 8 customers 9%; at 100 steps neither ever
+# finishes, and every curve sits flat at the limit). A memoryless greedy policy repeats one
+# move forever in these coverage tasks, so they are evaluated on sampled actions, 16
+# environments x 400 steps per evaluation.
+OTHER_GRID = 10
+OTHER_MAX_STEPS = 400
+OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MAX_STEPS}
 
 # Fleet coordination / maze cleaning experts: (name, agents, env options); the user of
 # interest is 3 agents (fleet: 8 customers; maze: complexity 1.0).
@@ -195,25 +202,36 @@ class Plan:
         for app, spec in OTHER_APPS.items():
             for i, (name, agents, options) in enumerate(spec["experts"]):
                 arch = "lenet5" if i == 1 else "mlp"
-                jobs.append(self._expert_job(name, app, agents, arch, self.budget["fleet_maze_steps"],
-                                             retrain, env_options=options, max_steps=OTHER_MAX_STEPS))
+                jobs.append(self._expert_job(name, app, agents, arch, self.budget["expert_steps"],
+                                             retrain, env_options=options, max_steps=OTHER_MAX_STEPS,
+                                             grid=OTHER_GRID, extra=self.other_eval()))
         return [j for j in jobs if j is not None]
 
+    def other_eval(self) -> dict:
+        """Fleet/maze evaluation settings (sampled actions; see OTHER_EVAL), evaluated about as
+        often as the target-localization runs are, relative to their budget."""
+        every = max(self.base["eval_every"], self.budget["fleet_maze_steps"] // 6)
+        return {**OTHER_EVAL, "eval_every": every}
+
     def _expert_job(self, name, env, agents, arch, steps, retrain, walls=0, env_options=None,
-                    folder="experts", max_steps=None):
+                    folder="experts", max_steps=None, grid=None, extra=None):
         from ..bundle import BundleError, read_manifest
 
         target = self.models / folder / f"{name}.safetensors"
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                if manifest["observation"]["height"] == self.base["grid"]:
+                want_steps = max_steps or self.base["max_steps"]
+                has_steps = manifest.get("environment", {}).get("max_steps", want_steps)
+                same_grid = manifest["observation"]["height"] == (grid or self.base["grid"])
+                if same_grid and has_steps == want_steps:
                     return None
             except (BundleError, KeyError):
                 pass
         cfg = self.cfg(env=env, agents=agents, walls=walls, env_options=env_options or {}, arch=arch,
                        total_steps=steps, seed=1000 + len(name) * 7 + agents, method="il", expert_rate=1.0,
-                       max_steps=max_steps or self.base["max_steps"])
+                       max_steps=max_steps or self.base["max_steps"], grid=grid or self.base["grid"],
+                       **(extra or {}))
         out = self.out / "expert-training" / name
         if (out / "summary.json").exists() and (retrain or not target.exists()):
             (out / "summary.json").unlink()
@@ -301,7 +319,7 @@ class Plan:
             names = [n for n, _, _ in spec["experts"]]
             for seed in range(self.other_seeds):
                 base = self.cfg(env=app, agents=3, walls=0, env_options=spec["target"], total_steps=steps,
-                                seed=seed, max_steps=OTHER_MAX_STEPS)
+                                seed=seed, max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval())
                 faulty = ["random", "biased:0", f"malicious:{self.expert_path(names[0])}"] + \
                     [self.expert_path(n) for n in names[3:]]
                 for tag, experts in (("", [self.expert_path(n) for n in names]), ("-3faulty", faulty)):
@@ -417,12 +435,13 @@ class Report:
                     [learning_score(c) for c in curves]
         return data
 
-    def figure(self, png: str, title: str, names: dict[str, str], csv_name: str = "metrics.csv") -> dict:
+    def figure(self, png: str, title: str, names: dict[str, str], csv_name: str = "metrics.csv",
+               ylabel: str = "mean episode length (greedy eval)") -> dict:
         from ..plots import plot_methods
 
         data = self.series(names, csv_name)
         if data:
-            plot_methods({k: (v[0], v[1]) for k, v in data.items()}, self.out / png, title)
+            plot_methods({k: (v[0], v[1]) for k, v in data.items()}, self.out / png, title, ylabel)
         return data
 
     def table(self, data: dict, wall: bool = False) -> str:
@@ -563,7 +582,8 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
             frl = f"{short}-frl7{tag}"
             data = r.figure(f"fig{fig}_{short}.png", f"Fig. {fig}: {app}, {what}", {
                 "MDRL-sparse": f"{short}-sparse", "MEDC (6 experts)": f"{short}-medc{tag}",
-                "FRL (7 users)": frl, "IL (6 experts)": f"{short}-il{tag}"})
+                "FRL (7 users)": frl, "IL (6 experts)": f"{short}-il{tag}"},
+                ylabel="mean episode length (sampled eval)")
             if data:
                 r.add(f"### Fig. {fig} — {app}, {what}\n\n![fig{fig} {short}](fig{fig}_{short}.png)\n\n"
                       + r.table(data) + "\n\n" + "\n".join([
@@ -605,7 +625,10 @@ Seeds: {seeds} per configuration (0..{seeds - 1}); curves are means over seeds w
 
 **Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
 mean length of the finished test episodes (max {plan.base['max_steps']} when the target is never found)
-is plotted.
+is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {OTHER_GRID}×{OTHER_GRID}
+grid with a {OTHER_MAX_STEPS}-step limit and are tested on actions sampled from the policy
+({OTHER_EVAL['eval_envs']} environments × {OTHER_MAX_STEPS} steps per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task.
 Each claim compares *learning scores*: the mean evaluation episode length over the whole run
 (the area under the learning curve divided by its length; lower = faster and better learning),
 per seed, as a difference of means with a 95% CI (Welch standard error, Student t). "held" /

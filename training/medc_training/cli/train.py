@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env", default="target_localization", help="application (default target_localization)")
     p.add_argument("--agents", type=int, default=3, help="team size (the y in AyWz)")
     p.add_argument("--walls", type=int, default=2, help="number of walls (the z in AyWz)")
-    p.add_argument("--grid", type=int, help="grid side (default: the scale's, cpu 10 / paper 30)")
+    p.add_argument("--grid", type=int, help="grid side (default: the scale's, cpu 13 / paper 30)")
     p.add_argument("--max-steps", type=int, help="episode step limit (default: the scale's)")
     p.add_argument("--method", choices=METHODS, default="sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
@@ -63,7 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=int, help="training steps per PPO update")
     p.add_argument("--epochs", type=int, help="PPO epochs per update")
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
-    p.add_argument("--eval-steps", type=int, help="greedy test steps per evaluation")
+    p.add_argument("--eval-steps", type=int, help="test steps per evaluation")
+    p.add_argument("--eval-envs", type=int, help="environments the test steps are split over")
+    p.add_argument("--eval-sampled", action="store_true",
+                   help="test on actions sampled from the policy instead of its argmax")
     p.add_argument("--expert-rate", type=float, help="R_E (default 0.1)")
     p.add_argument("--q", type=float, dest="q_threshold", help="Q (default 0.05)")
     p.add_argument("--frl-users",
@@ -83,10 +86,12 @@ def config_from_args(args: argparse.Namespace):
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
     for name in ("grid", "max_steps", "arch", "num_envs", "horizon", "epochs", "eval_every", "eval_steps",
-                 "expert_rate", "q_threshold", "frl_every"):
+                 "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:
             overrides[name] = value
+    if args.eval_sampled:
+        overrides["eval_greedy"] = False
     if args.frl_users:
         overrides["frl_users"] = parse_users(args.frl_users)
     env_options = {}
