@@ -86,3 +86,13 @@ def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp
         assert cfg["eval_greedy"] is False
         # every evaluation environment can finish at least one full-length episode
         assert cfg["eval_steps"] // cfg["eval_envs"] >= cfg["max_steps"]
+
+
+def test_medc_train_flags_reach_the_config():
+    from medc_training.cli.train import build_parser, config_from_args
+
+    args = build_parser().parse_args(["--out", "x", "--lr", "0.001", "--eval-sampled", "--eval-envs", "8",
+                                      "--env", "maze_cleaning", "--env-option", "complexity=1"])
+    cfg = config_from_args(args)
+    assert (cfg.lr, cfg.eval_greedy, cfg.eval_envs, cfg.env_options) == (0.001, False, 8, {"complexity": 1})
+    assert config_from_args(build_parser().parse_args(["--out", "x"])).eval_greedy is True

@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, help="environments stepped together")
     p.add_argument("--horizon", type=int, help="training steps per PPO update")
     p.add_argument("--epochs", type=int, help="PPO epochs per update")
+    p.add_argument("--lr", type=float, help="Adam learning rate (default: the scale's)")
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
     p.add_argument("--eval-steps", type=int, help="test steps per evaluation")
     p.add_argument("--eval-envs", type=int, help="environments the test steps are split over")
@@ -85,8 +86,8 @@ def config_from_args(args: argparse.Namespace):
     overrides = {"env": args.env, "agents": args.agents, "walls": args.walls, "method": args.method,
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
-    for name in ("grid", "max_steps", "arch", "num_envs", "horizon", "epochs", "eval_every", "eval_steps",
-                 "eval_envs", "expert_rate", "q_threshold", "frl_every"):
+    for name in ("grid", "max_steps", "arch", "num_envs", "horizon", "epochs", "lr", "eval_every",
+                 "eval_steps", "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:
             overrides[name] = value

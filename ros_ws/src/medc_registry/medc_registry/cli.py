@@ -191,19 +191,20 @@ def cmd_start(args: argparse.Namespace) -> int:
     state = {"rpc_url": node.url, "poa": False, "node": node_info}
     chain = open_chain(home, state)
     dep = deploy_contracts(chain)
-    state.update(
-        users_manager=dep.users,
-        models_manager=dep.models,
-        chain_id=chain.w3.eth.chain_id,
-        content={"kind": "kubo", "url": args.ipfs_api}
-        if args.ipfs_api
-        else {"kind": "local", "root": str(home / "content")},
-    )
-    save_state(home, state)
+    record_deployment(home, state, chain, dep, args.ipfs_api)
     print(f"anvil at {node.url} (pid {node.pid}), state in {home}")
     print(f"UsersManager  {dep.users}\nModelsManager {dep.models}")
     print(f"{len(chain.accounts)} funded development accounts: use --account 0..{len(chain.accounts) - 1}")
     return 0
+
+
+def record_deployment(home: Path, state: dict[str, Any], chain, dep, ipfs_api: str | None) -> None:
+    """Save the freshly deployed contracts and the content store choice in the registry state."""
+    local = {"kind": "local", "root": str(home / "content")}
+    content = {"kind": "kubo", "url": ipfs_api} if ipfs_api else local
+    state.update(users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id,
+                 content=content)
+    save_state(home, state)
 
 
 def cmd_deploy(args: argparse.Namespace) -> int:
@@ -214,15 +215,7 @@ def cmd_deploy(args: argparse.Namespace) -> int:
     state: dict[str, Any] = {"rpc_url": args.rpc, "poa": args.poa, "key_file": key_file}
     chain = open_chain(home, state)
     dep = deploy_contracts(chain, sender=args.account)
-    state.update(
-        users_manager=dep.users,
-        models_manager=dep.models,
-        chain_id=chain.w3.eth.chain_id,
-        content={"kind": "kubo", "url": args.ipfs_api}
-        if args.ipfs_api
-        else {"kind": "local", "root": str(home / "content")},
-    )
-    save_state(home, state)
+    record_deployment(home, state, chain, dep, args.ipfs_api)
     print(f"deployed on {args.rpc}: UsersManager {dep.users}, ModelsManager {dep.models}")
     return 0
 
