@@ -86,6 +86,8 @@ def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp
         assert cfg["eval_greedy"] is False
         # every evaluation environment can finish at least one full-length episode
         assert cfg["eval_steps"] // cfg["eval_envs"] >= cfg["max_steps"]
+    paper = Plan("paper", 1, tmp_path / "paper", Path("models")).other_apps()
+    assert {j["config"]["eval_every"] for j in paper} == {40_000}  # the paper's interval
 
 
 def test_medc_train_flags_reach_the_config():
