@@ -98,3 +98,15 @@ def test_medc_train_flags_reach_the_config():
     cfg = config_from_args(args)
     assert (cfg.lr, cfg.eval_greedy, cfg.eval_envs, cfg.env_options) == (0.001, False, 8, {"complexity": 1})
     assert config_from_args(build_parser().parse_args(["--out", "x"])).eval_greedy is True
+
+
+def test_long_other_supplement_pits_medc_against_sparse_and_il_with_truthful_experts(tmp_path):
+    plan = Plan("cpu", 4, tmp_path / "out", Path("models"), {"long_steps": 1_000_000})
+    jobs = plan.long_other_runs()
+    assert len(jobs) == 18  # 2 applications x 3 seeds x (sparse, MEDC, IL)
+    assert {j["name"].split("/")[0] for j in jobs} == {
+        f"long1M-{app}-{m}" for app in ("fleet", "maze") for m in ("sparse", "medc", "il")}
+    medc = next(j for j in jobs if j["name"] == "long1M-maze-medc/seed0")
+    assert len(medc["experts"]) == 6
+    assert [Path(e).stem for e in medc["experts"]][:2] == ["maze-A1C0", "maze-A2C0"]
+    assert all(j["config"]["total_steps"] == 1_000_000 and j["config"]["grid"] == 10 for j in jobs)

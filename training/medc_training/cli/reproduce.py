@@ -32,7 +32,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long")
+PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
 BUDGETS = {
@@ -302,6 +302,26 @@ class Plan:
                                  [self.expert_path(n) for n in SIX]))
             jobs.append(self.run("long", f"{tag}-A3W2-medc-oracle", seed, {**base, "method": "medc"},
                                  ["oracle"]))
+        return jobs
+
+    def long_other_runs(self) -> list[dict]:
+        """Supplement: fleet coordination and maze cleaning, MDRL-sparse vs MEDC vs IL (the six
+        truthful experts of Fig. 10) for ``long_steps`` steps, at most 3 seeds."""
+        steps = self.budget["long_steps"]
+        tag = long_tag(steps)
+        jobs = []
+        for app, spec in OTHER_APPS.items():
+            short = "fleet" if app.startswith("fleet") else "maze"
+            experts = [self.expert_path(n) for n, _, _ in spec["experts"]]
+            for seed in range(min(self.seeds, 3)):
+                base = self.cfg(env=app, agents=3, walls=0, env_options=spec["target"], total_steps=steps,
+                                seed=seed, max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval())
+                base["eval_every"] = max(base["eval_every"], steps // 20)
+                sparse = {**base, "method": "sparse"}
+                jobs.append(self.run("long-other", f"{tag}-{short}-sparse", seed, sparse))
+                for method in ("medc", "il"):
+                    jobs.append(self.run("long-other", f"{tag}-{short}-{method}", seed,
+                                         {**base, "method": method}, experts))
         return jobs
 
     def _faulty_spec(self, name: str) -> str:
@@ -612,6 +632,22 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                   ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
                   "something a user could share, and is run only to separate 'MEDC does not help' from "
                   "'our experts are too weak to help'.")
+    other_tags = sorted({d.name.rsplit("-maze-", 1)[0] for d in (out / "runs").glob("long*-maze-sparse")},
+                        key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))
+    for tag in other_tags:
+        steps_text = tag[4:]
+        for short, app in (("fleet", "Fleet coordination"), ("maze", "Maze cleaning")):
+            data = r.figure(f"{tag}_{short}.png", f"Supplement: {app}, {steps_text} steps", {
+                "MDRL-sparse": f"{tag}-{short}-sparse", "MEDC (6 experts)": f"{tag}-{short}-medc",
+                "IL (6 experts)": f"{tag}-{short}-il"}, ylabel="mean episode length (sampled eval)")
+            if data:
+                r.add(f"### Supplement — longer runs ({app}, {steps_text} steps)\n\n"
+                      f"![{tag} {short}]({tag}_{short}.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
+                          r.claim(f"{app}: MEDC beats MDRL-sparse over {steps_text} steps",
+                                  f"{tag}-{short}-medc", f"{tag}-{short}-sparse"),
+                          r.claim(f"{app}: MEDC beats IL over {steps_text} steps",
+                                  f"{tag}-{short}-medc", f"{tag}-{short}-il"),
+                      ]))
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
     header = f"""# Reproduction report — scale `{scale}`
@@ -725,6 +761,8 @@ def main(argv: list[str] | None = None) -> int:
         tl_jobs += plan.other_apps()
     if "long" in phases:
         tl_jobs += plan.long_runs()
+    if "long-other" in phases and not args.no_other_apps:
+        tl_jobs += plan.long_other_runs()
     if tl_jobs:
         unique = {j["out"]: j for j in tl_jobs}  # sparse baselines are shared by several figures
         # the longest jobs first so the pool's tail is short
