@@ -21,9 +21,9 @@ def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
         f"registry: {{enabled: true, params: {{cache_dir: {cache}}}}}\n"
     )
     launcher = Path(sys.executable).parent / "medc-launch"
-    proc = subprocess.Popen(
-        [str(launcher), "--config", str(config)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
-    )
+    log = (tmp_path / "stderr.txt").open("w")  # a file, not a pipe: the nodes' logs can never block
+    proc = subprocess.Popen([str(launcher), "--config", str(config)], stdout=subprocess.PIPE, stderr=log,
+                            text=True)
     try:
         first = proc.stdout.readline()  # blocks until the first episode ends
         assert first.startswith("episode 0:"), first
@@ -34,7 +34,8 @@ def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 0
+    log.close()
+    assert proc.returncode == 0, (tmp_path / "stderr.txt").read_text()[-2000:]
     summary = json.loads(rest.strip().splitlines()[-1])
     assert summary["episodes"] >= 1 and summary["episode_lengths"][0] == int(first.split()[2])
     # No node of this graph survives its launcher: agents (named by their policy), bridge (its cache).

@@ -429,6 +429,9 @@ def main(argv: list[str] | None = None) -> int:
     run = run_in_process if args.in_process else run_processes
     try:
         ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout)
+        # Ctrl-C either raises here or, when it lands while rclpy waits, makes rclpy's own
+        # signal handler shut the context down so the run loop ends: both are an interruption.
+        interrupted = not ok and not rclpy.ok()
     except (KeyboardInterrupt, ExternalShutdownException):
         interrupted = True
     finally:
