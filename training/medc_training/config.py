@@ -91,7 +91,7 @@ class TrainConfig:
     eval_every: int = 40_000
     """E: evaluate every E training steps (and once before training)."""
     eval_steps: int = 4_000
-    """T: greedy test steps per evaluation (split over eval_envs)."""
+    """T: test steps per evaluation (split over eval_envs)."""
     eval_envs: int = 16
     """Environments for evaluation."""
     eval_greedy: bool = True

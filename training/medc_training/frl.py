@@ -25,7 +25,7 @@ import torch
 from .config import TrainConfig
 from .fedavg import fedavg
 from .nets import make_actor_critic
-from .ppo import Trainer
+from .ppo import EVAL_SEED_OFFSET, Trainer
 
 FAULTS = ("random", "biased", "malicious")
 
@@ -81,7 +81,7 @@ class FederatedGroup:
                                   "env_options": user.get("env_options", cfg.env_options),
                                   "seed": cfg.seed + 101 * i})
             trainer = Trainer(ucfg)
-            trainer.eval_seed = cfg.seed + 1_000_003  # the same test episodes as a single learner
+            trainer.eval_seed = cfg.seed + EVAL_SEED_OFFSET  # the same test episodes as a single learner
             self.trainers.append(trainer)
             self.faults.append(fault)
             same_env = (ucfg.agents, ucfg.walls, ucfg.env_options) == (cfg.agents, cfg.walls, cfg.env_options)

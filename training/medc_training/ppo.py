@@ -31,6 +31,10 @@ from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
 from .nets import make_actor_critic, masked_logits
 
+#: Evaluation episodes are drawn from ``seed + EVAL_SEED_OFFSET``: a stream far from the training
+#: environments' seeds, and the same for every method and every user of an FRL group.
+EVAL_SEED_OFFSET = 1_000_003
+
 
 def seed_everything(seed: int) -> None:
     """Seed Python, numpy and torch (CPU and CUDA) global generators."""
@@ -87,10 +91,10 @@ class Trainer:
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device 'cuda' requested but torch.cuda.is_available() is False")
         self.env = env if env is not None else make_env_for(cfg, cfg.num_envs, cfg.seed, cfg.method == "rs")
-        self.eval_env = eval_env if eval_env is not None else make_env_for(
-            cfg, cfg.eval_envs, cfg.seed + 1_000_003, False)
         # Evaluation restarts from this seed every time (FRL sets one seed for all its users).
-        self.eval_seed = cfg.seed + 1_000_003
+        self.eval_seed = cfg.seed + EVAL_SEED_OFFSET
+        self.eval_env = eval_env if eval_env is not None else make_env_for(
+            cfg, cfg.eval_envs, self.eval_seed, False)
         self.B, self.N, self.A = self.env.num_envs, self.env.num_agents, self.env.num_actions
         self.obs_shape = tuple(self.env.obs_shape)
         self.net = make_actor_critic(cfg.arch, self.obs_shape, self.A, device=self.device)
@@ -148,8 +152,9 @@ class Trainer:
         # The paper's "expert involvement": how often the move taken is the expert's own first
         # choice. A full-ranking expert always has *some* eligible move, so "followed" alone
         # stays at 1; the top-choice rate falls as the policy sharpens and Q filters the best.
-        top = scores.masked_fill(~mask_flat[rows], float("-inf")).argmax(-1)
-        has_top = torch.isfinite(scores.masked_fill(~mask_flat[rows], float("-inf"))).any(-1)
+        valid_scores = scores.masked_fill(~mask_flat[rows], float("-inf"))
+        top = valid_scores.argmax(-1)
+        has_top = torch.isfinite(valid_scores).any(-1)
         took_top = followed & has_top & (chosen == top)
         self.follow_counts += torch.tensor([int(followed.sum()), rows.numel(), int(took_top.sum())])
 

@@ -70,15 +70,19 @@ OTHER_MAX_STEPS = 400
 OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MAX_STEPS}
 
 # Fleet coordination / maze cleaning experts: (name, agents, env options); the user of
-# interest is 3 agents (fleet: 8 customers; maze: complexity 1.0).
+# interest is 3 agents (fleet: 8 customers; maze: complexity 1.0). "short" prefixes run names.
 OTHER_APPS = {
     "fleet_coordination": {
+        "short": "fleet",
+        "title": "Fleet coordination",
         "target": {"customers": 8},
         "experts": (("fleet-A1C4", 1, {"customers": 4}), ("fleet-A2C4", 2, {"customers": 4}),
                     ("fleet-A2C6", 2, {"customers": 6}), ("fleet-A1C8", 1, {"customers": 8}),
                     ("fleet-A3C4", 3, {"customers": 4}), ("fleet-A2C8", 2, {"customers": 8})),
     },
     "maze_cleaning": {
+        "short": "maze",
+        "title": "Maze cleaning",
         "target": {"complexity": 1.0},
         "experts": (("maze-A1C0", 1, {"complexity": 0.0}), ("maze-A2C0", 2, {"complexity": 0.0}),
                     ("maze-A1C1", 1, {"complexity": 1.0}), ("maze-A2C1", 2, {"complexity": 1.0}),
@@ -90,6 +94,12 @@ OTHER_APPS = {
 def long_tag(steps: int) -> str:
     """Run-name prefix of a supplementary long run, e.g. long200k."""
     return f"long{steps // 1000}k" if steps % 1_000_000 else f"long{steps // 1_000_000}M"
+
+
+def long_tags_on_disk(runs: Path, marker: str) -> list[str]:
+    """The long_tag prefixes of the runs ``<tag>-<marker>`` under ``runs``, shortest run first."""
+    tags = {d.name[: -len(marker) - 1] for d in runs.glob(f"long*-{marker}")}
+    return sorted(tags, key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))
 
 
 # ------------------------------------------------------------------------------ jobs ----
@@ -311,11 +321,10 @@ class Plan:
         tag = long_tag(steps)
         jobs = []
         for app, spec in OTHER_APPS.items():
-            short = "fleet" if app.startswith("fleet") else "maze"
+            short = spec["short"]
             experts = [self.expert_path(n) for n, _, _ in spec["experts"]]
             for seed in range(min(self.seeds, 3)):
-                base = self.cfg(env=app, agents=3, walls=0, env_options=spec["target"], total_steps=steps,
-                                seed=seed, max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval())
+                base = self.other_base(app, seed, steps)
                 base["eval_every"] = max(base["eval_every"], steps // 20)
                 sparse = {**base, "method": "sparse"}
                 jobs.append(self.run("long-other", f"{tag}-{short}-sparse", seed, sparse))
@@ -323,6 +332,11 @@ class Plan:
                     jobs.append(self.run("long-other", f"{tag}-{short}-{method}", seed,
                                          {**base, "method": method}, experts))
         return jobs
+
+    def other_base(self, app: str, seed: int, steps: int) -> dict:
+        """The config of a fleet/maze run for the user of interest (3 agents, the target options)."""
+        return self.cfg(env=app, agents=3, walls=0, env_options=OTHER_APPS[app]["target"], total_steps=steps,
+                        seed=seed, max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval())
 
     def _faulty_spec(self, name: str) -> str:
         kind = FAULTY_USERS.get(name)
@@ -338,11 +352,10 @@ class Plan:
         steps = self.budget["fleet_maze_steps"]
         jobs = []
         for app, spec in OTHER_APPS.items():
-            short = "fleet" if app.startswith("fleet") else "maze"
+            short = spec["short"]
             names = [n for n, _, _ in spec["experts"]]
             for seed in range(self.other_seeds):
-                base = self.cfg(env=app, agents=3, walls=0, env_options=spec["target"], total_steps=steps,
-                                seed=seed, max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval())
+                base = self.other_base(app, seed, steps)
                 faulty = ["random", "biased:0", f"malicious:{self.expert_path(names[0])}"] + \
                     [self.expert_path(n) for n in names[3:]]
                 for tag, experts in (("", [self.expert_path(n) for n in names]), ("-3faulty", faulty)):
@@ -600,7 +613,7 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
               "of its own model's best move). In FRL they share poisoned parameters (random init / policy "
               "head forced to one action / negated policy head, see medc_training.frl).")
     # --- Figs. 10-11
-    for short, app in (("fleet", "Fleet coordination"), ("maze", "Maze cleaning")):
+    for short, app in ((spec["short"], spec["title"]) for spec in OTHER_APPS.values()):
         for fig, tag, what in (("10", "", "truthful experts"), ("11", "-3faulty", "3 faulty experts/users")):
             frl = f"{short}-frl7{tag}"
             data = r.figure(f"fig{fig}_{short}.png", f"Fig. {fig}: {app}, {what}", {
@@ -614,9 +627,7 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                           r.claim(f"{app} ({what}): MEDC beats IL", f"{short}-medc{tag}", f"{short}-il{tag}"),
                       ]))
     # --- Supplement: longer runs (every step count found on disk)
-    tags = sorted({d.name.split("-A3W2-")[0] for d in (out / "runs").glob("long*-A3W2-sparse")},
-                  key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))
-    for tag in tags:
+    for tag in long_tags_on_disk(out / "runs", "A3W2-sparse"):
         steps_text = tag[4:]
         data = r.figure(f"{tag}_A3W2.png", f"Supplement: A3W2, {steps_text} steps", {
             "MDRL-sparse": f"{tag}-A3W2-sparse", "MEDC (6 experts)": f"{tag}-A3W2-medc-six",
@@ -632,11 +643,9 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                   ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
                   "something a user could share, and is run only to separate 'MEDC does not help' from "
                   "'our experts are too weak to help'.")
-    other_tags = sorted({d.name.rsplit("-maze-", 1)[0] for d in (out / "runs").glob("long*-maze-sparse")},
-                        key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))
-    for tag in other_tags:
+    for tag in long_tags_on_disk(out / "runs", "maze-sparse"):
         steps_text = tag[4:]
-        for short, app in (("fleet", "Fleet coordination"), ("maze", "Maze cleaning")):
+        for short, app in ((spec["short"], spec["title"]) for spec in OTHER_APPS.values()):
             data = r.figure(f"{tag}_{short}.png", f"Supplement: {app}, {steps_text} steps", {
                 "MDRL-sparse": f"{tag}-{short}-sparse", "MEDC (6 experts)": f"{tag}-{short}-medc",
                 "IL (6 experts)": f"{tag}-{short}-il"}, ylabel="mean episode length (sampled eval)")
