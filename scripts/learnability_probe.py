@@ -21,6 +21,7 @@ import json
 import time
 
 import torch
+from medc_training.dagger import best_moves, clone_loss
 from medc_training.envs import make_batched
 from medc_training.nets import make_actor_critic, masked_logits
 
@@ -41,12 +42,6 @@ def collect(args: argparse.Namespace, seed: int, steps: int) -> tuple[torch.Tens
         out = env.step(torch.where(take_oracle, best, rand))
         obs, mask = out.obs, out.mask
     return tuple(torch.cat(parts) for parts in zip(*rows))
-
-
-def best_moves(mask: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
-    """bool [M, A]: the valid moves whose oracle score equals the best valid score."""
-    s = scores.masked_fill(~mask, -1e9)
-    return s >= s.max(-1, keepdim=True).values - 1e-6
 
 
 def accuracy(net, obs, mask, scores) -> float:
@@ -85,10 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         for it in range(1, args.iterations + 1):
             idx = torch.randint(0, train[0].shape[0], (256,), generator=gen)
-            target = best_moves(train[1][idx], train[2][idx]).float()
-            target /= target.sum(-1, keepdim=True)
-            logp = torch.log_softmax(masked_logits(net(train[0][idx])[0], train[1][idx]), -1)
-            loss = -(target * logp).sum(-1).mean()
+            loss = clone_loss(net(train[0][idx])[0], train[1][idx], best_moves(train[1][idx], train[2][idx]))
             opt.zero_grad()
             loss.backward()
             opt.step()

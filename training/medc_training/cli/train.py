@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 
@@ -37,6 +38,21 @@ def parse_users(text: str) -> list[dict]:
             user["fault"] = m.group(3)
         users.append(user)
     return users
+
+
+def parse_env_options(items: list[str]) -> dict:
+    """``["customers=8", "complexity=0.5"]`` -> ``{"customers": 8, "complexity": 0.5}``."""
+    options: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        try:
+            number = float(value) if sep and key else None
+        except ValueError:
+            number = None
+        if number is None or not math.isfinite(number):
+            raise ValueError(f"--env-option expects KEY=NUMBER, got {item!r}")
+        options[key] = int(number) if number.is_integer() and "." not in value else number
+    return options
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="FRL users, e.g. A1W0,A3W0,A2W1,A2W2,A2W3,A3W1,A3W2,A3W3 (the paper's 8)")
     p.add_argument("--frl-every", type=int, help="FedAvg every K updates (default 1)")
     p.add_argument("--env-option", action="append", default=[], metavar="KEY=VALUE",
-                   help="extra integer environment option (e.g. customers=8 for fleet coordination)")
+                   help="extra numeric environment option (e.g. customers=8, complexity=0.5)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-tensorboard", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -95,12 +111,7 @@ def config_from_args(args: argparse.Namespace):
         overrides["eval_greedy"] = False
     if args.frl_users:
         overrides["frl_users"] = parse_users(args.frl_users)
-    env_options = {}
-    for item in args.env_option:
-        key, sep, value = item.partition("=")
-        if not sep or not value.lstrip("-").isdigit():
-            raise ValueError(f"--env-option expects KEY=INTEGER, got {item!r}")
-        env_options[key] = int(value)
+    env_options = parse_env_options(args.env_option)
     if env_options:
         overrides["env_options"] = env_options
     return scaled_config(args.scale, **overrides)

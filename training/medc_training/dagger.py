@@ -1,0 +1,360 @@
+"""Expert training by DAgger: supervised cloning of an environment's scripted oracle.
+
+The paper's experts are other labs' MDRL-trained models. At the CPU scale PPO does not learn
+target localization from its sparse reward (docs/reproduction/report.md), and behavioural
+cloning inside the PPO loop (``il`` with R_E = 1) trains only on the oracle's own states, so
+its clones wander off and barely beat a random team. DAgger (Ross, Gordon and Bagnell, 2011)
+fixes exactly that covariate shift:
+
+1. iteration i plays ``rollout_len`` batched steps in ``num_envs`` environments; each agent
+   takes the oracle's best move with probability beta_i = ``beta_decay`` ** i, else a move
+   sampled from the current policy (so later data comes from the states the clone visits);
+2. every observation is labelled with the oracle's *set* of equally best valid moves
+   (ties are common: N and NE can both shorten a path) and added to the dataset;
+3. ``grad_steps`` Adam minibatches fit the policy to the aggregated dataset (cross-entropy
+   against the uniform distribution over the best moves, invalid moves masked out).
+
+The oracle sees what the agents do not (e.g. the target cell); the clone sees only the
+agents' own observations, so what it learns is what those observations tell. The policy
+is an ordinary :class:`medc_training.nets.ActorCritic` (the value head is untouched) and is
+shipped as a normal policy bundle whose manifest says ``"method": "dagger"``.
+
+Observations are stored as float16 (the maps are in [0, 1]) and the dataset keeps the
+newest ``max_samples`` samples, so memory stays bounded at any scale.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+
+from .bundle import save_bundle
+from .evaluate import evaluate_policy
+from .nets import make_actor_critic, masked_logits
+from .ppo import EVAL_SEED_OFFSET, seed_everything
+
+BUNDLE = "policy.safetensors"
+CSV_COLUMNS = (
+    "iteration",
+    "step",
+    "samples",
+    "beta",
+    "bc_loss",
+    "episode_length",
+    "success_rate",
+    "greedy_length",
+    "greedy_success",
+    "sampled_length",
+    "sampled_success",
+    "wall_time",
+)
+
+
+@dataclass
+class CloneConfig:
+    """One DAgger run. Field docstrings are the documentation."""
+
+    env: str = "target_localization"
+    """Application: one of medc_training.envs.ENV_NAMES (it must offer oracle_action_scores)."""
+    agents: int = 3
+    """Team size."""
+    walls: int = 2
+    """Wall segments (target localization only)."""
+    grid: int = 13
+    """Side of the square grid."""
+    max_steps: int = 50
+    """Episode step limit."""
+    env_options: dict = field(default_factory=dict)
+    """Extra keyword options for make_batched (customers, complexity, ...)."""
+    arch: str = "lenet5"
+    """Architecture from medc_training.nets.ARCHITECTURES."""
+    total_steps: int = 64_000
+    """Environment steps of data collection (one step = the whole team moves once)."""
+    num_envs: int = 64
+    """Environments stepped together while collecting."""
+    rollout_len: int = 100
+    """Batched steps collected per iteration (num_envs * rollout_len training steps)."""
+    beta_decay: float = 0.5
+    """beta_i = beta_decay ** i: probability that an agent takes the oracle's move in iteration i."""
+    grad_steps: int = 500
+    """Adam minibatches after each iteration."""
+    batch_size: int = 256
+    """Samples per minibatch."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    max_samples: int = 200_000
+    """Dataset cap: the newest samples are kept."""
+    eval_episodes: int = 128
+    """Finished episodes per evaluation (greedy and sampled), after every iteration."""
+    eval_envs: int = 32
+    """Environments for evaluation."""
+    eval_greedy: bool = True
+    """Which evaluation is the run's headline (``episode_length`` column): greedy or sampled.
+    Coverage tasks (fleet, maze) use sampled, as in training (see TrainConfig.eval_greedy)."""
+    seed: int = 0
+    """Seeds torch and the environments."""
+    device: str = "cpu"
+    """cpu or cuda."""
+
+    @property
+    def iterations(self) -> int:
+        """DAgger iterations the step budget buys (at least one)."""
+        return max(1, math.ceil(self.total_steps / (self.num_envs * self.rollout_len)))
+
+    def validate(self) -> CloneConfig:
+        """Raise ValueError naming the bad field; returns self."""
+        for name in (
+            "agents",
+            "grid",
+            "max_steps",
+            "total_steps",
+            "num_envs",
+            "rollout_len",
+            "batch_size",
+            "max_samples",
+            "eval_episodes",
+            "eval_envs",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.grad_steps < 0 or self.walls < 0:
+            raise ValueError("grad_steps and walls must be >= 0")
+        if not 0.0 <= self.beta_decay <= 1.0:
+            raise ValueError(f"beta_decay must be in [0, 1], got {self.beta_decay}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        return self
+
+    def env_attributes(self) -> dict:
+        """The environment's features as stored in bundle manifests (as TrainConfig does)."""
+        attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
+        if self.env == "target_localization":
+            attrs["walls"] = self.walls
+        attrs.update(self.env_options)
+        return attrs
+
+    def make_env(self, num_envs: int, seed: int):
+        from .envs import make_batched
+
+        options = dict(self.env_options)
+        if self.env == "target_localization":
+            options["walls"] = self.walls
+        return make_batched(
+            self.env,
+            num_envs=num_envs,
+            device=self.device,
+            seed=seed,
+            agents=self.agents,
+            grid=self.grid,
+            max_steps=self.max_steps,
+            **options,
+        )
+
+
+def best_moves(mask: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
+    """bool [..., A]: the valid moves whose oracle score equals the best valid score."""
+    s = scores.masked_fill(~mask, -1e9)
+    return (s >= s.max(-1, keepdim=True).values - 1e-6) & mask
+
+
+def clone_loss(logits: torch.Tensor, mask: torch.Tensor, best: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the masked policy against the uniform distribution over ``best``."""
+    target = best.float()
+    target = target / target.sum(-1, keepdim=True).clamp_min(1.0)
+    logp = torch.log_softmax(masked_logits(logits, mask), -1)
+    return -(target * logp.masked_fill(~mask, 0.0)).sum(-1).mean()
+
+
+class _Dataset:
+    """Aggregated (observation, mask, best-move set) samples, newest ``cap`` kept."""
+
+    def __init__(self, obs_shape: tuple, num_actions: int, cap: int, device: torch.device) -> None:
+        self.obs = torch.zeros((cap, *obs_shape), dtype=torch.float16, device=device)
+        self.mask = torch.zeros((cap, num_actions), dtype=torch.bool, device=device)
+        self.best = torch.zeros((cap, num_actions), dtype=torch.bool, device=device)
+        self.cap, self.size, self.head = cap, 0, 0
+
+    def add(self, obs: torch.Tensor, mask: torch.Tensor, best: torch.Tensor) -> None:
+        n = obs.shape[0]
+        if n >= self.cap:
+            obs, mask, best, n = obs[-self.cap :], mask[-self.cap :], best[-self.cap :], self.cap
+        idx = (torch.arange(n, device=self.obs.device) + self.head) % self.cap
+        self.obs[idx] = obs.to(torch.float16)
+        self.mask[idx] = mask
+        self.best[idx] = best
+        self.head = (self.head + n) % self.cap
+        self.size = min(self.cap, self.size + n)
+
+    def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+        idx = torch.randint(0, self.size, (batch,), generator=generator).to(self.obs.device)
+        return self.obs[idx].float(), self.mask[idx], self.best[idx]
+
+
+class _Policy:
+    """What evaluate_policy needs: ``net`` and ``device``."""
+
+    def __init__(self, net, device) -> None:
+        self.net, self.device = net, device
+
+
+def clone_oracle(
+    cfg: CloneConfig, out_dir: str | Path, progress: bool = False, bundle_to: str | Path | None = None
+) -> dict:
+    """Run DAgger for ``cfg``; write metrics.csv, learning_curve.png, policy.safetensors, summary.json.
+
+    Returns the summary (final greedy / sampled episode lengths, a random team's, timings).
+    """
+    cfg.validate()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    seed_everything(cfg.seed)
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' requested but torch.cuda.is_available() is False")
+    env = cfg.make_env(cfg.num_envs, cfg.seed)
+    if not hasattr(env, "oracle_action_scores"):
+        raise ValueError(f"environment {cfg.env!r} has no oracle to clone")
+    B, N, A = env.num_envs, env.num_agents, env.num_actions
+    obs_shape = tuple(env.obs_shape)
+    net = make_actor_critic(cfg.arch, obs_shape, A, device=device)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(cfg.seed + 7)
+    data = _Dataset(obs_shape, A, cfg.max_samples, device)
+    policy = _Policy(net, device)
+    eval_seed = cfg.seed + EVAL_SEED_OFFSET
+
+    def evaluate(pol, greedy: bool) -> dict:
+        return evaluate_policy(
+            cfg.make_env(cfg.eval_envs, eval_seed), pol, cfg.eval_episodes, greedy, eval_seed
+        )
+
+    with open(out / "metrics.csv", "w", newline="") as f:
+        csv.DictWriter(f, fieldnames=CSV_COLUMNS).writeheader()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(
+            total=cfg.iterations * B * cfg.rollout_len, unit="step", dynamic_ncols=True, mininterval=1.0
+        )
+    obs, mask = env.reset(seed=cfg.seed)
+    start = time.perf_counter()
+    steps = 0
+    row: dict = {}
+    try:
+        for it in range(cfg.iterations):
+            beta = cfg.beta_decay**it
+            net.eval()
+            for _ in range(cfg.rollout_len):
+                flat_obs, flat_mask = obs.reshape(B * N, *obs_shape), mask.reshape(B * N, A)
+                scores = env.oracle_action_scores().reshape(B * N, A)
+                best = best_moves(flat_mask, scores)
+                data.add(flat_obs, flat_mask, best)
+                with torch.no_grad():
+                    probs = torch.softmax(masked_logits(net(flat_obs)[0], flat_mask), -1).cpu()
+                own = torch.multinomial(probs, 1, generator=gen).squeeze(-1)
+                oracle = scores.masked_fill(~flat_mask, -1e9).argmax(-1).cpu()
+                take_oracle = torch.rand(own.shape, generator=gen) < beta
+                step = env.step(torch.where(take_oracle, oracle, own).view(B, N).to(env.device))
+                obs, mask = step.obs, step.mask
+            steps += B * cfg.rollout_len
+            net.train()
+            losses = []
+            for _ in range(cfg.grad_steps):
+                o, m, b = data.sample(cfg.batch_size, gen)
+                loss = clone_loss(net(o)[0], m, b)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item())
+            net.eval()
+            greedy, sampled = evaluate(policy, True), evaluate(policy, False)
+            head = greedy if cfg.eval_greedy else sampled
+            row = {
+                "iteration": it,
+                "step": steps,
+                "samples": data.size,
+                "beta": beta,
+                "bc_loss": sum(losses) / len(losses) if losses else math.nan,
+                "episode_length": head["episode_length"],
+                "success_rate": head["success_rate"],
+                "greedy_length": greedy["episode_length"],
+                "greedy_success": greedy["success_rate"],
+                "sampled_length": sampled["episode_length"],
+                "sampled_success": sampled["success_rate"],
+                "wall_time": time.perf_counter() - start,
+            }
+            with open(out / "metrics.csv", "a", newline="") as f:
+                csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
+            if bar is not None:
+                bar.update(B * cfg.rollout_len)
+                bar.set_postfix(
+                    greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}"
+                )
+    finally:
+        if bar is not None:
+            bar.close()
+    rand = evaluate(None, False)
+    metrics = {
+        "mean_episode_length": row["episode_length"],
+        "success_rate": row["success_rate"],
+        "greedy_episode_length": row["greedy_length"],
+        "greedy_success_rate": row["greedy_success"],
+        "sampled_episode_length": row["sampled_length"],
+        "sampled_success_rate": row["sampled_success"],
+        "random_episode_length": rand["episode_length"],
+        "random_success_rate": rand["success_rate"],
+    }
+    attrs = dict(getattr(env, "attributes", None) or cfg.env_attributes())
+    manifest = {
+        "application": cfg.env,
+        "description": f"DAgger clone of the scripted oracle for {cfg.env} "
+        + ", ".join(f"{k}={v}" for k, v in attrs.items()),
+        "environment": attrs,
+        "training": {
+            "method": "dagger",
+            "steps": steps,
+            "seed": cfg.seed,
+            "arch": cfg.arch,
+            "iterations": cfg.iterations,
+            "grad_steps": cfg.grad_steps,
+            "beta_decay": cfg.beta_decay,
+        },
+        "metrics": {k: float(v) for k, v in metrics.items()},
+    }
+    save_bundle(out / BUNDLE, net, manifest)
+    if bundle_to is not None:
+        Path(bundle_to).parent.mkdir(parents=True, exist_ok=True)
+        save_bundle(bundle_to, net, manifest)
+    summary = {
+        "config": asdict(cfg),
+        "steps": steps,
+        "iterations": cfg.iterations,
+        "train_seconds": row["wall_time"],
+        "final_episode_length": row["episode_length"],
+        "final_success_rate": row["success_rate"],
+        "metrics": metrics,
+        "bundle": BUNDLE,
+    }
+    try:
+        from .plots import plot_learning_curve
+
+        plot_learning_curve(
+            out / "metrics.csv",
+            out / "learning_curve.png",
+            title=f"{cfg.env} A{cfg.agents} DAgger ({cfg.arch})",
+            greedy=cfg.eval_greedy,
+        )
+        summary["learning_curve"] = "learning_curve.png"
+    except Exception as exc:  # a plotting failure must not lose a finished run
+        summary["learning_curve_error"] = str(exc)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
