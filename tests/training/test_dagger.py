@@ -86,7 +86,7 @@ def test_clone_beats_a_random_team_and_ships_a_bundle(tmp_path):
     assert m["greedy_episode_length"] < m["random_episode_length"] - 2, m
     assert m["greedy_success_rate"] > m["random_success_rate"], m
     rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
-    assert len(rows) == 1 + 6
+    assert [r.split(",")[0] for r in rows[1:]] == ["3", "5"]  # every 4th iteration and the last
     bundle = load_bundle(tmp_path / "expert.safetensors")
     assert bundle.manifest["training"]["method"] == "dagger"
     assert bundle.manifest["environment"] == {"agents": 3, "grid": 7, "max_steps": 20, "walls": 0}

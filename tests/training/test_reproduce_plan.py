@@ -110,3 +110,33 @@ def test_long_other_supplement_pits_medc_against_sparse_and_il_with_truthful_exp
     assert len(medc["experts"]) == 6
     assert [Path(e).stem for e in medc["experts"]][:2] == ["maze-A1C0", "maze-A2C0"]
     assert all(j["config"]["total_steps"] == 1_000_000 and j["config"]["grid"] == 10 for j in jobs)
+
+
+def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exists(tmp_path):
+    from medc_training.bundle import load_bundle, read_manifest
+    from medc_training.cli.reproduce import TL_EXPERTS, run_job
+
+    models = tmp_path / "models"
+    plan = Plan("cpu", 1, tmp_path / "out", models)
+    jobs = plan.expert_jobs(retrain=False) + plan.other_expert_jobs(retrain=False)
+    assert len(jobs) == len(TL_EXPERTS) + 1 + 12 and {j["kind"] for j in jobs} == {"clone"}
+    assert {j["config"]["arch"] for j in jobs[: len(TL_EXPERTS)]} == {"lenet5", "convnet-small"}
+    fleet = [j for j in jobs if j["config"]["env"] == "fleet_coordination"]
+    assert all(j["config"]["eval_greedy"] is False and j["config"]["grid"] == 10 for j in fleet)
+    # The shipped bundles were made by DAgger at these settings, so nothing is retrained ...
+    shipped = Plan("cpu", 1, tmp_path / "out", Path("models"))
+    assert shipped.expert_jobs(retrain=False) + shipped.other_expert_jobs(retrain=False) == []
+    assert read_manifest("models/team/A3W2.safetensors")["training"]["method"] == "dagger"
+    # ... and a tiny version of one job writes its bundle to models/, not to the report folder.
+    job = jobs[0]
+    job["config"].update(grid=7, max_steps=10, total_steps=64, num_envs=8, rollout_len=8, grad_steps=2,
+                         eval_episodes=8, eval_envs=8)
+    summary = run_job(job)
+    assert summary["steps"] == 64
+    assert load_bundle(job["bundle_to"]).manifest["training"]["method"] == "dagger"
+    assert not (Path(job["out"]) / "policy.safetensors").exists()
+    assert (Path(job["out"]) / "metrics.csv").exists()
+    # An equal DAgger bundle is reused; one made for another grid is retrained.
+    again = dict(name="A1W0", env="target_localization", agents=1, arch="lenet5", steps=64, retrain=False)
+    assert plan._expert_job(**again, grid=7, max_steps=10) is None
+    assert plan._expert_job(**again, grid=9, max_steps=10)

@@ -21,10 +21,9 @@ METHODS = ("sparse", "medc", "rs", "il", "frl")
 
 
 @dataclass
-class TrainConfig:
-    """Everything one training run needs. Field docstrings are the documentation."""
+class EnvironmentConfig:
+    """The environment a run plays (shared by TrainConfig and medc_training.dagger.CloneConfig)."""
 
-    # --- environment ---------------------------------------------------------------
     env: str = "target_localization"
     """Application: one of medc_training.envs.ENV_NAMES."""
     agents: int = 3
@@ -37,6 +36,23 @@ class TrainConfig:
     """Episode length limit; reaching it truncates the episode (PPO bootstraps it)."""
     env_options: dict = field(default_factory=dict)
     """Extra keyword options passed to make_batched (e.g. customers for fleet coordination)."""
+
+    def env_attributes(self) -> dict:
+        """The environment's descriptive features as stored in bundle manifests."""
+        attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
+        if self.env == "target_localization":
+            attrs["walls"] = self.walls
+        attrs.update(self.env_options)
+        return attrs
+
+
+@dataclass
+class TrainConfig(EnvironmentConfig):
+    """Everything one training run needs. Field docstrings are the documentation.
+
+    The environment fields (env, agents, walls, grid, max_steps, env_options) come first, from
+    :class:`EnvironmentConfig`.
+    """
 
     # --- method ----------------------------------------------------------------------
     method: str = "sparse"
@@ -136,14 +152,6 @@ class TrainConfig:
     def steps_per_update(self) -> int:
         """Training steps actually collected per update."""
         return self.rollout_len * self.num_envs
-
-    def env_attributes(self) -> dict:
-        """The environment's descriptive features as stored in bundle manifests."""
-        attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
-        if self.env == "target_localization":
-            attrs["walls"] = self.walls
-        attrs.update(self.env_options)
-        return attrs
 
     def to_dict(self) -> dict:
         """JSON-able copy (for checkpoints and manifests)."""

@@ -29,17 +29,18 @@ import csv
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
 from .bundle import save_bundle
+from .config import EnvironmentConfig
 from .evaluate import evaluate_policy
 from .nets import make_actor_critic, masked_logits
-from .ppo import EVAL_SEED_OFFSET, seed_everything
+from .ppo import EVAL_SEED_OFFSET, make_env_for, seed_everything
+from .runner import BUNDLE
 
-BUNDLE = "policy.safetensors"
 CSV_COLUMNS = (
     "iteration",
     "step",
@@ -57,21 +58,14 @@ CSV_COLUMNS = (
 
 
 @dataclass
-class CloneConfig:
-    """One DAgger run. Field docstrings are the documentation."""
+class CloneConfig(EnvironmentConfig):
+    """One DAgger run. Field docstrings are the documentation; the environment fields come
+    from :class:`medc_training.config.EnvironmentConfig` (defaults: the CPU scale's grid)."""
 
-    env: str = "target_localization"
-    """Application: one of medc_training.envs.ENV_NAMES (it must offer oracle_action_scores)."""
-    agents: int = 3
-    """Team size."""
-    walls: int = 2
-    """Wall segments (target localization only)."""
     grid: int = 13
     """Side of the square grid."""
     max_steps: int = 50
     """Episode step limit."""
-    env_options: dict = field(default_factory=dict)
-    """Extra keyword options for make_batched (customers, complexity, ...)."""
     arch: str = "lenet5"
     """Architecture from medc_training.nets.ARCHITECTURES."""
     total_steps: int = 64_000
@@ -91,7 +85,9 @@ class CloneConfig:
     max_samples: int = 200_000
     """Dataset cap: the newest samples are kept."""
     eval_episodes: int = 128
-    """Finished episodes per evaluation (greedy and sampled), after every iteration."""
+    """Finished episodes per evaluation (greedy and sampled)."""
+    eval_every: int = 4
+    """Evaluate after every ``eval_every``-th iteration, and after the last one."""
     eval_envs: int = 32
     """Environments for evaluation."""
     eval_greedy: bool = True
@@ -120,6 +116,7 @@ class CloneConfig:
             "max_samples",
             "eval_episodes",
             "eval_envs",
+            "eval_every",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -132,31 +129,6 @@ class CloneConfig:
         if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
         return self
-
-    def env_attributes(self) -> dict:
-        """The environment's features as stored in bundle manifests (as TrainConfig does)."""
-        attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
-        if self.env == "target_localization":
-            attrs["walls"] = self.walls
-        attrs.update(self.env_options)
-        return attrs
-
-    def make_env(self, num_envs: int, seed: int):
-        from .envs import make_batched
-
-        options = dict(self.env_options)
-        if self.env == "target_localization":
-            options["walls"] = self.walls
-        return make_batched(
-            self.env,
-            num_envs=num_envs,
-            device=self.device,
-            seed=seed,
-            agents=self.agents,
-            grid=self.grid,
-            max_steps=self.max_steps,
-            **options,
-        )
 
 
 def best_moves(mask: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
@@ -219,7 +191,7 @@ def clone_oracle(
     device = torch.device(cfg.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("device 'cuda' requested but torch.cuda.is_available() is False")
-    env = cfg.make_env(cfg.num_envs, cfg.seed)
+    env = make_env_for(cfg, cfg.num_envs, cfg.seed, False)
     if not hasattr(env, "oracle_action_scores"):
         raise ValueError(f"environment {cfg.env!r} has no oracle to clone")
     B, N, A = env.num_envs, env.num_agents, env.num_actions
@@ -233,7 +205,7 @@ def clone_oracle(
 
     def evaluate(pol, greedy: bool) -> dict:
         return evaluate_policy(
-            cfg.make_env(cfg.eval_envs, eval_seed), pol, cfg.eval_episodes, greedy, eval_seed
+            make_env_for(cfg, cfg.eval_envs, eval_seed, False), pol, cfg.eval_episodes, greedy, eval_seed
         )
 
     with open(out / "metrics.csv", "w", newline="") as f:
@@ -276,6 +248,10 @@ def clone_oracle(
                 opt.step()
                 losses.append(loss.item())
             net.eval()
+            if bar is not None:
+                bar.update(B * cfg.rollout_len)
+            if (it + 1) % cfg.eval_every and it + 1 < cfg.iterations:
+                continue
             greedy, sampled = evaluate(policy, True), evaluate(policy, False)
             head = greedy if cfg.eval_greedy else sampled
             row = {
@@ -295,7 +271,6 @@ def clone_oracle(
             with open(out / "metrics.csv", "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
             if bar is not None:
-                bar.update(B * cfg.rollout_len)
                 bar.set_postfix(
                     greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}"
                 )

@@ -64,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--max-samples", type=int, default=d.max_samples, help="dataset cap (newest kept)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    p.add_argument("--eval-every", type=int, default=d.eval_every, help="evaluate every N iterations")
     p.add_argument(
         "--eval-sampled",
         action="store_true",
@@ -97,6 +98,7 @@ def config_from_args(args: argparse.Namespace):
         lr=args.lr,
         max_samples=args.max_samples,
         eval_episodes=args.eval_episodes,
+        eval_every=args.eval_every,
         eval_greedy=not args.eval_sampled,
         seed=args.seed,
         device=args.device,

@@ -30,29 +30,32 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict
 from pathlib import Path
 
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
 BUDGETS = {
-    "cpu": {"steps": 40_000, "expert_steps": 60_000, "team_steps": 150_000, "fleet_maze_steps": 100_000,
+    "cpu": {"steps": 40_000, "expert_steps": 128_000, "team_steps": 128_000, "fleet_maze_steps": 100_000,
             "long_steps": 200_000},
-    "paper": {"steps": 20_000_000, "expert_steps": 20_000_000, "team_steps": 20_000_000,
+    "paper": {"steps": 20_000_000, "expert_steps": 2_000_000, "team_steps": 2_000_000,
               "fleet_maze_steps": 20_000_000, "long_steps": 20_000_000},
 }
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
 # users A1W0, A3W0, A2W1, A2W2, A2W3, A3W1 plus the "complex" A1W3 of Fig. 6. Two
-# architectures are mixed on purpose: MEDC only needs actions from its experts.
+# architectures are mixed on purpose: MEDC only needs actions from its experts. Both are
+# convolutional: an MLP on the absolute maps clones the oracle badly (A3W2, 51k steps of
+# DAgger: greedy 33 steps against LeNet-5's 7; a random team needs 36).
 TL_EXPERTS = (
-    ("A1W0", 1, 0, "mlp"),
+    ("A1W0", 1, 0, "convnet-small"),
     ("A1W3", 1, 3, "lenet5"),
-    ("A3W0", 3, 0, "mlp"),
+    ("A3W0", 3, 0, "convnet-small"),
     ("A2W1", 2, 1, "lenet5"),
-    ("A2W2", 2, 2, "mlp"),
-    ("A2W3", 2, 3, "mlp"),
-    ("A3W1", 3, 1, "mlp"),
+    ("A2W2", 2, 2, "convnet-small"),
+    ("A2W3", 2, 3, "lenet5"),
+    ("A3W1", 3, 1, "convnet-small"),
 )
 SIX = ("A1W0", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1")        # paper Section V-C, first 6 users
 PROPER5 = ("A1W0", "A3W0", "A2W1", "A2W2", "A3W1")            # Fig. 7 "proper experts"
@@ -119,10 +122,16 @@ def run_job(job: dict) -> dict:
     from ..ppo import Trainer
     from ..runner import run_training
 
-    cfg = TrainConfig.from_dict(job["config"]).validate()
     out = Path(job["out"])
     if (out / "summary.json").exists():
         return json.loads((out / "summary.json").read_text())
+    if job.get("kind") == "clone":
+        from ..dagger import BUNDLE, CloneConfig, clone_oracle
+
+        summary = clone_oracle(CloneConfig(**job["config"]), out, bundle_to=job["bundle_to"])
+        (out / BUNDLE).unlink(missing_ok=True)  # the bundle lives in models/; keep the report folder small
+        return summary
+    cfg = TrainConfig.from_dict(job["config"]).validate()
     if cfg.method == "frl":
         learner = FederatedGroup(cfg, side_users=job.get("side_users", ()))
     else:
@@ -131,18 +140,11 @@ def run_job(job: dict) -> dict:
                                 for s in job.get("experts", [])])
     resume = (out / "checkpoint.safetensors").exists()
     try:
-        summary = run_training(learner, cfg, out, resume=resume, tensorboard=False,
-                               save_final=job.get("save_final", False))
+        summary = run_training(learner, cfg, out, resume=resume, tensorboard=False, save_final=False)
     except ValueError:
         if not resume:
             raise
-        summary = run_training(learner, cfg, out, resume=False, tensorboard=False,
-                               save_final=job.get("save_final", False))
-    if job.get("bundle_to"):
-        import shutil
-
-        Path(job["bundle_to"]).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(out / "policy.safetensors", job["bundle_to"])
+        summary = run_training(learner, cfg, out, resume=False, tensorboard=False, save_final=False)
     (out / "checkpoint.safetensors").unlink(missing_ok=True)  # keep the report folder small
     return summary
 
@@ -195,7 +197,7 @@ class Plan:
         return {"name": f"{name}/seed{seed}", "fig": fig, "config": cfg, "experts": list(experts),
                 "side_users": list(side_users), "out": str(self.out / "runs" / name / f"seed{seed}")}
 
-    # experts are trained by behavioural cloning of the scripted oracle, then (the team) PPO
+    # experts and the shipped team are DAgger clones of the scripted oracle (medc_training.dagger)
     def expert_jobs(self, retrain: bool) -> list[dict]:
         jobs = []
         steps = self.budget["expert_steps"]
@@ -214,7 +216,7 @@ class Plan:
                 arch = "lenet5" if i == 1 else "mlp"
                 jobs.append(self._expert_job(name, app, agents, arch, self.budget["expert_steps"],
                                              retrain, env_options=options, max_steps=OTHER_MAX_STEPS,
-                                             grid=OTHER_GRID, extra=self.other_eval()))
+                                             grid=OTHER_GRID, greedy=False))
         return [j for j in jobs if j is not None]
 
     def other_eval(self) -> dict:
@@ -227,29 +229,33 @@ class Plan:
         return {**OTHER_EVAL, "eval_every": every}
 
     def _expert_job(self, name, env, agents, arch, steps, retrain, walls=0, env_options=None,
-                    folder="experts", max_steps=None, grid=None, extra=None):
+                    folder="experts", max_steps=None, grid=None, greedy=True):
+        """A DAgger job for one bundle, or None when a DAgger bundle for the same grid and step
+        limit is already there (bundles made any other way are retrained)."""
         from ..bundle import BundleError, read_manifest
+        from ..dagger import CloneConfig
 
         target = self.models / folder / f"{name}.safetensors"
+        grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                want_steps = max_steps or self.base["max_steps"]
-                has_steps = manifest.get("environment", {}).get("max_steps", want_steps)
-                same_grid = manifest["observation"]["height"] == (grid or self.base["grid"])
-                if same_grid and has_steps == want_steps:
+                same = (manifest["observation"]["height"] == grid
+                        and manifest.get("environment", {}).get("max_steps") == max_steps
+                        and manifest.get("training", {}).get("method") == "dagger")
+                if same:
                     return None
             except (BundleError, KeyError):
                 pass
-        cfg = self.cfg(env=env, agents=agents, walls=walls, env_options=env_options or {}, arch=arch,
-                       total_steps=steps, seed=1000 + len(name) * 7 + agents, method="il", expert_rate=1.0,
-                       max_steps=max_steps or self.base["max_steps"], grid=grid or self.base["grid"],
-                       **(extra or {}))
+        cfg = CloneConfig(env=env, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+                          env_options=env_options or {}, arch=arch, total_steps=steps,
+                          seed=1000 + len(name) * 7 + agents, eval_greedy=greedy,
+                          device=self.base["device"]).validate()
         out = self.out / "expert-training" / name
-        if (out / "summary.json").exists() and (retrain or not target.exists()):
+        if (out / "summary.json").exists():
             (out / "summary.json").unlink()
-        return {"name": f"expert {name}", "fig": "experts", "config": cfg, "experts": ["oracle"],
-                "out": str(out), "save_final": True, "bundle_to": str(target)}
+        return {"name": f"expert {name}", "fig": "experts", "kind": "clone", "config": asdict(cfg),
+                "out": str(out), "bundle_to": str(target)}
 
     def tl(self, fig: str) -> list[dict]:
         steps = self.budget["steps"]
@@ -521,6 +527,28 @@ class Report:
         return path
 
 
+def expert_table(models: Path) -> str:
+    """One row per shipped expert/team bundle: how its DAgger evaluation compares with a random
+    team on the same episodes (read from the bundle manifests; empty if there are none)."""
+    from ..bundle import BundleError, read_manifest
+
+    rows = []
+    for path in [f for d in ("experts", "team") for f in sorted((models / d).glob("*.safetensors"))]:
+        try:
+            man = read_manifest(path)
+            m, t = man["metrics"], man["training"]
+            rows.append(f"| {path.parent.name}/{path.stem} | {t['arch']} | {t['method']} {t['steps']:,} | "
+                        f"{m['greedy_episode_length']:.1f} ({m['greedy_success_rate']:.0%}) | "
+                        f"{m['sampled_episode_length']:.1f} ({m['sampled_success_rate']:.0%}) | "
+                        f"{m['random_episode_length']:.1f} ({m['random_success_rate']:.0%}) |")
+        except (BundleError, KeyError, TypeError, ValueError):
+            rows.append(f"| {path.parent.name}/{path.stem} | ? | no DAgger evaluation in manifest | | | |")
+    if not rows:
+        return ""
+    return ("| bundle | arch | training, steps | greedy: mean ep. length (found) | sampled | random team |\n"
+            "|---|---|---|---|---|---|\n" + "\n".join(rows))
+
+
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
     from ..config import SCALES
 
@@ -693,12 +721,18 @@ paper's table at this scale (everything else is the paper's: lr 3e-4, clip 0.2, 
 |---|---|
 {scale_rows}
 
-**Experts.** The expert bundles in `models/experts/` were trained by this code with
-IL (behavioural cloning, R_E = 1) of the scripted BFS oracle in their own environment — the
-cheapest way to get competent experts on 2 CPU cores; the paper's experts were PPO-trained at
-full scale. Two architectures are mixed (`lenet5` for A1W3 and A2W1, `mlp` for the others;
-MEDC needs only their actions, so one run uses both). R_S of each expert follows the QoS formula
-with equal reputations (0.5) and D_m =
+**Experts.** The expert bundles in `models/experts/` (and the shipped team) were trained by
+this code: DAgger cloning of the scripted oracle in their own environment (`medc-clone`, see
+`medc_training.dagger`), the cheapest way to get competent experts on 2 CPU cores; the paper's
+experts were PPO-trained at full scale. The oracle sees the target; the clones see only the
+agents' observations. Two architectures are mixed among the target-localization experts
+(`lenet5` and `convnet-small`; MEDC needs only their actions, so one run uses both). Each
+bundle's own evaluation (128 finished episodes, greedy and sampled, against a random team on
+the same episodes; target localization is judged greedy, fleet and maze sampled):
+
+{expert_table(plan.models) or "(no expert bundles found)"}
+
+R_S of each expert follows the QoS formula with equal reputations (0.5) and D_m =
 |Δagents| + |Δwalls| (+ |Δgrid|, 0 here), floored at 0.5.
 
 """
