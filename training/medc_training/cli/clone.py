@@ -79,30 +79,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# CloneConfig fields whose command-line option has the same name (--max-steps -> max_steps).
+SAME_NAME = ("env", "agents", "walls", "grid", "max_steps", "arch", "num_envs", "rollout_len", "grad_steps",
+             "beta_decay", "lr", "max_samples", "eval_episodes", "eval_every", "seed", "device")
+
+
 def config_from_args(args: argparse.Namespace):
     from ..dagger import CloneConfig
 
-    return CloneConfig(
-        env=args.env,
-        agents=args.agents,
-        walls=args.walls,
-        grid=args.grid,
-        max_steps=args.max_steps,
-        env_options=parse_env_options(args.env_option),
-        arch=args.arch,
-        total_steps=args.steps,
-        num_envs=args.num_envs,
-        rollout_len=args.rollout_len,
-        grad_steps=args.grad_steps,
-        beta_decay=args.beta_decay,
-        lr=args.lr,
-        max_samples=args.max_samples,
-        eval_episodes=args.eval_episodes,
-        eval_every=args.eval_every,
-        eval_greedy=not args.eval_sampled,
-        seed=args.seed,
-        device=args.device,
-    ).validate()
+    return CloneConfig(**{name: getattr(args, name) for name in SAME_NAME},
+                       env_options=parse_env_options(args.env_option), total_steps=args.steps,
+                       eval_greedy=not args.eval_sampled).validate()
 
 
 def main(argv: list[str] | None = None) -> int:
