@@ -136,6 +136,14 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     assert load_bundle(job["bundle_to"]).manifest["training"]["method"] == "dagger"
     assert not (Path(job["out"]) / "policy.safetensors").exists()
     assert (Path(job["out"]) / "metrics.csv").exists()
+    # The report's expert table reads the bundle's own evaluation from its manifest.
+    from medc_training.cli.reproduce import expert_table
+
+    (models / "team").mkdir()
+    (models / "team" / "broken.safetensors").write_bytes(b"not a bundle")
+    rows = expert_table(models).splitlines()
+    assert rows[2].startswith(f"| experts/{Path(job['bundle_to']).stem} | convnet-small | dagger 64 | ")
+    assert rows[3].startswith("| team/broken | ? | no DAgger evaluation in manifest")
     # An equal DAgger bundle is reused; one made for another grid is retrained.
     again = dict(name="A1W0", env="target_localization", agents=1, arch="lenet5", steps=64, retrain=False)
     assert plan._expert_job(**again, grid=7, max_steps=10) is None
