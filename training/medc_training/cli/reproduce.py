@@ -6,8 +6,9 @@
 Phases (``--only`` picks some; default all):
 
 - ``experts``: trains the expert bundles the experiments use (models/experts/*.safetensors)
-  and the shipped team (models/team/A3W2.safetensors). Existing bundles at the right grid are
-  reused unless ``--retrain``.
+  and the shipped team (models/team/A3W2.safetensors) by DAgger cloning of the scripted
+  oracle (medc_training.dagger, as ``medc-clone``). Existing DAgger bundles for the same grid
+  and step limit are reused unless ``--retrain``.
 - ``fig6``: MEDC with the free (A1W0), complex (A1W3) and combined experts vs MDRL-sparse on
   A3W2 and A3W3.
 - ``fig7``: A3W2 with 5 proper / random / biased / malicious experts vs sparse.
