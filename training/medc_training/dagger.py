@@ -221,6 +221,7 @@ def clone_oracle(
     start = time.perf_counter()
     steps = 0
     row: dict = {}
+    losses: list[float] = []  # minibatch losses since the last metrics row
     try:
         for it in range(cfg.iterations):
             beta = cfg.beta_decay**it
@@ -239,7 +240,6 @@ def clone_oracle(
                 obs, mask = step.obs, step.mask
             steps += B * cfg.rollout_len
             net.train()
-            losses = []
             for _ in range(cfg.grad_steps):
                 o, m, b = data.sample(cfg.batch_size, gen)
                 loss = clone_loss(net(o)[0], m, b)
@@ -270,6 +270,7 @@ def clone_oracle(
             }
             with open(out / "metrics.csv", "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
+            losses.clear()
             if bar is not None:
                 bar.set_postfix(
                     greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}"
