@@ -100,15 +100,22 @@ def test_medc_train_flags_reach_the_config():
     assert config_from_args(build_parser().parse_args(["--out", "x"])).eval_greedy is True
 
 
-def test_long_other_supplement_pits_medc_against_sparse_and_il_with_truthful_experts(tmp_path):
+def test_long_other_supplement_pits_medc_against_sparse_and_il_truthful_and_faulty(tmp_path):
     plan = Plan("cpu", 4, tmp_path / "out", Path("models"), {"long_steps": 1_000_000})
     jobs = plan.long_other_runs()
-    assert len(jobs) == 18  # 2 applications x 3 seeds x (sparse, MEDC, IL)
+    assert len(jobs) == 30  # 2 applications x 3 seeds x (sparse, MEDC, IL, MEDC-3faulty, IL-3faulty)
     assert {j["name"].split("/")[0] for j in jobs} == {
-        f"long1M-{app}-{m}" for app in ("fleet", "maze") for m in ("sparse", "medc", "il")}
+        f"long1M-{app}-{m}" for app in ("fleet", "maze")
+        for m in ("sparse", "medc", "il", "medc-3faulty", "il-3faulty")}
     medc = next(j for j in jobs if j["name"] == "long1M-maze-medc/seed0")
     assert len(medc["experts"]) == 6
     assert [Path(e).stem for e in medc["experts"]][:2] == ["maze-A1C0", "maze-A2C0"]
+    faulty = next(j for j in jobs if j["name"] == "long1M-fleet-il-3faulty/seed2")["experts"]
+    assert faulty[:2] == ["random", "biased:0"] and faulty[2].startswith("malicious:")
+    assert [Path(e).stem for e in faulty[3:]] == ["fleet-A1C8", "fleet-A3C4", "fleet-A2C8"]
+    # the same faulty set as Fig. 11 at 100k steps
+    fig11 = next(j for j in plan.other_apps() if j["name"] == "fleet-il-3faulty/seed0")["experts"]
+    assert fig11 == faulty
     assert all(j["config"]["total_steps"] == 1_000_000 and j["config"]["grid"] == 10 for j in jobs)
 
 

@@ -322,23 +322,32 @@ class Plan:
         return jobs
 
     def long_other_runs(self) -> list[dict]:
-        """Supplement: fleet coordination and maze cleaning, MDRL-sparse vs MEDC vs IL (the six
-        truthful experts of Fig. 10) for ``long_steps`` steps, at most 3 seeds."""
+        """Supplement: fleet coordination and maze cleaning, MDRL-sparse vs MEDC vs IL with the
+        six experts of Fig. 10, truthful and with 3 faulty (as in Fig. 11), for ``long_steps``
+        steps, at most 3 seeds."""
         steps = self.budget["long_steps"]
         tag = long_tag(steps)
         jobs = []
         for app, spec in OTHER_APPS.items():
             short = spec["short"]
-            experts = [self.expert_path(n) for n, _, _ in spec["experts"]]
             for seed in range(min(self.seeds, 3)):
                 base = self.other_base(app, seed, steps)
                 base["eval_every"] = max(base["eval_every"], steps // 20)
                 sparse = {**base, "method": "sparse"}
                 jobs.append(self.run("long-other", f"{tag}-{short}-sparse", seed, sparse))
-                for method in ("medc", "il"):
-                    jobs.append(self.run("long-other", f"{tag}-{short}-{method}", seed,
-                                         {**base, "method": method}, experts))
+                for suffix, experts in self.other_expert_sets(spec):
+                    for method in ("medc", "il"):
+                        jobs.append(self.run("long-other", f"{tag}-{short}-{method}{suffix}", seed,
+                                             {**base, "method": method}, experts))
         return jobs
+
+    def other_expert_sets(self, spec: dict) -> tuple[tuple[str, list[str]], ...]:
+        """(run-name suffix, expert specs): the six truthful experts of an application, and the
+        same six with the first three replaced by a random, a biased and a malicious one."""
+        names = [n for n, _, _ in spec["experts"]]
+        truthful = [self.expert_path(n) for n in names]
+        faulty = ["random", "biased:0", f"malicious:{self.expert_path(names[0])}", *truthful[3:]]
+        return ("", truthful), ("-3faulty", faulty)
 
     def other_base(self, app: str, seed: int, steps: int) -> dict:
         """The config of a fleet/maze run for the user of interest (3 agents, the target options)."""
@@ -360,12 +369,9 @@ class Plan:
         jobs = []
         for app, spec in OTHER_APPS.items():
             short = spec["short"]
-            names = [n for n, _, _ in spec["experts"]]
             for seed in range(self.other_seeds):
                 base = self.other_base(app, seed, steps)
-                faulty = ["random", "biased:0", f"malicious:{self.expert_path(names[0])}"] + \
-                    [self.expert_path(n) for n in names[3:]]
-                for tag, experts in (("", [self.expert_path(n) for n in names]), ("-3faulty", faulty)):
+                for tag, experts in self.other_expert_sets(spec):
                     for method in ("medc", "il"):
                         jobs.append(self.run("fig10", f"{short}-{method}{tag}", seed,
                                              {**base, "method": method}, experts))
@@ -677,7 +683,9 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
         for short, app in ((spec["short"], spec["title"]) for spec in OTHER_APPS.values()):
             data = r.figure(f"{tag}_{short}.png", f"Supplement: {app}, {steps_text} steps", {
                 "MDRL-sparse": f"{tag}-{short}-sparse", "MEDC (6 experts)": f"{tag}-{short}-medc",
-                "IL (6 experts)": f"{tag}-{short}-il"}, ylabel="mean episode length (sampled eval)")
+                "IL (6 experts)": f"{tag}-{short}-il", "MEDC (3 of 6 faulty)": f"{tag}-{short}-medc-3faulty",
+                "IL (3 of 6 faulty)": f"{tag}-{short}-il-3faulty"},
+                ylabel="mean episode length (sampled eval)")
             if data:
                 r.add(f"### Supplement — longer runs ({app}, {steps_text} steps)\n\n"
                       f"![{tag} {short}]({tag}_{short}.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
@@ -685,6 +693,11 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
                                   f"{tag}-{short}-medc", f"{tag}-{short}-sparse"),
                           r.claim(f"{app}: MEDC beats IL over {steps_text} steps",
                                   f"{tag}-{short}-medc", f"{tag}-{short}-il"),
+                          *([r.claim(f"{app}: MEDC with 3 faulty experts beats MDRL-sparse over {steps_text} "
+                                     "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-sparse"),
+                             r.claim(f"{app}: MEDC beats IL, both with 3 faulty experts, over {steps_text} "
+                                     "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-il-3faulty")]
+                            if f"{tag}-{short}-medc-3faulty" in r.scores else []),
                       ]))
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
