@@ -20,6 +20,17 @@ from dataclasses import dataclass, field
 METHODS = ("sparse", "medc", "rs", "il", "frl")
 
 
+def check_run_fields(cfg, at_least_one: tuple[str, ...]) -> None:
+    """The checks every run configuration shares (TrainConfig, dagger.CloneConfig): a device
+    torch can name, and the environment's agents, grid and max_steps plus ``at_least_one``
+    all >= 1. Raises ValueError naming the bad field."""
+    if cfg.device not in ("cpu", "cuda") and not cfg.device.startswith("cuda:"):
+        raise ValueError(f"device must be 'cpu' or 'cuda', got {cfg.device!r}")
+    for name in ("agents", "grid", "max_steps", *at_least_one):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+
+
 @dataclass
 class EnvironmentConfig:
     """The environment a run plays (shared by TrainConfig and medc_training.dagger.CloneConfig)."""
@@ -127,12 +138,7 @@ class TrainConfig(EnvironmentConfig):
         """Raise ValueError naming the bad field; returns self for chaining."""
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
-        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
-        for name in ("agents", "grid", "max_steps", "num_envs", "horizon", "epochs", "minibatches",
-                     "eval_envs", "frl_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_run_fields(self, ("num_envs", "horizon", "epochs", "minibatches", "eval_envs", "frl_every"))
         if self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0:
             raise ValueError("walls, total_steps, eval_steps and eval_every must be >= 0")
         if self.horizon < self.num_envs:

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 
 from .bundle import save_bundle
-from .config import EnvironmentConfig
+from .config import EnvironmentConfig, check_run_fields
 from .evaluate import evaluate_policy
 from .nets import make_actor_critic, masked_logits
 from .ppo import EVAL_SEED_OFFSET, make_env_for, seed_everything
@@ -105,29 +105,14 @@ class CloneConfig(EnvironmentConfig):
 
     def validate(self) -> CloneConfig:
         """Raise ValueError naming the bad field; returns self."""
-        for name in (
-            "agents",
-            "grid",
-            "max_steps",
-            "total_steps",
-            "num_envs",
-            "rollout_len",
-            "batch_size",
-            "max_samples",
-            "eval_episodes",
-            "eval_envs",
-            "eval_every",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_run_fields(self, ("total_steps", "num_envs", "rollout_len", "batch_size", "max_samples",
+                                "eval_episodes", "eval_envs", "eval_every"))
         if self.grad_steps < 0 or self.walls < 0:
             raise ValueError("grad_steps and walls must be >= 0")
         if not 0.0 <= self.beta_decay <= 1.0:
             raise ValueError(f"beta_decay must be in [0, 1], got {self.beta_decay}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
-            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
         return self
 
 
