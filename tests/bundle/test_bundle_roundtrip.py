@@ -48,6 +48,7 @@ def test_manifest_is_completed_from_the_net_and_the_application(tmp_path) -> Non
     assert manifest["observation"] == {
         "channels": 5, "height": 10, "width": 10,
         "channel_names": ["own_location", "team_locations", "readings", "visit_counts", "walls"],
+        "name": "maps",
     }
     assert manifest["actions"] == ["N", "NE", "E", "SE", "S", "SW", "W", "NW"]
     assert manifest["architecture"] == net.spec

@@ -11,7 +11,10 @@ entry, ``"medc.manifest"``, a JSON object:
     application       one of KNOWN_APPLICATIONS ("target_localization", ...)
     description       optional free text (what the registry shows)
     environment       {attribute: number | bool | string}, e.g. {"agents": 3, "walls": 2, "grid": 30}
-    observation       {"channels": C, "height": H, "width": W, "channel_names": [C names]}
+    observation       {"channels": C, "height": H, "width": W, "channel_names": [C names],
+                       "name": variant}; "name" is the observation variant the model takes
+                       (target localization: "maps", "maps+estimate", "egoR", "egoR+estimate",
+                       see medc_training.envs.tl_observation); a bundle without it takes "maps"
     actions           [A action names], e.g. ["N", "NE", "E", "SE", "S", "SW", "W", "NW"]
     architecture      the declarative network spec (medc_training.nets), input C x H x W, A actions
     training          {"method", "steps", "seed", "code_version", "git_commit", ...}
@@ -129,6 +132,10 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     full["format_version"] = FORMAT_VERSION
     full["architecture"] = net.spec
     obs = dict(full.get("observation") or {})
+    if app == "target_localization":
+        spec = _observation_spec(obs.get("name", "maps"))
+        obs["name"] = spec.name
+        obs.setdefault("channel_names", list(spec.channels))
     obs.setdefault("channels", c)
     obs.setdefault("height", h)
     obs.setdefault("width", w)
@@ -151,6 +158,15 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
         training["git_commit"] = _git_commit()
     full["training"] = training
     return validate_manifest(full)
+
+
+def _observation_spec(name: Any):
+    from medc_training.envs.tl_observation import parse_observation
+
+    try:
+        return parse_observation(name)
+    except ValueError as exc:
+        raise BundleError(f"manifest: {exc}") from None
 
 
 def _env_names(app: Any) -> tuple[list[str] | None, list[str] | None]:
@@ -271,8 +287,9 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     except SpecError as exc:
         raise BundleError(f"manifest: invalid architecture: {exc}") from None
     obs = manifest["observation"]
-    if not isinstance(obs, dict) or set(obs) != {"channels", "height", "width", "channel_names"}:
-        raise BundleError("manifest: observation must be {channels, height, width, channel_names}")
+    keys = {"channels", "height", "width", "channel_names"}
+    if not isinstance(obs, dict) or not keys <= set(obs) <= keys | {"name"}:
+        raise BundleError("manifest: observation must be {channels, height, width, channel_names[, name]}")
     shape = tuple(_check_int(obs[k], f"observation.{k}") for k in ("channels", "height", "width"))
     net_shape = (spec["input"]["channels"], spec["input"]["height"], spec["input"]["width"])
     if shape != net_shape:
@@ -282,7 +299,19 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     num_actions = spec["layers"][-1]["num_actions"]
     _check_names(manifest["actions"], num_actions, "actions")
     grid = manifest["environment"].get("grid")
-    if grid is not None and (grid != shape[1] or grid != shape[2]):
+    name = obs.get("name")
+    if name is not None:
+        if app != "target_localization":
+            raise BundleError(f"manifest: observation.name is for target_localization only, not {app}")
+        ospec = _observation_spec(name)
+        if list(obs["channel_names"]) != list(ospec.channels):
+            raise BundleError(f"manifest: observation {ospec.name} has channels {list(ospec.channels)}, "
+                              "but channel_names differ")
+        if isinstance(grid, int) and not isinstance(grid, bool) and ospec.shape(grid) != shape:
+            raise BundleError(f"manifest: environment.grid is {grid} but the observation is "
+                              f"{shape[1]}x{shape[2]} with {shape[0]} channels; "
+                              f"{ospec.name} on that grid is {list(ospec.shape(grid))}")
+    elif grid is not None and (grid != shape[1] or grid != shape[2]):
         raise BundleError(f"manifest: environment.grid is {grid!r} but the observation is "
                           f"{shape[1]}x{shape[2]}")
     out = dict(manifest)
@@ -313,6 +342,14 @@ class PolicyBundle:
     @property
     def num_actions(self) -> int:
         return self.net.num_actions
+
+    @property
+    def observation(self) -> str | None:
+        """The observation variant the model takes (target localization; 'maps' when the manifest
+        predates variants), or None for the other applications."""
+        if self.manifest.get("application") != "target_localization":
+            return None
+        return str(self.manifest["observation"].get("name", "maps"))
 
     @property
     def action_names(self) -> list[str]:

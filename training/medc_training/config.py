@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from .envs.tl_observation import DEFAULT_OBSERVATION
+
 METHODS = ("sparse", "medc", "rs", "il", "frl")
 
 
@@ -47,6 +49,10 @@ class EnvironmentConfig:
     """Episode length limit; reaching it truncates the episode (PPO bootstraps it)."""
     env_options: dict = field(default_factory=dict)
     """Extra keyword options passed to make_batched (e.g. customers for fleet coordination)."""
+    observation: str = DEFAULT_OBSERVATION
+    """Target localization's observation variant (medc_training.envs.tl_observation): 'maps' (the
+    paper's 5 absolute maps), 'maps+estimate', 'egoR', 'egoR+estimate'. Ignored by the other
+    applications."""
 
     def env_attributes(self) -> dict:
         """The environment's descriptive features as stored in bundle manifests."""

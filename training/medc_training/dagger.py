@@ -39,7 +39,7 @@ from .config import EnvironmentConfig, check_run_fields
 from .evaluate import evaluate_policy
 from .nets import make_actor_critic, masked_logits
 from .ppo import EVAL_SEED_OFFSET, make_env_for, seed_everything
-from .runner import BUNDLE
+from .runner import BUNDLE, observation_section
 
 CSV_COLUMNS = (
     "iteration",
@@ -280,6 +280,7 @@ def clone_oracle(
         "description": f"DAgger clone of the scripted oracle for {cfg.env} "
         + ", ".join(f"{k}={v}" for k, v in attrs.items()),
         "environment": attrs,
+        **observation_section(env),
         "training": {
             "method": "dagger",
             "steps": steps,

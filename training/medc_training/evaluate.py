@@ -56,6 +56,8 @@ def evaluate_policy(env, policy=None, episodes: int = 256, greedy: bool = True, 
 def env_for_bundle(bundle, num_envs: int = 32, seed: int = 12345):
     """A batched environment matching the bundle manifest's application and attributes."""
     attrs = dict(bundle.manifest.get("environment", {}))
+    if bundle.observation is not None:
+        attrs["observation"] = bundle.observation
     return make_batched(bundle.manifest["application"], num_envs=num_envs, seed=seed, **attrs)
 
 

@@ -50,9 +50,11 @@ class Expert(ABC):
         """
         return self.scores(obs[rows], mask[rows])
 
-    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
+                         observation: str | None = None) -> None:
         """Raise ExpertError if this expert cannot advise on that observation/action space.
 
+        ``observation`` names the environment's observation variant (target localization).
         The default accepts any space: random advice fits every environment.
         """
         return None
@@ -79,7 +81,14 @@ class BundleExpert(Expert):
         return int(self.bundle.num_actions)
 
     def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
-                         application: str | None = None) -> None:
+                         observation: str | None = None, application: str | None = None) -> None:
+        mine = self.bundle.observation
+        if observation and mine and mine != observation:
+            raise ExpertError(
+                f"expert {self.name} takes the observation {mine!r}, but this environment produces "
+                f"{observation!r}; use an expert trained on the same observation (or train with "
+                f"--observation {mine})"
+            )
         if self.obs_shape and tuple(self.obs_shape) != tuple(obs_shape):
             raise ExpertError(
                 f"expert {self.name} was trained on observations of shape {self.obs_shape}, but this "
@@ -157,7 +166,8 @@ class BiasedExpert(Expert):
         self.action = int(action)
         self.name = f"biased:{action}"
 
-    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
+                         observation: str | None = None) -> None:
         if self.action >= num_actions:
             raise ExpertError(f"biased expert action {self.action} is not one of the {num_actions} actions")
 
@@ -190,8 +200,9 @@ class MaliciousExpert(Expert):
         self.attributes = inner.attributes
         self.name = f"malicious({inner.name})"
 
-    def check_compatible(self, obs_shape: Sequence[int], num_actions: int) -> None:
-        self.inner.check_compatible(obs_shape, num_actions)
+    def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
+                         observation: str | None = None) -> None:
+        self.inner.check_compatible(obs_shape, num_actions, observation)
         if self.opposite is None:
             self.opposite = default_opposite(num_actions)
         if sorted(self.opposite) != list(range(num_actions)):

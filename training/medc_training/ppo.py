@@ -36,6 +36,12 @@ from .nets import make_actor_critic, masked_logits
 EVAL_SEED_OFFSET = 1_000_003
 
 
+def observation_name(env) -> str | None:
+    """The observation variant an environment produces (target localization), or None."""
+    spec = getattr(env, "observation", None)
+    return None if spec is None else spec.name
+
+
 def seed_everything(seed: int) -> None:
     """Seed Python, numpy and torch (CPU and CUDA) global generators."""
     random.seed(seed)
@@ -51,6 +57,7 @@ def make_env_for(cfg: TrainConfig, num_envs: int, seed: int, reward_shaping: boo
     if cfg.env == "target_localization":
         options["walls"] = cfg.walls
         options["reward_shaping"] = reward_shaping
+        options["observation"] = cfg.observation
     return make_batched(cfg.env, num_envs=num_envs, device=cfg.device, seed=seed, agents=cfg.agents,
                         grid=cfg.grid, max_steps=cfg.max_steps, **options)
 
@@ -106,7 +113,7 @@ class Trainer:
         if cfg.method in ("medc", "il") and not self.experts:
             raise ValueError(f"method {cfg.method!r} needs at least one expert (--expert)")
         for expert in self.experts:
-            expert.check_compatible(self.obs_shape, self.A)
+            expert.check_compatible(self.obs_shape, self.A, observation=observation_name(self.env))
             if isinstance(expert, OracleExpert) or isinstance(getattr(expert, "inner", None), OracleExpert):
                 (expert if isinstance(expert, OracleExpert) else expert.inner).bind(self.env)
         self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None

@@ -139,6 +139,12 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     return summary
 
 
+def observation_section(env) -> dict:
+    """``{"observation": {"name": ...}}`` for an environment with observation variants, else {}."""
+    spec = getattr(env, "observation", None)
+    return {} if spec is None else {"observation": {"name": spec.name}}
+
+
 def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:
     """The manifest of a trained policy bundle (provenance and evaluation metrics)."""
     env_attrs = dict(getattr(trainer.env, "attributes", None) or cfg.env_attributes())
@@ -147,6 +153,7 @@ def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:
         "description": f"{cfg.method} policy for {cfg.env} "
                        + ", ".join(f"{k}={v}" for k, v in env_attrs.items()),
         "environment": env_attrs,
+        **observation_section(trainer.env),
         "training": {"method": cfg.method, "steps": int(trainer.global_step), "seed": cfg.seed,
                      "arch": cfg.arch, "horizon": cfg.horizon, "epochs": cfg.epochs},
         "metrics": {k: float(v) for k, v in metrics.items()},

@@ -64,12 +64,19 @@ from medc_training.envs.grid import (
     pad_blocked,
     random_free_cells,
 )
+from medc_training.envs.tl_observation import (
+    DEFAULT_OBSERVATION,
+    ObservationSpec,
+    TeamMemory,
+    parse_observation,
+)
 
 __all__ = [
     "ACTIONS",
     "ACTION_NAMES",
     "BACKGROUND",
     "CHANNELS",
+    "DEFAULT_OBSERVATION",
     "OPPOSITE",
     "SHAPING_SCALE",
     "SOURCE_STRENGTH",
@@ -78,12 +85,15 @@ __all__ = [
     "WALL_ATTENUATION",
     "TargetLocalization",
     "build_observations",
+    "check_observation",
     "check_options",
+    "expected_rate_from_sources",
     "generate_layouts",
     "max_walls",
     "normalise_reading",
     "sensor_reading",
     "update_memory",
+    "visit_norm",
     "wall_length_range",
 ]
 
@@ -126,6 +136,15 @@ def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[i
     return agents, walls, grid, max_steps
 
 
+def check_observation(observation, grid: int) -> ObservationSpec:
+    """The ObservationSpec an option names; raise ValueError saying what is allowed."""
+    spec = parse_observation(observation)
+    if spec.view == "ego" and spec.radius > grid - 1:
+        raise ValueError(f"observation {spec.name}: radius {spec.radius} exceeds grid - 1 = {grid - 1} "
+                         "(ego{grid - 1} already shows the whole grid wherever the agent stands)")
+    return spec
+
+
 def normalise_reading(readings: torch.Tensor) -> torch.Tensor:
     """Map raw readings (counts/s) to [0, 1]: log(1 + I) / log(1 + S + BG), clipped."""
     return (torch.log1p(readings) * _READING_SCALE).clamp_(0.0, 1.0)
@@ -147,25 +166,42 @@ def sensor_reading(
     noise:     draw Poisson counts with the exact reading as mean.
     Returns float32 [B,N].
     """
+    rate = expected_rate_from_sources(positions, target.unsqueeze(1), walls)[..., 0]
+    if noise:
+        rate = torch.poisson(rate, generator=generator)
+    return rate
+
+
+def expected_rate_from_sources(
+    positions: torch.Tensor, sources: torch.Tensor, walls: torch.Tensor
+) -> torch.Tensor:
+    """Noise-free readings (counts/s) at ``positions`` for each candidate source cell.
+
+    positions: int64 [B,N,2] sensor cells; sources: int64 [B,M,2] or [M,2] candidate source
+    cells; walls: bool [B,H,W]. Returns float32 [B,N,M]. Entry [b, n, m] is exactly what
+    :func:`sensor_reading` returns for a sensor at positions[b, n] and a source at sources[m]
+    (the same arithmetic, element by element), so the team's source posterior uses the
+    simulator's own sensor model.
+    """
     b, n = positions.shape[:2]
     h, w = walls.shape[-2:]
-    src = target.to(torch.float32).unsqueeze(1)  # [B,1,2]
-    delta = positions.to(torch.float32) - src  # [B,N,2]
+    if sources.dim() == 2:
+        sources = sources.unsqueeze(0).expand(b, -1, -1)
+    m = sources.shape[1]
+    src = sources.to(torch.float32).unsqueeze(1)  # [B,1,M,2]
+    delta = positions.to(torch.float32).unsqueeze(2) - src  # [B,N,M,2]
     # H+W samples put consecutive points at most 1/sqrt(2) cell apart, so every crossing of a
     # one-cell-thick wall strip (chord >= 1 cell) is seen; only clipped segment corners can be missed.
     samples = h + w
     t = (torch.arange(samples, device=positions.device, dtype=torch.float32) + 0.5) / samples
-    rows = (src[..., 0:1] + delta[..., 0:1] * t).round_()  # [B,N,S]
+    rows = (src[..., 0:1] + delta[..., 0:1] * t).round_()  # [B,N,M,S]
     cols = (src[..., 1:2] + delta[..., 1:2] * t).round_()
     idx = rows.mul_(w).add_(cols).long().view(b, -1)
-    inside = walls.reshape(b, -1).gather(1, idx).view(b, n, samples)
+    inside = walls.reshape(b, -1).gather(1, idx).view(b, n, m, samples)
     # Each run of consecutive wall samples is one wall crossed (the source cell is free).
     entries = inside[..., 0].to(torch.float32) + (inside[..., 1:] > inside[..., :-1]).sum(-1)
     dist2 = (delta * delta).sum(-1)
-    rate = SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
-    if noise:
-        rate = torch.poisson(rate, generator=generator)
-    return rate
+    return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
 
 
 def update_memory(
@@ -212,7 +248,7 @@ def build_observations(
         out = torch.empty((b, n, 5, h, w), dtype=torch.float32, device=positions.device)
     out[:, :, :2].zero_()
     out[:, :, 2].copy_(reading_map.unsqueeze(1))
-    out[:, :, 3].copy_(_visit_norm(visit_map).unsqueeze(1))
+    out[:, :, 3].copy_(visit_norm(visit_map).unsqueeze(1))
     out[:, :, 4].copy_(walls.unsqueeze(1))
     cell = positions[..., 0] * w + positions[..., 1]  # [B,N]
     agent_base = (torch.arange(b * n, device=positions.device).view(b, n) * 5) * hw  # [B,N]
@@ -226,7 +262,8 @@ def build_observations(
     return out
 
 
-def _visit_norm(visits: torch.Tensor) -> torch.Tensor:
+def visit_norm(visits: torch.Tensor) -> torch.Tensor:
+    """Visit counts divided by VISIT_SATURATION, clipped to 1 (a new tensor)."""
     return (visits * (1.0 / VISIT_SATURATION)).clamp_(max=1.0)
 
 
@@ -339,6 +376,7 @@ class TargetLocalization(BatchedEnv):
         reward_shaping: bool = False,
         noise: bool = False,
         copy_obs: bool = True,
+        observation: str = DEFAULT_OBSERVATION,
     ) -> None:
         self.num_agents, self.num_walls, self.grid, self.max_steps = check_options(
             agents, walls, grid, max_steps
@@ -348,7 +386,9 @@ class TargetLocalization(BatchedEnv):
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
-        self.obs_shape = (len(CHANNELS), self.grid, self.grid)
+        self.observation = check_observation(observation, self.grid)
+        self.obs_shape = self.observation.shape(self.grid)
+        self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device)
         self._deltas = action_deltas(self.device)
         # Layouts are generated in chunks and handed out on reset: one batched BFS serves
         # many episodes, so auto-resets cost little inside the step loop.
@@ -365,6 +405,16 @@ class TargetLocalization(BatchedEnv):
             "grid": self.grid,
             "max_steps": self.max_steps,
         }
+
+    @property
+    def reading_map(self) -> torch.Tensor:
+        """float32 [B,G,G] the team's latest normalised reading per cell (0 = never visited)."""
+        return self.memory.reading_map
+
+    @property
+    def visit_map(self) -> torch.Tensor:
+        """float32 [B,G,G] the team's raw visit count per cell."""
+        return self.memory.visit_map
 
     # -- episode layouts -------------------------------------------------------------------
     def _take_layouts(self, k: int) -> dict[str, torch.Tensor]:
@@ -385,18 +435,15 @@ class TargetLocalization(BatchedEnv):
         lay = self._take_layouts(k)
         blocked = pad_blocked(lay["walls"])
         dist_pad = torch.nn.functional.pad(lay["distance"], (1, 1, 1, 1), value=float("inf"))
-        zeros = torch.zeros((k, self.grid, self.grid), device=self.device)
-        reading_map, visit_map = zeros, zeros.clone()
         readings = sensor_reading(
             lay["positions"], lay["target"], lay["walls"], noise=self.noise, generator=self.generator
         )
-        update_memory(reading_map, visit_map, lay["positions"], readings)
+        self.memory.start(lay["walls"], lay["positions"], readings, rows)
         team_dist = gather_cells(lay["distance"], lay["positions"]).mean(1)
         if rows is None:
             self.walls, self.blocked_pad, self.dist_pad = lay["walls"].clone(), blocked, dist_pad
             self.distance = lay["distance"].clone()
             self.target, self.positions = lay["target"].clone(), lay["positions"].clone()
-            self.reading_map, self.visit_map = reading_map, visit_map
             self.walls_f = lay["walls"].float()
             self.team_dist = team_dist
             self.readings = readings
@@ -405,7 +452,6 @@ class TargetLocalization(BatchedEnv):
             self.walls[rows], self.blocked_pad[rows], self.dist_pad[rows] = lay["walls"], blocked, dist_pad
             self.distance[rows] = lay["distance"]
             self.target[rows], self.positions[rows] = lay["target"], lay["positions"]
-            self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
             self.walls_f[rows] = lay["walls"].float()
             self.team_dist[rows] = team_dist
             self.readings[rows] = readings
@@ -419,11 +465,14 @@ class TargetLocalization(BatchedEnv):
         self._start_episodes(None)
         self._started = True
         b, n, hw = self.num_envs, self.num_agents, self.grid * self.grid
-        self._obs = build_observations(self.positions, self.reading_map, self.visit_map, self.walls_f)
+        self._obs = self.memory.observe(self.positions, self.walls_f)
         self._final_obs = torch.zeros_like(self._obs) if not self.copy_obs else None
         # Flat offset of channel 0 of agent (b, i) in the observation buffer.
         self._agent_base = torch.arange(b * n, device=self.device).view(b, n) * (5 * hw)
         self._others = ~torch.eye(n, dtype=torch.bool, device=self.device)
+        # The paper's maps change in a few cells per step and are updated in place; every
+        # other observation is rebuilt from the team memory each step.
+        self._incremental = self.observation.name == "maps"
         self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
         return (self._obs.clone() if self.copy_obs else self._obs), self.mask
 
@@ -444,7 +493,7 @@ class TargetLocalization(BatchedEnv):
             flat.index_fill_(0, pair_old[:, self._others].view(-1) + hw, 0.0)
             flat.index_fill_(0, pair_new[:, self._others].view(-1) + hw, 1.0)
         readings = self.reading_map.view(b, -1).gather(1, new_cell).unsqueeze(1).expand_as(pair_new)
-        visits = _visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
+        visits = visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
         flat.index_copy_(0, (pair_new + 2 * hw).view(-1), readings.reshape(-1))
         flat.index_copy_(0, (pair_new + 3 * hw).view(-1), visits.reshape(-1))
 
@@ -460,9 +509,12 @@ class TargetLocalization(BatchedEnv):
         readings = sensor_reading(
             self.positions, self.target, self.walls, noise=self.noise, generator=self.generator
         )
-        update_memory(self.reading_map, self.visit_map, self.positions, readings)
+        self.memory.record(self.walls, self.positions, readings)
         self.readings = readings
-        self._update_obs(old_cell, new_cell)
+        if self._incremental:
+            self._update_obs(old_cell, new_cell)
+        else:
+            self.memory.observe(self.positions, self.walls_f, out=self._obs)
         reward = found.float() * SUCCESS_REWARD
         if self.reward_shaping:
             team_dist = gather_cells(self.distance, self.positions).mean(1)
@@ -480,9 +532,12 @@ class TargetLocalization(BatchedEnv):
                 final_obs = self._final_obs
                 final_obs[rows] = self._obs[rows]
             self._start_episodes(rows)
-            self._obs[rows] = build_observations(
-                self.positions[rows], self.reading_map[rows], self.visit_map[rows], self.walls_f[rows]
-            )
+            if self._incremental:
+                self._obs[rows] = build_observations(
+                    self.positions[rows], self.reading_map[rows], self.visit_map[rows], self.walls_f[rows]
+                )
+            else:
+                self._obs[rows] = self.memory.observe(self.positions, self.walls_f, rows=rows)
             obs = self._obs.clone() if self.copy_obs else self._obs
         else:
             obs = self._obs.clone() if self.copy_obs else self._obs

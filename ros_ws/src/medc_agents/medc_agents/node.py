@@ -22,6 +22,7 @@ from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
 from medc_sim import contract
 from medc_sim.params import declare
+from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -30,7 +31,6 @@ from std_msgs.msg import String
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, strip_cid
 from medc_agents.team_state import TeamObserver
 
-CHANNELS = 5  # medc_training.envs.target_localization.CHANNELS
 NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
 
 
@@ -53,7 +53,14 @@ class AgentNode(Node):
         )
         self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
         num_agents = p("agents", 3, "Number of agents in the team", True)
-        grid = p("grid", 30, "Grid side in cells (the policy's observation is 5 x grid x grid)", True)
+        grid = p("grid", 30, "Grid side in cells", True)
+        observation = p(
+            "observation",
+            DEFAULT_OBSERVATION,
+            "Observation variant the policy takes (maps, maps+estimate, egoR, egoR+estimate); "
+            "a bundle that takes another is refused",
+            True,
+        )
         resolution = p("resolution", 1.0, "Cell side in metres (map frame)", True)
         self.bridge_service = p(
             "bridge_service",
@@ -69,8 +76,9 @@ class AgentNode(Node):
         )
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
-        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution)
-        self.slot = PolicySlot((CHANNELS, grid, grid), NUM_ACTIONS, application or None)
+        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution, observation)
+        spec = self.observer.observation
+        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, spec.name)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.decisions = 0

@@ -56,8 +56,12 @@ def load_policy(
     obs_shape: tuple[int, int, int],
     num_actions: int,
     application: str | None = "target_localization",
+    observation: str | None = None,
 ) -> LoadedPolicy:
     """Load and validate the bundle file at ``source`` for this observation/action space.
+
+    ``observation`` names the observation variant this agent builds (target localization); a
+    bundle that takes another variant is refused.
 
     Raises:
         PolicyRejected: not a readable regular file, too large, not a valid bundle, or made for
@@ -91,7 +95,8 @@ def load_policy(
     except (OSError, ValueError) as exc:  # a loader bug or an unreadable file must not kill the node
         raise PolicyRejected(f"policy bundle {source!r} could not be loaded: {exc}") from exc
     try:
-        BundleExpert(bundle).check_compatible(obs_shape, num_actions, application)
+        BundleExpert(bundle).check_compatible(obs_shape, num_actions, observation=observation,
+                                              application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
     # A dry run on a blank observation catches a spec whose shapes fit the manifest but not the net.
@@ -106,7 +111,7 @@ def load_policy(
 
 #: Validated bundles by (path, size, mtime): agents of one process loading the same file share one
 #: PolicyBundle (loaded and checked once), which also lets a TeamFeed batch their forward passes.
-_LOADED: dict[tuple[str, int, int, tuple, int, str | None], LoadedPolicy] = {}
+_LOADED: dict[tuple[str, int, int, tuple, int, str | None, str | None], LoadedPolicy] = {}
 
 
 def load_policy_cached(
@@ -114,6 +119,7 @@ def load_policy_cached(
     obs_shape: tuple[int, int, int],
     num_actions: int,
     application: str | None = "target_localization",
+    observation: str | None = None,
 ) -> LoadedPolicy:
     """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
     try:
@@ -125,11 +131,12 @@ def load_policy_cached(
             tuple(obs_shape),
             num_actions,
             application,
+            observation,
         )
     except (OSError, ValueError):
-        return load_policy(source, obs_shape, num_actions, application)  # raises the precise reason
+        return load_policy(source, obs_shape, num_actions, application, observation)  # the precise reason
     if key not in _LOADED:
-        _LOADED[key] = load_policy(source, obs_shape, num_actions, application)
+        _LOADED[key] = load_policy(source, obs_shape, num_actions, application, observation)
     return _LOADED[key]
 
 
@@ -141,10 +148,12 @@ class PolicySlot:
         obs_shape: tuple[int, int, int],
         num_actions: int,
         application: str | None = "target_localization",
+        observation: str | None = None,
     ) -> None:
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
+        self.observation = observation
         self.current: LoadedPolicy | None = None
 
     def swap(self, source: str) -> LoadedPolicy:
@@ -153,7 +162,8 @@ class PolicySlot:
         Raises:
             PolicyRejected: the bundle was refused; the previous policy is still running.
         """
-        loaded = load_policy_cached(source, self.obs_shape, self.num_actions, self.application)
+        loaded = load_policy_cached(source, self.obs_shape, self.num_actions, self.application,
+                                    self.observation)
         self.current = loaded
         return loaded
 

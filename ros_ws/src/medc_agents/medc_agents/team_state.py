@@ -1,9 +1,11 @@
 """What one agent knows about its team, built from messages, and its observation (no ROS here).
 
 The agent keeps the same memory the training environment keeps (latest normalised reading and
-visit count per cell) and turns it into an observation with the very functions the environment
-uses (``medc_training.envs.target_localization.update_memory`` / ``build_observations`` and the
-grid module's move mask), so a policy sees in ROS exactly what it saw in training.
+visit count per cell, and the team's source posterior: ``medc_training.envs.tl_observation``
+TeamMemory) and turns it into the observation its policy takes with the very builder the
+environment uses (``tl_observation.observe`` and the grid module's move mask), so a policy sees in
+ROS exactly what it saw in training. The memory holds everything any observation variant needs,
+so a policy swap to a model that takes another variant keeps the episode's history.
 
 Messages of one team step share one header stamp; an :class:`EpisodeStatus` names the step and
 the walls map that holds. The agent decides once it has the status, the map, and every team
@@ -87,8 +89,11 @@ class Tick:
 class TeamObserver:
     """Collects the team's poses, readings and map, and builds this agent's observation."""
 
-    def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 1.0) -> None:
+    def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 1.0,
+                 observation: str = "maps") -> None:
         from medc_training.envs.grid import action_deltas
+        from medc_training.envs.target_localization import check_observation
+        from medc_training.envs.tl_observation import ObservationSpec, TeamMemory
 
         self.agent_id = agent_id
         self.num_agents = num_agents
@@ -104,8 +109,10 @@ class TeamObserver:
         # Memory of the episode being played, as in the environment.
         self.mem_episode = -1
         self.mem_step = -1
-        self.reading_map = torch.zeros((1, grid, grid))
-        self.visit_map = torch.zeros((1, grid, grid))
+        #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
+        self.observation = check_observation(observation, grid)
+        self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu")
+        self._memory_started = False
 
     # -- inputs (each raises ValueError on bad input) ----------------------------------------
     def _slot(self, store: OrderedDict, key: int) -> list:
@@ -176,19 +183,23 @@ class TeamObserver:
         Call only when :meth:`ready` is True.
         """
         from medc_training.envs.grid import move_mask, pad_blocked
-        from medc_training.envs.target_localization import build_observations, update_memory
+        from medc_training.envs.tl_observation import observe
 
         t = self.pending
         assert t is not None and self.ready()
-        if t.episode != self.mem_episode:
-            self.reading_map.zero_()
-            self.visit_map.zero_()
         positions = torch.tensor([self._positions[t.stamp]], dtype=torch.long)  # [1,N,2]
         readings = torch.tensor([self._readings[t.stamp]], dtype=torch.float32)  # [1,N]
         walls = self._maps[t.map_stamp].unsqueeze(0)
-        update_memory(self.reading_map, self.visit_map, positions, readings)
+        if t.episode != self.mem_episode or not self._memory_started:
+            self.memory.start(walls, positions, readings)
+            self._memory_started = True
+        else:
+            self.memory.record(walls, positions, readings)
         self.mem_episode, self.mem_step = t.episode, t.step
-        obs = build_observations(positions, self.reading_map, self.visit_map, walls.float())[0, self.index]
+        m = self.memory
+        estimate = m.estimate_map() if self.observation.estimate else None
+        obs = observe(self.observation, positions, m.reading_map, m.visit_map, walls.float(), estimate)
+        obs = obs[0, self.index]
         mask = move_mask(positions, pad_blocked(walls), self._deltas)[0, self.index]
         # Free what this step used; older stamps can never be answered again.
         for store in (self._positions, self._readings):
