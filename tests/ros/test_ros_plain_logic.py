@@ -31,15 +31,19 @@ def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
         o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
 
 
-@pytest.mark.parametrize("noise", [False, True])
-def test_agent_observation_from_messages_equals_training_observation(noise):
-    """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step."""
+@pytest.mark.parametrize(("noise", "observation"),
+                         [(False, "maps"), (True, "maps"), (True, "maps+estimate"), (False, "ego4+estimate"),
+                          (True, "ego9+estimate"), (True, "ego3")])
+def test_agent_observation_from_messages_equals_training_observation(noise, observation):
+    """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step,
+    for every observation variant."""
     core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5, noise=noise))
     ref = make_batched(
-        "target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15, noise=noise
+        "target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15, noise=noise,
+        observation=observation,
     )
     ref_obs, ref_mask = ref.reset()
-    observers = [TeamObserver(a, 3, 10) for a in IDS]
+    observers = [TeamObserver(a, 3, 10, observation=observation) for a in IDS]
     gen = torch.Generator().manual_seed(0)
     sec, episode, map_stamp, steps = 0, -1, None, 0
     while len(core.results) < 6:

@@ -74,6 +74,8 @@ DEFAULT_OBSERVATION = "maps"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
 MAX_RADIUS = 255
+#: Largest temporary (elements) of one expected-distance chunk.
+_CHUNK_ELEMENTS = 1 << 23
 _NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?$")
 
 
@@ -185,8 +187,19 @@ class SourceEstimator:
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:
-        """float32 [K, G²]: E(c), the posterior-expected Chebyshev distance to the source."""
-        return self.posterior(log_post) @ self.moves
+        """float32 [K, G²]: E(c), the posterior-expected Chebyshev distance to the source.
+
+        A broadcast product summed per row rather than a matrix product: BLAS blocks a matrix
+        product differently for different K, so one episode's estimate would depend (in the last
+        bit) on how many episodes are batched with it; this way it never does.
+        """
+        p = self.posterior(log_post)
+        cells = self.moves.shape[0]
+        rows = max(1, _CHUNK_ELEMENTS // (cells * cells))
+        out = torch.empty_like(p)
+        for i in range(0, p.shape[0], rows):
+            out[i:i + rows] = (p[i:i + rows].unsqueeze(1) * self.moves).sum(-1)
+        return out
 
     def estimate_map(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G, G]: 1 - E(c)/(G-1), the map the observations show."""

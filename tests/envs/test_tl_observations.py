@@ -1,0 +1,196 @@
+"""Target-localization observation variants: the source posterior against a hand computation, the
+estimate map, the ego windows, and one builder giving the same observations at any batch size."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from medc_training.envs import make_batched, make_env
+from medc_training.envs.target_localization import (
+    BACKGROUND,
+    SOURCE_STRENGTH,
+    WALL_ATTENUATION,
+    sensor_reading,
+)
+from medc_training.envs.tl_observation import (
+    LOG_FLOOR,
+    ObservationSpec,
+    SourceEstimator,
+    TeamMemory,
+    observe,
+    parse_observation,
+)
+
+VARIANTS = ("maps", "maps+estimate", "ego3", "ego4+estimate", "ego9+estimate")
+
+
+def hand_posterior(grid, wall_col, visits):
+    """Poisson posterior over source cells, in float64 plain Python, for a full-height wall in
+    column ``wall_col`` (None: no wall): a line between cells on opposite sides crosses it once."""
+    logp = {}
+    for sr in range(grid):
+        for sc in range(grid):
+            if sc == wall_col or any((sr, sc) == p for p, _ in visits):
+                continue
+            total = 0.0
+            for (pr, pc), r in visits:
+                crossed = wall_col is not None and (pc - wall_col) * (sc - wall_col) < 0
+                rate = SOURCE_STRENGTH * WALL_ATTENUATION ** int(crossed) / (1 + (pr - sr) ** 2 + (pc - sc) ** 2)
+                rate += BACKGROUND
+                total += r * math.log(rate) - rate
+            logp[(sr, sc)] = total
+    top = max(logp.values())
+    weights = {c: math.exp(v - top) for c, v in logp.items()}
+    z = sum(weights.values())
+    return {c: w / z for c, w in weights.items()}
+
+
+@pytest.mark.parametrize("wall_col", [None, 3])
+@pytest.mark.parametrize("noise", [False, True])
+def test_posterior_equals_hand_computed_poisson_posterior(wall_col, noise):
+    grid = 6
+    walls = torch.zeros((1, grid, grid), dtype=torch.bool)
+    if wall_col is not None:
+        walls[0, :, wall_col] = True
+    target = torch.tensor([[1, 4 if wall_col is not None else 2]])
+    path = [[(4, 0), (5, 5)], [(3, 1), (5, 4)], [(2, 1), (4, 5)]]
+    gen = torch.Generator().manual_seed(3)
+    est = SourceEstimator(grid, "cpu")
+    log_post = est.prior(walls)
+    visits = []
+    for cells in path:
+        pos = torch.tensor([cells])
+        r = sensor_reading(pos, target, walls, noise=noise, generator=gen)
+        est.update(log_post, walls, pos, r)
+        visits += [(c, float(v)) for c, v in zip(cells, r[0].tolist())]
+    if noise:
+        assert all(v == int(v) for _, v in visits)  # Poisson counts
+    got = est.posterior(log_post)[0].view(grid, grid)
+    want = hand_posterior(grid, wall_col, visits)
+    for (r, c), p in want.items():
+        assert got[r, c].item() == pytest.approx(p, abs=1e-5)
+    # Walls and visited cells are not the source; probabilities sum to one.
+    for (r, c), _ in visits:
+        assert got[r, c] == 0.0
+    if wall_col is not None:
+        assert float(got[:, wall_col].sum()) == 0.0
+    assert float(got.sum()) == pytest.approx(1.0, abs=1e-5)
+    if not noise:
+        assert int(got.flatten().argmax()) == int(target[0, 0] * grid + target[0, 1])
+
+
+def test_estimate_map_is_one_minus_expected_chebyshev_moves():
+    grid = 5
+    est = SourceEstimator(grid, "cpu")
+    log_post = torch.full((1, grid * grid), LOG_FLOOR)
+    log_post[0, 0 * grid + 4] = math.log(0.25)  # p(0,4) = 1/4
+    log_post[0, 3 * grid + 1] = math.log(0.75)  # p(3,1) = 3/4
+    emap = est.estimate_map(log_post)[0]
+    for r in range(grid):
+        for c in range(grid):
+            e = 0.25 * max(abs(r - 0), abs(c - 4)) + 0.75 * max(abs(r - 3), abs(c - 1))
+            assert emap[r, c].item() == pytest.approx(1 - e / (grid - 1), abs=1e-6)
+
+
+def test_a_mismatched_sensor_never_leaves_the_team_without_a_candidate():
+    grid = 5
+    est = SourceEstimator(grid, "cpu")
+    walls = torch.zeros((1, grid, grid), dtype=torch.bool)
+    log_post = est.prior(walls)
+    for _ in range(20):  # readings no source could produce
+        est.update(log_post, walls, torch.tensor([[[2, 2]]]), torch.tensor([[1e6]]))
+    p = est.posterior(log_post)
+    assert torch.isfinite(p).all() and float(p.sum()) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_names_round_trip_and_bad_names_say_what_is_allowed():
+    for name in ("maps", "maps+estimate", "ego1", "ego12+estimate"):
+        assert parse_observation(name).name == name
+        assert parse_observation({"name": name}) == parse_observation(name)
+    assert parse_observation("ego6+estimate").shape(13) == (5, 13, 13)
+    assert parse_observation("maps+estimate").shape(13) == (6, 13, 13)
+    for bad in ("ego0", "ego", "maps+", "ego-3", "egocentric", "x" * 100, 7):
+        with pytest.raises(ValueError, match="observation"):
+            parse_observation(bad)
+    with pytest.raises(ValueError, match="exceeds grid - 1"):
+        make_batched("target_localization", grid=6, walls=0, agents=1, observation="ego6")
+
+
+def test_ego_window_centres_the_agent_and_walls_the_outside():
+    grid, r = 5, 2
+    walls = torch.zeros((1, grid, grid), dtype=torch.bool)
+    walls[0, 1, 2] = True
+    pos = torch.tensor([[[0, 0], [0, 1]]])
+    mem = TeamMemory(ObservationSpec("ego", r, True), 1, grid, "cpu")
+    mem.start(walls, pos, sensor_reading(pos, torch.tensor([[4, 4]]), walls))
+    obs = mem.observe(pos, walls)
+    assert obs.shape == (1, 2, 5, 5, 5)
+    a0 = obs[0, 0]
+    # Agent 0 at (0,0): window rows/cols -2..2; off-grid cells are walls, the rest is the grid.
+    assert a0[0, :2].eq(1).all() and a0[0, :, :2].eq(1).all()
+    assert a0[0, 2 + 1, 2 + 2] == 1.0 and a0[0, 2:, 2:].sum() == 1.0  # the wall at (1,2)
+    assert a0[1].sum() == 1.0 and a0[1, 2, 3] == 1.0  # the other agent, one column east
+    assert a0[1, 2, 2] == 0.0  # itself is not in the team channel
+    assert a0[2, 2, 2] > 0 and a0[3, 2, 2] == pytest.approx(0.1)  # own reading, one visit
+    assert (a0[4, :2] == 0).all()  # off-grid estimate reads 0
+    full = mem.estimate_map()[0]
+    assert a0[4, 2:, 2:].tolist() == full[:3, :3].tolist()
+
+
+def _replay_memories(variant, batch):
+    return [TeamMemory(parse_observation(variant), 1, 12, "cpu") for _ in range(batch)]
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("batch", [1, 5])
+def test_core_observations_equal_a_replay_from_scratch_at_any_batch_size(variant, batch):
+    env = make_batched("target_localization", num_envs=batch, seed=11, agents=3, walls=2, grid=12,
+                       max_steps=12, noise=True, observation=variant)
+    obs, mask = env.reset()
+    assert tuple(obs.shape[2:]) == parse_observation(variant).shape(12)
+    memories = _replay_memories(variant, batch)
+    for b, m in enumerate(memories):
+        m.start(env.walls[b:b + 1], env.positions[b:b + 1], env.readings[b:b + 1])
+        assert torch.equal(m.observe(env.positions[b:b + 1], env.walls[b:b + 1])[0], obs[b])
+    gen = torch.Generator().manual_seed(0)
+    resets = 0
+    for _ in range(30):
+        actions = torch.multinomial(mask.view(-1, 8).float(), 1, generator=gen).view(batch, 3)
+        out = env.step(actions)
+        for b, m in enumerate(memories):
+            sl = slice(b, b + 1)
+            if out.done[b]:
+                m.start(env.walls[sl], env.positions[sl], env.readings[sl])
+                resets += 1
+            else:
+                m.record(env.walls[sl], env.positions[sl], env.readings[sl])
+            assert torch.equal(m.observe(env.positions[sl], env.walls[sl])[0], out.obs[b]), (variant, b)
+        mask = out.mask
+    assert resets > 0
+
+
+@pytest.mark.parametrize("variant", ["maps+estimate", "ego5+estimate"])
+def test_pettingzoo_env_gives_the_core_observations(variant):
+    env = make_env("target_localization", seed=4, agents=2, walls=1, grid=10, max_steps=20, observation=variant)
+    core = make_batched("target_localization", num_envs=1, seed=4, agents=2, walls=1, grid=10, max_steps=20,
+                        observation=variant)
+    obs, _ = env.reset(seed=4)
+    ref, mask = core.reset(seed=4)
+    for _ in range(15):
+        for i, agent in enumerate(env.agents):
+            assert torch.equal(torch.from_numpy(obs[agent]["observation"]), ref[0, i])
+        actions = [int(mask[0, i].nonzero()[0]) for i in range(2)]
+        obs, *_ = env.step({a: actions[i] for i, a in enumerate(env.agents)})
+        out = core.step(torch.tensor([actions]))
+        ref, mask = out.obs, out.mask
+        if not env.agents:
+            break
+
+
+def test_observe_requires_the_estimate_when_the_variant_shows_it():
+    pos = torch.zeros((1, 1, 2), dtype=torch.long)
+    maps = torch.zeros((1, 5, 5))
+    with pytest.raises(ValueError, match="needs the source estimate"):
+        observe(parse_observation("ego2+estimate"), pos, maps, maps, maps)
