@@ -37,7 +37,8 @@ def hand_posterior(grid, wall_col, visits):
             total = 0.0
             for (pr, pc), r in visits:
                 crossed = wall_col is not None and (pc - wall_col) * (sc - wall_col) < 0
-                rate = SOURCE_STRENGTH * WALL_ATTENUATION ** int(crossed) / (1 + (pr - sr) ** 2 + (pc - sc) ** 2)
+                d2 = (pr - sr) ** 2 + (pc - sc) ** 2
+                rate = SOURCE_STRENGTH * WALL_ATTENUATION ** int(crossed) / (1 + d2)
                 rate += BACKGROUND
                 total += r * math.log(rate) - rate
             logp[(sr, sc)] = total
@@ -173,7 +174,8 @@ def test_core_observations_equal_a_replay_from_scratch_at_any_batch_size(variant
 
 @pytest.mark.parametrize("variant", ["maps+estimate", "ego5+estimate"])
 def test_pettingzoo_env_gives_the_core_observations(variant):
-    env = make_env("target_localization", seed=4, agents=2, walls=1, grid=10, max_steps=20, observation=variant)
+    env = make_env("target_localization", seed=4, agents=2, walls=1, grid=10, max_steps=20,
+                   observation=variant)
     core = make_batched("target_localization", num_envs=1, seed=4, agents=2, walls=1, grid=10, max_steps=20,
                         observation=variant)
     obs, _ = env.reset(seed=4)

@@ -1,9 +1,18 @@
-"""`medc-bench train`: training throughput and the RS / sparse wall-time ratio.
+"""`medc-bench train`: training throughput, against the old learner, and the RS / sparse ratio.
 
-Prints environment steps per second and PPO updates per second for the CPU scale (A3W2,
-sparse and RS), the RS/sparse wall-time ratio over the same number of training steps, and,
-when ``torch.cuda.is_available()``, the same figures on CUDA at the paper scale (G = 30).
-The last line is one JSON object with every figure.
+Prints training steps per second (environment steps of the whole team, rollout and PPO update
+together) and PPO updates per second at the CPU scale on A3W2 for:
+
+- ``sparse``: the default learner (the CPU scale's architecture on the default observation, the
+  source estimate included), MDRL-sparse;
+- ``rs``: the same with BFS reward shaping (the RS/sparse wall-time ratio);
+- ``baseline_maps_mlp``: the learner before observation variants (the paper's 5 absolute maps,
+  MLP), measured in the same run: ``speedup_over_baseline`` is sparse / baseline;
+- ``lenet5``: the paper's LeNet-5 on the default observation.
+
+Rounds are interleaved, one update of each learner per round, so that a shared machine's load
+hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
+also measured on CUDA at the paper scale (G = 30). The last line is one JSON object.
 """
 
 from __future__ import annotations
@@ -33,11 +42,13 @@ def _timed_update(trainer: Trainer, cuda: bool) -> tuple[float, float, int]:
     return t1 - t0, time.perf_counter() - t1, trainer.global_step - before
 
 
-def measure(scale: str, methods: tuple[str, ...], rounds: int, device: str, **overrides) -> dict[str, dict]:
-    """Time ``rounds`` updates of each method, interleaved round by round so that a shared
-    machine's changing load hits every method alike; per-update medians are reported."""
-    trainers = {m: Trainer(scaled_config(scale, method=m, device=device, total_steps=10**12, **overrides))
-                for m in methods}
+def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **overrides) -> dict[str, dict]:
+    """Time ``rounds`` updates of each learner (label -> config overrides, e.g. {"method": "rs"}),
+    interleaved round by round so that a shared machine's changing load hits every learner alike;
+    per-update medians are reported."""
+    trainers = {m: Trainer(scaled_config(scale, device=device, total_steps=10**12, **{**overrides, **extra}))
+                for m, extra in learners.items()}
+    methods = tuple(learners)
     cuda = device.startswith("cuda")
     for trainer in trainers.values():  # warm-up (allocations, first-call overheads)
         _timed_update(trainer, cuda)
@@ -52,8 +63,9 @@ def measure(scale: str, methods: tuple[str, ...], rounds: int, device: str, **ov
         collect = statistics.median(c for c, _, _ in rows)
         steps = rows[0][2]
         results[m] = {
-            "scale": scale, "method": m, "device": device, "grid": cfg.grid, "agents": cfg.agents,
-            "walls": cfg.walls, "num_envs": cfg.num_envs, "horizon": cfg.steps_per_update,
+            "scale": scale, "method": cfg.method, "device": device, "grid": cfg.grid, "agents": cfg.agents,
+            "walls": cfg.walls, "observation": cfg.observation, "num_envs": cfg.num_envs,
+            "horizon": cfg.steps_per_update,
             "epochs": cfg.epochs, "arch": cfg.arch, "rounds": rounds,
             "env_steps_per_s": steps / total, "updates_per_s": 1.0 / total,
             "collect_steps_per_s": steps / collect, "median_update_s": total,
@@ -70,18 +82,25 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     result: dict = {"torch_threads": torch.get_num_threads()}
-    cpu = measure("cpu", ("sparse", "rs"), args.updates, "cpu", agents=3, walls=2)
+    learners = {"sparse": {}, "rs": {"method": "rs"},
+                "baseline_maps_mlp": {"observation": "maps", "arch": "mlp"}, "lenet5": {"arch": "lenet5"}}
+    cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2)
     for m, r in cpu.items():
-        print(f"cpu_{m}: {r['env_steps_per_s']:.0f} env steps/s, {r['updates_per_s']:.3f} updates/s "
-              f"(grid {r['grid']}, A{r['agents']}W{r['walls']}, {r['arch']}, {r['num_envs']} envs, "
-              f"horizon {r['horizon']}, {r['epochs']} epochs; "
+        print(f"cpu_{m}: {r['env_steps_per_s']:.0f} training steps/s, {r['updates_per_s']:.3f} updates/s "
+              f"(grid {r['grid']}, A{r['agents']}W{r['walls']}, {r['method']}, "
+              f"observation {r['observation']}, "
+              f"{r['arch']}, {r['num_envs']} envs, horizon {r['horizon']}, {r['epochs']} epochs; "
               f"rollout alone {r['collect_steps_per_s']:.0f} steps/s)")
         result[f"cpu_{m}"] = r
+    result["speedup_over_baseline"] = (cpu["sparse"]["env_steps_per_s"]
+                                       / cpu["baseline_maps_mlp"]["env_steps_per_s"])
+    print(f"default learner / baseline (maps, mlp) training steps/s: {result['speedup_over_baseline']:.2f}")
     result["rs_over_sparse_wall_time"] = cpu["rs"]["median_update_s"] / cpu["sparse"]["median_update_s"]
     print(f"RS / sparse wall time per update (median of {args.updates} interleaved rounds): "
           f"{result['rs_over_sparse_wall_time']:.3f} (the paper reports 2x)")
     if torch.cuda.is_available():
-        gpu = measure("paper", ("sparse", "rs"), args.cuda_updates, "cuda", agents=3, walls=2)
+        gpu = measure("paper", {"sparse": {}, "rs": {"method": "rs"}}, args.cuda_updates, "cuda",
+                      agents=3, walls=2)
         for m, r in gpu.items():
             print(f"cuda_{m} (paper scale): {r['env_steps_per_s']:.0f} env steps/s, "
                   f"{r['updates_per_s']:.3f} updates/s")

@@ -241,7 +241,9 @@ class Plan:
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                same = (manifest["observation"]["height"] == grid
+                wanted = self.base["observation"] if env == "target_localization" else None
+                same = (manifest["environment"].get("grid") == grid
+                        and manifest["observation"].get("name", "maps" if wanted else None) == wanted
                         and manifest.get("environment", {}).get("max_steps") == max_steps
                         and manifest.get("training", {}).get("method") == "dagger")
                 if same:
@@ -249,6 +251,7 @@ class Plan:
             except (BundleError, KeyError):
                 pass
         cfg = CloneConfig(env=env, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+                          observation=self.base["observation"],
                           env_options=env_options or {}, arch=arch, total_steps=steps,
                           seed=1000 + len(name) * 7 + agents, eval_greedy=greedy,
                           device=self.base["device"]).validate()
@@ -448,6 +451,59 @@ def compare(a: list[float], b: list[float]) -> dict:
     return {"diff": ma - mb, "half": t95(df) * se}
 
 
+#: Seeds the learnability gate needs before it can pass.
+GATE_MIN_SEEDS = 3
+#: Finished episodes of random play measured per seed for the gate.
+GATE_RANDOM_EPISODES = 256
+
+
+def random_play_length(out: Path, cfg: dict) -> float:
+    """Mean episode length of uniformly random valid moves on a run's evaluation episodes (its
+    evaluation seed and environment), cached in OUT/random_play.json."""
+    from ..config import TrainConfig
+    from ..evaluate import evaluate_policy
+    from ..ppo import EVAL_SEED_OFFSET, make_env_for
+
+    c = TrainConfig.from_dict(cfg)
+    seed = c.seed + EVAL_SEED_OFFSET
+    key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
+           f"{json.dumps(c.env_options, sort_keys=True)}|seed={seed}")
+    cache_path = out / "random_play.json"
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    if key not in cache:
+        env = make_env_for(c, c.eval_envs, seed, False)
+        played = evaluate_policy(env, None, GATE_RANDOM_EPISODES, greedy=False, seed=seed)
+        cache[key] = played["episode_length"]
+        cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
+    return float(cache[key])
+
+
+def learnability_gate(out: Path, sparse_run: str) -> dict:
+    """Did MDRL-sparse learn in ``sparse_run``'s environment? Per seed, its final evaluation episode
+    length (mean of the last three evaluations) minus random play's on the same evaluation
+    episodes; passed when >= GATE_MIN_SEEDS seeds ran and the 95% CI of the mean difference lies
+    entirely below 0. Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
+    from ..metrics import read_metrics
+
+    finals, randoms = [], []
+    for seed_dir in sorted((out / "runs" / sparse_run).glob("seed*")):
+        if not (seed_dir / "summary.json").exists():
+            continue
+        summary = json.loads((seed_dir / "summary.json").read_text())
+        rows = read_metrics(seed_dir / "metrics.csv")
+        finals.append(sum(r["episode_length"] for r in rows[-3:]) / len(rows[-3:]))
+        randoms.append(random_play_length(out, summary["config"]))
+    diffs = [f - r for f, r in zip(finals, randoms)]
+    m, half = mean_ci(diffs)
+    passed = len(diffs) >= GATE_MIN_SEEDS and m + half < 0
+    ms, _ = mean_ci(finals)
+    mr, _ = mean_ci(randoms)
+    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on the same evaluation "
+            f"episodes: difference {m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
+    return {"passed": passed, "n": len(diffs), "sparse": ms, "random": mr, "diff": m, "half": half,
+            "text": text}
+
+
 def verdict(better: list[float], worse: list[float]) -> str:
     """How the paper's claim "``better`` learns faster than ``worse``" fared (lower learning
     score is better): held / contradicted when the 95% CI of the difference excludes 0, else
@@ -473,6 +529,31 @@ class Report:
         self.out, self.scale, self.seeds, self.command = out, scale, seeds, command
         self.sections: list[str] = []
         self.scores: dict[str, list[float]] = {}
+        #: Learnability gate of each environment, by its MDRL-sparse run name.
+        self.gates: dict[str, dict] = {}
+
+    def gate(self, sparse_run: str) -> str:
+        """The gate line for ``sparse_run``'s environment (computed once); claims made with
+        ``gate=sparse_run`` are "not testable" unless it passed."""
+        if sparse_run not in self.gates:
+            self.gates[sparse_run] = learnability_gate(self.out, sparse_run)
+        g = self.gates[sparse_run]
+        if g["n"] == 0:
+            return "- **Learnability gate** — not run"
+        word = "passed" if g["passed"] else (
+            f"NOT passed (needs >= {GATE_MIN_SEEDS} seeds and a CI below 0): the scale is too small for "
+            "MDRL-sparse to learn here, so this environment's claims are not testable")
+        return f"- **Learnability gate** ({sparse_run}) — {word}: {g['text']}"
+
+    def _untestable(self, gate: str | None) -> str | None:
+        if gate is None:
+            return None
+        self.gate(gate)
+        g = self.gates[gate]
+        if g["passed"]:
+            return None
+        return (f"not testable (MDRL-sparse did not pass the learnability gate: difference to random "
+                f"play {g['diff']:+.2f} ± {g['half']:.2f}, n = {g['n']})")
 
     def series(self, names: dict[str, str], csv_name: str = "metrics.csv") -> dict:
         data = {}
@@ -509,19 +590,23 @@ class Report:
             lines.append(line)
         return "\n".join(lines)
 
-    def claim(self, text: str, better: str, worse: str) -> str:
+    def claim(self, text: str, better: str, worse: str, gate: str | None = None) -> str:
         a, b = self.scores.get(better, []), self.scores.get(worse, [])
         c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
-        return (f"- **{text}** — {verdict(a, b)}: difference of learning scores "
+        blocked = self._untestable(gate) if a and b else None
+        word = blocked or verdict(a, b)
+        return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
 
-    def claim_no_worse(self, text: str, faulty: str, sparse: str, margin: float) -> str:
+    def claim_no_worse(self, text: str, faulty: str, sparse: str, margin: float,
+                       gate: str | None = None) -> str:
         a, b = self.scores.get(faulty, []), self.scores.get(sparse, [])
         if not a or not b:
             return f"- **{text}** — not run"
         c = compare(a, b)
         ok = c["diff"] - c["half"] <= margin
         word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
+        word = self._untestable(gate) or word
         return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
                 f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
 
@@ -570,13 +655,15 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
         if data:
             r.add(f"### Fig. 6 — A3W{w}\n\n![fig6 A3W{w}](fig6_A3W{w}.png)\n\n{r.table(data)}\n\n"
                   + "\n".join([
-                r.claim(f"A3W{w}: MEDC free expert beats MDRL-sparse", f"A3W{w}-medc-free", f"A3W{w}-sparse"),
+                r.gate(f"A3W{w}-sparse"),
+                r.claim(f"A3W{w}: MEDC free expert beats MDRL-sparse", f"A3W{w}-medc-free", f"A3W{w}-sparse",
+                    gate=f"A3W{w}-sparse"),
                 r.claim(f"A3W{w}: MEDC complex expert beats MDRL-sparse", f"A3W{w}-medc-complex",
-                        f"A3W{w}-sparse"),
+                        f"A3W{w}-sparse", gate=f"A3W{w}-sparse"),
                 r.claim(f"A3W{w}: MEDC combined experts beat MDRL-sparse", f"A3W{w}-medc-combined",
-                        f"A3W{w}-sparse"),
+                        f"A3W{w}-sparse", gate=f"A3W{w}-sparse"),
                 r.claim(f"A3W{w}: the complex expert (A1W3) helps more than the free expert (A1W0)",
-                        f"A3W{w}-medc-complex", f"A3W{w}-medc-free"),
+                        f"A3W{w}-medc-complex", f"A3W{w}-medc-free", gate=f"A3W{w}-sparse"),
             ]))
     # --- Fig. 7
     data = r.figure("fig7.png", "Fig. 7: A3W2, faulty experts", {
@@ -588,13 +675,15 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
         r.add("### Fig. 7 — resilience to faulty experts (A3W2)\n\n![fig7](fig7.png)\n\n"
               + r.table(data) + "\n\n"
               + "\n".join([
-                  r.claim("proper experts beat MDRL-sparse", "A3W2-medc-proper5", "A3W2-sparse"),
+                r.gate("A3W2-sparse"),
+                  r.claim("proper experts beat MDRL-sparse", "A3W2-medc-proper5", "A3W2-sparse",
+                      gate="A3W2-sparse"),
                   r.claim_no_worse("random experts: at worst match MDRL-sparse", "A3W2-medc-random5",
-                                   "A3W2-sparse", margin),
+                                   "A3W2-sparse", margin, gate="A3W2-sparse"),
                   r.claim_no_worse("biased experts: at worst match MDRL-sparse", "A3W2-medc-biased5",
-                                   "A3W2-sparse", margin),
+                                   "A3W2-sparse", margin, gate="A3W2-sparse"),
                   r.claim_no_worse("malicious experts: at worst match MDRL-sparse", "A3W2-medc-malicious5",
-                                   "A3W2-sparse", margin),
+                                   "A3W2-sparse", margin, gate="A3W2-sparse"),
               ]) + f"\n\n'At worst match' is judged with a margin of {margin} steps of mean episode length: "
               "held if the faulty run's mean is within the margin, inconclusive if only its CI reaches it.")
     # --- Fig. 8
@@ -614,10 +703,12 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
             frl_key = "A3W2-frl8" if w == 2 else "A3W2-frl8:metrics_A3W3.csv"
             r.add(f"### Fig. 8 — benchmarks (A3W{w})\n\n![fig8 A3W{w}](fig8_A3W{w}.png)\n\n"
                   + r.table(data, wall=True) + "\n\n" + "\n".join([
-                      r.claim(f"A3W{w}: MEDC beats FRL", f"A3W{w}-medc-six", frl_key),
-                      r.claim(f"A3W{w}: MEDC beats IL-assisted RL", f"A3W{w}-medc-six", f"A3W{w}-il-six"),
+                r.gate(f"A3W{w}-sparse"),
+                      r.claim(f"A3W{w}: MEDC beats FRL", f"A3W{w}-medc-six", frl_key, gate=f"A3W{w}-sparse"),
+                      r.claim(f"A3W{w}: MEDC beats IL-assisted RL", f"A3W{w}-medc-six", f"A3W{w}-il-six",
+                          gate=f"A3W{w}-sparse"),
                       r.claim(f"A3W{w}: MEDC matches or beats RS (paper: slight outperformance)",
-                              f"A3W{w}-medc-six", f"A3W{w}-rs"),
+                              f"A3W{w}-medc-six", f"A3W{w}-rs", gate=f"A3W{w}-sparse"),
                   ]) + "\n\nFRL wall time is for all 8 users together (they train in one process).")
     # RS wall-time overhead
     rs_ratio = []
@@ -641,9 +732,11 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
     if data:
         r.add("### Fig. 9 — 3 faulty users out of 8 (A3W2)\n\n![fig9](fig9.png)\n\n" + r.table(data) + "\n\n"
               + "\n".join([
-                  r.claim("MEDC beats FRL with faulty users", "A3W2-medc-six-3faulty", "A3W2-frl8-3faulty"),
+                r.gate("A3W2-sparse"),
+                  r.claim("MEDC beats FRL with faulty users", "A3W2-medc-six-3faulty", "A3W2-frl8-3faulty",
+                      gate="A3W2-sparse"),
                   r.claim("MEDC beats IL with faulty experts", "A3W2-medc-six-3faulty",
-                          "A3W2-il-six-3faulty"),
+                          "A3W2-il-six-3faulty", gate="A3W2-sparse"),
               ]) + "\n\nFaulty users: A2W1 random, A2W2 biased (always action 0), A3W1 malicious (opposite "
               "of its own model's best move). In FRL they share poisoned parameters (random init / policy "
               "head forced to one action / negated policy head, see medc_training.frl).")
@@ -658,8 +751,11 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
             if data:
                 r.add(f"### Fig. {fig} — {app}, {what}\n\n![fig{fig} {short}](fig{fig}_{short}.png)\n\n"
                       + r.table(data) + "\n\n" + "\n".join([
-                          r.claim(f"{app} ({what}): MEDC beats FRL", f"{short}-medc{tag}", frl),
-                          r.claim(f"{app} ({what}): MEDC beats IL", f"{short}-medc{tag}", f"{short}-il{tag}"),
+                r.gate(f"{short}-sparse"),
+                          r.claim(f"{app} ({what}): MEDC beats FRL", f"{short}-medc{tag}", frl,
+                              gate=f"{short}-sparse"),
+                          r.claim(f"{app} ({what}): MEDC beats IL", f"{short}-medc{tag}", f"{short}-il{tag}",
+                              gate=f"{short}-sparse"),
                       ]))
     # --- Supplement: longer runs (every step count found on disk)
     for tag in long_tags_on_disk(out / "runs", "A3W2-sparse"):
@@ -670,11 +766,12 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
         if data:
             r.add(f"### Supplement — longer runs (A3W2, {steps_text} steps)\n\n"
                   f"![{tag}]({tag}_A3W2.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
+                r.gate(f"{tag}-A3W2-sparse"),
                       r.claim(f"MEDC (6 trained experts) beats MDRL-sparse over {steps_text} steps",
-                              f"{tag}-A3W2-medc-six", f"{tag}-A3W2-sparse"),
+                              f"{tag}-A3W2-medc-six", f"{tag}-A3W2-sparse", gate=f"{tag}-A3W2-sparse"),
                       r.claim(f"MEDC with a perfect (oracle) expert beats MDRL-sparse over {steps_text} "
                               "steps",
-                              f"{tag}-A3W2-medc-oracle", f"{tag}-A3W2-sparse"),
+                              f"{tag}-A3W2-medc-oracle", f"{tag}-A3W2-sparse", gate=f"{tag}-A3W2-sparse"),
                   ]) + "\n\nThe oracle expert sees the target (BFS distance after each move); it is not "
                   "something a user could share, and is run only to separate 'MEDC does not help' from "
                   "'our experts are too weak to help'.")
@@ -689,14 +786,18 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
             if data:
                 r.add(f"### Supplement — longer runs ({app}, {steps_text} steps)\n\n"
                       f"![{tag} {short}]({tag}_{short}.png)\n\n" + r.table(data) + "\n\n" + "\n".join([
+                r.gate(f"{tag}-{short}-sparse"),
                           r.claim(f"{app}: MEDC beats MDRL-sparse over {steps_text} steps",
-                                  f"{tag}-{short}-medc", f"{tag}-{short}-sparse"),
+                                  f"{tag}-{short}-medc", f"{tag}-{short}-sparse",
+                                      gate=f"{tag}-{short}-sparse"),
                           r.claim(f"{app}: MEDC beats IL over {steps_text} steps",
-                                  f"{tag}-{short}-medc", f"{tag}-{short}-il"),
+                                  f"{tag}-{short}-medc", f"{tag}-{short}-il", gate=f"{tag}-{short}-sparse"),
                           r.claim(f"{app}: MEDC with 3 faulty experts beats MDRL-sparse over {steps_text} "
-                                  "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-sparse"),
+                                  "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-sparse",
+                                      gate=f"{tag}-{short}-sparse"),
                           r.claim(f"{app}: MEDC beats IL, both with 3 faulty experts, over {steps_text} "
-                                  "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-il-3faulty"),
+                                  "steps", f"{tag}-{short}-medc-3faulty", f"{tag}-{short}-il-3faulty",
+                                      gate=f"{tag}-{short}-sparse"),
                       ]))
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
