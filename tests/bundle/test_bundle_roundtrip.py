@@ -163,7 +163,11 @@ def test_bundle_of_a_real_environment_records_its_attributes() -> None:
 
     env = make_batched("target_localization", num_envs=2, seed=0, agents=2, walls=1, grid=10)
     net = make_actor_critic("lenet5", env.obs_shape, env.num_actions)
-    bundle = load_bundle(bundle_bytes(net, {"application": env.name, "environment": env.attributes}))
+    from medc_training.runner import observation_section
+
+    manifest = {"application": env.name, "environment": env.attributes, **observation_section(env)}
+    bundle = load_bundle(bundle_bytes(net, manifest))
+    assert bundle.observation == env.observation.name
     assert bundle.manifest["environment"] == env.attributes
     obs, mask = env.reset(seed=1)
     actions = bundle.act(obs.flatten(0, 1), mask.flatten(0, 1))

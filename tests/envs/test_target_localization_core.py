@@ -16,7 +16,8 @@ def _random_valid_actions(mask: torch.Tensor, gen: torch.Generator) -> torch.Ten
 @pytest.mark.parametrize("copy_obs", [True, False])
 def test_step_shapes_and_incremental_obs_match_full_rebuild(copy_obs: bool) -> None:
     env = make_batched(
-        "target_localization", num_envs=8, seed=3, agents=3, walls=2, grid=12, max_steps=15, copy_obs=copy_obs
+        "target_localization", num_envs=8, seed=3, agents=3, walls=2, grid=12, max_steps=15,
+        copy_obs=copy_obs, observation="maps",
     )
     obs, mask = env.reset()
     assert obs.shape == (8, 3, 5, 12, 12) and obs.dtype == torch.float32

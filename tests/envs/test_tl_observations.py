@@ -115,8 +115,9 @@ def test_names_round_trip_and_bad_names_say_what_is_allowed():
     for bad in ("ego0", "ego", "maps+", "ego-3", "egocentric", "x" * 100, 7):
         with pytest.raises(ValueError, match="observation"):
             parse_observation(bad)
-    with pytest.raises(ValueError, match="exceeds grid - 1"):
-        make_batched("target_localization", grid=6, walls=0, agents=1, observation="ego6")
+    # A window wider than the grid is allowed: off-grid cells read as walls.
+    env = make_batched("target_localization", grid=6, walls=0, agents=1, observation="ego8")
+    assert env.reset()[0].shape == (1, 1, 4, 17, 17)
 
 
 def test_ego_window_centres_the_agent_and_walls_the_outside():

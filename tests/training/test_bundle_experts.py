@@ -7,6 +7,7 @@ import torch
 from medc_training.bundle import load_bundle, save_bundle
 from medc_training.cli.train import main as train_main
 from medc_training.config import TrainConfig
+from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, parse_observation
 from medc_training.experts import BundleExpert, ExpertError
 from medc_training.medc import expert_scores_for
 from medc_training.nets import make_actor_critic
@@ -16,11 +17,11 @@ TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, 
             epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, seed=0)
 
 
-def _bundle(tmp_path, arch, grid=6, agents=1):
+def _bundle(tmp_path, arch, grid=6, agents=1, observation=DEFAULT_OBSERVATION):
     torch.manual_seed(len(arch))
-    net = make_actor_critic(arch, (5, grid, grid), 8)
-    path = tmp_path / f"{arch}-{grid}.safetensors"
-    save_bundle(path, net, {"application": "target_localization",
+    net = make_actor_critic(arch, parse_observation(observation).shape(grid), 8)
+    path = tmp_path / f"{arch}-{grid}-{observation}.safetensors"
+    save_bundle(path, net, {"application": "target_localization", "observation": {"name": observation},
                             "environment": {"agents": agents, "walls": 0, "grid": grid}})
     return path
 
@@ -28,7 +29,7 @@ def _bundle(tmp_path, arch, grid=6, agents=1):
 def test_two_architectures_score_their_own_rows(tmp_path):
     experts = [BundleExpert(load_bundle(_bundle(tmp_path, "lenet5"))),
                BundleExpert(load_bundle(_bundle(tmp_path, "mlp")))]
-    obs = torch.rand(4, 5, 6, 6)
+    obs = torch.rand(4, *experts[0].obs_shape)
     mask = torch.ones(4, 8, dtype=torch.bool)
     scores = expert_scores_for(experts, torch.tensor([0, 1, 1, 0]), obs, mask, torch.arange(4))
     for row, e in enumerate([0, 1, 1, 0]):
@@ -48,11 +49,20 @@ def test_medc_run_with_lenet5_and_mlp_experts_follows_them(tmp_path):
     assert stats["expert_step_fraction"] == 1.0
 
 
-def test_expert_from_another_grid_is_rejected(tmp_path):
-    wrong = BundleExpert(load_bundle(_bundle(tmp_path, "lenet5", grid=8)))
-    cfg = TrainConfig(method="medc", total_steps=32, **TINY)
+def test_expert_from_another_grid_is_rejected_where_the_observation_depends_on_the_grid(tmp_path):
+    wrong = BundleExpert(load_bundle(_bundle(tmp_path, "lenet5", grid=8, observation="maps")))
+    cfg = TrainConfig(method="medc", total_steps=32, **{**TINY, "observation": "maps"})
     with pytest.raises(ExpertError, match="same grid size"):
         Trainer(cfg, [wrong])
+    # An agent-centred window has the same shape on every grid: that expert can advise here.
+    ego = BundleExpert(load_bundle(_bundle(tmp_path, "lenet5", grid=8, observation="ego3+estimate")))
+    Trainer(TrainConfig(method="medc", total_steps=32, **{**TINY, "observation": "ego3+estimate"}), [ego])
+
+
+def test_expert_taking_another_observation_is_rejected(tmp_path):
+    maps = BundleExpert(load_bundle(_bundle(tmp_path, "mlp", observation="maps")))
+    with pytest.raises(ExpertError, match="takes the observation 'maps', but this environment produces"):
+        Trainer(TrainConfig(method="medc", total_steps=32, **TINY), [maps])
 
 
 def test_medc_needs_an_expert():

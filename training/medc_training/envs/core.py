@@ -106,6 +106,18 @@ class BatchedEnv(ABC):
         """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
         return self._obs[index].clone()
 
+    #: Set by a renderer that wants :meth:`final_picture_maps` of finished episodes.
+    keep_final_pictures: bool = False
+
+    def picture_maps(self, index: int) -> torch.Tensor:
+        """float32 [N,C,G,G]: the absolute maps a picture of environment ``index`` is drawn from
+        (the observations, unless a core's observations are not absolute maps)."""
+        return self.current_obs(index)
+
+    def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
+        """:meth:`picture_maps` of the episode that just ended in environment ``index``."""
+        return final_obs[index]
+
     def render_extras(self, index: int) -> dict[str, Any]:
         """What a picture of environment ``index`` needs beyond the observation maps."""
         return {}

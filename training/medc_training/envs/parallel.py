@@ -47,6 +47,7 @@ class GridParallelEnv(ParallelEnv):
             raise ValueError("make_env always wraps one environment; use make_batched for num_envs/copy_obs")
         self.core = make_batched(name, num_envs=1, device=device, seed=seed, copy_obs=True, **options)
         self.render_mode = render_mode
+        self.core.keep_final_pictures = render_mode is not None
         self.metadata = {**GridParallelEnv.metadata, "name": f"medc_{name}_v0"}
         self.possible_agents = [f"agent_{i}" for i in range(self.core.num_agents)]
         self.agents: list[str] = []
@@ -133,7 +134,8 @@ class GridParallelEnv(ParallelEnv):
             if self.render_mode == "rgb_array":
                 from medc_training.envs.render import render_frame
 
-                self._last_frame = render_frame(self.core.name, out.final_obs[0], extras)
+                picture = self.core.final_picture_maps(0, out.final_obs)
+                self._last_frame = render_frame(self.core.name, picture, extras)
             self.agents = []
         else:
             obs = self._obs_dict(out.obs, out.mask)
@@ -148,7 +150,7 @@ class GridParallelEnv(ParallelEnv):
             return self._last_frame
         from medc_training.envs.render import render_frame
 
-        return render_frame(self.core.name, self.core.current_obs(0), self.core.render_extras(0))
+        return render_frame(self.core.name, self.core.picture_maps(0), self.core.render_extras(0))
 
     def close(self) -> None:
         self._pending = None

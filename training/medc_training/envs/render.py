@@ -100,15 +100,21 @@ def save_observation_png(
     path: str | Path,
     application: str = "target_localization",
     title: str | None = None,
+    channel_names: tuple[str, ...] | list[str] | None = None,
 ) -> Path:
-    """Write one agent's observation maps (float [C,H,W]) side by side as one PNG (Fig. 5b-f)."""
+    """Write one agent's observation maps (float [C,H,W]) side by side as one PNG (Fig. 5b-f).
+
+    ``channel_names``: titles of the C maps (default: the application's paper maps; give the
+    observation's own, e.g. ``env.observation.channels``, for other target-localization variants).
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     if application not in CHANNEL_NAMES:
         raise ValueError(f"unknown environment {application!r}; choose one of {', '.join(CHANNEL_NAMES)}")
     obs = obs.detach().cpu().numpy() if isinstance(obs, torch.Tensor) else np.asarray(obs)
-    names = CHANNEL_NAMES[application]
+    names = (tuple(n.replace("_", " ").capitalize() for n in channel_names) if channel_names
+             else CHANNEL_NAMES[application])
     if obs.ndim != 3 or obs.shape[0] != len(names):
         raise ValueError(f"obs must be one agent's maps [C,H,W] with C={len(names)}, got shape {obs.shape}")
     fig = Figure(figsize=(2.6 * len(names), 3.0))
@@ -166,8 +172,10 @@ def main(argv: list[str] | None = None) -> int:
                 break
             obs = nxt
         area = save_frame_png(env.render(), args.out_dir / f"{name}_area.png")
+        spec = getattr(env.core, "observation", None)
         maps = save_observation_png(
-            obs["agent_0"]["observation"], args.out_dir / f"{name}_agent_0.png", application=name
+            obs["agent_0"]["observation"], args.out_dir / f"{name}_agent_0.png", application=name,
+            channel_names=None if spec is None else spec.channels,
         )
         print(area)
         print(maps)

@@ -137,12 +137,9 @@ def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[i
 
 
 def check_observation(observation, grid: int) -> ObservationSpec:
-    """The ObservationSpec an option names; raise ValueError saying what is allowed."""
-    spec = parse_observation(observation)
-    if spec.view == "ego" and spec.radius > grid - 1:
-        raise ValueError(f"observation {spec.name}: radius {spec.radius} exceeds grid - 1 = {grid - 1} "
-                         "(ego{grid - 1} already shows the whole grid wherever the agent stands)")
-    return spec
+    """The ObservationSpec an option names; raise ValueError saying what is allowed. (Any ego
+    radius works on any grid: from radius G-1 on, the window shows the whole grid.)"""
+    return parse_observation(observation)
 
 
 def normalise_reading(readings: torch.Tensor) -> torch.Tensor:
@@ -531,6 +528,8 @@ class TargetLocalization(BatchedEnv):
             else:
                 final_obs = self._final_obs
                 final_obs[rows] = self._obs[rows]
+            if self.keep_final_pictures and self.observation.name != "maps":
+                self._final_pictures = {int(r): self.picture_maps(int(r)) for r in rows}
             self._start_episodes(rows)
             if self._incremental:
                 self._obs[rows] = build_observations(
@@ -544,6 +543,18 @@ class TargetLocalization(BatchedEnv):
             final_obs = obs if self.copy_obs else self._final_obs
         self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
         return StepOutput(obs, self.mask, reward, found, truncated, final_obs, episode_length, found.clone())
+
+    def picture_maps(self, index: int) -> torch.Tensor:
+        """The paper's 5 absolute maps of environment ``index`` (whatever the observation is)."""
+        sl = slice(index, index + 1)
+        maps = build_observations(self.positions[sl], self.reading_map[sl], self.visit_map[sl],
+                                  self.walls_f[sl])
+        return maps[0]
+
+    def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
+        if self.observation.name == "maps":
+            return final_obs[index]
+        return self._final_pictures[index]
 
     def render_extras(self, index: int) -> dict[str, Any]:
         return {"target": tuple(int(v) for v in self.target[index].tolist())}

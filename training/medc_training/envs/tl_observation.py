@@ -70,7 +70,7 @@ ESTIMATE_CHANNEL = "source_estimate"
 OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+estimate")
 #: The observation a target-localization environment produces unless told otherwise. Chosen by
 #: measurement (docs/environments.md, "Observations").
-DEFAULT_OBSERVATION = "maps"
+DEFAULT_OBSERVATION = "ego6+estimate"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
 MAX_RADIUS = 255

@@ -56,9 +56,9 @@ class AgentNode(Node):
         grid = p("grid", 30, "Grid side in cells", True)
         observation = p(
             "observation",
-            DEFAULT_OBSERVATION,
-            "Observation variant the policy takes (maps, maps+estimate, egoR, egoR+estimate); "
-            "a bundle that takes another is refused",
+            "",
+            "Observation variant a policy must take (maps, maps+estimate, egoR, egoR+estimate); "
+            "empty: the one each policy bundle's manifest names",
             True,
         )
         resolution = p("resolution", 1.0, "Cell side in metres (map frame)", True)
@@ -76,9 +76,11 @@ class AgentNode(Node):
         )
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
-        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution, observation)
+        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution,
+                                     observation or DEFAULT_OBSERVATION)
         spec = self.observer.observation
-        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, spec.name)
+        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, observation or None,
+                               grid=grid if not observation else None)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.decisions = 0
@@ -91,7 +93,9 @@ class AgentNode(Node):
         if initial:
             try:
                 self.slot.swap(initial)
-                self.get_logger().info(f"running policy {self.slot.current.description}")
+                self.observer.use_observation(self.slot.observation)
+                self.get_logger().info(f"running policy {self.slot.current.description} "
+                                       f"(observation {self.slot.observation})")
             except PolicyRejected as exc:
                 self.get_logger().error(f"initial policy refused: {exc}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -202,7 +206,9 @@ class AgentNode(Node):
             PolicyRejected: refused; the previous policy keeps running.
         """
         loaded = self.slot.swap(source)
-        self.get_logger().info(f"now running policy {loaded.description}")
+        self.observer.use_observation(self.slot.observation)
+        self.get_logger().info(f"now running policy {loaded.description} "
+                               f"(observation {self.slot.observation})")
         for listener in self.swap_listeners:
             listener(source, None)
         return loaded.description

@@ -149,11 +149,17 @@ class PolicySlot:
         num_actions: int,
         application: str | None = "target_localization",
         observation: str | None = None,
+        grid: int | None = None,
     ) -> None:
+        """``observation``: the target-localization observation variant a bundle must take; None
+        with a ``grid`` means "the one the bundle's manifest names" (its shape on that grid is then
+        the observation shape, and :attr:`observation` follows the running bundle)."""
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
         self.observation = observation
+        self.follow_bundle = observation is None and grid is not None
+        self.grid = grid
         self.current: LoadedPolicy | None = None
 
     def swap(self, source: str) -> LoadedPolicy:
@@ -162,10 +168,27 @@ class PolicySlot:
         Raises:
             PolicyRejected: the bundle was refused; the previous policy is still running.
         """
-        loaded = load_policy_cached(source, self.obs_shape, self.num_actions, self.application,
-                                    self.observation)
+        obs_shape, observation = self.obs_shape, self.observation
+        if self.follow_bundle:
+            obs_shape, observation = self._bundle_observation(source)
+        loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application, observation)
         self.current = loaded
+        self.obs_shape, self.observation = obs_shape, observation
         return loaded
+
+    def _bundle_observation(self, source: str) -> tuple[tuple[int, int, int], str]:
+        """(shape on this grid, name) of the observation the bundle at ``source`` names."""
+        from medc_training.bundle import BundleError, read_manifest
+        from medc_training.envs.target_localization import check_observation
+
+        if not isinstance(source, str) or looks_like_cid(source) or not Path(source).expanduser().is_file():
+            load_policy(source, self.obs_shape, self.num_actions, self.application)  # the precise reason
+        try:
+            manifest = read_manifest(Path(source).expanduser())
+            spec = check_observation(manifest["observation"].get("name", "maps"), self.grid)
+        except (BundleError, ValueError, KeyError, TypeError, OSError) as exc:
+            raise PolicyRejected(f"policy bundle {source!r} is invalid: {exc}") from exc
+        return spec.shape(self.grid), spec.name
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, mask: torch.Tensor) -> int:

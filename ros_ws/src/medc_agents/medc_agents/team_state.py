@@ -114,6 +114,13 @@ class TeamObserver:
         self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu")
         self._memory_started = False
 
+    def use_observation(self, observation: str | None) -> None:
+        """Build ``observation`` from now on (the memory keeps what every variant needs)."""
+        from medc_training.envs.target_localization import check_observation
+
+        if observation:
+            self.observation = check_observation(observation, self.height)
+
     # -- inputs (each raises ValueError on bad input) ----------------------------------------
     def _slot(self, store: OrderedDict, key: int) -> list:
         if key not in store:
