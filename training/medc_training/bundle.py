@@ -577,7 +577,7 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in pairs:
         if key in out:
-            raise _JSONLimit(f"duplicate key {safe_repr(key)}")
+            raise _JSONLimit("a key appears twice in one object")  # which key is not said: file content
         out[key] = value
     return out
 
@@ -665,7 +665,7 @@ def _parse_header(src: _Source) -> tuple[dict[str, Any], dict[str, Any], int]:
                           "not a safetensors file") from None
     try:
         # The header's strings are tensor names, dtypes and the manifest (checked on its own below).
-        header = parse_json(text, "header", MAX_HEADER_BYTES, max_string=MAX_MANIFEST_CHARS)
+        header = parse_json(text, "header", MAX_HEADER_BYTES, max_string=MAX_HEADER_BYTES)
     except BundleError as exc:
         raise BundleError(f"{where}: {exc}; not a safetensors file") from None
     if not isinstance(header, dict):
