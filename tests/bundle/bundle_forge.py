@@ -52,3 +52,59 @@ def rewrite_header(data: bytes, edit: Callable[[dict[str, Any]], Any]) -> bytes:
 def raw_header(text: bytes, body: bytes = b"") -> bytes:
     """Length prefix + arbitrary header bytes + arbitrary body."""
     return struct.pack("<Q", len(text)) + text + body
+
+
+def nested(depth: int, kind: str = "list") -> Any:
+    """JSON text nesting ``depth`` levels: lists ``[[[...]]]`` or objects ``{"a": {"a": ...}}``."""
+    if kind == "list":
+        return "[" * depth + "]" * depth
+    return '{"a": ' * depth + "1" + "}" * depth
+
+
+def with_raw_section(manifest: dict[str, Any], section: str, raw_json: str) -> str:
+    """The manifest's JSON text with ``section`` replaced by ``raw_json`` (spliced in as text, so
+    a nesting no json.dumps could write is possible)."""
+    marker = "__RAW_SECTION__"
+    text = json.dumps({**manifest, section: marker})
+    return text.replace(json.dumps(marker), raw_json, 1)
+
+
+def spec_parts(spec: dict[str, Any], grid: int | None = None
+               ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Zero tensors and a complete manifest for any architecture ``spec``, valid or not: a forged
+    bundle that passes every check but the one under test (e.g. a compute bomb)."""
+    from medc_training import nets
+
+    spec = {**spec, "layers": [nets._normalise_layer(raw, i) for i, raw in enumerate(spec["layers"])]}
+    inp = spec["input"]
+    if hasattr(nets, "_propagate"):  # the tensor shapes, without any of the caps
+        shapes = nets._propagate(spec, enforce=False)[0]
+    else:
+        shapes = nets.spec_tensor_shapes(spec)
+    tensors = {name: torch.zeros(shape) for name, shape in shapes.items()}
+    actions = spec["layers"][-1]["num_actions"]
+    manifest = {
+        **MANIFEST,
+        "environment": dict(MANIFEST["environment"], grid=inp["height"] if grid is None else grid),
+        "format": "medc-policy-bundle", "format_version": 1,
+        "observation": {"channels": inp["channels"], "height": inp["height"], "width": inp["width"],
+                        "channel_names": [f"c{i}" for i in range(inp["channels"])]},
+        "actions": [f"a{i}" for i in range(actions)],
+        "architecture": spec,
+    }
+    return tensors, manifest
+
+
+def conv(out: int, k: int, stride: int = 1, padding: int = 0) -> dict[str, Any]:
+    return {"type": "conv2d", "out_channels": out, "kernel_size": k, "stride": stride, "padding": padding}
+
+
+def bomb_spec(channels: int, side: int, grow_layers: int, grow_padding: int, last: list[dict[str, Any]],
+              actions: int = 8) -> dict[str, Any]:
+    """The issue's compute bomb, in any size: padded 1x1 convolutions grow a small input map, then
+    ``last`` (e.g. one large convolution) runs on it, then a pooling shrinks it before the heads."""
+    layers = [conv(1, 1, padding=grow_padding) for _ in range(grow_layers)]
+    layers += last
+    layers += [{"type": "maxpool2d", "kernel_size": 64, "stride": 64, "ceil_mode": True},
+               {"type": "flatten"}, {"type": "heads", "num_actions": actions}]
+    return {"name": "bomb", "input": {"channels": channels, "height": side, "width": side}, "layers": layers}

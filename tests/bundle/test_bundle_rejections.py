@@ -81,7 +81,7 @@ def test_duplicate_keys_in_the_header(good) -> None:
     n = struct.unpack("<Q", good[:8])[0]
     text = good[8:8 + n].decode().rstrip()
     dup = text[:-1] + ', "policy.bias": {"dtype": "F32", "shape": [8], "data_offsets": [0, 32]}}'
-    rejected(raw_header(dup.encode(), good[8 + n:]), "duplicate key 'policy.bias'")
+    rejected(raw_header(dup.encode(), good[8 + n:]), "a key appears twice in one object")
 
 
 def test_plain_safetensors_file_is_not_a_bundle(parts) -> None:
@@ -105,7 +105,7 @@ def test_overlapping_or_gapped_offsets(good) -> None:
 
     def lie_about_size(header):
         header["value.bias"]["shape"] = [2]
-    rejected(rewrite_header(good, lie_about_size), "does not fit its 4 bytes")
+    rejected(rewrite_header(good, lie_about_size), "does not fit its byte range")
 
 
 @pytest.mark.parametrize("dtype", ["F64", "I64", "U8", "BF16"])

@@ -5,12 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int):
-    """The noise-free target-localization core (B = 1) that the simulator node runs."""
+def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int, observation: str = "maps"):
+    """The noise-free target-localization core (B = 1) that the simulator node runs, producing the
+    observation a policy takes."""
     from medc_training.envs import make_batched
 
     return make_batched("target_localization", num_envs=1, device="cpu", seed=seed, agents=agents,
-                        walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False, noise=False)
+                        walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False, noise=False,
+                        observation=observation)
 
 
 def reference_episodes(
@@ -24,7 +26,8 @@ def reference_episodes(
     from medc_training.bundle import load_bundle
 
     policy = load_bundle(bundle)
-    env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps)
+    env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+                       observation=policy.observation)
     obs, mask = env.reset()
     lengths, successes, trace, step = [], [], [], 0
     with torch.no_grad():

@@ -40,9 +40,12 @@ import importlib
 import json
 import math
 import os
+import re
+import stat
 import struct
 import subprocess
 import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +58,15 @@ from safetensors.torch import save as _st_save
 
 import medc_training
 from medc_training.envs import ENV_NAMES
-from medc_training.nets import ActorCritic, SpecError, masked_logits, spec_tensor_shapes, validate_spec
+from medc_training.nets import (
+    ActorCritic,
+    SpecError,
+    masked_logits,
+    safe_names,
+    safe_repr,
+    spec_tensor_shapes,
+    validate_spec,
+)
 
 FORMAT = "medc-policy-bundle"
 FORMAT_VERSION = 1
@@ -67,6 +78,16 @@ KNOWN_APPLICATIONS: tuple[str, ...] = tuple(ENV_NAMES)
 
 MAX_HEADER_BYTES = 1 << 20  # the manifest and tensor table of any sane bundle fit easily in 1 MiB
 MAX_BUNDLE_BYTES = 512 << 20
+# Limits on the JSON of the header and of the manifest, checked before and while parsing it. The
+# shipped bundles' manifests are under 2 KB, nest 4 levels deep and hold no string over 120
+# characters; a 256-layer architecture needs ~25 KB.
+MAX_JSON_DEPTH = 16  # nested objects/lists; checked by a scan before json.loads ever recurses
+MAX_MANIFEST_CHARS = 64 << 10
+MAX_STRING_CHARS = 4096  # any key or string value
+MAX_NUMBER_CHARS = 40  # any JSON number literal (a 64-bit seed has 20 digits)
+# The dry run of ``load_untrusted``: one blank observation through the network, on this machine.
+# The shipped architectures take under 5 ms (61 ms for convnet-small on a 256x256 grid, first call).
+MAX_FORWARD_SECONDS = 0.5
 _MANIFEST_KEYS = {
     "format", "format_version", "application", "description", "environment", "observation",
     "actions", "architecture", "training", "metrics",
@@ -109,7 +130,9 @@ def bundle_bytes(net: ActorCritic, manifest: Mapping[str, Any]) -> bytes:
         if not torch.isfinite(t).all():
             raise BundleError(f"refusing to save: tensor {name!r} has non-finite values")
     data = _st_save(tensors, metadata={MANIFEST_KEY: json.dumps(full, sort_keys=True)})
-    _parse(data, "new bundle", decode=False)  # what we write must be what we accept
+    with _Source(data) as src:
+        src.where = "new bundle"
+        _parse(src, decode=False)  # what we write must be what we accept
     return data
 
 
@@ -117,9 +140,9 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     """``manifest`` with the format, architecture, observation, actions and provenance filled in."""
     if not isinstance(manifest, Mapping):
         raise BundleError(f"manifest must be a dict, got {type(manifest).__name__}")
-    unknown = sorted(set(manifest) - _MANIFEST_KEYS)
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS, key=str)
     if unknown:
-        raise BundleError(f"manifest: unknown keys {unknown}; allowed: {sorted(_MANIFEST_KEYS)}")
+        raise BundleError(f"manifest: unknown keys {safe_names(unknown)}; allowed: {sorted(_MANIFEST_KEYS)}")
     try:
         full: dict[str, Any] = json.loads(json.dumps(dict(manifest)))  # deep copy; proves JSON-able
     except (TypeError, ValueError) as exc:
@@ -165,8 +188,9 @@ def _observation_spec(name: Any):
 
     try:
         return parse_observation(name)
-    except ValueError as exc:
-        raise BundleError(f"manifest: {exc}") from None
+    except ValueError:
+        raise BundleError("manifest: observation.name is not an observation variant this code knows "
+                          "(maps, maps+estimate, egoR, egoR+estimate)") from None
 
 
 def _env_names(app: Any) -> tuple[list[str] | None, list[str] | None]:
@@ -227,7 +251,7 @@ def _is_scalar(value: Any) -> bool:
 
 def _check_int(value: Any, what: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise BundleError(f"manifest: {what} must be a positive integer, got {value!r}")
+        raise BundleError(f"manifest: {what} must be a positive integer, got {safe_repr(value)}")
     return value
 
 
@@ -249,24 +273,25 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     """
     if not isinstance(manifest, dict):
         raise BundleError(f"manifest must be a JSON object, got {type(manifest).__name__}")
-    unknown = sorted(set(manifest) - _MANIFEST_KEYS)
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS, key=str)
     if unknown:
-        raise BundleError(f"manifest: unknown keys {unknown}; allowed: {sorted(_MANIFEST_KEYS)}")
+        raise BundleError(f"manifest: unknown keys {safe_names(unknown)}; allowed: {sorted(_MANIFEST_KEYS)}")
     missing = sorted(_MANIFEST_KEYS - {"description"} - set(manifest))
     if missing:
         raise BundleError(f"manifest: missing keys {missing}")
     if manifest["format"] != FORMAT:
-        raise BundleError(f"manifest: format is {manifest['format']!r}, expected {FORMAT!r}")
+        raise BundleError(f"manifest: format is {safe_repr(manifest['format'])}, expected {FORMAT!r}")
     version = manifest["format_version"]
     if isinstance(version, bool) or not isinstance(version, int):
-        raise BundleError(f"manifest: format_version must be an integer, got {version!r}")
+        raise BundleError(f"manifest: format_version must be an integer, got {safe_repr(version)}")
     if version != FORMAT_VERSION:
         newer = " (written by a newer medc_training; upgrade to load it)" if version > FORMAT_VERSION else ""
         raise BundleError(f"manifest: format_version {version} is not supported, expected "
                           f"{FORMAT_VERSION}{newer}")
     app = manifest["application"]
     if app not in KNOWN_APPLICATIONS:
-        raise BundleError(f"manifest: unknown application {app!r}; known: {', '.join(KNOWN_APPLICATIONS)}")
+        raise BundleError(f"manifest: unknown application {safe_repr(app)}; known: "
+                          f"{', '.join(KNOWN_APPLICATIONS)}")
     if "description" in manifest and not isinstance(manifest["description"], str):
         raise BundleError("manifest: description must be a string")
     for section in ("environment", "training", "metrics"):
@@ -277,11 +302,11 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
         flat = section == "environment"
         for key, item in value.items():
             if flat and not _is_scalar(item):
-                raise BundleError(
-                    f"manifest: environment.{key} must be a finite number, bool or string, got {item!r}"
-                )
+                raise BundleError(f"manifest: environment.{safe_repr(key)[1:-1]} must be a finite number, "
+                                  f"bool or string, got {safe_repr(item)}")
             if section == "metrics" and not _is_scalar(item):
-                raise BundleError(f"manifest: metrics.{key} must be a finite number, bool, string or null")
+                raise BundleError(f"manifest: metrics.{safe_repr(key)[1:-1]} must be a finite number, bool, "
+                                  "string or null")
     try:
         spec = validate_spec(manifest["architecture"])
     except SpecError as exc:
@@ -312,7 +337,7 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
                               f"{shape[1]}x{shape[2]} with {shape[0]} channels; "
                               f"{ospec.name} on that grid is {list(ospec.shape(grid))}")
     elif grid is not None and (grid != shape[1] or grid != shape[2]):
-        raise BundleError(f"manifest: environment.grid is {grid!r} but the observation is "
+        raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
                           f"{shape[1]}x{shape[2]}")
     out = dict(manifest)
     out["architecture"] = spec
@@ -395,47 +420,194 @@ def load_bundle(source: str | os.PathLike[str] | bytes | bytearray | memoryview,
                 device: torch.device | str = "cpu") -> PolicyBundle:
     """Load and verify a bundle from a path or from its bytes; the net is on ``device`` in eval mode.
 
-    Raises ``BundleError`` for anything that is not a valid bundle (see the module docstring).
+    Raises ``BundleError`` for anything that is not a valid bundle (see the module docstring);
+    no other exception escapes for any file content (a loader failure, a RecursionError or a
+    MemoryError included, is reported as a BundleError).
     """
-    data, where = _read(source)
-    manifest, tensors = _parse(data, where, decode=True)
-    net = ActorCritic(manifest["architecture"], initialize=False)  # every weight is overwritten
-    net.load_state_dict(tensors, strict=True)
-    return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
+    with _Source(source) as src:
+        try:
+            manifest, tensors, data = _parse(src, decode=True)
+            net = ActorCritic(manifest["architecture"], initialize=False)  # every weight is overwritten
+            net.load_state_dict(tensors, strict=True)
+            return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
+        except BundleError:
+            raise
+        except Exception as exc:  # no file may end in anything but a BundleError
+            raise BundleError(f"{src.where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
 
 
 def read_manifest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> dict[str, Any]:
-    """The validated manifest of a bundle (header, manifest and tensor table checked; weights not decoded)."""
-    data, where = _read(source)
-    manifest, _ = _parse(data, where, decode=False)
-    return manifest
+    """The validated manifest of a bundle (header, manifest and tensor table checked; weights not decoded).
+
+    A file is read only up to the end of its header: the weights are never read.
+    """
+    with _Source(source) as src:
+        try:
+            return _parse(src, decode=False)[0]
+        except BundleError:
+            raise
+        except Exception as exc:
+            raise BundleError(f"{src.where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
+
+
+def load_untrusted(source: str | os.PathLike[str] | bytes | bytearray | memoryview,
+                   device: torch.device | str = "cpu",
+                   max_forward_s: float = MAX_FORWARD_SECONDS) -> PolicyBundle:
+    """``load_bundle`` plus a timed dry run: what every node does with a bundle from the graph.
+
+    The agent nodes (before swapping policies) and the registry bridge (before caching and handing
+    out a fetched bundle) both call this, so a bundle one accepts the other accepts too. After
+    every static check of ``load_bundle`` (including the architecture's compute and memory caps,
+    ``nets.MAX_OPERATIONS`` and ``nets.MAX_ACTIVATION_BYTES``), one blank observation with every
+    move allowed goes through the network; a bundle whose forward pass takes longer than
+    ``max_forward_s`` seconds (twice, so that a cold first call is forgiven) is refused.
+
+    Raises:
+        BundleError: for any refusal; no other exception escapes.
+    """
+    bundle = load_bundle(source, device=device)
+    where = _where(source)
+    try:
+        seconds = dry_run_seconds(bundle)
+        if seconds > max_forward_s:
+            seconds = min(seconds, dry_run_seconds(bundle))
+    except Exception as exc:
+        raise BundleError(f"{where}: fails on a blank observation ({type(exc).__name__})") from exc
+    if seconds > max_forward_s:
+        raise BundleError(f"{where}: one observation takes {seconds:.2f} s to evaluate, over the "
+                          f"{max_forward_s:g} s limit (too slow to act with)")
+    return bundle
+
+
+def dry_run_seconds(bundle: PolicyBundle) -> float:
+    """Wall time of one greedy ``act`` on a blank observation with every move allowed."""
+    blank = torch.zeros((1, *bundle.obs_shape), device=bundle.device)
+    allowed = torch.ones((1, bundle.num_actions), dtype=torch.bool, device=bundle.device)
+    start = time.perf_counter()
+    with torch.no_grad():
+        bundle.act(blank, allowed, greedy=True)
+    if bundle.device.type == "cuda":
+        torch.cuda.synchronize(bundle.device)
+    return time.perf_counter() - start
 
 
 def bundle_digest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> str:
     """Hex sha256 of the bundle's bytes (no validation): a content address independent of IPFS."""
-    data, _ = _read(source)
-    return hashlib.sha256(data).hexdigest()
+    with _Source(source) as src:
+        digest = hashlib.sha256()
+        for offset in range(0, src.size, 1 << 20):
+            digest.update(src.read(offset, min(1 << 20, src.size - offset)))
+        return digest.hexdigest()
 
 
-def _read(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> tuple[bytes, str]:
+def printable(text: str, limit: int = 200) -> str:
+    """``text`` (a path, a topic message) with anything but printable ASCII shown as ``?``, cut to
+    ``limit`` characters: safe to put in a message, a log line or on a terminal."""
+    clean = "".join(ch if " " <= ch <= "~" else "?" for ch in text[:limit + 1])
+    return clean if len(clean) <= limit else clean[:limit] + "..."
+
+
+def _where(source: Any) -> str:
     if isinstance(source, bytes | bytearray | memoryview):
-        return bytes(source), "bundle bytes"
-    if not isinstance(source, str | os.PathLike):
-        raise TypeError(f"expected a path or bytes, got {type(source).__name__}")
-    path = Path(source)
-    try:
-        size = path.stat().st_size
-        if not path.is_file():
-            raise BundleError(f"{path}: not a regular file")
-        if size > MAX_BUNDLE_BYTES:
-            raise BundleError(f"{path}: {size} bytes is larger than the {MAX_BUNDLE_BYTES} byte limit")
-        return path.read_bytes(), str(path)
-    except FileNotFoundError:
-        raise BundleError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise BundleError(f"{path}: is a directory, not a bundle file") from None
-    except OSError as exc:
-        raise BundleError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        return "bundle bytes"
+    return printable(os.fspath(source)) if isinstance(source, str | os.PathLike) else "bundle"
+
+
+class _Source:
+    """Bounded reads from a path or from bytes: the header is checked before the rest is read."""
+
+    def __init__(self, source: Any) -> None:
+        self.fd: int | None = None
+        if isinstance(source, bytes | bytearray | memoryview):
+            self.data: bytes | None = bytes(source)
+            self.size = len(self.data)
+            self.where = "bundle bytes"
+            return
+        if not isinstance(source, str | os.PathLike):
+            raise TypeError(f"expected a path or bytes, got {type(source).__name__}")
+        path = Path(source)
+        self.where = printable(str(path))
+        self.data = None
+        try:
+            if not path.is_file():  # before opening: opening a FIFO or a device could block
+                if path.is_dir():
+                    raise BundleError(f"{self.where}: is a directory, not a bundle file")
+                if not path.exists():
+                    raise BundleError(f"{self.where}: no such file")
+                raise BundleError(f"{self.where}: not a regular file")
+            self.fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+            st = os.fstat(self.fd)
+        except FileNotFoundError:
+            self.close()
+            raise BundleError(f"{self.where}: no such file") from None
+        except OSError as exc:
+            self.close()
+            raise BundleError(f"{self.where}: cannot read: {exc.strerror or type(exc).__name__}") from None
+        except BundleError:
+            self.close()
+            raise
+        if not stat.S_ISREG(st.st_mode):
+            self.close()
+            raise BundleError(f"{self.where}: not a regular file")
+        self.size = st.st_size
+        if self.size > MAX_BUNDLE_BYTES:
+            self.close()
+            raise BundleError(f"{self.where}: {self.size} bytes is larger than the {MAX_BUNDLE_BYTES} "
+                              "byte limit")
+
+    def read(self, offset: int, count: int) -> bytes:
+        """Exactly ``count`` bytes from ``offset`` (the caller checked that they exist)."""
+        if self.data is not None:
+            return self.data[offset:offset + count]
+        chunks, done = [], 0
+        try:
+            while done < count:
+                chunk = os.pread(self.fd, min(count - done, 16 << 20), offset + done)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+                done += len(chunk)
+        except OSError as exc:
+            raise BundleError(f"{self.where}: cannot read: {exc.strerror or type(exc).__name__}") from None
+        out = b"".join(chunks)
+        if len(out) != count:
+            raise BundleError(f"{self.where}: the file changed while it was read")
+        return out
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+    def __enter__(self) -> _Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _JSONLimit(ValueError):
+    """A JSON text over one of this module's limits (the message names the limit, not the text)."""
+
+
+# A JSON string literal (possessive: linear time on any input). Removing them leaves the brackets
+# that structure the text, so nesting depth is measured without recursing.
+_JSON_STRING = re.compile(r'"(?:[^"\\]++|\\.)*+"', re.S)
+_NOT_BRACKET = re.compile(r"[^\[\]{}]++")
+
+
+def json_depth(text: str) -> int:
+    """How deep the objects and lists of a JSON text nest, by a linear scan (no parsing, no recursion).
+
+    Brackets inside complete string literals do not count; those of an unterminated string do
+    (such a text is not JSON anyway), so the result is never below the true depth.
+    """
+    brackets = _NOT_BRACKET.sub("", _JSON_STRING.sub("", text)).encode("ascii")
+    if not brackets:
+        return 0
+    codes = np.frombuffer(brackets, dtype=np.uint8)
+    steps = np.where((codes == ord("[")) | (codes == ord("{")), 1, -1)
+    return int(np.cumsum(steps).max())
 
 
 def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
@@ -443,31 +615,97 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in pairs:
         if key in out:
-            raise ValueError(f"duplicate key {key!r}")
+            raise _JSONLimit("a key appears twice in one object")  # which key is not said: file content
         out[key] = value
     return out
 
 
 def _reject_constant(name: str) -> Any:
-    raise ValueError(f"non-standard JSON constant {name}")
+    raise _JSONLimit(f"non-standard JSON constant {name}")
 
 
-def _parse_header(data: bytes, where: str) -> tuple[dict[str, Any], dict[str, Any], int]:
-    """Check the safetensors container; return (manifest JSON, tensor table, data start)."""
-    if len(data) < 8:
-        raise BundleError(f"{where}: {len(data)} bytes is too short to be a safetensors file")
-    (header_len,) = struct.unpack("<Q", data[:8])
-    if header_len > MAX_HEADER_BYTES:
-        raise BundleError(f"{where}: header claims {header_len} bytes, over the {MAX_HEADER_BYTES} "
-                          "byte limit (not a bundle, or corrupted)")
-    if 8 + header_len > len(data):
-        raise BundleError(f"{where}: truncated: header needs {header_len} bytes but only "
-                          f"{len(data) - 8} follow")
+def _parse_number(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        if len(text) > MAX_NUMBER_CHARS:
+            raise _JSONLimit(f"a number of more than {MAX_NUMBER_CHARS} characters")
+        value = kind(text)
+        if not math.isfinite(value):
+            raise _JSONLimit("a number too large for a float")
+        return value
+    return parse
+
+
+def _check_strings(value: Any, what: str, max_string: int = MAX_STRING_CHARS) -> None:
+    """Every key and string in ``value`` (depth already bounded) is valid Unicode and not over-long."""
+    stack = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, dict):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, list):
+            stack.extend(item)
+        elif isinstance(item, str):
+            if len(item) > max_string:
+                raise BundleError(f"{what} holds a string of more than {max_string} characters")
+            try:
+                item.encode("utf-8")
+            except UnicodeEncodeError:
+                raise BundleError(f"{what} holds invalid Unicode (a lone surrogate, e.g. a \\ud800 "
+                                  "escape)") from None
+
+
+def parse_json(text: str, what: str, max_chars: int, max_string: int = MAX_STRING_CHARS) -> Any:
+    """``text`` parsed as strict JSON within this module's limits; ``BundleError`` names ``what``.
+
+    Refused, and never echoed: more than ``max_chars`` characters, nesting deeper than
+    ``MAX_JSON_DEPTH`` (checked before parsing, so the parser never recurses deep), NaN/Infinity,
+    numbers over ``MAX_NUMBER_CHARS`` characters or beyond float range, duplicate keys, strings or
+    keys over ``max_string`` characters, and invalid Unicode (lone surrogates).
+    """
+    if len(text) > max_chars:
+        raise BundleError(f"{what} is over the {max_chars} character limit")
+    if json_depth(text) > MAX_JSON_DEPTH:
+        raise BundleError(f"{what} nests deeper than {MAX_JSON_DEPTH} levels")
     try:
-        header = json.loads(data[8:8 + header_len].decode("utf-8"), object_pairs_hook=_no_duplicates,
-                            parse_constant=_reject_constant)
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise BundleError(f"{where}: header is not valid JSON ({exc}); not a safetensors file") from None
+        value = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_reject_constant,
+                           parse_int=_parse_number(int), parse_float=_parse_number(float))
+    except json.JSONDecodeError as exc:
+        raise BundleError(f"{what} is not valid JSON ({exc.msg} at character {exc.pos})") from None
+    except _JSONLimit as exc:
+        raise BundleError(f"{what} is not valid JSON: {exc}") from None
+    except (ValueError, RecursionError, MemoryError) as exc:
+        raise BundleError(f"{what} is not valid JSON ({type(exc).__name__})") from None
+    _check_strings(value, what, max_string)
+    return value
+
+
+def _parse_header(src: _Source) -> tuple[dict[str, Any], dict[str, Any], int]:
+    """Check the safetensors container; return (manifest JSON, tensor table, data start).
+
+    Reads the 8-byte length prefix, then the header, nothing more. Messages never echo the file:
+    not the prefix's value, not a byte, not a snippet of the header.
+    """
+    where = src.where
+    if src.size < 8:
+        raise BundleError(f"{where}: {src.size} bytes is too short to be a safetensors file")
+    (header_len,) = struct.unpack("<Q", src.read(0, 8))
+    if header_len > MAX_HEADER_BYTES:
+        raise BundleError(f"{where}: the header length in the first 8 bytes is over the {MAX_HEADER_BYTES} "
+                          "byte limit (not a bundle, or corrupted)")
+    if 8 + header_len > src.size:
+        raise BundleError(f"{where}: truncated: header needs more bytes than the file's {src.size}")
+    raw = src.read(8, header_len)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise BundleError(f"{where}: header is not valid JSON (not UTF-8 text); "
+                          "not a safetensors file") from None
+    try:
+        # The header's strings are tensor names, dtypes and the manifest (checked on its own below).
+        header = parse_json(text, "header", MAX_HEADER_BYTES, max_string=MAX_HEADER_BYTES)
+    except BundleError as exc:
+        raise BundleError(f"{where}: {exc}; not a safetensors file") from None
     if not isinstance(header, dict):
         raise BundleError(f"{where}: header must be a JSON object")
     meta = header.pop("__metadata__", None)
@@ -477,10 +715,9 @@ def _parse_header(data: bytes, where: str) -> tuple[dict[str, Any], dict[str, An
     if not isinstance(meta[MANIFEST_KEY], str):
         raise BundleError(f"{where}: metadata '{MANIFEST_KEY}' must be a JSON string")
     try:
-        manifest = json.loads(meta[MANIFEST_KEY], object_pairs_hook=_no_duplicates,
-                              parse_constant=_reject_constant)
-    except ValueError as exc:
-        raise BundleError(f"{where}: manifest is not valid JSON ({exc})") from None
+        manifest = parse_json(meta[MANIFEST_KEY], "manifest", MAX_MANIFEST_CHARS)
+    except BundleError as exc:
+        raise BundleError(f"{where}: {exc}") from None
     return manifest, header, 8 + header_len
 
 
@@ -488,39 +725,42 @@ def _check_table(table: dict[str, Any], data_len: int, where: str) -> None:
     """Each entry is F32 with a shape whose size matches its byte range; ranges tile the data exactly."""
     spans = []
     for name, entry in table.items():
+        label = safe_repr(name)
         if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
-            raise BundleError(f"{where}: tensor {name!r}: entry must have dtype, shape, data_offsets")
+            raise BundleError(f"{where}: tensor {label}: entry must have dtype, shape, data_offsets")
         if entry["dtype"] not in _DTYPE_SIZES:
-            raise BundleError(f"{where}: tensor {name!r} has dtype {entry['dtype']!r}; bundles hold F32 only")
+            raise BundleError(f"{where}: tensor {label} has dtype {safe_repr(entry['dtype'], 8)}; "
+                              "bundles hold F32 only")
         shape, offsets = entry["shape"], entry["data_offsets"]
-        if not isinstance(shape, list) or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0
-                                                  for d in shape):
-            raise BundleError(f"{where}: tensor {name!r} has an invalid shape {shape!r}")
+        if (not isinstance(shape, list) or len(shape) > 8
+                or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)):
+            raise BundleError(f"{where}: tensor {label} has an invalid shape (at most 8 non-negative "
+                              "integers)")
         if (not isinstance(offsets, list) or len(offsets) != 2
                 or not all(isinstance(o, int) and not isinstance(o, bool) for o in offsets)
                 or not 0 <= offsets[0] <= offsets[1]):
-            raise BundleError(f"{where}: tensor {name!r} has invalid data_offsets {offsets!r}")
+            raise BundleError(f"{where}: tensor {label} has invalid data_offsets")
         if offsets[1] - offsets[0] != math.prod(shape) * _DTYPE_SIZES[entry["dtype"]]:
-            raise BundleError(f"{where}: tensor {name!r}: shape {shape} does not fit its "
-                              f"{offsets[1] - offsets[0]} bytes")
+            raise BundleError(f"{where}: tensor {label}: its shape does not fit its byte range")
         spans.append((offsets[0], offsets[1], name))
     spans.sort()
     cursor = 0
     for start, end, name in spans:
         if start != cursor:
-            raise BundleError(f"{where}: tensor {name!r} data does not follow the previous tensor "
-                              "(overlap or gap): corrupted file")
+            raise BundleError(f"{where}: tensor {safe_repr(name)} data does not follow the previous "
+                              "tensor (overlap or gap): corrupted file")
         cursor = end
     if cursor > data_len:
-        raise BundleError(f"{where}: truncated: tensors need {cursor} data bytes but only {data_len} "
-                          "are present")
+        raise BundleError(f"{where}: truncated: tensors need more data bytes than the file holds")
     if cursor < data_len:
-        raise BundleError(f"{where}: {data_len - cursor} unexpected bytes after the last tensor")
+        raise BundleError(f"{where}: unexpected bytes after the last tensor")
 
 
-def _parse(data: bytes, where: str, decode: bool) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
-    raw_manifest, table, start = _parse_header(data, where)
-    _check_table(table, len(data) - start, where)
+def _parse(src: _Source, decode: bool) -> tuple[dict[str, Any], dict[str, torch.Tensor], bytes]:
+    """(validated manifest, tensors, all bytes); tensors and bytes only with ``decode``."""
+    where = src.where
+    raw_manifest, table, start = _parse_header(src)
+    _check_table(table, src.size - start, where)
     try:
         manifest = validate_manifest(raw_manifest)
     except BundleError as exc:
@@ -529,24 +769,29 @@ def _parse(data: bytes, where: str, decode: bool) -> tuple[dict[str, Any], dict[
     missing = sorted(set(expected) - set(table))
     extra = sorted(set(table) - set(expected))
     if missing:
-        raise BundleError(f"{where}: missing tensors {missing} required by the architecture")
+        raise BundleError(f"{where}: missing tensors {safe_names(missing)} required by the architecture")
     if extra:
-        raise BundleError(f"{where}: unexpected tensors {extra} not in the architecture")
+        raise BundleError(f"{where}: unexpected tensors {safe_names(extra)} not in the architecture")
     for name, shape in expected.items():
         stored = tuple(table[name]["shape"])
         if stored != shape:
             raise BundleError(f"{where}: tensor {name!r} has shape {list(stored)}, the architecture "
                               f"needs {list(shape)}")
     if not decode:
-        return manifest, {}
+        return manifest, {}, b""
+    data = src.read(0, src.size)  # only now, with the header and table vetted and the sizes known
+    if len(data) < start or struct.unpack("<Q", data[:8])[0] != start - 8:
+        raise BundleError(f"{where}: the file changed while it was read")
     try:
         tensors = _st_load(data)
-    except Exception as exc:  # safetensors raises its own error types; the header was already vetted
-        raise BundleError(f"{where}: cannot decode tensors: {exc}") from None
+    except Exception as exc:  # safetensors' own error types
+        raise BundleError(f"{where}: cannot decode tensors ({type(exc).__name__})") from None
+    if set(tensors) != set(expected) or any(tuple(t.shape) != expected[n] for n, t in tensors.items()):
+        raise BundleError(f"{where}: the file changed while it was read")
     for name, tensor in tensors.items():
         if not torch.isfinite(tensor).all():
             raise BundleError(f"{where}: tensor {name!r} contains NaN or infinite values")
-    return manifest, tensors
+    return manifest, tensors, data
 
 
 # ---------------------------------------------------------------------------------------------
@@ -574,7 +819,8 @@ def save_state(path: str | os.PathLike[str], state: Mapping[str, Any]) -> Path:
 
 def load_state(path: str | os.PathLike[str], device: torch.device | str = "cpu") -> dict[str, Any]:
     """Read a ``save_state`` file; tensors go to ``device`` (numpy arrays come back as numpy)."""
-    data, where = _read(path)
+    with _Source(path) as src:
+        data, where = src.read(0, src.size), src.where
     try:
         (header_len,) = struct.unpack("<Q", data[:8])
         header = json.loads(data[8:8 + header_len])

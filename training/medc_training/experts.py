@@ -70,7 +70,9 @@ class BundleExpert(Expert):
         self.attributes = {k: v for k, v in env.items()
                            if isinstance(v, int | float) and not isinstance(v, bool)}
         self.application = manifest.get("application")
-        self.name = name or f"bundle:{manifest.get('architecture', {}).get('name', 'net')}"
+        from .nets import safe_repr  # the name comes from a file: shown sanitised in messages
+
+        self.name = name or f"bundle:{safe_repr(manifest.get('architecture', {}).get('name', 'net'))[1:-1]}"
 
     @property
     def obs_shape(self) -> tuple:

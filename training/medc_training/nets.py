@@ -63,6 +63,7 @@ import copy
 import json
 import math
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -88,6 +89,12 @@ MAX_INPUT_SIDE = 4096
 MAX_CHANNELS = 4096
 MAX_ACTIONS = 4096
 MAX_ACTIVATIONS = 1 << 24  # elements of any one layer's output for a single observation (64 MiB)
+# Compute and memory caps per observation, from the spec alone (``architecture_cost``). The shipped
+# architectures need at most 12.6 M operations and 0.5 MiB (convnet-small on a 61x61x8 window or a
+# 64x64 grid; 2.7 M and 0.11 MiB at the paper's 30x30): the caps leave margins of ~40x and 64x.
+# Even a 256x256 grid (the largest target_localization accepts) fits: 185 M and 8 MiB.
+MAX_OPERATIONS = 500_000_000
+MAX_ACTIVATION_BYTES = 32 << 20
 
 # Large negative logit for masked-out actions: exp() of it is exactly 0, yet it stays finite so
 # entropies and log-probabilities never produce NaN (0 * -inf).
@@ -96,6 +103,40 @@ _MASK_LOGIT = -1e9
 
 class SpecError(ValueError):
     """The architecture spec is malformed, uses an unknown layer, or its shapes do not fit."""
+
+
+def safe_repr(value: Any, limit: int = 40) -> str:
+    """A short, printable description of a value taken from an untrusted file, for messages.
+
+    Strings are quoted with every character outside printable ASCII (controls, ANSI escapes,
+    quotes, backslashes, any non-ASCII) shown as ``?`` and cut to ``limit`` characters; numbers
+    are shown cut to ``limit`` characters; containers only by their type. A message built with
+    this never carries more than a few dozen characters of the file, and nothing a terminal or
+    log reader would interpret.
+    """
+    if isinstance(value, str):
+        clean = "".join(ch if " " <= ch <= "~" and ch not in "'\\\"" else "?" for ch in value[:limit + 1])
+        if len(clean) > limit:
+            clean = clean[:limit] + "..."
+        return f"'{clean}'"
+    if value is None or isinstance(value, bool):
+        return repr(value)
+    if isinstance(value, int | float):
+        text = repr(value) if not isinstance(value, int) or abs(value) < 10 ** limit else "a huge integer"
+        return text if len(text) <= limit else text[:limit] + "..."
+    if isinstance(value, Mapping):
+        return "an object"
+    if isinstance(value, list | tuple):
+        return "a list"
+    return f"a {type(value).__name__}"
+
+
+def safe_names(values: Any, limit: int = 3) -> str:
+    """``[...]`` of at most ``limit`` sanitised names (see ``safe_repr``), then how many more."""
+    items = sorted(values, key=str) if isinstance(values, set | frozenset) else list(values)
+    shown = ", ".join(safe_repr(v) for v in items[:limit])
+    more = f", and {len(items) - limit} more" if len(items) > limit else ""
+    return f"[{shown}{more}]"
 
 
 def _conv_out(size: int, kernel: int, stride: int, padding: int) -> int:
@@ -115,7 +156,7 @@ def _pool_out(size: int, kernel: int, stride: int, ceil_mode: bool) -> int:
 def _positive_int(value: Any, where: str, key: str, *, minimum: int = 1, maximum: int | None = None) -> int:
     # bool is an int subclass; true/false is never a valid size.
     if isinstance(value, bool) or not isinstance(value, int):
-        raise SpecError(f"{where}: '{key}' must be an integer, got {value!r}")
+        raise SpecError(f"{where}: '{key}' must be an integer, got {safe_repr(value)}")
     if value < minimum or (maximum is not None and value > maximum):
         bound = f"between {minimum} and {maximum}" if maximum is not None else f">= {minimum}"
         raise SpecError(f"{where}: '{key}' must be {bound}, got {value}")
@@ -129,11 +170,12 @@ def _normalise_layer(raw: Any, index: int) -> dict[str, Any]:
         raise SpecError(f"{where}: expected an object with a 'type', got {type(raw).__name__}")
     kind = raw.get("type")
     if kind not in _LAYER_KEYS:
-        raise SpecError(f"{where}: unknown layer type {kind!r}; allowed: {', '.join(LAYER_TYPES)}")
+        raise SpecError(f"{where}: unknown layer type {safe_repr(kind)}; allowed: {', '.join(LAYER_TYPES)}")
     allowed = _LAYER_KEYS[kind]
-    extra = sorted(set(raw) - set(allowed) - {"type"})
+    extra = sorted(set(raw) - set(allowed) - {"type"}, key=str)
     if extra:
-        raise SpecError(f"{where} ({kind}): unknown keys {extra}; allowed: {sorted(allowed) or 'none'}")
+        raise SpecError(f"{where} ({kind}): unknown keys {safe_names(extra)}; "
+                        f"allowed: {sorted(allowed) or 'none'}")
     layer: dict[str, Any] = {"type": kind}
     for key, default in allowed.items():
         if key in raw:
@@ -169,9 +211,10 @@ def validate_spec(spec: Any) -> dict[str, Any]:
     """
     if not isinstance(spec, Mapping):
         raise SpecError(f"architecture spec must be an object, got {type(spec).__name__}")
-    extra = sorted(set(spec) - {"name", "input", "layers"})
+    extra = sorted(set(spec) - {"name", "input", "layers"}, key=str)
     if extra:
-        raise SpecError(f"architecture spec: unknown keys {extra}; allowed: ['input', 'layers', 'name']")
+        raise SpecError(f"architecture spec: unknown keys {safe_names(extra)}; "
+                        "allowed: ['input', 'layers', 'name']")
     name = spec.get("name", "custom")
     if not isinstance(name, str) or not name or len(name) > 64:
         raise SpecError("architecture spec: 'name' must be a non-empty string of at most 64 characters")
@@ -200,18 +243,51 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
     """Names and shapes of every parameter tensor of the network ``spec`` describes.
 
     Raises ``SpecError`` when the layers do not fit together or the network is too large (more
-    than ``MAX_PARAMETERS`` parameters, or a layer output above ``MAX_ACTIVATIONS`` values).
+    than ``MAX_PARAMETERS`` parameters, a layer output above ``MAX_ACTIVATIONS`` values, more than
+    ``MAX_OPERATIONS`` operations or ``MAX_ACTIVATION_BYTES`` of activations per observation: see
+    ``architecture_cost``).
 
     ``spec`` must have its defaults filled in (``validate_spec`` output). This is the single source
     of truth a bundle loader checks stored tensors against.
     """
+    return _propagate(spec)[0]
+
+
+@dataclass(frozen=True)
+class ArchitectureCost:
+    """What one observation costs a network, computed from its spec alone (nothing is allocated).
+
+    ``operations``: multiply-adds of every conv2d, linear and heads layer, plus one per window
+    element a maxpool2d compares, plus one per value each layer reads (after padding) and writes:
+    a network of cheap layers on huge maps costs what it moves. ``peak_activation_bytes``: the most
+    float32 memory one layer holds at once for one observation (its padded input plus its output).
+    ``parameters``: the number of weights and biases.
+    """
+
+    operations: int
+    peak_activation_bytes: int
+    parameters: int
+
+
+def architecture_cost(spec: Mapping[str, Any]) -> ArchitectureCost:
+    """The per-observation cost of the network ``spec`` (``validate_spec`` output) describes.
+
+    ``validate_spec`` refuses a spec over ``MAX_OPERATIONS`` or ``MAX_ACTIVATION_BYTES``, so this
+    is how to see how close a spec comes to the caps.
+    """
+    return _propagate(spec, enforce=False)[1]
+
+
+def _propagate(spec: Mapping[str, Any], enforce: bool = True
+               ) -> tuple[dict[str, tuple[int, ...]], ArchitectureCost]:
     shape: tuple[int, ...] = (spec["input"]["channels"], spec["input"]["height"], spec["input"]["width"])
     tensors: dict[str, tuple[int, ...]] = {}
     layers = spec["layers"]
-    total = 0
+    total = operations = peak = 0
     for i, layer in enumerate(layers):
         kind = layer["type"]
         where = f"layer {i} ({kind})"
+        read = math.prod(shape)  # values the layer reads (its padded input for a convolution)
         if kind == "heads":
             if i != len(layers) - 1:
                 raise SpecError(f"{where}: 'heads' must be the last layer")
@@ -223,6 +299,8 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
                 "value.weight": (1, features), "value.bias": (1,),
             })
             total += (actions + 1) * (features + 1)
+            operations += (actions + 1) * features
+            out_shape: tuple[int, ...] = (actions + 1,)
         elif kind in ("conv2d", "maxpool2d"):
             if len(shape) != 3:
                 raise SpecError(f"{where}: needs a [C, H, W] map stack but the input is already flat")
@@ -235,17 +313,22 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
                 tensors[f"trunk.{i}.weight"] = (out, c, k, k)
                 tensors[f"trunk.{i}.bias"] = (out,)
                 total += out * c * k * k + out
+                read = c * (h + 2 * p) * (w + 2 * p)
+                if oh >= 1 and ow >= 1:
+                    operations += out * c * k * k * oh * ow
                 c = out
             else:
                 oh = _pool_out(h, k, s, layer["ceil_mode"])
                 ow = _pool_out(w, k, s, layer["ceil_mode"])
+                if oh >= 1 and ow >= 1:
+                    operations += c * oh * ow * k * k
             if oh < 1 or ow < 1:
                 raise SpecError(
                     f"{where}: a {h}x{w} input shrinks to {oh}x{ow}; use padding or a smaller kernel"
                 )
-            shape = (c, oh, ow)
+            shape = out_shape = (c, oh, ow)
         elif kind == "flatten":
-            shape = (math.prod(shape),)
+            shape = out_shape = (math.prod(shape),)
         elif kind == "linear":
             if len(shape) != 1:
                 raise SpecError(f"{where}: needs flat features; add a 'flatten' layer before it")
@@ -253,15 +336,30 @@ def spec_tensor_shapes(spec: Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
             tensors[f"trunk.{i}.weight"] = (out, shape[0])
             tensors[f"trunk.{i}.bias"] = (out,)
             total += out * shape[0] + out
-            shape = (out,)
-        if total > MAX_PARAMETERS:
-            raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
-        if math.prod(shape) > MAX_ACTIVATIONS:
-            raise SpecError(f"{where}: its output of {math.prod(shape):,} values per observation exceeds "
-                            f"{MAX_ACTIVATIONS:,}")
+            operations += out * shape[0]
+            shape = out_shape = (out,)
+        else:  # relu, tanh: elementwise
+            out_shape = shape
+        written = math.prod(out_shape)
+        operations += read + written
+        peak = max(peak, 4 * (read + written))
+        if enforce:
+            if total > MAX_PARAMETERS:
+                raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
+            if math.prod(shape) > MAX_ACTIVATIONS:
+                raise SpecError(f"{where}: its output of {math.prod(shape):,} values per observation "
+                                f"exceeds {MAX_ACTIVATIONS:,}")
+            if peak > MAX_ACTIVATION_BYTES:
+                raise SpecError(f"{where}: holds {peak:,} bytes of activations for one observation, over "
+                                f"the {MAX_ACTIVATION_BYTES:,} byte limit (a memory bomb, or far larger "
+                                "than any MEDC policy)")
+            if operations > MAX_OPERATIONS:
+                raise SpecError(f"{where}: layers 0..{i} already cost {operations:,} operations per "
+                                f"observation, over the {MAX_OPERATIONS:,} limit (a compute bomb, or "
+                                "far larger than any MEDC policy)")
     if not layers or layers[-1]["type"] != "heads":
         raise SpecError("architecture spec: the last layer must be {'type': 'heads', 'num_actions': A}")
-    return tensors
+    return tensors, ArchitectureCost(operations, peak, total)
 
 
 def _lenet5(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:

@@ -1,7 +1,10 @@
 """``medc-inspect BUNDLE``: verify a policy bundle and print its manifest.
 
 Exit status: 0 for a valid bundle, 1 for a file that is not a valid bundle (the reason goes to
-stderr), 2 for bad command-line usage.
+stderr), 2 for bad command-line usage. Whatever the file holds, it never ends in a traceback, and
+every string from the manifest is printed sanitised: control characters (ANSI escapes included),
+format characters (bidirectional overrides) and anything unprintable appear as ``\\xNN`` /
+``\\uNNNN`` escapes, never raw.
 """
 
 from __future__ import annotations
@@ -10,10 +13,26 @@ import argparse
 import json
 import os
 import sys
+import unicodedata
 from pathlib import Path
 from typing import Any
 
 from medc_training.bundle import BundleError, load_bundle, read_manifest
+
+
+def clean(value: Any) -> str:
+    """``value`` as text safe for a terminal: every control, format, surrogate, private-use,
+    unassigned or separator character (other than the space) shown as an escape."""
+    text = value if isinstance(value, str) else json.dumps(value)
+    out = []
+    for ch in text:
+        if ch == " " or unicodedata.category(ch)[0] not in "CZ":
+            out.append(ch)
+        else:
+            code = ord(ch)
+            out.append(f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}" if code < 0x10000
+                       else f"\\U{code:08x}")
+    return "".join(out)
 
 
 def _layer_text(layer: dict[str, Any]) -> str:
@@ -35,8 +54,9 @@ def _mapping_lines(title: str, mapping: dict[str, Any]) -> list[str]:
     if not mapping:
         return [f"{title + ':':<14}(none)"]
     lines = [f"{title}:"]
-    width = max(len(k) for k in mapping)
-    lines += [f"  {k:<{width}}  {json.dumps(v) if not isinstance(v, str) else v}" for k, v in mapping.items()]
+    keys = {k: clean(k) for k in mapping}
+    width = max(len(k) for k in keys.values())
+    lines += [f"  {keys[k]:<{width}}  {clean(v)}" for k, v in mapping.items()]
     return lines
 
 
@@ -46,21 +66,22 @@ def format_manifest(manifest: dict[str, Any], sha256: str | None = None, paramet
     obs = manifest["observation"]
     arch = manifest["architecture"]
     lines = [
-        f"{'application:':<14}{manifest['application']}",
-        f"{'format:':<14}{manifest['format']} v{manifest['format_version']}",
+        f"{'application:':<14}{clean(manifest['application'])}",
+        f"{'format:':<14}{clean(manifest['format'])} v{manifest['format_version']}",
     ]
     if manifest.get("description"):
-        lines.append(f"{'description:':<14}{manifest['description']}")
+        lines.append(f"{'description:':<14}{clean(manifest['description'])}")
     if sha256:
         lines.append(f"{'sha256:':<14}{sha256}")
     if size is not None:
         lines.append(f"{'size:':<14}{size} bytes")
     lines += _mapping_lines("environment", manifest["environment"])
     lines.append(f"{'observation:':<14}{obs['channels']} x {obs['height']} x {obs['width']} "
-                 f"({', '.join(obs['channel_names'])})")
-    lines.append(f"{'actions:':<14}{len(manifest['actions'])} ({', '.join(manifest['actions'])})")
+                 f"({', '.join(clean(n) for n in obs['channel_names'])})")
+    actions = ", ".join(clean(a) for a in manifest["actions"])
+    lines.append(f"{'actions:':<14}{len(manifest['actions'])} ({actions})")
     params = f", {parameters:,} parameters" if parameters is not None else ""
-    lines.append(f"architecture: {arch['name']} ({len(arch['layers'])} layers{params})")
+    lines.append(f"architecture: {clean(arch['name'])} ({len(arch['layers'])} layers{params})")
     lines += [f"  {i:>2}  {_layer_text(layer)}" for i, layer in enumerate(arch["layers"])]
     lines += _mapping_lines("training", manifest["training"])
     lines += _mapping_lines("metrics", manifest["metrics"])
@@ -79,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--manifest-only", action="store_true",
                         help="check the header and manifest only, without decoding the weights")
     args = parser.parse_args(argv)
+    for stream in (sys.stdout, sys.stderr):  # a terminal that is not UTF-8 gets escapes, not a crash
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     try:
         if args.manifest_only:
             manifest = read_manifest(args.bundle)
@@ -87,11 +111,14 @@ def main(argv: list[str] | None = None) -> int:
             bundle = load_bundle(args.bundle)
             manifest, sha256 = bundle.manifest, bundle.sha256
             parameters = sum(p.numel() for p in bundle.net.parameters())
-    except BundleError as exc:
-        print(f"medc-inspect: invalid bundle: {exc}", file=sys.stderr)
+        # --json: ensure_ascii escapes every non-ASCII and control character.
+        text = (json.dumps(manifest, indent=2, sort_keys=True) if args.json
+                else format_manifest(manifest, sha256, parameters, Path(args.bundle).stat().st_size))
+    except Exception as exc:  # BundleError, or anything at all: a reason, never a traceback
+        reason = str(exc) if isinstance(exc, BundleError) else (
+            f"{clean(str(args.bundle))}: cannot be loaded ({type(exc).__name__})")
+        print(f"medc-inspect: invalid bundle: {clean(reason)}", file=sys.stderr)
         return 1
-    text = (json.dumps(manifest, indent=2, sort_keys=True) if args.json
-            else format_manifest(manifest, sha256, parameters, Path(args.bundle).stat().st_size))
     try:
         print(text)
         sys.stdout.flush()

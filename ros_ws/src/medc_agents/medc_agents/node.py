@@ -8,7 +8,8 @@ The policy is swapped at runtime by setting the ``policy`` parameter or by publi
 path on the policy topics. A content id on the policy topic is passed to the registry bridge's
 ``fetch_bundle`` service, which verifies the bundle and sends back its local path. A bundle that
 fails validation is refused (the parameter set fails with the reason) and the old one keeps
-running.
+running. No file and no message can take the node down: every exception of a swap (a
+RecursionError or MemoryError from a hostile file included) ends as a logged refusal.
 """
 
 from __future__ import annotations
@@ -22,16 +23,25 @@ from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
 from medc_sim import contract
 from medc_sim.params import declare
+from medc_training.bundle import MAX_FORWARD_SECONDS
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, strip_cid
+from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, shown, strip_cid
 from medc_agents.team_state import TeamObserver
 
 NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
+
+
+def _reason(exc: BaseException) -> str:
+    """What a refusal says: the PolicyRejected text, or just the type of an unexpected error;
+    printable ASCII only and bounded, as it goes to the log, /rosout and the caller."""
+    text = str(exc) if isinstance(exc, PolicyRejected) else f"could not be loaded ({type(exc).__name__})"
+    clean = "".join(ch if " " <= ch <= "~" else "?" for ch in text[:2001])
+    return clean if len(clean) <= 2000 else clean[:2000] + "..."
 
 
 class AgentNode(Node):
@@ -74,13 +84,19 @@ class AgentNode(Node):
         threads = p(
             "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
         )
+        max_forward_s = p(
+            "policy_max_forward_s",
+            MAX_FORWARD_SECONDS,
+            "A bundle whose dry run on one blank observation takes longer (seconds) is refused",
+            True,
+        )
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution,
                                      observation or DEFAULT_OBSERVATION)
         spec = self.observer.observation
-        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, observation or None,
-                               grid=grid if not observation else None)
+        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
+                               observation=observation or None, grid=grid if not observation else None)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.decisions = 0
@@ -96,8 +112,8 @@ class AgentNode(Node):
                 self.observer.use_observation(self.slot.observation)
                 self.get_logger().info(f"running policy {self.slot.current.description} "
                                        f"(observation {self.slot.observation})")
-            except PolicyRejected as exc:
-                self.get_logger().error(f"initial policy refused: {exc}")
+            except Exception as exc:  # PolicyRejected, or anything else: the node still starts
+                self.get_logger().error(f"initial policy refused: {_reason(exc)}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         ns = self.namespace_
@@ -173,10 +189,12 @@ class AgentNode(Node):
     def _decide(self, obs, mask, tick) -> None:
         try:
             action = self.slot.act(obs, mask)
-        except (RuntimeError, ValueError) as exc:
+        except Exception as exc:
             # A policy failing on one observation must not take the node down; the observation
             # is kept and retried when the simulator re-sends the step.
-            self.get_logger().error(f"policy failed on episode {tick.episode} step {tick.step}: {exc}")
+            self.get_logger().error(
+                f"policy failed on episode {tick.episode} step {tick.step}: {_reason(PolicyRejected(exc))}"
+            )
             self._unanswered = (obs, mask, tick)
             return
         self.publish_move(tick, action)
@@ -214,9 +232,13 @@ class AgentNode(Node):
         return loaded.description
 
     def _refused(self, source: str, exc: Exception) -> None:
-        self.get_logger().error(f"policy {source!r} refused, keeping the running one: {exc}")
+        reason = _reason(exc)
+        self.get_logger().error(f"policy {shown(source)} refused, keeping the running one: {reason}")
         for listener in self.swap_listeners:
-            listener(source, str(exc))
+            try:
+                listener(source, reason)
+            except Exception as err:  # a listener's bug must not turn a refusal into a crash
+                self.get_logger().error(f"policy swap listener failed: {type(err).__name__}")
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         for param in params:
@@ -224,19 +246,20 @@ class AgentNode(Node):
                 continue
             try:
                 self.swap_policy(str(param.value))
-            except PolicyRejected as exc:
+            except Exception as exc:  # PolicyRejected, or anything at all: refuse, keep running
                 self._refused(str(param.value), exc)
-                return SetParametersResult(successful=False, reason=str(exc))
+                return SetParametersResult(successful=False, reason=_reason(exc))
         return SetParametersResult(successful=True)
 
     def _on_policy_msg(self, msg: String) -> None:
-        source = msg.data.strip()
-        if looks_like_cid(source):
-            self._request_fetch(strip_cid(source))
-            return
+        source = ""
         try:
+            source = msg.data.strip()
+            if looks_like_cid(source):
+                self._request_fetch(strip_cid(source))
+                return
             self.swap_policy(source)
-        except PolicyRejected as exc:
+        except Exception as exc:  # PolicyRejected, or anything at all: refuse, keep running
             self.dropped_by["policy"] += 1
             self._refused(source, exc)
 
@@ -301,7 +324,7 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
         try:
             with torch.no_grad():
                 actions = bundle.act(obs, mask, greedy=True).tolist()
-        except (RuntimeError, ValueError):
+        except Exception:
             # Fall back to one by one: each agent logs and keeps its own failure.
             for agent, o, mk, tick in members:
                 agent._decide(o, mk, tick)

@@ -1,9 +1,10 @@
 """The policy an agent node runs, and swapping it safely at runtime (no ROS in here).
 
-A bundle file is data from a stranger: it is loaded only by ``medc_training.bundle.load_bundle``
-(safetensors + a validated JSON manifest, never pickle) and must fit this agent's observation
-and action space before it replaces the running policy. Anything else is refused with a
-:class:`PolicyRejected` that says why, and the old policy keeps running.
+A bundle file is data from a stranger: it is loaded only by ``medc_training.bundle.load_untrusted``
+(safetensors + a validated JSON manifest, never pickle; compute and memory caps; a timed dry run)
+and must fit this agent's observation and action space before it replaces the running policy.
+Anything else is refused with a :class:`PolicyRejected` that says why (never echoing the file),
+and the old policy keeps running.
 """
 
 from __future__ import annotations
@@ -26,14 +27,22 @@ class PolicyRejected(ValueError):
 
 def looks_like_cid(source: str) -> bool:
     """True for an IPFS content id (``Qm...``, ``b...``, optionally ``ipfs://`` or ``cid:``)."""
-    return bool(_CID.match(source.strip()))
+    return len(source) <= 200 and bool(_CID.match(source.strip()))
+
+
+def shown(source: object) -> str:
+    """A policy source as messages and logs show it: printable ASCII only, quoted, at most 200
+    characters (a topic message or a parameter is anyone's text)."""
+    text = source if isinstance(source, str) else repr(source)
+    clean = "".join(ch if " " <= ch <= "~" and ch not in "'\\" else "?" for ch in text[:201])
+    return f"'{clean[:200]}...'" if len(clean) > 200 else f"'{clean}'"
 
 
 def strip_cid(source: str) -> str:
     """The bare CID of ``ipfs://<cid>`` / ``cid:<cid>`` / ``<cid>``."""
-    m = _CID.match(source.strip())
+    m = _CID.match(source.strip()) if len(source) <= 200 else None
     if not m:
-        raise PolicyRejected(f"{source!r} is not an IPFS content id")
+        raise PolicyRejected(f"{shown(source)} is not an IPFS content id")
     return m.group(2)
 
 
@@ -46,9 +55,11 @@ class LoadedPolicy:
 
     @property
     def description(self) -> str:
+        from medc_training.nets import safe_repr
+
         arch = self.bundle.manifest.get("architecture", {})
-        name = arch.get("name", "?") if isinstance(arch, dict) else "?"
-        return f"{self.source} ({name})"
+        name = safe_repr(arch.get("name", "?"))[1:-1] if isinstance(arch, dict) else "?"
+        return f"{shown(self.source)[1:-1]} ({name})"
 
 
 def load_policy(
@@ -56,18 +67,34 @@ def load_policy(
     obs_shape: tuple[int, int, int],
     num_actions: int,
     application: str | None = "target_localization",
+    max_forward_s: float | None = None,
     observation: str | None = None,
 ) -> LoadedPolicy:
     """Load and validate the bundle file at ``source`` for this observation/action space.
 
+    The bundle goes through ``medc_training.bundle.load_untrusted`` (every static check, the
+    compute and memory caps, then a dry run that must take at most ``max_forward_s`` seconds,
+    default ``MAX_FORWARD_SECONDS``), the same function the registry bridge vets fetched bundles
+    with, and must then fit this agent's observation shape, action count and application.
     ``observation`` names the observation variant this agent builds (target localization); a
     bundle that takes another variant is refused.
 
     Raises:
-        PolicyRejected: not a readable regular file, too large, not a valid bundle, or made for
-        another observation shape / action count / application.
+        PolicyRejected: for every refusal and for any failure while loading (a RecursionError or
+        a MemoryError included): no other exception escapes, whatever the file holds.
     """
-    from medc_training.bundle import BundleError, load_bundle
+    try:
+        return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
+    except PolicyRejected:
+        raise
+    except Exception as exc:  # a file or a message must never take the node down
+        raise PolicyRejected(
+            f"policy bundle {shown(source)} could not be loaded ({type(exc).__name__})"
+        ) from exc
+
+
+def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation) -> LoadedPolicy:
+    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, load_untrusted
     from medc_training.experts import BundleExpert, ExpertError
 
     if not isinstance(source, str) or not source.strip():
@@ -76,36 +103,31 @@ def load_policy(
         raise PolicyRejected("policy path contains a NUL byte")
     if looks_like_cid(source):
         raise PolicyRejected(
-            f"{source!r} is a content id: fetch it through the registry bridge (service fetch_bundle), "
-            "which verifies it and sends this agent the local path"
+            f"{shown(source)} is a content id: fetch it through the registry bridge (service "
+            "fetch_bundle), which verifies it and sends this agent the local path"
         )
     path = Path(source).expanduser()
     try:
         if not path.is_file():
-            raise PolicyRejected(f"policy bundle {source!r} is not an existing file")
+            raise PolicyRejected(f"policy bundle {shown(source)} is not an existing file")
         size = path.stat().st_size
-    except OSError as exc:
-        raise PolicyRejected(f"cannot read policy bundle {source!r}: {exc}") from exc
+    except PolicyRejected:
+        raise
+    except (OSError, ValueError) as exc:
+        why = getattr(exc, "strerror", None) or type(exc).__name__
+        raise PolicyRejected(f"cannot read policy bundle {shown(source)}: {why}") from exc
     if size > MAX_BUNDLE_BYTES:
-        raise PolicyRejected(f"policy bundle {source!r} is {size} bytes, more than {MAX_BUNDLE_BYTES}")
+        raise PolicyRejected(f"policy bundle {shown(source)} is {size} bytes, more than {MAX_BUNDLE_BYTES}")
+    limit = MAX_FORWARD_SECONDS if max_forward_s is None else max_forward_s
     try:
-        bundle = load_bundle(path, device="cpu")
+        bundle = load_untrusted(path, device="cpu", max_forward_s=limit)
     except BundleError as exc:
-        raise PolicyRejected(f"policy bundle {source!r} is invalid: {exc}") from exc
-    except (OSError, ValueError) as exc:  # a loader bug or an unreadable file must not kill the node
-        raise PolicyRejected(f"policy bundle {source!r} could not be loaded: {exc}") from exc
+        raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
     try:
         BundleExpert(bundle).check_compatible(obs_shape, num_actions, observation=observation,
                                               application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
-    # A dry run on a blank observation catches a spec whose shapes fit the manifest but not the net.
-    try:
-        with torch.no_grad():
-            blank = torch.zeros((1, *obs_shape))
-            bundle.act(blank, torch.ones((1, num_actions), dtype=torch.bool), greedy=True)
-    except (RuntimeError, ValueError) as exc:
-        raise PolicyRejected(f"policy bundle {source!r} fails on a {obs_shape} observation: {exc}") from exc
     return LoadedPolicy(bundle=bundle, source=str(path))
 
 
@@ -119,6 +141,7 @@ def load_policy_cached(
     obs_shape: tuple[int, int, int],
     num_actions: int,
     application: str | None = "target_localization",
+    max_forward_s: float | None = None,
     observation: str | None = None,
 ) -> LoadedPolicy:
     """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
@@ -133,10 +156,10 @@ def load_policy_cached(
             application,
             observation,
         )
-    except (OSError, ValueError):
-        return load_policy(source, obs_shape, num_actions, application, observation)  # the precise reason
+    except Exception:  # not stat-able (or not a path): load_policy gives the reason
+        return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
     if key not in _LOADED:
-        _LOADED[key] = load_policy(source, obs_shape, num_actions, application, observation)
+        _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
     return _LOADED[key]
 
 
@@ -148,6 +171,7 @@ class PolicySlot:
         obs_shape: tuple[int, int, int],
         num_actions: int,
         application: str | None = "target_localization",
+        max_forward_s: float | None = None,
         observation: str | None = None,
         grid: int | None = None,
     ) -> None:
@@ -157,6 +181,7 @@ class PolicySlot:
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
+        self.max_forward_s = max_forward_s
         self.observation = observation
         self.follow_bundle = observation is None and grid is not None
         self.grid = grid
@@ -171,7 +196,8 @@ class PolicySlot:
         obs_shape, observation = self.obs_shape, self.observation
         if self.follow_bundle:
             obs_shape, observation = self._bundle_observation(source)
-        loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application, observation)
+        loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application,
+                                    self.max_forward_s, observation)
         self.current = loaded
         self.obs_shape, self.observation = obs_shape, observation
         return loaded
@@ -185,9 +211,15 @@ class PolicySlot:
             load_policy(source, self.obs_shape, self.num_actions, self.application)  # the precise reason
         try:
             manifest = read_manifest(Path(source).expanduser())
+        except BundleError as exc:
+            raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
+        except Exception as exc:  # a file must never take the node down
+            why = type(exc).__name__
+            raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
+        try:
             spec = check_observation(manifest["observation"].get("name", "maps"), self.grid)
-        except (BundleError, ValueError, KeyError, TypeError, OSError) as exc:
-            raise PolicyRejected(f"policy bundle {source!r} is invalid: {exc}") from exc
+        except ValueError as exc:
+            raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
         return spec.shape(self.grid), spec.name
 
     @torch.no_grad()

@@ -94,12 +94,15 @@ class RegistryBridge:
         """Fetch ``cid``, verify it, and store it as ``<cache_dir>/<cid>.safetensors``.
 
         Returns (path, manifest). The content store checks the bytes against the CID; the bundle
-        loader then validates the file (manifest, tensor names and shapes) without unpickling.
+        is then vetted by ``medc_training.bundle.load_untrusted``, the very function the agent
+        nodes use before a swap (manifest, tensor names and shapes, compute and memory caps, a
+        timed dry run), without unpickling. Only a bundle that passes is cached and handed out.
 
         Raises:
-            BridgeError: malformed CID, not found, content mismatch, or an invalid bundle.
+            BridgeError: malformed CID, not found, content mismatch, or an invalid bundle; any
+            other failure while vetting (a RecursionError, a MemoryError) is a BridgeError too.
         """
-        from medc_training.bundle import BundleError, load_bundle
+        from medc_training.bundle import BundleError, load_untrusted
 
         from medc_registry.cid import ContentMismatchError
         from medc_registry.content import ContentStoreError
@@ -112,9 +115,11 @@ class RegistryBridge:
         except (ContentStoreError, ContentMismatchError, ValueError) as exc:
             raise BridgeError(f"cannot fetch {cid}: {exc}") from exc
         try:
-            bundle = load_bundle(data)
+            bundle = load_untrusted(data)
         except BundleError as exc:
             raise BridgeError(f"content {cid} is not a valid policy bundle: {exc}") from exc
+        except Exception as exc:  # no file may end in anything but a refusal
+            raise BridgeError(f"content {cid} is not a valid policy bundle ({type(exc).__name__})") from exc
         path = self.cache_dir / f"{cid}.safetensors"
         # Write then rename, so an agent never reads a half-written file.
         with tempfile.NamedTemporaryFile(dir=self.cache_dir, delete=False, suffix=".part") as tmp:
@@ -262,9 +267,12 @@ def bridge_node_class():
                     if not contract.AGENT_ID_PATTERN.match(agent_id):
                         raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
                 path, manifest = self.bridge.fetch(req.cid)
-            except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"fetch_bundle refused: {exc}")
+            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+                reason = (str(exc) if isinstance(exc, BridgeError)
+                          else f"internal error ({type(exc).__name__})")
+                reason = "".join(ch if " " <= ch <= "~" else "?" for ch in reason[:2000])
+                res.ok, res.message = False, reason
+                self.get_logger().warning(f"fetch_bundle refused: {reason}")
                 return res
             for agent_id in ids:
                 self._policy_pub(agent_id).publish(self._String(data=str(path)))

@@ -71,6 +71,9 @@ class SimCore:
             max_steps=c.max_steps,
             reward_shaping=False,
             noise=c.noise,
+            # The agents build their own observations from the messages; the simulator needs none,
+            # and the paper's maps are the cheapest to keep.
+            observation="maps",
         )
         self.env.reset()
 
