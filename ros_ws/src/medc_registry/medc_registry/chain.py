@@ -227,12 +227,11 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
     from web3 import HTTPProvider
 
     class DeadlineHTTPProvider(HTTPProvider):
-        def get_request_kwargs(self):
-            for key, value in super().get_request_kwargs():
-                if key != "timeout":
-                    yield key, value
+        def get_request_kwargs(self) -> dict[str, Any]:
+            kwargs = dict(super().get_request_kwargs())
             left = client_ref[0].time_left() if client_ref else None
-            yield "timeout", timeout if left is None else max(0.05, min(timeout, left))
+            kwargs["timeout"] = timeout if left is None else max(0.05, min(timeout, left))
+            return kwargs
 
     return DeadlineHTTPProvider(url, request_kwargs={"timeout": timeout}, exception_retry_configuration=None)
 
