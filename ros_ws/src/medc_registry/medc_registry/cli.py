@@ -225,8 +225,9 @@ def record_deployment(home: Path, state: dict[str, Any], chain, dep, ipfs_api: s
     """Save the freshly deployed contracts and the content store choice in the registry state."""
     local = {"kind": "local", "root": str(home / "content")}
     content = {"kind": "kubo", "url": ipfs_api} if ipfs_api else local
-    state.update(users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id,
-                 content=content)
+    state.update(
+        users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id, content=content
+    )
     save_state(home, state)
 
 
@@ -332,12 +333,11 @@ def cmd_request(args: argparse.Namespace) -> int:
 
 def cmd_fetch(args: argparse.Namespace) -> int:
     reg = open_registry(args)
-    data = reg.fetch(args.cid)
     if args.output:
-        Path(args.output).write_bytes(data)
-        print(f"{len(data)} bytes verified against {args.cid} -> {args.output}")
+        size = reg.fetch_to(args.cid, args.output)
+        print(f"{size} bytes verified against {args.cid} -> {args.output}")
     else:
-        sys.stdout.buffer.write(data)
+        sys.stdout.buffer.write(reg.fetch(args.cid))
     return 0
 
 

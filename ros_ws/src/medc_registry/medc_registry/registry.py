@@ -692,6 +692,10 @@ class Registry:
         """The bytes of ``cid`` from the content store, verified against the CID."""
         return self.store.fetch(cid)
 
+    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
+        """Write the bytes of ``cid``, verified while they stream in, to ``path``; returns the size."""
+        return self.store.fetch_to(cid, path)
+
     # ------------------------------------------------------------ reviews and payments
     def review(self, allocation: int | Allocation, value: float) -> TxResult:
         """Review an allocation (its id or the :class:`Allocation`) with ``value`` in [0, 1].
