@@ -66,9 +66,9 @@ ERROR_HINTS = {
     "NothingToWithdraw": "nothing is owed to this account",
     "TransferFailed": "the payout transfer was rejected by the receiver",
     "RequestAlreadyPaid": "this request id was already paid and allocated; nothing was paid again",
-    "TooManyCandidates": "pass 1 to 256 candidate model ids (rank larger applications page by page, "
-    "as Registry.request_models does)",
-    "InvalidCandidate": "candidate ids must be strictly increasing ids of the application's models",
+    "TooManyCandidates": "pass 1 to 256 candidates, positions in the application's Models List "
+    "(Registry.request_models ranks larger applications page by page)",
+    "InvalidCandidate": "candidates must be strictly increasing positions in the application's Models List",
 }
 
 
