@@ -20,6 +20,12 @@ contract ModelsManager {
     uint256 internal constant MAX_FEATURES = 8;
     /// @notice Upper bound on the length of a CID string.
     uint256 internal constant MAX_CID_LENGTH = 128;
+    /// @notice Upper bound on the candidate models one allocation examines (bounds its gas: about
+    ///         8,300 gas per candidate, so at most ~2.1 M gas of ranking per call).
+    /// @dev For an application with more models, the requester ranks them in pages with free
+    ///      simulated calls (eth_call) of `allocateModels` itself, each page together with the
+    ///      best so far, and then passes the overall best positions as `candidates`.
+    uint256 internal constant MAX_CANDIDATES = 256;
 
     /// @dev Slot 0: owner, reputation, allocCount. Slot 1: totalReview, price, appId.
     ///      Slot 2: environment details E^m, feature i in bits [32 i, 32 i + 32).
@@ -60,6 +66,8 @@ contract ModelsManager {
     mapping(uint32 => uint8) private _featureCount; // appId -> number of environment features
     mapping(uint32 => uint32[]) private _modelsList; // appId -> model ids (paper: Models List)
     mapping(address => uint256) private _owed;
+    /// @dev keccak(requester, requestId) -> firstAllocationId + 1 (0 = not paid yet).
+    mapping(bytes32 => uint256) private _requests;
 
     error UnregisteredUser(address user);
     error UnknownModel(uint256 modelId);
@@ -75,6 +83,9 @@ contract ModelsManager {
     error InvalidCount();
     error NoEligibleModels();
     error InsufficientPayment(uint256 required, uint256 sent);
+    error RequestAlreadyPaid(uint256 firstAllocationId);
+    error TooManyCandidates(uint256 given, uint256 maximum);
+    error InvalidCandidate(uint256 position);
     error NotAllocatedRequester(uint256 allocationId, address caller);
     error AlreadyReviewed(uint256 allocationId);
     error ReviewOutOfRange(uint256 review);
@@ -138,37 +149,48 @@ contract ModelsManager {
     }
 
     /// @notice Allocate up to `count` models to the caller (paper: allocateModels()), paying their prices.
-    /// @dev Greedy: keep the models of `application` whose reputation and owner reputation meet the
-    ///      minimums (never the caller's own), rank exact environment matches (D_m = 0) first by
+    /// @dev Greedy: keep the candidates whose reputation and owner reputation meet the minimums
+    ///      (never the caller's own), rank exact environment matches (D_m = 0) first by
     ///      Rep_i * Rep_m, then the rest by QoS_m, ties by lower model id, and take the best `count`.
     ///      One pass over the candidates with an insertion into a top-`count` list.
+    ///      The candidates are positions in the application's Models List that the requester
+    ///      passes (1 to MAX_CANDIDATES, strictly increasing): all of them when there are few,
+    ///      else the overall top `count` found by simulating this function page by page, so one
+    ///      call's gas is bounded however many models were shared.
+    ///      Idempotent: `requestId` (chosen by the requester) is recorded with the allocation; the
+    ///      same requester sending the same id again reverts with
+    ///      RequestAlreadyPaid(firstAllocationId) before any other check, and pays
+    ///      nothing. A simulated call (eth_call) with the id tells whether it was paid.
     ///      The caller must send at least the sum of the allocated models' prices; the excess is
     ///      credited back to the caller (withdraw it).
+    /// @param requestId Requester-chosen idempotency key.
     /// @param application Application name.
     /// @param requirements Requester's environment features E^r (same count as the application's).
     /// @param weights Feature weights w_i summing to 1e18, or empty for equal weights.
     /// @param count Number of models wanted.
     /// @param minModelRep Minimum model reputation (fixed point).
     /// @param minOwnerRep Minimum owner reputation (fixed point).
+    /// @param candidates Positions in the application's Models List to rank: 1 to MAX_CANDIDATES, increasing.
     /// @return modelIds Allocated models, best first.
     /// @return firstAllocationId Allocation id of modelIds[0]; the others follow consecutively.
     function allocateModels(
+        bytes32 requestId,
         string calldata application,
         uint32[] calldata requirements,
         uint256[] calldata weights,
         uint256 count,
         uint256 minModelRep,
-        uint256 minOwnerRep
+        uint256 minOwnerRep,
+        uint256[] calldata candidates
     ) external payable returns (uint256[] memory modelIds, uint256 firstAllocationId) {
-        if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
-        uint32 appId = _appIdOf[keccak256(bytes(application))];
-        if (appId == 0) revert UnknownApplication();
-        if (count == 0) revert InvalidCount();
-        uint256 p = _featureCount[appId];
-        if (requirements.length != p) revert FeatureCountMismatch(p, requirements.length);
-        _checkWeights(weights, p);
+        bytes32 requestKey = keccak256(abi.encode(msg.sender, requestId));
+        uint256 record = _requests[requestKey];
+        if (record != 0) revert RequestAlreadyPaid(record - 1);
+        uint32 appId = _checkRequest(application, requirements, weights, count);
 
-        Ranking memory r = _rank(_modelsList[appId], requirements, weights, count, minModelRep, minOwnerRep);
+        Ranking memory r = _rank(
+            _modelsList[appId], candidates, requirements, weights, count, minModelRep, minOwnerRep
+        );
         uint256 found = r.found;
         if (found == 0) revert NoEligibleModels();
 
@@ -196,6 +218,7 @@ contract ModelsManager {
             if (price != 0) _credit(owner, price);
         }
         if (msg.value > total) _credit(msg.sender, msg.value - total);
+        _requests[requestKey] = firstAllocationId + 1;
         for (uint256 j; j < found; ++j) {
             users.updateInfo(_models[r.ids[j]].owner, 1);
         }
@@ -336,6 +359,22 @@ contract ModelsManager {
         emit PaymentCredited(account, amount, balance);
     }
 
+    /// @dev The request's checks; returns the application id.
+    function _checkRequest(
+        string calldata application,
+        uint32[] calldata requirements,
+        uint256[] calldata weights,
+        uint256 count
+    ) private view returns (uint32 appId) {
+        if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
+        appId = _appIdOf[keccak256(bytes(application))];
+        if (appId == 0) revert UnknownApplication();
+        if (count == 0) revert InvalidCount();
+        uint256 p = _featureCount[appId];
+        if (requirements.length != p) revert FeatureCountMismatch(p, requirements.length);
+        _checkWeights(weights, p);
+    }
+
     function _checkWeights(uint256[] calldata weights, uint256 p) private pure {
         if (weights.length == 0) return;
         uint256 sum;
@@ -380,20 +419,27 @@ contract ModelsManager {
     }
 
     /// @dev One pass over the candidates keeping the best `count` (insertion into a sorted list).
+    ///      `positions` index the application's Models List `list`: 1 to MAX_CANDIDATES of them,
+    ///      strictly increasing, so no model is ranked (or paid) twice.
     function _rank(
-        uint32[] storage candidates,
+        uint32[] storage list,
+        uint256[] calldata positions,
         uint32[] calldata requirements,
         uint256[] calldata weights,
         uint256 count,
         uint256 minModelRep,
         uint256 minOwnerRep
     ) private view returns (Ranking memory r) {
-        uint256 n = candidates.length;
+        uint256 n = positions.length;
+        if (n == 0 || n > MAX_CANDIDATES) revert TooManyCandidates(n, MAX_CANDIDATES);
+        uint256 listLength = list.length;
         if (count > n) count = n;
         r.ids = new uint256[](count);
         r.keys = new uint256[](count);
         for (uint256 c; c < n; ++c) {
-            uint256 id = candidates[c];
+            uint256 pos = positions[c];
+            if (pos >= listLength || (c != 0 && pos <= positions[c - 1])) revert InvalidCandidate(pos);
+            uint256 id = list[pos];
             Model storage m = _models[id];
             address owner = m.owner;
             uint256 mRep = m.reputation;

@@ -53,7 +53,7 @@ def test_resending_the_same_signed_payment_pays_once(anvil, tmp_path):
         reg.as_user(i).register_user()
     reg.as_user(3).share_model(b"m", APP, {"agents": 1, "walls": 1}, PRICE)
     requester = chain.account(4)
-    fn = reg.models.functions.allocateModels(APP, [1, 1], [], 1, 0, 0)
+    fn = reg.models.functions.allocateModels(b"\x01" * 32, APP, [1, 1], [], 1, 0, 0, [0])
     tx = fn.build_transaction(
         {
             "from": requester.address,
@@ -174,7 +174,7 @@ def test_gas_is_the_same_on_anvil_cancun_and_eth_tester_prague(anvil, embedded_c
             chain.transact(umc.functions.addUser(), sender=9)
             add = mmc.functions.addModel(APPLICATION, CID, DESCRIPTION, [1, 3], PRICE)
             gas.append(chain.transact(add, sender=8).gas_used)
-            alloc = mmc.functions.allocateModels(APPLICATION, [3, 2], [], 1, 0, 0)
+            alloc = mmc.functions.allocateModels(b"\x01" * 32, APPLICATION, [3, 2], [], 1, 0, 0, [0])
             gas.append(chain.transact(alloc, sender=9, value=PRICE).gas_used)
             figures.append(gas)
         assert figures[0] == figures[1]

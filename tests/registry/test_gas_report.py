@@ -38,6 +38,16 @@ def test_allocate_models_grows_linearly_in_candidates(report):
 
 
 @pytest.mark.slow
+def test_ranked_allocation_gas_does_not_depend_on_the_number_of_models(report):
+    """The Registry passes only the best candidates, so spam models cost the requester nothing."""
+    ranked = {row["candidates"]: row["ranked_1"] for row in report["allocate_scaling"]}
+    assert abs(ranked[32] - ranked[8]) <= 200 and ranked[32] < 200_000
+    rows = {row["candidates"]: row for row in report["allocate_scaling"]}
+    assert rows[32]["ranked_min_n_8"] < rows[32]["allocate_min_n_8"]
+    assert "refused" in format_report({**report, "allocate_scaling": [{**rows[32], "allocate_1": None}]})
+
+
+@pytest.mark.slow
 def test_report_names_the_fork_and_lists_every_paper_row(report):
     assert report["fork"] == "Prague"
     text = format_report(report)

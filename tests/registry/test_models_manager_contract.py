@@ -10,6 +10,7 @@ from registry_helpers import APP, PRICE, revert_of
 from web3.logs import DISCARD
 
 ONE = 10**18
+RID = b"\x01" * 32  # a request id (idempotency key)
 
 
 def _share(user, env, price=PRICE, app=APP, data=None):
@@ -134,12 +135,12 @@ def test_allocate_reverts(registry, users):
     _raises("UnregisteredUser", registry.request_models, APP, {"agents": 1, "walls": 0}, payment=PRICE)
     _raises("UnknownApplication", r.request_models, "maze_cleaning", {"agents": 1}, payment=PRICE)
     cases = [
-        (mmc.allocateModels("maze_cleaning", [1], [], 1, 0, 0), "UnknownApplication"),
-        (mmc.allocateModels(APP, [1, 0], [], 0, 0, 0), "InvalidCount"),
-        (mmc.allocateModels(APP, [1], [], 1, 0, 0), "FeatureCountMismatch"),
-        (mmc.allocateModels(APP, [1, 0], [ONE], 1, 0, 0), "InvalidWeights"),
-        (mmc.allocateModels(APP, [1, 0], [ONE // 2, ONE // 3], 1, 0, 0), "InvalidWeights"),
-        (mmc.allocateModels(APP, [1, 0], [], 1, ONE, 0), "NoEligibleModels"),
+        (mmc.allocateModels(RID, "maze_cleaning", [1], [], 1, 0, 0, [0]), "UnknownApplication"),
+        (mmc.allocateModels(RID, APP, [1, 0], [], 0, 0, 0, [0]), "InvalidCount"),
+        (mmc.allocateModels(RID, APP, [1], [], 1, 0, 0, [0]), "FeatureCountMismatch"),
+        (mmc.allocateModels(RID, APP, [1, 0], [ONE], 1, 0, 0, [0]), "InvalidWeights"),
+        (mmc.allocateModels(RID, APP, [1, 0], [ONE // 2, ONE // 3], 1, 0, 0, [0]), "InvalidWeights"),
+        (mmc.allocateModels(RID, APP, [1, 0], [], 1, ONE, 0, [0]), "NoEligibleModels"),
     ]
     for fn, error in cases:
         _raises(error, registry.chain.transact, fn, sender=r.address, value=PRICE)
@@ -202,7 +203,9 @@ def test_events_on_every_state_change(registry, users):
     m = _share(users[0], {"agents": 3, "walls": 2})
     chain, mmc = registry.chain, registry.models
     tx = chain.transact(
-        mmc.functions.allocateModels(APP, [3, 2], [], 1, 0, 0), sender=users[3].address, value=2 * PRICE
+        mmc.functions.allocateModels(RID, APP, [3, 2], [], 1, 0, 0, [0]),
+        sender=users[3].address,
+        value=2 * PRICE,
     )
     names = [
         e.event
@@ -225,3 +228,82 @@ def test_events_on_every_state_change(registry, users):
         ]
         == ONE
     )
+
+
+# ----------------------------------------------------------------------------- idempotent requests
+def test_a_request_id_is_paid_and_allocated_at_most_once(registry, users):
+    owner, r = users[0], users[3]
+    _share(owner, {"agents": 3, "walls": 2})
+    chain, mmc = registry.chain, registry.models.functions
+    fn = mmc.allocateModels(RID, APP, [3, 2], [], 1, 0, 0, [0])
+    chain.transact(fn, sender=r.address, value=PRICE)
+    balance = chain.balance(r.address)
+    err = _raises("RequestAlreadyPaid", chain.transact, fn, sender=r.address, value=PRICE)
+    assert err.values == {"firstAllocationId": 0} and "nothing was paid again" in str(err)
+    # The id is checked first: any other arguments with it are refused the same way.
+    _raises(
+        "RequestAlreadyPaid",
+        chain.transact,
+        mmc.allocateModels(RID, "", [], [], 0, 0, 0, []),
+        sender=r.address,
+    )
+    assert chain.call(mmc.allocationCount()) == 1 and registry.owed(owner.address) == PRICE
+    assert chain.balance(r.address) == balance  # the refused replays paid nothing (no gas: checked first)
+    # Ids are per requester: another requester's same id is a new request.
+    chain.transact(fn, sender=users[2].address, value=PRICE)
+    assert chain.call(mmc.allocationCount()) == 2
+
+
+def test_the_facade_replays_a_paid_request_id_instead_of_paying_again(registry, users):
+    _share(users[0], {"agents": 3, "walls": 2})
+    r = users[3]
+    first = r.request_models(APP, {"agents": 3, "walls": 2}, request_id="order-42")
+    again = r.request_models(APP, {"agents": 3, "walls": 2}, request_id="order-42")
+    assert [a.allocation_id for a in again] == [a.allocation_id for a in first] == [0]
+    assert not first[0].replayed and again[0].replayed and again[0].qos == first[0].qos
+    assert registry.chain.call(registry.models.functions.allocationCount()) == 1
+    assert registry.owed(users[0].address) == PRICE and r.pending_requests() == []
+
+
+# ----------------------------------------------------------------------------- bounded allocation
+def test_candidates_are_checked_and_bounded(registry, users):
+    for env in ({"agents": 3, "walls": 2}, {"agents": 1, "walls": 0}):
+        _share(users[0], env)
+    _share(users[1], {"agents": 2, "walls": 2}, app="maze_cleaning")
+    r, mmc = users[3], registry.models.functions
+
+    def alloc(candidates):
+        return mmc.allocateModels(RID, APP, [3, 2], [], 1, 0, 0, candidates)
+
+    for candidates, error in (
+        ([], "TooManyCandidates"),
+        (list(range(257)), "TooManyCandidates"),
+        ([1, 0], "InvalidCandidate"),  # not increasing
+        ([0, 0], "InvalidCandidate"),  # twice
+        ([0, 2], "InvalidCandidate"),  # another application's model
+        ([0, 9], "InvalidCandidate"),  # no such model
+    ):
+        _raises(error, registry.chain.transact, alloc(candidates), sender=r.address, value=PRICE)
+    # Ranked among the given candidates only (the facade passes the overall best).
+    assert registry.chain.call(alloc([1]), sender=r.address, value=PRICE)[0] == [1]
+    assert r.rank(APP, {"agents": 3, "walls": 2}, count=2) == [0, 1]
+
+
+@pytest.mark.slow
+def test_allocation_gas_does_not_grow_with_spam_models(registry, users):
+    """More models than one call may rank: the facade ranks them in pages, and pays for the best."""
+    spammer, honest, r = users[0], users[1], users[3]
+    chain, mmc = registry.chain, registry.models.functions
+    best = _share(honest, {"agents": 3, "walls": 2})
+    for i in range(300):  # far from the requirements, so each loses to the honest model
+        chain.transact(mmc.addModel(APP, f"Qm{i}", "", [100 + i, 100], 0), sender=spammer.address)
+    _raises(
+        "TooManyCandidates",
+        chain.transact,
+        mmc.allocateModels(RID, APP, [3, 2], [], 1, 0, 0, list(range(301))),
+        sender=r.address,
+        value=PRICE,
+    )
+    allocs = r.request_models(APP, {"agents": 3, "walls": 2})
+    assert [a.model_id for a in allocs] == [best.model_id] and allocs[0].qos == math.inf
+    assert r.last_tx.gas_used < 200_000  # the same as with one shared model: one candidate ranked

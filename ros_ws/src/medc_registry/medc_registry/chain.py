@@ -9,6 +9,11 @@ Every transaction is signed once; :meth:`ChainClient.transact` re-sends the *sam
 when the node times out or restarts and then looks the receipt up by hash, so a retry can never
 pay twice (the nonce is fixed). Reverts with the contracts' custom errors become
 :class:`ContractRevert` with the error's name, its arguments and a readable message.
+
+Every chain call (a read, a contract call, or one transaction from signing to its receipt) has
+one total deadline, :attr:`ChainClient.deadline` seconds (default :data:`DEFAULT_DEADLINE`),
+retries included: each HTTP request's timeout is cut to what is left of it, and web3's own
+HTTP retries are switched off so they never nest inside the client's.
 """
 
 from __future__ import annotations
@@ -26,6 +31,9 @@ from web3 import Web3
 from web3.exceptions import TimeExhausted, TransactionNotFound
 
 from .compile import load_artifact
+
+#: Total seconds one chain call may take, retries and receipt waiting included.
+DEFAULT_DEADLINE = 60.0
 
 #: Contracts whose ABIs (and custom errors) the client knows.
 CONTRACT_NAMES = ("UsersManager", "ModelsManager", "ReentrantWithdrawer")
@@ -57,6 +65,10 @@ ERROR_HINTS = {
     "AlreadyReviewed": "this allocation has already been reviewed",
     "NothingToWithdraw": "nothing is owed to this account",
     "TransferFailed": "the payout transfer was rejected by the receiver",
+    "RequestAlreadyPaid": "this request id was already paid and allocated; nothing was paid again",
+    "TooManyCandidates": "pass 1 to 256 candidates, positions in the application's Models List "
+    "(Registry.request_models ranks larger applications page by page)",
+    "InvalidCandidate": "candidates must be strictly increasing positions in the application's Models List",
 }
 
 
@@ -161,7 +173,10 @@ def decode_error_data(data: bytes) -> ContractRevert:
     if len(data) >= 4 and data[:4] in _ERRORS:
         name, names, types = _ERRORS[data[:4]]
         values = abi_decode(types, data[4:]) if types else ()
-        values = [to_checksum_address(v) if t == "address" else v for t, v in zip(types, values)]
+        values = [
+            to_checksum_address(v) if t == "address" else "0x" + v.hex() if isinstance(v, bytes) else v
+            for t, v in zip(types, values)
+        ]
         return ContractRevert(name, dict(zip(names, values)), "0x" + data.hex())
     if data[:4] == bytes.fromhex("08c379a0"):  # Error(string)
         return ContractRevert("Error", {"reason": abi_decode(["string"], data[4:])[0]}, "0x" + data.hex())
@@ -178,10 +193,54 @@ def _is_transient(exc: BaseException) -> bool:
     return isinstance(exc, transient)
 
 
+@dataclass(frozen=True)
+class SignedTx:
+    """A signed transaction not sent yet: its bytes, hash and nonce."""
+
+    raw: bytes
+    tx_hash: str
+    nonce: int
+    sender: str
+    value: int
+
+
+class _Deadline:
+    """The time left of the current chain call (nested operations share the outermost one)."""
+
+    def __init__(self, client: ChainClient) -> None:
+        self.client = client
+        self.outer = False
+
+    def __enter__(self) -> _Deadline:
+        if self.client._until is None:
+            self.client._until = time.monotonic() + self.client.deadline
+            self.outer = True
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.outer:
+            self.client._until = None
+
+
+def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
+    """An HTTPProvider without web3's retries whose request timeout never outlasts the deadline."""
+    from web3 import HTTPProvider
+
+    class DeadlineHTTPProvider(HTTPProvider):
+        def get_request_kwargs(self) -> dict[str, Any]:
+            kwargs = dict(super().get_request_kwargs())
+            left = client_ref[0].time_left() if client_ref else None
+            kwargs["timeout"] = timeout if left is None else max(0.05, min(timeout, left))
+            return kwargs
+
+    return DeadlineHTTPProvider(url, request_kwargs={"timeout": timeout}, exception_retry_configuration=None)
+
+
 class ChainClient:
     """Signs and sends transactions to the MEDC contracts; reads their state.
 
-    Use :meth:`embedded` or :meth:`connect` rather than the constructor.
+    Use :meth:`embedded` or :meth:`connect` rather than the constructor. ``deadline`` is the total
+    time in seconds one call may take (retries included); ``retries`` caps the attempts within it.
     """
 
     def __init__(
@@ -193,17 +252,26 @@ class ChainClient:
         retries: int = 3,
         receipt_timeout: float = 120.0,
         backoff: float = 0.25,
+        deadline: float = DEFAULT_DEADLINE,
     ) -> None:
         if not private_keys:
             raise ValueError("at least one private key is needed to sign transactions")
+        if not (isinstance(deadline, int | float) and 0 < deadline < float("inf")):
+            raise ValueError(f"deadline must be a positive number of seconds, got {deadline!r}")
         self.w3 = w3
         self.accounts = [Account.from_key(k) for k in private_keys]
         self.description = description
         self.retries = retries
         self.receipt_timeout = receipt_timeout
         self.backoff = backoff
+        self.deadline = float(deadline)
+        self._until: float | None = None
         #: When set, transactions use this gas limit after a revert check by eth_call.
         self.fixed_gas: int | None = None
+
+    def time_left(self) -> float | None:
+        """Seconds left of the current call's deadline (None outside a call)."""
+        return None if self._until is None else self._until - time.monotonic()
 
     # ------------------------------------------------------------ construction
     @classmethod
@@ -229,15 +297,16 @@ class ChainClient:
         ``poa=True`` for consortium chains (Besu/Quorum clique, IBFT 2.0, QBFT) whose block
         ``extraData`` is longer than Ethereum's 32 bytes.
         """
-        from web3 import HTTPProvider
         from web3.middleware import ExtraDataToPOAMiddleware
 
         if not url.startswith(("http://", "https://")):
             raise ValueError(f"JSON-RPC URL must start with http:// or https://, got {url!r}")
-        w3 = Web3(HTTPProvider(url, request_kwargs={"timeout": timeout}))
+        client_ref: list[ChainClient] = []
+        w3 = Web3(_deadline_provider(url, timeout, client_ref))
         if poa:
             w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
         client = cls(w3, private_keys, description=f"JSON-RPC {url}" + (" (PoA)" if poa else ""), **kwargs)
+        client_ref.append(client)
         client._retry(lambda: w3.eth.chain_id, f"reach the node at {url}")
         return client
 
@@ -311,8 +380,18 @@ class ChainClient:
 
         The revert check runs first (gas estimation, or an eth_call on the embedded chain), so a
         failing call raises :class:`ContractRevert` without spending anything. Transient node
-        failures are retried with the same signed transaction.
+        failures are retried with the same signed transaction. One deadline covers it all.
         """
+        with _Deadline(self):
+            signed = self.sign(fn, sender, value, gas)
+            return self.send_raw(signed.raw, fn=fn, sender=signed.sender, value=value)
+
+    def sign(self, fn: Any, sender: int | str = 0, value: int = 0, gas: int | None = None) -> SignedTx:
+        """Check ``fn`` for a revert, then build and sign it (nothing is sent)."""
+        with _Deadline(self):
+            return self._sign(fn, sender, value, gas)
+
+    def _sign(self, fn: Any, sender: int | str, value: int, gas: int | None) -> SignedTx:
         acct = self.account(sender)
         params: dict[str, Any] = {"from": acct.address, "value": value}
         if gas is None and self.fixed_gas is not None:
@@ -337,14 +416,20 @@ class ChainClient:
         if "gas" not in params:
             # Estimation is exact for this state; headroom covers state that changes before mining.
             tx["gas"] = int(tx["gas"] * 1.25) + 20_000
-        signed = acct.sign_transaction(tx)
-        return self.send_raw(signed.raw_transaction, fn=fn, sender=acct.address, value=value)
+        raw = acct.sign_transaction(tx).raw_transaction
+        return SignedTx(bytes(raw), "0x" + keccak(raw).hex(), tx["nonce"], acct.address, value)
 
     def send_raw(self, raw: bytes, fn: Any = None, sender: str | None = None, value: int = 0) -> TxResult:
         """Send signed bytes (re-sent unchanged on transient failures) and wait for the receipt."""
+        with _Deadline(self):
+            return self._send_raw(bytes(raw), fn, sender, value)
+
+    def _send_raw(self, raw: bytes, fn: Any, sender: str | None, value: int) -> TxResult:
         tx_hash = "0x" + keccak(raw).hex()
         last: BaseException | None = None
         for attempt in range(self.retries + 1):
+            if attempt and self._expired():
+                break
             try:
                 self.w3.eth.send_raw_transaction(raw)
             except Exception as exc:
@@ -359,38 +444,81 @@ class ChainClient:
                             raise revert from None
                         raise ChainError(f"transaction rejected by the node: {exc}") from None
                     last = exc
-                    time.sleep(self.backoff * 2**attempt)
+                    self._pause(attempt)
                     if self._receipt_or_none(tx_hash) is None:
                         continue
             try:
-                receipt = self.w3.eth.wait_for_transaction_receipt(tx_hash, timeout=self.receipt_timeout)
+                wait = min(self.receipt_timeout, max(0.1, self.time_left() or self.receipt_timeout))
+                receipt = self.w3.eth.wait_for_transaction_receipt(tx_hash, timeout=wait, poll_latency=0.1)
             except Exception as exc:
                 if not _is_transient(exc):
                     raise
                 last = exc
-                time.sleep(self.backoff * 2**attempt)
+                self._pause(attempt)
                 receipt = self._receipt_or_none(tx_hash)
                 if receipt is None:
                     continue
-            if receipt["status"] != 1:
-                raise self._failure(receipt, fn, sender, value)
-            address = receipt.get("contractAddress")
-            return TxResult(tx_hash, receipt["gasUsed"], receipt["blockNumber"], receipt, address)
+            return self._result(receipt, fn, sender, value)
         raise ChainError(
-            f"transaction {tx_hash} not confirmed after {self.retries + 1} attempts ({last}); "
-            "it was signed once, so re-running cannot pay twice: check it with its hash"
+            f"transaction {tx_hash} not confirmed within the {self.deadline:g} s deadline "
+            f"({self.retries + 1} attempts at most; last error: {last})"
+        )
+
+    def _result(self, receipt: Any, fn: Any, sender: str | None, value: int) -> TxResult:
+        if receipt["status"] != 1:
+            raise self._failure(receipt, fn, sender, value)
+        address = receipt.get("contractAddress")
+        tx_hash = "0x" + bytes(receipt["transactionHash"]).hex()
+        return TxResult(tx_hash, receipt["gasUsed"], receipt["blockNumber"], receipt, address)
+
+    def lookup(
+        self, tx_hash: str, fn: Any = None, sender: str | None = None, value: int = 0
+    ) -> str | TxResult:
+        """Where transaction ``tx_hash`` stands: its :class:`TxResult` once mined, ``"pending"``
+        while the node holds it unmined, ``"unknown"`` when the node has never seen it (or lost
+        it). A mined transaction that reverted raises its :class:`ContractRevert`.
+        """
+        with _Deadline(self):
+            receipt = self._retry(lambda: self._receipt_or_none(tx_hash, quiet=False), "look up a receipt")
+            if receipt is not None:
+                return self._result(receipt, fn, sender, value)
+
+            def pending() -> bool:
+                try:
+                    self.w3.eth.get_transaction(tx_hash)
+                except TransactionNotFound:
+                    return False
+                return True
+
+            return "pending" if self._retry(pending, "look up a transaction") else "unknown"
+
+    def pending_nonce(self, address: str) -> int:
+        """The next nonce the node would accept from ``address``."""
+        return self._retry(
+            lambda: self.w3.eth.get_transaction_count(to_checksum_address(address), "pending"),
+            "read the nonce",
         )
 
     # ------------------------------------------------------------ helpers
-    def _receipt_or_none(self, tx_hash: str) -> Any:
+    def _receipt_or_none(self, tx_hash: str, quiet: bool = True) -> Any:
         try:
             return self.w3.eth.get_transaction_receipt(tx_hash)
         except TransactionNotFound:
             return None
         except Exception as exc:
-            if _is_transient(exc):
+            if quiet and _is_transient(exc):
                 return None
             raise
+
+    def _expired(self) -> bool:
+        left = self.time_left()
+        return left is not None and left <= 0
+
+    def _pause(self, attempt: int) -> None:
+        """Back off before the next attempt, never past the deadline."""
+        left = self.time_left()
+        delay = self.backoff * 2**attempt
+        time.sleep(max(0.0, delay if left is None else min(delay, left)))
 
     def _failure(self, receipt: Any, fn: Any, sender: str | None, value: int) -> ChainError:
         if fn is not None and sender is not None and hasattr(fn, "call"):
@@ -404,12 +532,16 @@ class ChainClient:
 
     def _retry(self, op: Callable[[], Any], what: str) -> Any:
         last: BaseException | None = None
-        for attempt in range(self.retries + 1):
-            try:
-                return op()
-            except Exception as exc:
-                if not _is_transient(exc):
-                    raise
-                last = exc
-                time.sleep(self.backoff * 2**attempt)
+        with _Deadline(self):
+            for attempt in range(self.retries + 1):
+                try:
+                    return op()
+                except Exception as exc:
+                    if not _is_transient(exc):
+                        raise
+                    last = exc
+                if self._expired():
+                    raise ChainError(f"could not {what} within the {self.deadline:g} s deadline: {last}")
+                if attempt < self.retries:
+                    self._pause(attempt)
         raise ChainError(f"could not {what} after {self.retries + 1} attempts: {last}")

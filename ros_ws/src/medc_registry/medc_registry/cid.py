@@ -21,6 +21,14 @@ from dataclasses import dataclass
 
 CHUNK_SIZE = 262_144
 MAX_LINKS = 174
+#: Longest CID text accepted (a sha2-256 CID is 46-62 characters; the contract stores at most
+#: 128). Checked before any decoding, so parsing is linear and instant on any input.
+MAX_CID_LENGTH = 128
+#: Largest content fetched or assembled: the policy bundle loader's file-size ceiling
+#: (``medc_training.bundle.MAX_BUNDLE_BYTES``, 512 MiB; a test keeps the two equal).
+MAX_CONTENT_BYTES = 512 << 20
+#: Largest single block read from a node (Kubo's bitswap limit is 2 MiB).
+MAX_BLOCK_BYTES = 2 << 20
 
 _SHA2_256 = 0x12
 _DAG_PB = 0x70
@@ -35,6 +43,10 @@ class CidError(ValueError):
 
 class ContentMismatchError(ValueError):
     """Bytes whose CID differs from the one they were fetched under (tampered or wrong content)."""
+
+
+class ContentTooLargeError(ValueError):
+    """Content (declared or received) over the size limit."""
 
 
 # ---------------------------------------------------------------- encodings
@@ -134,9 +146,14 @@ def _cid_for(block: bytes, version: int, codec: int) -> Cid:
 
 
 def parse_cid(text: str) -> Cid:
-    """Parse a CIDv0 (``Qm...``) or a base32/base58 CIDv1 using sha2-256."""
+    """Parse a CIDv0 (``Qm...``) or a base32/base58 CIDv1 using sha2-256.
+
+    Texts longer than :data:`MAX_CID_LENGTH` are refused before any decoding.
+    """
     if not isinstance(text, str) or not text:
         raise CidError("a CID must be a non-empty string")
+    if len(text) > MAX_CID_LENGTH:
+        raise CidError(f"a CID has at most {MAX_CID_LENGTH} characters, got {len(text)}")
     if len(text) == 46 and text.startswith("Qm"):
         mh = b58decode(text)
         if len(mh) != 34 or mh[0] != _SHA2_256 or mh[1] != 32:
@@ -193,20 +210,16 @@ def _cid_bytes(cid: Cid) -> bytes:
     return _varint(1) + _varint(cid.codec) + cid.multihash
 
 
-def iter_blocks(data: bytes, cid_version: int = 0) -> Iterator[tuple[Cid, bytes]]:
-    """Yield ``(cid, block_bytes)`` for every block of the file's DAG, root last."""
-    if cid_version not in (0, 1):
-        raise ValueError(f"cid_version must be 0 or 1, got {cid_version!r}")
-    chunks = [data[i : i + CHUNK_SIZE] for i in range(0, len(data), CHUNK_SIZE)] or [b""]
-    level: list[_Node] = []
-    for chunk in chunks:
-        if cid_version == 1:
-            block, codec = chunk, _RAW
-        else:
-            block, codec = _pb_node(_unixfs_data(len(chunk), chunk), []), _DAG_PB
-        node = _Node(_cid_for(block, cid_version, codec), len(chunk), len(block))
-        yield node.cid, block
-        level.append(node)
+def _leaf(chunk: bytes, cid_version: int) -> tuple[_Node, bytes]:
+    if cid_version == 1:
+        block, codec = bytes(chunk), _RAW
+    else:
+        block, codec = _pb_node(_unixfs_data(len(chunk), bytes(chunk)), []), _DAG_PB
+    return _Node(_cid_for(block, cid_version, codec), len(chunk), len(block)), block
+
+
+def _parents(level: list[_Node], cid_version: int) -> Iterator[tuple[_Node, bytes]]:
+    """The balanced DAG's inner nodes over ``level`` (the leaves), bottom up, root last."""
     while len(level) > 1:
         parents = []
         for i in range(0, len(level), MAX_LINKS):
@@ -218,15 +231,68 @@ def iter_blocks(data: bytes, cid_version: int = 0) -> Iterator[tuple[Cid, bytes]
             node = _Node(
                 _cid_for(block, cid_version, _DAG_PB), sum(sizes), len(block) + sum(n.tsize for n in group)
             )
-            yield node.cid, block
+            yield node, block
             parents.append(node)
         level = parents
 
 
+def iter_blocks(data: bytes, cid_version: int = 0) -> Iterator[tuple[Cid, bytes]]:
+    """Yield ``(cid, block_bytes)`` for every block of the file's DAG, root last."""
+    if cid_version not in (0, 1):
+        raise ValueError(f"cid_version must be 0 or 1, got {cid_version!r}")
+    view = memoryview(data)
+    level: list[_Node] = []
+    for i in range(0, max(len(view), 1), CHUNK_SIZE):
+        node, block = _leaf(view[i : i + CHUNK_SIZE], cid_version)
+        yield node.cid, block
+        level.append(node)
+    for node, block in _parents(level, cid_version):
+        yield node.cid, block
+
+
+class CidBuilder:
+    """Kubo's CID of a file fed in pieces (``update``), holding one chunk, not the file."""
+
+    def __init__(self, cid_version: int = 0) -> None:
+        if cid_version not in (0, 1):
+            raise ValueError(f"cid_version must be 0 or 1, got {cid_version!r}")
+        self.version = cid_version
+        self.size = 0
+        self._pending = bytearray()
+        self._leaves: list[_Node] = []
+
+    def update(self, data: bytes) -> None:
+        """Feed the next bytes of the file."""
+        view = memoryview(data).cast("B")
+        self.size += len(view)
+        if self._pending:
+            need = CHUNK_SIZE - len(self._pending)
+            self._pending += view[:need]
+            view = view[need:]
+            if len(self._pending) < CHUNK_SIZE:
+                return
+            self._leaves.append(_leaf(self._pending, self.version)[0])
+        full = len(view) - len(view) % CHUNK_SIZE
+        for i in range(0, full, CHUNK_SIZE):
+            self._leaves.append(_leaf(view[i : i + CHUNK_SIZE], self.version)[0])
+        self._pending = bytearray(view[full:])
+
+    def finish(self) -> Cid:
+        """The file's CID (call once, after the last ``update``)."""
+        if self._pending or not self._leaves:
+            self._leaves.append(_leaf(self._pending, self.version)[0])
+            self._pending = bytearray()
+        root = self._leaves[-1]
+        for node, _block in _parents(self._leaves, self.version):
+            root = node
+        return root.cid
+
+
 def compute_cid(data: bytes, cid_version: int = 0) -> str:
     """The CID ``ipfs add [--cid-version=1]`` prints for a file with these bytes."""
-    *_, (root, _block) = iter_blocks(data, cid_version)
-    return root.encode()
+    builder = CidBuilder(cid_version)
+    builder.update(data)
+    return builder.finish().encode()
 
 
 def verify(data: bytes, cid: str) -> bytes:
@@ -236,14 +302,21 @@ def verify(data: bytes, cid: str) -> bytes:
         ContentMismatchError: the bytes do not match the CID (tampered or different content).
         CidError: the CID itself is malformed or of an unsupported kind.
     """
-    parsed = parse_cid(cid)
-    got = compute_cid(data, parsed.version)
-    if parse_cid(got) != parsed:
-        raise ContentMismatchError(
-            f"content does not match its CID {cid} (the {len(data)} bytes received hash to {got}); "
-            "refusing tampered or wrong content"
-        )
+    builder = CidBuilder(parse_cid(cid).version)
+    builder.update(data)
+    check_built(builder, cid)
     return data
+
+
+def check_built(builder: CidBuilder, cid: str) -> None:
+    """Raise :class:`ContentMismatchError` unless the bytes fed to ``builder`` hash to ``cid``."""
+    parsed = parse_cid(cid)
+    got = builder.finish()
+    if got != parsed:
+        raise ContentMismatchError(
+            f"content does not match its CID {cid} (the {builder.size} bytes received hash to "
+            f"{got.encode()}); refusing tampered or wrong content"
+        )
 
 
 # ---------------------------------------------------------------- reading a DAG block by block
@@ -278,18 +351,32 @@ def _cid_from_bytes(raw: bytes) -> Cid:
     return Cid(1, codec, raw[pos : pos + 32])
 
 
-def assemble(cid: str | Cid, get_block: Callable[[Cid], bytes], max_blocks: int = 1_000_000) -> bytes:
+def assemble(
+    cid: str | Cid,
+    get_block: Callable[[Cid], bytes],
+    max_blocks: int = 1_000_000,
+    max_size: int = MAX_CONTENT_BYTES,
+    write: Callable[[bytes], object] | None = None,
+) -> bytes:
     """The file under ``cid``, read block by block with every block checked against its CID.
 
     Works for any chunking or DAG layout (not only Kubo's defaults) of a UnixFS file made of
-    dag-pb and raw blocks hashed with sha2-256. ``get_block`` returns a block's bytes.
+    dag-pb and raw blocks hashed with sha2-256. ``get_block`` returns a block's bytes. The root's
+    declared file size must be at most ``max_size`` (checked before any other block is read),
+    and the bytes assembled may never exceed it (a DAG that links the same blocks over and over
+    is refused as soon as it outgrows what it declared). With ``write`` the bytes are handed to
+    it as they are assembled and ``b""`` is returned.
 
     Raises:
         ContentMismatchError: a block does not hash to the CID that links to it.
+        ContentTooLargeError: the file declares or assembles more than ``max_size`` bytes.
         CidError: a block is not a UnixFS file node (e.g. a directory) or is malformed.
     """
     root = parse_cid(cid) if isinstance(cid, str) else cid
     out = bytearray()
+    sink = write or out.extend
+    limit: int | None = None  # the root's declared size (raw roots: their block's length)
+    total = 0
     stack = [root]
     seen = 0
     while stack:
@@ -302,22 +389,38 @@ def assemble(cid: str | Cid, get_block: Callable[[Cid], bytes], max_blocks: int 
             raise ContentMismatchError(
                 f"block {node.encode()} of {root.encode()} does not match its CID; refusing tampered content"
             )
-        if node.codec == _RAW:
-            out += block
-            continue
+        payload: bytes = block
         links: list[Cid] = []
-        data = b""
-        for num, value in _fields(block):
-            if num == 2 and isinstance(value, bytes):
-                link = dict(_fields(value))
-                links.append(_cid_from_bytes(link[1]))
-            elif num == 1 and isinstance(value, bytes):
-                data = value
-        unixfs = dict(_fields(data)) if data else {}
-        kind = unixfs.get(1, 0)
-        if kind not in (0, _UNIXFS_FILE):
-            raise CidError(f"{root.encode()} is not a file (UnixFS type {kind})")
-        payload = unixfs.get(2, b"")
-        out += payload if isinstance(payload, bytes) else b""
+        if node.codec != _RAW:
+            data = b""
+            for num, value in _fields(block):
+                if num == 2 and isinstance(value, bytes):
+                    link = dict(_fields(value))
+                    links.append(_cid_from_bytes(link[1]))
+                elif num == 1 and isinstance(value, bytes):
+                    data = value
+            unixfs = dict(_fields(data)) if data else {}
+            kind = unixfs.get(1, 0)
+            if kind not in (0, _UNIXFS_FILE):
+                raise CidError(f"{root.encode()} is not a file (UnixFS type {kind})")
+            raw_payload = unixfs.get(2, b"")
+            payload = raw_payload if isinstance(raw_payload, bytes) else b""
+            if limit is None:
+                declared = unixfs.get(3, len(payload))
+                limit = declared if isinstance(declared, int) else 0
+        elif limit is None:
+            limit = len(block)
+        if limit > max_size:
+            raise ContentTooLargeError(
+                f"{root.encode()} declares {limit} bytes, over the {max_size} byte limit; "
+                "refused before assembling"
+            )
+        total += len(payload)
+        if total > limit:
+            raise ContentTooLargeError(
+                f"{root.encode()} assembles to more than the {limit} bytes it declares; refused"
+            )
+        if payload:
+            sink(payload)
         stack.extend(reversed(links))  # depth first, left to right
-    return bytes(out)
+    return b"" if write else bytes(out)

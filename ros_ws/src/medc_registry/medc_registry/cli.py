@@ -31,12 +31,16 @@ from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
 
-from .chain import ChainClient, ChainError
+from .chain import DEFAULT_DEADLINE, ChainClient, ChainError
 from .cid import compute_cid
 from .content import ContentStore, ContentStoreError, KuboContentStore, LocalContentStore
-from .registry import Deployment, Registry, deploy_contracts, format_eth
+from .registry import Deployment, PendingRequests, Registry, deploy_contracts, format_eth
 
 STATE_FILE = "registry.json"
+#: Paid requests sent but not confirmed yet (written before each payment is sent).
+PENDING_FILE = "pending-requests.json"
+#: Default total seconds for one chain call from the CLI (``--deadline``).
+CLI_DEADLINE = 30.0
 
 
 class CliError(RuntimeError):
@@ -85,11 +89,16 @@ def _keys(home: Path, state: dict[str, Any]) -> list[str]:
     return keys
 
 
-def open_chain(home: Path, state: dict[str, Any]) -> ChainClient:
-    """A client for the configured chain (CliError when the node does not answer)."""
+def open_chain(home: Path, state: dict[str, Any], deadline: float | None = None) -> ChainClient:
+    """A client for the configured chain (CliError when the node does not answer in ``deadline`` s)."""
+    deadline = CLI_DEADLINE if deadline is None else deadline
     try:
         return ChainClient.connect(
-            state["rpc_url"], _keys(home, state), poa=state.get("poa", False), timeout=10
+            state["rpc_url"],
+            _keys(home, state),
+            poa=state.get("poa", False),
+            timeout=min(10.0, deadline),
+            deadline=deadline,
         )
     except ChainError as exc:
         hint = " (run `medc-registry start` to restart the local node)" if state.get("node") else ""
@@ -108,7 +117,7 @@ def open_registry(args: argparse.Namespace) -> Registry:
     """The registry for ``--account`` from the recorded state."""
     home = home_dir(args)
     state = load_state(home)
-    chain = open_chain(home, state)
+    chain = open_chain(home, state, getattr(args, "deadline", None))
     dep = Deployment(state["users_manager"], state["models_manager"])
     if not chain.has_code(dep.models):
         raise CliError(
@@ -116,27 +125,41 @@ def open_registry(args: argparse.Namespace) -> Registry:
             f"remove {home / STATE_FILE} and run `medc-registry start` again"
         )
     try:
-        return Registry(chain, open_store(home, state), dep, args.account)
+        reg = Registry(chain, open_store(home, state), dep, args.account)
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    reg.pending = PendingRequests(home / PENDING_FILE)
+    return reg
 
 
 # ---------------------------------------------------------------- parsing helpers
-def parse_eth(text: str) -> int:
-    """``"0.001"`` ETH (or ``"1000wei"``) -> wei."""
+#: What an amount may be, for every message about one.
+AMOUNT_RULE = (
+    "an amount is a finite, non-negative number of ETH with at most 18 decimals (e.g. 0.001) "
+    "or a whole number of wei (e.g. 1000wei), below 2**128 wei"
+)
+
+
+def parse_eth(text: str, what: str = "amount") -> int:
+    """``"0.001"`` ETH (or ``"1000wei"``) -> wei; CliError saying what is allowed otherwise."""
     text = text.strip().lower()
     try:
         if text.endswith("wei"):
             value = int(text[:-3])
         else:
-            value = Decimal(text.removesuffix("eth")) * 10**18
+            amount = Decimal(text.removesuffix("eth"))
+            if not amount.is_finite():
+                raise CliError(f"{what} {text!r} is not finite: {AMOUNT_RULE}")
+            value = amount * 10**18
             if value != value.to_integral_value():
-                raise CliError(f"{text!r} has more than 18 decimals")
+                raise CliError(f"{what} {text!r} has more than 18 decimals: {AMOUNT_RULE}")
             value = int(value)
     except (InvalidOperation, ValueError):
-        raise CliError(f"not an amount: {text!r} (use ETH like 0.001, or wei like 1000wei)") from None
+        raise CliError(f"{what} {text!r} is not an amount: {AMOUNT_RULE}") from None
     if value < 0:
-        raise CliError(f"amount must not be negative: {text!r}")
+        raise CliError(f"{what} {text!r} is negative: {AMOUNT_RULE}")
+    if value >= 2**128:
+        raise CliError(f"{what} {text!r} is too large: {AMOUNT_RULE}")
     return value
 
 
@@ -202,8 +225,9 @@ def record_deployment(home: Path, state: dict[str, Any], chain, dep, ipfs_api: s
     """Save the freshly deployed contracts and the content store choice in the registry state."""
     local = {"kind": "local", "root": str(home / "content")}
     content = {"kind": "kubo", "url": ipfs_api} if ipfs_api else local
-    state.update(users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id,
-                 content=content)
+    state.update(
+        users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id, content=content
+    )
     save_state(home, state)
 
 
@@ -255,10 +279,10 @@ def cmd_share(args: argparse.Namespace) -> int:
     env = parse_pairs(args.env, int, "--env")
     if not env:
         raise CliError("give the environment features, e.g. --env agents=3 --env walls=2")
+    parse_eth(args.price, "--price")  # refused before connecting
     reg = open_registry(args)
-    m = reg.share_model(
-        data, args.application, env, parse_eth(args.price), args.description, args.cid_version
-    )
+    price = parse_eth(args.price, "--price")
+    m = reg.share_model(data, args.application, env, price, args.description, args.cid_version)
     print(
         f"model {m.model_id} shared: CID {m.cid}, {args.application} {m.env_features}, "
         f"price {format_eth(m.price_wei)}"
@@ -267,14 +291,29 @@ def cmd_share(args: argparse.Namespace) -> int:
 
 
 def cmd_request(args: argparse.Namespace) -> int:
-    reg = open_registry(args)
     env = parse_pairs(args.env, int, "--env")
     weights = parse_pairs(args.weight, float, "--weight") or None
-    payment = parse_eth(args.payment) if args.payment else None
-    allocs = reg.request_models(
-        args.application, env, weights, args.count, args.min_model_rep, args.min_owner_rep, payment
-    )
-    print(f"{len(allocs)} model(s) allocated:")
+    payment = parse_eth(args.payment, "--payment") if args.payment else None
+    reg = open_registry(args)
+    try:
+        allocs = reg.request_models(
+            args.application,
+            env,
+            weights,
+            args.count,
+            args.min_model_rep,
+            args.min_owner_rep,
+            payment,
+            args.request_id,
+        )
+    except ChainError as exc:
+        raise CliError(str(exc)) from None
+    if allocs and allocs[0].replayed:
+        print(
+            f"already paid: request {allocs[0].request_id} was allocated and paid by an earlier run; "
+            "nothing was paid again. Here is your allocation:"
+        )
+    print(f"{len(allocs)} model(s) allocated (request {allocs[0].request_id if allocs else '-'}):")
     print(
         f"{'alloc':>5}  {'model':>5}  {'QoS':>17}  {'D_m':>6}  {'price':>12}  {'rep':>5}  environment / CID"
     )
@@ -283,17 +322,22 @@ def cmd_request(args: argparse.Namespace) -> int:
             f"{a.allocation_id:>5}  {a.model_id:>5}  {_qos(a.qos):>17}  {a.distance:>6.3f}  "
             f"{format_eth(a.price_wei):>12}  {a.model.reputation:>5.2f}  {a.model.env_features} {a.cid}"
         )
+    others = reg.pending_requests()
+    if others:
+        print(
+            f"note: {len(others)} other paid request(s) of this account are not confirmed yet "
+            f"(in {reg.pending.path}); run them again to resolve them"
+        )
     return 0
 
 
 def cmd_fetch(args: argparse.Namespace) -> int:
     reg = open_registry(args)
-    data = reg.fetch(args.cid)
     if args.output:
-        Path(args.output).write_bytes(data)
-        print(f"{len(data)} bytes verified against {args.cid} -> {args.output}")
+        size = reg.fetch_to(args.cid, args.output)
+        print(f"{size} bytes verified against {args.cid} -> {args.output}")
     else:
-        sys.stdout.buffer.write(data)
+        sys.stdout.buffer.write(reg.fetch(args.cid))
     return 0
 
 
@@ -351,10 +395,27 @@ def cmd_gas_report(args: argparse.Namespace) -> int:
     return gas_main(as_json=args.json)
 
 
+def _deadline(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a positive, finite number of seconds")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for tests and docs)."""
     p = argparse.ArgumentParser(prog="medc-registry", description="MEDC model registry (contracts + IPFS)")
     p.add_argument("--home", help="state directory (default $MEDC_HOME or ./.medc)")
+    p.add_argument(
+        "--deadline",
+        type=_deadline,
+        default=CLI_DEADLINE,
+        help=f"total seconds one chain call may take, retries included (default {CLI_DEADLINE:g}; "
+        f"the Python API's default is {DEFAULT_DEADLINE:g})",
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     def add(name: str, fn, help_: str, account: bool = True) -> argparse.ArgumentParser:
@@ -389,6 +450,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--min-model-rep", type=float, default=0.0)
     sp.add_argument("--min-owner-rep", type=float, default=0.0)
     sp.add_argument("--payment", help="amount to send (default: the exact price); excess is refundable")
+    sp.add_argument(
+        "--request-id",
+        help="idempotency key (0x + 64 hex, or any text); default: a new one, recorded in the home "
+        "with the signed payment before it is sent, so re-running the same request never pays twice",
+    )
     sp = add("fetch", cmd_fetch, "download a model file, verified against its CID")
     sp.add_argument("cid")
     sp.add_argument("-o", "--output", help="file to write (default: stdout)")

@@ -9,11 +9,12 @@ lists it.
 
 from __future__ import annotations
 
+import itertools
 import json
 from typing import Any
 
 from .chain import ChainClient
-from .registry import ONE, deploy_contracts
+from .registry import MAX_CANDIDATES, ONE, deploy_contracts
 
 #: The paper's Table III (gas).
 PAPER_GAS = {
@@ -32,7 +33,14 @@ PAPER_GAS = {
 APPLICATION = "target_localization"
 CID = "QmT78zSuBmuS4z925WZfrqQ1qHaJ56DQaTfyMUF7F8ff5o"
 DESCRIPTION = '{"features":["agents","walls"]}'
-CANDIDATES = (1, 8, 32, 128)
+CANDIDATES = (1, 8, 32, 128, MAX_CANDIDATES + 1)
+
+_REQUEST_IDS = (i.to_bytes(32, "big") for i in itertools.count(1))
+
+
+def _request_id() -> bytes:
+    """A fresh non-zero idempotency key for each measured allocation."""
+    return next(_REQUEST_IDS)
 
 
 def evm_fork(chain: ChainClient) -> str:
@@ -66,7 +74,9 @@ def measure(candidates: tuple[int, ...] = CANDIDATES) -> dict[str, Any]:
         mmc.functions.addModel(APPLICATION, CID, DESCRIPTION, [3, 2], 10**15), sender=owner
     ).gas_used
     alloc = chain.transact(
-        mmc.functions.allocateModels(APPLICATION, [3, 2], [], 1, 0, 0), sender=requester, value=10**15
+        mmc.functions.allocateModels(_request_id(), APPLICATION, [3, 2], [], 1, 0, 0, [0, 1]),
+        sender=requester,
+        value=10**15,
     )
     rows["allocateModels"] = alloc.gas_used
     rows["updateModelRep"] = chain.transact(
@@ -95,13 +105,23 @@ def measure(candidates: tuple[int, ...] = CANDIDATES) -> dict[str, Any]:
     }
 
 
-def _allocation_scaling(candidates: tuple[int, ...]) -> list[dict[str, int]]:
-    """allocateModels' gas (requesting 1 model) as the number of shared candidate models grows."""
+def _allocation_scaling(candidates: tuple[int, ...]) -> list[dict[str, int | None]]:
+    """allocateModels' gas as the number of shared models of the application grows.
+
+    Two ways to call it: ``scan`` (every model of the application passed as a candidate, as
+    before; refused above MAX_CANDIDATES models, so one call's cost is bounded), and ``ranked``
+    (the Registry's way: the best ``count`` ids, found by simulating the call page by page, are
+    the candidates, so the cost does not depend on how many models were shared). ``None`` marks
+    a scan the contract refuses (TooManyCandidates).
+    """
+    from .registry import Deployment, Registry
+
     chain = ChainClient.embedded()
     dep = deploy_contracts(chain)
     umc = chain.contract("UsersManager", dep.users)
     mmc = chain.contract("ModelsManager", dep.models)
     owners = [1, 2, 3, 4]
+    requester = Registry(chain, None, Deployment(dep.users, dep.models), 9)  # ranks, never stores
     for i in [*owners, 9]:
         chain.transact(umc.functions.addUser(), sender=i)
     out = []
@@ -114,22 +134,32 @@ def _allocation_scaling(candidates: tuple[int, ...]) -> list[dict[str, int]]:
                 mmc.functions.addModel(APPLICATION, CID, DESCRIPTION, env, 10**15), sender=owners[shared % 4]
             )
             shared += 1
-        # A snapshot keeps each measurement on the same state (no earlier allocation written).
-        tester = chain.w3.provider.ethereum_tester
-        snap = tester.take_snapshot()
-        gas = chain.transact(
-            mmc.functions.allocateModels(APPLICATION, [3, 2], [], 1, 0, 0), sender=9, value=10**15
-        ).gas_used
-        tester.revert_to_snapshot(snap)
-        snap = tester.take_snapshot()
-        gas_all = chain.transact(
-            mmc.functions.allocateModels(APPLICATION, [3, 2], [], min(n, 8), 0, 0),
-            sender=9,
-            value=min(n, 8) * 10**15,
-        ).gas_used
-        tester.revert_to_snapshot(snap)
-        out.append({"candidates": n, "allocate_1": gas, "allocate_min_n_8": gas_all, "count_8": min(n, 8)})
+        row: dict[str, int | None] = {"candidates": n, "count_8": min(n, 8)}
+        for key, count, ranked in (
+            ("allocate_1", 1, False),
+            ("allocate_min_n_8", min(n, 8), False),
+            ("ranked_1", 1, True),
+            ("ranked_min_n_8", min(n, 8), True),
+        ):
+            if ranked:
+                candidates = sorted(requester.rank(APPLICATION, [3, 2], count=count))  # ids = positions here
+            else:
+                candidates = list(range(n)) if n <= MAX_CANDIDATES else None
+            row[key] = None if candidates is None else _allocation_gas(chain, mmc, count, candidates)
+        out.append(row)
     return out
+
+
+def _allocation_gas(chain: ChainClient, mmc, count: int, candidates: list[int]) -> int:
+    """gasUsed of one allocation of ``count`` models by account 9, on a snapshot of the state."""
+    # A snapshot keeps each measurement on the same state (no earlier allocation written).
+    tester = chain.w3.provider.ethereum_tester
+    snap = tester.take_snapshot()
+    try:
+        fn = mmc.functions.allocateModels(_request_id(), APPLICATION, [3, 2], [], count, 0, 0, candidates)
+        return chain.transact(fn, sender=9, value=count * 10**15).gas_used
+    finally:
+        tester.revert_to_snapshot(snap)
 
 
 def format_report(report: dict[str, Any]) -> str:
@@ -156,18 +186,31 @@ def format_report(report: dict[str, Any]) -> str:
     for contract, fn, key in order:
         paper = report["paper"].get(key)
         lines.append(f"| {contract} | {fn} | {report['rows'][key]:,} | {f'{paper:,}' if paper else '-'} |")
-    lines += ["", "| Shared models | allocateModels(count=1) | per extra candidate | allocateModels(count) |"]
-    lines.append("|---:|---:|---:|---:|")
+    lines += [
+        "",
+        "allocateModels as an application's models grow. Scan: every model is a candidate (the "
+        f"contract refuses more than {MAX_CANDIDATES}: TooManyCandidates). Ranked: the Registry "
+        "passes the best `count`, found by simulating the call (eth_call) page by page.",
+        "",
+        "| Shared models | scan, count=1 | per extra candidate | scan, count | ranked, count=1 "
+        "| ranked, count |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
     prev = None
+
+    def fmt(value: int | None) -> str:
+        return "refused" if value is None else f"{value:,}"
+
     for row in report["allocate_scaling"]:
         per = "-"
-        if prev is not None:
+        if prev is not None and row["allocate_1"] is not None and prev["allocate_1"] is not None:
             per = (
                 f"{(row['allocate_1'] - prev['allocate_1']) / (row['candidates'] - prev['candidates']):,.0f}"
             )
         lines.append(
-            f"| {row['candidates']} | {row['allocate_1']:,} | {per} | "
-            f"{row['allocate_min_n_8']:,} (count={row['count_8']}) |"
+            f"| {row['candidates']} | {fmt(row['allocate_1'])} | {per} | "
+            f"{fmt(row['allocate_min_n_8'])} (count={row['count_8']}) | {fmt(row['ranked_1'])} | "
+            f"{fmt(row['ranked_min_n_8'])} (count={row['count_8']}) |"
         )
         prev = row
     return "\n".join(lines)

@@ -20,11 +20,15 @@ or as a sequence in the application's order.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import os
 import tempfile
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from eth_utils import to_checksum_address
@@ -35,6 +39,10 @@ from .content import ContentStore, LocalContentStore
 
 ONE = 10**18
 MAX_FEATURES = 8
+#: Most candidate models one allocateModels call examines (the contract's MAX_CANDIDATES).
+MAX_CANDIDATES = 256
+#: Most models one request may ask for (so a ranking page always has room for new candidates).
+MAX_COUNT = MAX_CANDIDATES // 2
 _UINT32 = 2**32 - 1
 _QOS_EXACT = 2**256 - 1
 
@@ -104,6 +112,10 @@ class Allocation:
     distance: float  # D_m in feature units
     price_wei: int
     requester: str
+    #: The request's idempotency key (0x + 64 hex digits).
+    request_id: str = ""
+    #: True when the request had been paid by an earlier attempt and this is its allocation.
+    replayed: bool = False
 
     @property
     def model_id(self) -> int:
@@ -116,6 +128,95 @@ class Allocation:
     @property
     def owner(self) -> str:
         return self.model.owner
+
+
+class PendingRequests:
+    """Paid requests sent but not yet confirmed: one JSON file (``path``), or memory (``None``).
+
+    A record is written (and fsynced) *before* its transaction is sent, with the request id, the
+    signed transaction and its hash, so a run that lost the node's answer can be resolved by the
+    next one instead of paying again.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None = None) -> None:
+        self.path = Path(path) if path is not None else None
+        self._memory: dict[str, dict[str, Any]] = {}
+
+    def __repr__(self) -> str:
+        return f"PendingRequests({str(self.path) if self.path else 'in memory'})"
+
+    def load(self) -> dict[str, dict[str, Any]]:
+        """All records, keyed ``account:request_id``."""
+        if self.path is None:
+            return dict(self._memory)
+        if not self.path.is_file():
+            return {}
+        return json.loads(self.path.read_text())
+
+    def _save(self, records: dict[str, dict[str, Any]]) -> None:
+        if self.path is None:
+            self._memory = records
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "w") as fh:
+            fh.write(json.dumps(records, indent=1, sort_keys=True) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, self.path)
+
+    @staticmethod
+    def _key(record: dict[str, Any]) -> str:
+        return f"{record['account']}:{record['request_id']}"
+
+    def put(self, record: dict[str, Any]) -> None:
+        """Add or replace ``record`` (durably: written and fsynced before its transaction is sent)."""
+        records = self.load()
+        records[self._key(record)] = record
+        self._save(records)
+
+    def drop(self, record: dict[str, Any]) -> None:
+        """Forget a resolved request."""
+        records = self.load()
+        if records.pop(self._key(record), None) is not None:
+            self._save(records)
+
+    def find(
+        self, account: str, fingerprint: str | None = None, request_id: str | None = None
+    ) -> dict[str, Any] | None:
+        """``account``'s pending record with that request id, or else for the same request, if any."""
+        for record in self.load().values():
+            if record["account"] != account:
+                continue
+            if request_id is not None and record["request_id"] == request_id:
+                return record
+            if request_id is None and record["fingerprint"] == fingerprint:
+                return record
+        return None
+
+
+def request_id_from(value: str | bytes | None) -> bytes:
+    """A 32-byte request id: ``0x`` + 64 hex digits as is, other text hashed, None a random one."""
+    if value is None:
+        return os.urandom(32)
+    if isinstance(value, bytes | bytearray):
+        if len(value) != 32:
+            raise ValueError(f"a request id given as bytes must be 32 bytes, got {len(value)}")
+        rid = bytes(value)
+    elif isinstance(value, str) and value.strip():
+        text = value.strip()
+        if text.lower().startswith("0x") and len(text) == 66:
+            try:
+                rid = bytes.fromhex(text[2:])
+            except ValueError:
+                raise ValueError(f"request id {value!r} is not 0x + 64 hex digits") from None
+        else:
+            rid = hashlib.sha256(text.encode()).digest()
+    else:
+        raise ValueError(f"a request id must be a non-empty string or 32 bytes, got {value!r}")
+    if rid == bytes(32):
+        raise ValueError("the request id must not be zero")
+    return rid
 
 
 @dataclass
@@ -152,6 +253,8 @@ class Registry:
         self.store = store
         self.deployment = deployment
         self._account = chain.account(account)
+        #: Where paid requests are recorded before they are sent (set by the CLI to the home).
+        self.pending = PendingRequests()
         self.users = chain.contract("UsersManager", deployment.users)
         self._feature_cache: dict[str, tuple[str, ...]] = {}
         #: The last transaction this registry sent (hash, gasUsed, receipt), e.g. for gas figures.
@@ -186,6 +289,7 @@ class Registry:
         """The same registry acting as another signing account (index or address)."""
         other = Registry(self.chain, self.store, self.deployment, account)
         other._feature_cache = self._feature_cache  # per application, fixed once set on chain
+        other.pending = self.pending
         return other
 
     @property
@@ -309,8 +413,8 @@ class Registry:
         min_owner_rep: float,
     ) -> tuple:
         _check_app(application)
-        if not isinstance(count, int) or count < 1:
-            raise ValueError(f"count must be a positive integer, got {count!r}")
+        if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COUNT:
+            raise ValueError(f"count must be an integer from 1 to {MAX_COUNT}, got {count!r}")
         req_names, req = _features(requirements)
         expected = self._feature_names(application)
         if expected is None:
@@ -334,7 +438,7 @@ class Registry:
             to_fixed(min_owner_rep, "min_owner_rep"),
         )
 
-    def quote(
+    def rank(
         self,
         application: str,
         requirements: Features,
@@ -342,10 +446,36 @@ class Registry:
         count: int = 1,
         min_model_rep: float = 0.0,
         min_owner_rep: float = 0.0,
-    ) -> tuple[list[int], int]:
-        """Which models a request would get now and their total price in wei (no transaction)."""
+    ) -> list[int]:
+        """The ids of the best ``count`` eligible models for this account, best first (no transaction).
+
+        The contract ranks: ``allocateModels`` is simulated (eth_call, free) on pages of the
+        application's models, each page joined by the best ids so far, so the result is the
+        contract's own greedy top ``count`` over all of them, however many there are.
+        """
         args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        fn = self.models.functions.allocateModels(*args)
+        return self._rank(args)[0]
+
+    def _app_model_ids(self, application: str) -> list[int]:
+        """The application's Models List (model ids in the order shared), from the contract's events."""
+        added = self.chain._retry(
+            lambda: self.models.events.ApplicationAdded().get_logs(from_block=0), "read the applications"
+        )
+        app_ids = [log["args"]["appId"] for log in added if log["args"]["application"] == application]
+        if not app_ids:
+            raise ContractRevert("UnknownApplication", {"application": application})
+        logs = self.chain._retry(
+            lambda: self.models.events.ModelAdded().get_logs(
+                argument_filters={"appId": app_ids[0]}, from_block=0
+            ),
+            "read the application's models",
+        )
+        return sorted(log["args"]["modelId"] for log in logs)
+
+    def _simulate(self, args: tuple, positions: list[int]) -> tuple[list[int], int]:
+        """Model ids ``allocateModels`` would allocate from these positions of the application's
+        Models List now, best first, and their price (an eth_call: nothing is sent)."""
+        fn = self.models.functions.allocateModels(request_id_from(None), *args, sorted(positions))
         try:
             ids, _ = self.chain.call(fn, sender=self.address, value=0)
             return list(ids), 0
@@ -357,6 +487,39 @@ class Registry:
         ids, _ = self.chain.call(fn, sender=self.address, value=required)
         return list(ids), required
 
+    def _rank(self, args: tuple) -> tuple[list[int], list[int], int]:
+        """(best model ids, best first; their positions in the Models List; their total price)."""
+        ids = self._app_model_ids(args[0])
+        position = {model_id: pos for pos, model_id in enumerate(ids)}
+        page = MAX_CANDIDATES - args[3]
+        best: list[int] = []
+        price = 0
+        for start in range(0, len(ids), page):
+            try:
+                best, price = self._simulate(
+                    args, [position[i] for i in best] + list(range(start, min(start + page, len(ids))))
+                )
+            except ContractRevert as exc:
+                if exc.error != "NoEligibleModels":
+                    raise
+        if not best:
+            raise ContractRevert("NoEligibleModels")
+        return best, sorted(position[i] for i in best), price
+
+    def quote(
+        self,
+        application: str,
+        requirements: Features,
+        weights: Features | None = None,
+        count: int = 1,
+        min_model_rep: float = 0.0,
+        min_owner_rep: float = 0.0,
+    ) -> tuple[list[int], int]:
+        """Which models a request would get now and their total price in wei (no transaction)."""
+        args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
+        best, _positions, price = self._rank(args)
+        return best, price
+
     def request_models(
         self,
         application: str,
@@ -366,20 +529,144 @@ class Registry:
         min_model_rep: float = 0.0,
         min_owner_rep: float = 0.0,
         payment: int | None = None,
+        request_id: str | bytes | None = None,
     ) -> list[Allocation]:
-        """Request up to ``count`` models (paper: allocateModels) and pay for them.
+        """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once.
 
         ``payment`` (wei) defaults to the exact price of what would be allocated (see :meth:`quote`);
         any overpayment is credited back and can be withdrawn. Returns the allocations best first.
+
+        Idempotent: the request carries an id (``request_id``: ``0x`` + 64 hex digits, any other
+        text is hashed; default random) that the contract records and refuses to pay twice. The
+        id and the signed transaction are written to :attr:`pending` before sending; when the
+        node's answer is lost, calling again with the same arguments (or the same ``request_id``)
+        resolves that record: the original allocation if it was mined (``replayed=True``), else
+        the same request is sent again, which the contract can only pay once.
         """
         args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        if payment is None:
-            _, payment = self.quote(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        if not isinstance(payment, int) or payment < 0:
+        if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
             raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
-        result = self._tx(self.models.functions.allocateModels(*args), value=payment)
+        fingerprint = hashlib.sha256(
+            json.dumps([self.address, list(args), payment], sort_keys=True).encode()
+        ).hexdigest()
+        rid = request_id_from(request_id) if request_id is not None else None
+        record = self.pending.find(self.address, fingerprint, "0x" + rid.hex() if rid else None)
+        if record is not None:
+            return self._resolve(record)
+        rid = rid or request_id_from(None)
+        paid = self._paid(rid)
+        if paid is not None:
+            return paid
+        _best, candidates, price = self._rank(args)
+        if payment is None:
+            payment = price
+        fn = self.models.functions.allocateModels(rid, *args, candidates)
+        signed = self.chain.sign(fn, self.address, payment)
+        record = {
+            "request_id": "0x" + rid.hex(),
+            "account": self.address,
+            "fingerprint": fingerprint,
+            "args": [*args, candidates],
+            "value": payment,
+            "tx_hash": signed.tx_hash,
+            "raw": "0x" + signed.raw.hex(),
+            "nonce": signed.nonce,
+            "created": time.time(),
+        }
+        self.pending.put(record)  # before sending: a lost answer is resolved by the next call
+        return self._send(record, fn, signed.raw)
+
+    def pending_requests(self) -> list[dict[str, Any]]:
+        """This account's paid requests not confirmed yet (resolve one by requesting it again)."""
+        return [r for r in self.pending.load().values() if r["account"] == self.address]
+
+    def _send(self, record: dict[str, Any], fn: Any, raw: bytes) -> list[Allocation]:
+        try:
+            result = self.chain.send_raw(raw, fn=fn, sender=self.address, value=record["value"])
+        except ContractRevert as exc:
+            return self._settled(record, exc)
+        except ChainError as exc:
+            where = self.pending.path or "this Registry's pending requests (memory)"
+            raise ChainError(
+                f"{exc}. Request {record['request_id']} (transaction {record['tx_hash']}) is recorded "
+                f"in {where}: run the same request again to resolve it; the contract pays a request id "
+                "at most once, so re-running cannot pay twice"
+            ) from None
+        self.last_tx = result
+        self.pending.drop(record)
+        return self._allocations(result.receipt, record["request_id"], replayed=False)
+
+    def _settled(self, record: dict[str, Any], exc: ContractRevert) -> list[Allocation]:
+        """A request's transaction reverted: the earlier payment if that was why, else the revert."""
+        self.pending.drop(record)
+        if exc.error == "RequestAlreadyPaid":
+            paid = self._paid(bytes.fromhex(record["request_id"][2:]))
+            if paid is not None:
+                return paid
+        raise exc
+
+    def _resolve(self, record: dict[str, Any]) -> list[Allocation]:
+        """Finish a request recorded by an earlier call whose outcome was not seen."""
+        rid = bytes.fromhex(record["request_id"][2:])
+        fn = self.models.functions.allocateModels(rid, *record["args"])
+        try:
+            state = self.chain.lookup(record["tx_hash"], fn, self.address, record["value"])
+        except ContractRevert as exc:
+            return self._settled(record, exc)
+        if isinstance(state, TxResult):
+            self.pending.drop(record)
+            return self._allocations(state.receipt, record["request_id"], replayed=True)
+        paid = self._paid(rid)
+        if paid is not None:
+            self.pending.drop(record)
+            return paid
+        raw = bytes.fromhex(record["raw"][2:])
+        if state == "unknown" and record["nonce"] < self.chain.pending_nonce(self.address):
+            # The nonce went to another transaction, so the recorded one can never be mined:
+            # sign the same request (same id) again; the contract still pays it at most once.
+            signed = self.chain.sign(fn, self.address, record["value"])
+            record = {
+                **record,
+                "tx_hash": signed.tx_hash,
+                "raw": "0x" + signed.raw.hex(),
+                "nonce": signed.nonce,
+            }
+            self.pending.put(record)
+            raw = signed.raw
+        return self._send(record, fn, raw)
+
+    def _paid(self, rid: bytes) -> list[Allocation] | None:
+        """The allocations of request ``rid`` if this account already paid it, else None.
+
+        The contract checks a request id before anything else, so a simulated call with the id
+        answers RequestAlreadyPaid(firstAllocationId) exactly when it was paid.
+        """
+        fn = self.models.functions.allocateModels(rid, "", [], [], 0, 0, 0, [])
+        try:
+            self.chain.call(fn, sender=self.address)
+        except ContractRevert as exc:
+            if exc.error != "RequestAlreadyPaid":
+                return None
+            first = exc.values["firstAllocationId"]
+        else:  # pragma: no cover - the empty request always reverts
+            return None
+        logs = self.chain._retry(
+            lambda: self.models.events.ModelAllocated().get_logs(
+                argument_filters={"allocationId": first}, from_block=0
+            ),
+            "read the request's allocation",
+        )
+        if not logs:
+            raise ChainError(f"request 0x{rid.hex()} is paid on chain but its logs are not available")
+        tx_hash = logs[0]["transactionHash"]
+        receipt = self.chain._retry(
+            lambda: self.chain.w3.eth.get_transaction_receipt(tx_hash), "read a receipt"
+        )
+        return self._allocations(receipt, "0x" + rid.hex(), replayed=True)
+
+    def _allocations(self, receipt: Any, request_id: str, replayed: bool) -> list[Allocation]:
         out = []
-        for ev in self.models.events.ModelAllocated().process_receipt(result.receipt, errors=DISCARD):
+        for ev in self.models.events.ModelAllocated().process_receipt(receipt, errors=DISCARD):
             a = ev["args"]
             qos = math.inf if a["qos"] == _QOS_EXACT else from_fixed(a["qos"])
             out.append(
@@ -390,6 +677,8 @@ class Registry:
                     from_fixed(a["distance"]),
                     a["price"],
                     a["requester"],
+                    request_id,
+                    replayed,
                 )
             )
         return out
@@ -402,6 +691,10 @@ class Registry:
     def fetch(self, cid: str) -> bytes:
         """The bytes of ``cid`` from the content store, verified against the CID."""
         return self.store.fetch(cid)
+
+    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
+        """Write the bytes of ``cid``, verified while they stream in, to ``path``; returns the size."""
+        return self.store.fetch_to(cid, path)
 
     # ------------------------------------------------------------ reviews and payments
     def review(self, allocation: int | Allocation, value: float) -> TxResult:
