@@ -127,7 +127,7 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     plan = Plan("cpu", 1, tmp_path / "out", models)
     jobs = plan.expert_jobs(retrain=False) + plan.other_expert_jobs(retrain=False)
     assert len(jobs) == len(TL_EXPERTS) + 1 + 12 and {j["kind"] for j in jobs} == {"clone"}
-    assert {j["config"]["arch"] for j in jobs[: len(TL_EXPERTS)]} == {"lenet5", "convnet-small"}
+    assert {j["config"]["arch"] for j in jobs[: len(TL_EXPERTS)]} == {"lenet5", "mlp"}
     fleet = [j for j in jobs if j["config"]["env"] == "fleet_coordination"]
     assert all(j["config"]["eval_greedy"] is False and j["config"]["grid"] == 10 for j in fleet)
     # The shipped bundles were made by DAgger at these settings, so nothing is retrained ...
@@ -149,7 +149,7 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     (models / "team").mkdir()
     (models / "team" / "broken.safetensors").write_bytes(b"not a bundle")
     rows = expert_table(models).splitlines()
-    assert rows[2].startswith(f"| experts/{Path(job['bundle_to']).stem} | convnet-small | dagger 64 | ")
+    assert rows[2].startswith(f"| experts/{Path(job["bundle_to"]).stem} | mlp | dagger 64 | ")
     assert rows[3].startswith("| team/broken | ? | no DAgger evaluation in manifest")
     # An equal DAgger bundle is reused; one made for another grid is retrained.
     again = dict(name="A1W0", env="target_localization", agents=1, arch="lenet5", steps=64, retrain=False)
