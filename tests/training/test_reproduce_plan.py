@@ -149,7 +149,7 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     (models / "team").mkdir()
     (models / "team" / "broken.safetensors").write_bytes(b"not a bundle")
     rows = expert_table(models).splitlines()
-    assert rows[2].startswith(f"| experts/{Path(job["bundle_to"]).stem} | mlp | dagger 64 | ")
+    assert rows[2].startswith(f"| experts/{Path(job['bundle_to']).stem} | mlp | dagger 64 | ")
     assert rows[3].startswith("| team/broken | ? | no DAgger evaluation in manifest")
     # An equal DAgger bundle is reused; one made for another grid is retrained.
     again = dict(name="A1W0", env="target_localization", agents=1, arch="lenet5", steps=64, retrain=False)
