@@ -36,6 +36,25 @@ def curve_summary(metrics_csv: Path) -> dict:
             "train_end": round(sum(train[-3:]) / len(train[-3:]), 2) if train else None}
 
 
+def plot_probe(out: Path) -> None:
+    """OUT/probe.png: every variant's greedy evaluation curve (mean over its seeds, 95% band)."""
+    from medc_training.metrics import read_metrics
+    from medc_training.plots import plot_methods
+
+    series = {}
+    for run in sorted(p for p in out.iterdir() if p.is_dir()):
+        curves, steps = [], []
+        for seed_dir in sorted(run.glob("seed*")):
+            if (seed_dir / "summary.json").exists():
+                rows = read_metrics(seed_dir / "metrics.csv")
+                steps = steps if len(steps) >= len(rows) else [r["step"] for r in rows]
+                curves.append([r["episode_length"] for r in rows])
+        if curves:
+            series[run.name] = (steps, curves)
+    if series:
+        plot_methods(series, out / "probe.png", "MDRL-sparse on each observation variant")
+
+
 def run_one(job: dict) -> dict:
     import torch
     from medc_training.config import scaled_config
@@ -86,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
                              "out": str(args.out / name / f"seed{seed}")})
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
         results = list(pool.map(run_one, jobs))
+    plot_probe(args.out)
     print(json.dumps({"probe": results}))
     return 0
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from .metrics import read_metrics
+from .stats import curve_band
 
 
 def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str = "",
@@ -38,16 +38,6 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str =
     return Path(png_path)
 
 
-def mean_ci(curves: Sequence[Sequence[float]], z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point mean and half-width of a normal-approximation 95% CI over seeds."""
-    arr = np.asarray(curves, dtype=float)
-    mean = np.nanmean(arr, axis=0)
-    if arr.shape[0] < 2:
-        return mean, np.zeros_like(mean)
-    half = z * np.nanstd(arr, axis=0, ddof=1) / math.sqrt(arr.shape[0])
-    return mean, half
-
-
 def plot_methods(series: dict[str, tuple[Sequence[float], Sequence[Sequence[float]]]], png_path: str | Path,
                  title: str, ylabel: str = "mean episode length (greedy eval)") -> Path:
     """Several methods' mean curves over seeds with 95% CI bands.
@@ -57,7 +47,7 @@ def plot_methods(series: dict[str, tuple[Sequence[float], Sequence[Sequence[floa
     fig, ax = plt.subplots(figsize=(6.4, 4))
     for label, (steps, curves) in series.items():
         n = min(len(c) for c in curves)
-        mean, half = mean_ci([c[:n] for c in curves])
+        mean, half = curve_band([c[:n] for c in curves])
         x = np.asarray(steps[:n])
         ax.plot(x, mean, label=f"{label} (n={len(curves)})")
         ax.fill_between(x, mean - half, mean + half, alpha=0.2)

@@ -38,6 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--walls", type=int, default=d.walls, help=f"walls, target localization (default {d.walls})"
     )
     p.add_argument("--grid", type=int, default=d.grid, help=f"grid side (default {d.grid})")
+    p.add_argument("--observation", default=d.observation,
+                   help=f"target-localization observation: maps | maps+estimate | egoR | egoR+estimate "
+                        f"(default {d.observation})")
     p.add_argument(
         "--max-steps", type=int, default=d.max_steps, help=f"episode step limit (default {d.max_steps})"
     )
@@ -80,7 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # CloneConfig fields whose command-line option has the same name (--max-steps -> max_steps).
-SAME_NAME = ("env", "agents", "walls", "grid", "max_steps", "arch", "num_envs", "rollout_len", "grad_steps",
+SAME_NAME = ("env", "agents", "walls", "grid", "observation", "max_steps", "arch", "num_envs", "rollout_len",
+             "grad_steps",
              "beta_decay", "lr", "max_samples", "eval_episodes", "eval_every", "seed", "device")
 
 

@@ -34,6 +34,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
 
+from ..stats import T95, compare, mean_ci, t95  # noqa: F401  (T95, t95 re-exported for the report's readers)
+
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
@@ -393,18 +395,6 @@ class Plan:
 
 
 # --------------------------------------------------------------------------- analysis ---
-# Two-sided 95% Student-t quantiles by degrees of freedom (no scipy dependency).
-T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262,
-       10: 2.228, 15: 2.131, 20: 2.086, 30: 2.042}
-
-
-def t95(df: int) -> float:
-    if df <= 0:
-        return math.inf
-    keys = sorted(k for k in T95 if k <= df)
-    return T95[keys[-1]] if df <= 30 else 1.96
-
-
 def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
                 ) -> tuple[list[float], list[list[float]], list]:
     """(steps, [episode-length curve per seed], [summary per seed]) of one run name."""
@@ -426,30 +416,6 @@ def learning_score(curve: list[float]) -> float:
     """Mean evaluation episode length over the whole run (area under the curve / steps):
     lower is better, rewarding both faster and better learning."""
     return float(sum(curve[1:]) / max(1, len(curve) - 1)) if len(curve) > 1 else float(curve[0])
-
-
-def mean_ci(values: list[float]) -> tuple[float, float]:
-    n = len(values)
-    if n == 0:
-        return math.nan, math.nan
-    m = sum(values) / n
-    if n < 2:
-        return m, math.inf
-    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (n - 1))
-    return m, t95(n - 1) * sd / math.sqrt(n)
-
-
-def compare(a: list[float], b: list[float]) -> dict:
-    """Welch-style difference of means (a - b) with a 95% CI."""
-    ma, _ = mean_ci(a)
-    mb, _ = mean_ci(b)
-    if len(a) < 2 or len(b) < 2:
-        return {"diff": ma - mb, "half": math.inf}
-    va = sum((x - ma) ** 2 for x in a) / (len(a) - 1)
-    vb = sum((x - mb) ** 2 for x in b) / (len(b) - 1)
-    se = math.sqrt(va / len(a) + vb / len(b))
-    df = min(len(a), len(b)) - 1
-    return {"diff": ma - mb, "half": t95(df) * se}
 
 
 #: Seeds the learnability gate needs before it can pass.

@@ -21,6 +21,7 @@ import re
 import sys
 
 from ..config import METHODS, SCALES, scaled_config
+from ..envs.tl_observation import DEFAULT_OBSERVATION
 
 USER_RE = re.compile(r"^A(\d+)W(\d+)(?::(random|biased|malicious))?$")
 
@@ -63,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--walls", type=int, default=2, help="number of walls (the z in AyWz)")
     p.add_argument("--grid", type=int, help="grid side (default: the scale's, cpu 13 / paper 30)")
     p.add_argument("--max-steps", type=int, help="episode step limit (default: the scale's)")
+    p.add_argument("--observation",
+                   help="target-localization observation: maps (the paper's 5 maps) | maps+estimate | egoR | "
+                        f"egoR+estimate (default {DEFAULT_OBSERVATION}; docs/environments.md)")
     p.add_argument("--method", choices=METHODS, default="sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
@@ -102,7 +106,8 @@ def config_from_args(args: argparse.Namespace):
     overrides = {"env": args.env, "agents": args.agents, "walls": args.walls, "method": args.method,
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
-    for name in ("grid", "max_steps", "arch", "num_envs", "horizon", "epochs", "lr", "eval_every",
+    for name in ("grid", "max_steps", "observation", "arch", "num_envs", "horizon", "epochs", "lr",
+                 "eval_every",
                  "eval_steps", "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:
