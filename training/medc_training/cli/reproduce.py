@@ -817,6 +817,9 @@ R_S of each expert follows the QoS formula with equal reputations (0.5) and D_m 
 |Δagents| + |Δwalls| (+ |Δgrid|, 0 here), floored at 0.5.
 
 """
+    protocol = out / "protocol.md"
+    if protocol.exists():  # fixed before the runs it governs; see its first line
+        header += "## Protocol\n\n" + protocol.read_text().strip() + "\n\n"
     notes = out / "discussion.md"
     if notes.exists():  # hand-written interpretation, kept across regenerations of the report
         header += "## Discussion\n\n" + notes.read_text().strip() + "\n\n## Figures and claims\n\n"
