@@ -59,3 +59,9 @@ def curve_band(curves: Sequence[Sequence[float]]) -> tuple[np.ndarray, np.ndarra
     if n < 2:
         return mean, np.zeros_like(mean)
     return mean, t95(n - 1) * np.nanstd(arr, axis=0, ddof=1) / math.sqrt(n)
+
+
+def learning_score(curve: Sequence[float]) -> float:
+    """Mean evaluation episode length over a run's evaluations after step 0 (the area under the
+    learning curve over its length): lower is better, rewarding both faster and better learning."""
+    return float(sum(curve[1:]) / max(1, len(curve) - 1)) if len(curve) > 1 else float(curve[0])

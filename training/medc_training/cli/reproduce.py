@@ -34,7 +34,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
 
-from ..stats import T95, compare, mean_ci, t95  # noqa: F401  (T95, t95 re-exported for the report's readers)
+from ..stats import T95, compare, learning_score, mean_ci, t95  # noqa: F401  (re-exported)
 
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
 
@@ -410,12 +410,6 @@ def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
         curves.append([r["episode_length"] for r in rows])
         summaries.append(json.loads((seed_dir / "summary.json").read_text()))
     return steps, curves, summaries
-
-
-def learning_score(curve: list[float]) -> float:
-    """Mean evaluation episode length over the whole run (area under the curve / steps):
-    lower is better, rewarding both faster and better learning."""
-    return float(sum(curve[1:]) / max(1, len(curve) - 1)) if len(curve) > 1 else float(curve[0])
 
 
 #: Seeds the learnability gate needs before it can pass.

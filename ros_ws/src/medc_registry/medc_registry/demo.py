@@ -84,7 +84,8 @@ def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, epis
 
     n_envs = min(episodes, 32)
     env = make_batched(
-        APPLICATION, num_envs=n_envs, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps
+        APPLICATION, num_envs=n_envs, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+        observation=bundle.observation,
     )
     obs, mask = env.reset(seed=seed)
     lengths: list[int] = []
@@ -102,6 +103,15 @@ def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, epis
     return {"episode_length": sum(lengths) / len(lengths), "success_rate": sum(successes) / len(successes)}
 
 
+def learning_score_of(metrics_csv: Path) -> float:
+    """Mean evaluation episode length over a run's evaluations after step 0 (the reproduction
+    report's learning score; lower = faster and better learning)."""
+    from medc_training.metrics import read_metrics
+    from medc_training.stats import learning_score
+
+    return learning_score([r["episode_length"] for r in read_metrics(metrics_csv)])
+
+
 def random_policy_length(
     agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int
 ) -> float:
@@ -109,8 +119,9 @@ def random_policy_length(
     import torch
     from medc_training.envs import make_batched
 
-    env = make_batched(
-        APPLICATION, num_envs=32, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps
+    env = make_batched(  # random moves need no observation: the cheapest one
+        APPLICATION, num_envs=32, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+        observation="maps",
     )
     gen = torch.Generator().manual_seed(seed)
     _, mask = env.reset(seed=seed)
@@ -137,7 +148,8 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
     from medc_training.envs.grid import action_deltas
 
     env = make_env(
-        APPLICATION, agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, max_steps=cfg.max_steps, seed=seed
+        APPLICATION, agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, max_steps=cfg.max_steps, seed=seed,
+        observation=bundle.observation,
     )
     obs, _ = env.reset(seed=seed)
     core = env.unwrapped.core  # the batched core (B = 1) under the PettingZoo wrapper
@@ -343,6 +355,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f"{method:6s}: final greedy episode length {summary['final_episode_length']:.1f}, "
             f"success {summary['final_success_rate']:.0%}, done after {summary['wall_s']:.0f} s"
         )
+    scores = {m: learning_score_of(out / m / "metrics.csv") for m in ("medc", "sparse")}
+    medc_faster = scores["medc"] < scores["sparse"]
+    say.say(
+        f"learning score (mean greedy evaluation episode length over the run, lower = faster): MEDC "
+        f"{scores['medc']:.2f}, sparse {scores['sparse']:.2f}: MEDC learned "
+        f"{'faster' if medc_faster else 'no faster'} than sparse on this seed "
+        "(one seed: a measurement, not a verdict; the reproduction report has the multi-seed claims)"
+    )
     curves_png(
         {
             "MEDC (allocated experts)": out / "medc" / "metrics.csv",
@@ -416,7 +436,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         graph["skipped"] = False
         say.say(
             f"new policy: mean episode length {graph['mean_length']:.1f} (random moves: {random_len:.1f}); "
-            f"success {graph['success_rate']:.0%}"
+            f"success {graph['success_rate']:.0%}: it "
+            f"{'beats' if graph['mean_length'] < random_len else 'does not beat'} random moves in the graph"
         )
         if team_path.is_file():
             say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
@@ -460,6 +481,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             for m, r in results.items()
         },
         "random_policy_episode_length": random_len,
+        "learning_scores": scores,
+        "medc_learned_faster_than_sparse": medc_faster,
+        "new_policy_beats_random_in_graph": (None if graph.get("skipped")
+                                             else bool(graph["mean_length"] < random_len)),
         "graph": _graph_summary(graph),
         "graph_shipped_team": _graph_summary(graph_team),
         "trajectory": traj,
@@ -559,6 +584,11 @@ def write_report(out: Path, s: dict, cfg) -> None:
             f"| {m} | {r['steps']:,} | {r['final_episode_length']:.1f} | {r['final_success_rate']:.0%} | "
             f"{r['wall_s']:.0f} |"
         )
+    sc = s["learning_scores"]
+    lines += ["", f"Learning score (mean greedy evaluation episode length over the run, lower = faster): "
+              f"MEDC {sc['medc']:.2f}, sparse {sc['sparse']:.2f}; MEDC learned "
+              f"{'faster' if s['medc_learned_faster_than_sparse'] else 'no faster'} than sparse on this seed "
+              "(one seed: see docs/reproduction/report.md for the multi-seed claims)."]
     lines += ["", "![learning curves](learning_curves.png)", "", "## The ROS 2 graph", ""]
     g = s["graph"]
     if g.get("skipped"):
@@ -567,7 +597,8 @@ def write_report(out: Path, s: dict, cfg) -> None:
         lines.append(
             f"{g['episodes']} episodes: lengths {g['episode_lengths']}, mean {g['mean_length']:.1f}, "
             f"success {g['success_rate']:.0%}; a random policy averages "
-            f"{s['random_policy_episode_length']:.1f} steps."
+            f"{s['random_policy_episode_length']:.1f} steps: the new policy "
+            f"{'beats' if s['new_policy_beats_random_in_graph'] else 'does not beat'} random moves."
         )
     lines += [
         "",
