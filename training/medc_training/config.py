@@ -195,6 +195,8 @@ CPU_SCALE = {
     # On 2 CPU cores the MLP trains ~4x faster than LeNet-5 at this size (measured with
     # medc-bench train); LeNet-5 remains the default at the paper scale and experts mix both.
     "arch": "mlp",
+    # The observation MDRL-sparse learns from at this budget (measured: docs/environments.md).
+    "observation": "ego6+estimate",
 }
 
 # The paper's scale, for a GPU.
@@ -210,6 +212,9 @@ PAPER_SCALE = {
     "eval_envs": 20,         # 200 steps each, so a 100-step episode always finishes
     "arch": "lenet5",
     "total_steps": 20_000_000,
+    # The paper's scale reproduces the paper: its 5 absolute maps (at the CPU scale no learner
+    # learns from them; with 2x10^7 steps on a GPU the paper reports that PPO does).
+    "observation": "maps",
 }
 
 SCALES = {"cpu": CPU_SCALE, "paper": PAPER_SCALE}
