@@ -38,6 +38,22 @@ def test_share_model_records_every_field(registry, users):
     )
 
 
+def test_a_shared_bundle_says_which_observation_its_model_takes(registry, users):
+    import json
+
+    from medc_training.bundle import bundle_bytes
+    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.nets import make_actor_critic
+
+    spec = parse_observation("ego3+estimate")
+    net = make_actor_critic("mlp", spec.shape(13), 8)
+    data = bundle_bytes(net, {"application": APP, "observation": {"name": spec.name},
+                              "environment": {"agents": 1, "walls": 0, "grid": 13}})
+    m = users[0].share_model(data, APP, {"agents": 1, "walls": 0}, PRICE)
+    assert json.loads(m.description) == {"features": ["agents", "walls"], "observation": "ego3+estimate",
+                                         "architecture": "mlp"}
+
+
 def test_add_model_reverts(registry, users):
     mmc = registry.models.functions
     chain = registry.chain

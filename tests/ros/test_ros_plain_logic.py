@@ -156,6 +156,29 @@ def test_policy_slot_refuses_bad_bundles_and_keeps_the_old_one(bundles, tmp_path
     assert north.act(torch.zeros(5, 10, 10), torch.tensor([False] + [True] * 7)) != 0
 
 
+def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_path):
+    from medc_training.bundle import save_bundle
+    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.nets import make_actor_critic
+
+    spec = parse_observation("ego4+estimate")
+    ego = save_bundle(tmp_path / "ego.safetensors", make_actor_critic("mlp", spec.shape(10), 8),
+                      {"application": "target_localization", "observation": {"name": spec.name},
+                       "environment": {"grid": 10}})
+    follow = PolicySlot((5, 10, 10), 8, grid=10)  # observation None: the bundle's own
+    follow.swap(str(bundles["a"]))
+    assert (follow.observation, follow.obs_shape) == ("maps", (5, 10, 10))
+    follow.swap(str(ego))
+    assert (follow.observation, follow.obs_shape) == ("ego4+estimate", (5, 9, 9))
+    assert follow.act(torch.zeros(5, 9, 9), torch.ones(8, dtype=torch.bool)) in range(8)
+    fixed = PolicySlot((5, 10, 10), 8, observation="maps")
+    fixed.swap(str(bundles["a"]))
+    with pytest.raises(PolicyRejected,
+                       match="takes the observation 'ego4\\+estimate', but this environment produces 'maps'"):
+        fixed.swap(str(ego))
+    assert fixed.current.source == str(bundles["a"])
+
+
 def test_contract_conversions():
     assert agent_index("agent_2", 3) == 2
     with pytest.raises(ValueError):

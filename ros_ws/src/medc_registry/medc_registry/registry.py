@@ -344,6 +344,7 @@ class Registry:
         desc: dict[str, Any] = {}
         if names:
             desc["features"] = list(names)
+        desc.update(bundle_summary(bytes(bundle)))
         if isinstance(description, Mapping):
             desc.update(description)
         elif description:
@@ -742,6 +743,22 @@ class Registry:
             "allocations": self.chain.call(self.models.functions.allocationCount()),
             "contract_balance_wei": self.chain.balance(self.deployment.models),
         }
+
+
+def bundle_summary(data: bytes) -> dict[str, Any]:
+    """What a requester must know before using a shared policy bundle, read from its validated
+    manifest (the weights are never decoded): the observation variant it takes and its
+    architecture. {} for bytes that are not a policy bundle (the registry stores any file)."""
+    from medc_training.bundle import BundleError, read_manifest
+
+    try:
+        manifest = read_manifest(data)
+    except BundleError:
+        return {}
+    out: dict[str, Any] = {"architecture": manifest["architecture"].get("name", "?")}
+    if manifest["application"] == "target_localization":
+        out["observation"] = manifest["observation"].get("name", "maps")
+    return out
 
 
 def _check_app(application: str) -> None:
