@@ -30,7 +30,15 @@ def spin_until_shutdown(node, executor) -> None:
     import rclpy
 
     while rclpy.ok():
-        executor.spin_once(timeout_sec=0.1)
+        try:
+            executor.spin_once(timeout_sec=0.1)
+        except RuntimeError:
+            # The launcher's SIGINT can shut the context down while the EventsExecutor is inside
+            # spin_once, which then fails converting its now-invalid handles: that is a shutdown,
+            # not an error. A RuntimeError while rclpy is still up is a real one.
+            if rclpy.ok():
+                raise
+            return
 
 
 def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_shutdown,
