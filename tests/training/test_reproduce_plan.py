@@ -1,5 +1,6 @@
 """medc-reproduce: the experiment plan matches the paper's figures; claim verdicts are honest."""
 
+import json
 from pathlib import Path
 
 import pytest
@@ -155,3 +156,42 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     again = dict(name="A1W0", env="target_localization", agents=1, arch="lenet5", steps=64, retrain=False)
     assert plan._expert_job(**again, grid=7, max_steps=10) is None
     assert plan._expert_job(**again, grid=9, max_steps=10)
+
+
+def _fake_runs(out, name, finals, cfg):
+    """Run folders whose evaluation curves fall from 20 to ``finals[seed]``."""
+    from medc_training.metrics import CSV_COLUMNS
+
+    for seed, final in enumerate(finals):
+        d = out / "runs" / name / f"seed{seed}"
+        d.mkdir(parents=True)
+        (d / "summary.json").write_text(json.dumps({"config": {**cfg, "seed": seed}, "train_seconds": 1.0}))
+        rows = [{"step": i * 10, "episode_length": 20 - (20 - final) * min(1.0, i / 3)} for i in range(6)]
+        with (d / "metrics.csv").open("w") as f:
+            f.write(",".join(CSV_COLUMNS) + "\n")
+            for r in rows:
+                f.write(",".join(str(r.get(c, "")) for c in CSV_COLUMNS) + "\n")
+
+
+def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
+    from medc_training.cli.reproduce import Report, learnability_gate
+    from medc_training.config import TrainConfig
+
+    cfg = TrainConfig(agents=1, walls=0, grid=6, max_steps=20, eval_envs=8, observation="maps").to_dict()
+    _fake_runs(tmp_path, "learned-sparse", [3.0, 4.0, 3.5], cfg)
+    _fake_runs(tmp_path, "flat-sparse", [20.0, 19.0, 21.0], cfg)
+    _fake_runs(tmp_path, "two-seeds-sparse", [3.0, 4.0], cfg)
+    _fake_runs(tmp_path, "medc", [0.5, 0.6, 0.55], cfg)
+    learned = learnability_gate(tmp_path, "learned-sparse")
+    assert learned["passed"] and learned["n"] == 3 and learned["random"] > 5.0
+    assert learned["diff"] == pytest.approx(3.5 - learned["random"])
+    assert not learnability_gate(tmp_path, "flat-sparse")["passed"]  # no better than random play
+    assert not learnability_gate(tmp_path, "two-seeds-sparse")["passed"]  # fewer than 3 seeds
+    assert json.loads((tmp_path / "random_play.json").read_text())  # random play is measured once
+    r = Report(tmp_path, "cpu", 3, "test")
+    r.series({"a": "medc", "b": "learned-sparse", "c": "flat-sparse"})
+    assert "— held" in r.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
+    blocked = r.claim("medc beats sparse", "medc", "flat-sparse", gate="flat-sparse")
+    assert "not testable (MDRL-sparse did not pass the learnability gate" in blocked
+    assert "NOT passed" in r.gate("flat-sparse") and "passed" in r.gate("learned-sparse")
+    assert r.verdict_counts() == "2 claims: 1 held, 1 not testable"

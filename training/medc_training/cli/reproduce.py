@@ -492,6 +492,8 @@ class Report:
         self.scores: dict[str, list[float]] = {}
         #: Learnability gate of each environment, by its MDRL-sparse run name.
         self.gates: dict[str, dict] = {}
+        #: The verdict word of every claim written, in order (for the counts).
+        self.verdicts: list[str] = []
 
     def gate(self, sparse_run: str) -> str:
         """The gate line for ``sparse_run``'s environment (computed once); claims made with
@@ -556,6 +558,7 @@ class Report:
         c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
         blocked = self._untestable(gate) if a and b else None
         word = blocked or verdict(a, b)
+        self.verdicts.append(word)
         return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
 
@@ -568,11 +571,20 @@ class Report:
         ok = c["diff"] - c["half"] <= margin
         word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
         word = self._untestable(gate) or word
+        self.verdicts.append(word)
         return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
                 f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
 
     def add(self, text: str) -> None:
         self.sections.append(text)
+
+    def verdict_counts(self) -> str:
+        """One line counting the claims by verdict (held, contradicted, not resolved, ...)."""
+        kinds = ("held", "contradicted", "did not hold", "inconclusive", "not resolved", "not testable",
+                 "no difference", "not run")
+        counts = {k: sum(v.startswith(k) for v in self.verdicts) for k in kinds}
+        return (f"{len(self.verdicts)} claims: " + ", ".join(f"{n} {k}" for k, n in counts.items() if n)
+                if self.verdicts else "no claims")
 
     def write(self, header: str) -> Path:
         path = self.out / "report.md"
@@ -814,6 +826,7 @@ R_S of each expert follows the QoS formula with equal reputations (0.5) and D_m 
     protocol = out / "protocol.md"
     if protocol.exists():  # fixed before the runs it governs; see its first line
         header += "## Protocol\n\n" + protocol.read_text().strip() + "\n\n"
+    header += f"**Verdicts.** {r.verdict_counts()} (each listed under its figure below).\n\n"
     notes = out / "discussion.md"
     if notes.exists():  # hand-written interpretation, kept across regenerations of the report
         header += "## Discussion\n\n" + notes.read_text().strip() + "\n\n## Figures and claims\n\n"
