@@ -14,19 +14,20 @@ from builtin_interfaces.msg import Time
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
 from medc_sim import messages
-from medc_sim.contract import agent_index, xy_to_cell
+from medc_sim.contract import GridGeometry, agent_index, xy_to_cell
 from medc_sim.launcher import load_config, resolve_policies, ros_args
 from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
 
 IDS = ["agent_0", "agent_1", "agent_2"]
+GEO10 = GridGeometry(10, 10, 1.0)
 
 
 def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
     for o in observers:
         for j, (cell, value) in enumerate(zip(core.positions(), core.readings())):
-            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, 1.0))
+            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, GEO10))
             o.add_reading(IDS[j], messages.reading_msg(IDS[j], value, 0.0, stamp))
         o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
 
@@ -101,20 +102,21 @@ def test_observer_rejects_bad_messages():
     o = TeamObserver("agent_1", 3, 10)
     stamp = Time(sec=1)
     walls = torch.zeros((10, 10), dtype=torch.bool)
+    o.add_map(messages.grid_msg(walls, Time(sec=0, nanosec=5), 1.0))  # the grid geometry for poses
     bad_map = messages.grid_msg(walls, stamp, 1.0)
     bad_map.data = bad_map.data[:-1]
     with pytest.raises(ValueError, match="99 cells"):
         o.add_map(bad_map)
     with pytest.raises(ValueError, match="8x8"):
         o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), stamp, 1.0))
-    pose = messages.pose_msg((2, 3), stamp, 1.0)
+    pose = messages.pose_msg((2, 3), stamp, GEO10)
     pose.pose.position.x = math.nan
     with pytest.raises(ValueError, match="not finite"):
         o.add_pose("agent_0", pose)
     with pytest.raises(ValueError, match="outside"):
-        o.add_pose("agent_0", messages.pose_msg((12, 3), stamp, 1.0))
+        o.add_pose("agent_0", messages.pose_msg((12, 3), stamp, GEO10))
     with pytest.raises(ValueError, match="unknown agent"):
-        o.add_pose("agent_3", messages.pose_msg((2, 3), stamp, 1.0))
+        o.add_pose("agent_3", messages.pose_msg((2, 3), stamp, GEO10))
     with pytest.raises(ValueError, match="names agent"):
         o.add_reading("agent_0", messages.reading_msg("agent_2", 1.0, 0.0, stamp))
     with pytest.raises(ValueError, match="finite"):
@@ -124,7 +126,7 @@ def test_observer_rejects_bad_messages():
     # Nothing bad was kept: a complete good step still gives an observation.
     o.add_map(messages.grid_msg(walls, stamp, 1.0))
     for j in range(3):
-        o.add_pose(IDS[j], messages.pose_msg((j, j), stamp, 1.0))
+        o.add_pose(IDS[j], messages.pose_msg((j, j), stamp, GEO10))
         o.add_reading(IDS[j], messages.reading_msg(IDS[j], 2.0, 0.0, stamp))
     o.add_status(messages.status_msg(IDS, 0, 0, stamp, stamp))
     obs, mask, tick = o.observe()
@@ -162,8 +164,9 @@ def test_contract_conversions():
         agent_index("agent_3", 3)
     with pytest.raises(ValueError):
         agent_index("robot", 3)
-    assert xy_to_cell(3.5, 2.5, 1.0, 10, 10) == (2, 3)
-    assert xy_to_cell(350.0, 250.0, 100.0, 10, 10) == (2, 3)
+    # REP 103: y north; environment row 0 is the northern row, at the top of the grid.
+    assert xy_to_cell(3.5, 2.5, 1.0, 10, 10) == (7, 3)
+    assert xy_to_cell(350.0, 950.0, 100.0, 10, 10) == (0, 3)
 
 
 def test_launch_config_is_checked(tmp_path, bundles):

@@ -75,6 +75,8 @@ class SimNode(Node):
         self.core = SimCore(cfg)
         self.ids = contract.agent_ids(self.core.num_agents)
         self.book = MoveBook(self.core.num_agents, self.core.num_actions)
+        #: The grid in the map frame (REP 103): at the origin, identity orientation.
+        self.geometry = contract.GridGeometry(cfg.grid, cfg.grid, self.resolution)
         self.dropped = 0
         self.resends = 0
         self.finished = False
@@ -163,7 +165,7 @@ class SimNode(Node):
         stamp = self._step_stamp
         noise = self.core.config.noise
         for i, (cell, value) in enumerate(zip(self.core.positions(), self.core.readings())):
-            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.resolution))
+            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.geometry))
             # Poisson counts: the variance is the mean.
             variance = value if noise else 0.0
             self.reading_pubs[i].publish(messages.reading_msg(self.ids[i], value, variance, stamp))
