@@ -69,6 +69,12 @@ class SimNode(Node):
             )
         )
         self.max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
+        self.stall_timeout_s = float(p(
+            "stall_timeout_s", 2.0,
+            "Stepped mode: a step whose moves are missing for this long is logged once, naming the agents",
+            True,
+        ))
+        self._stall_logged: tuple[int, int] | None = None
 
         # The environment's tensors are tiny; threads only add contention with the agent nodes.
         torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
@@ -206,6 +212,15 @@ class SimNode(Node):
     def _resend_tick(self) -> None:
         if self.started and not self.finished and time.monotonic() - self._published_at >= self.resend_s:
             self.resends += 1
+            waited = time.perf_counter() - self._step_t0 if self._step_t0 is not None else 0.0
+            step = (self.book.episode, self.book.step)
+            if 0 < self.stall_timeout_s <= waited and self._stall_logged != step and not self.book.complete:
+                self._stall_logged = step
+                missing = ", ".join(self.ids[i] for i in self.book.missing)
+                self.get_logger().warning(
+                    f"episode {step[0]} step {step[1]}: no move from {missing} after {waited:.1f} s; "
+                    f"re-sending the step every {self.resend_s:g} s (the agents' logs and /diagnostics "
+                    "say what they wait for)")
             self._send_state()
 
     def _realtime_tick(self) -> None:
