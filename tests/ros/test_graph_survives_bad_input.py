@@ -56,10 +56,10 @@ def test_bad_messages_on_every_topic_are_dropped(graph, bundles, tmp_path):
         )  # dead episode
         yield "move", AgentMove(agent_id="agent_0", episode=max(sim.core.episode - 1, 0), step=99, action=2)
         yield "move", AgentMove(agent_id="agent_0", episode=sim.core.episode, step=sim.core.step, action=200)
-        nan_pose = messages.pose_msg((1, 1), stamp, 1.0)
+        nan_pose = messages.pose_msg((1, 1), stamp, contract.GridGeometry(10, 10))
         nan_pose.pose.position.y = math.nan
         yield "pose", nan_pose
-        yield "pose", messages.pose_msg((50, 1), stamp, 1.0)  # off the grid
+        yield "pose", messages.pose_msg((50, 1), stamp, contract.GridGeometry(10, 10))  # off the grid
         yield "radiation", messages.reading_msg("agent_2", math.inf, 0.0, stamp)
         yield "radiation", messages.reading_msg("agent_0", 3.0, 0.0, stamp)  # names another agent
         short = messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), stamp, 1.0)

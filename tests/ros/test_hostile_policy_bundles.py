@@ -110,7 +110,7 @@ def test_hostile_bundles_on_topics_and_parameters_leave_the_graph_running(graph,
 
 def _agent_process(policy: Path, log: Path) -> subprocess.Popen:
     return subprocess.Popen(
-        [str(BIN / "medc-agent"), "--ros-args", "-p", "agent_id:=agent_0", "-p", "grid:=10",
+        [str(BIN / "medc-agent"), "--ros-args", "-p", "agent_id:=agent_0", "-p", "agents:=3",
          "-p", f"policy:={policy}"],
         stdout=log.open("w"), stderr=subprocess.STDOUT, env=os.environ.copy(),
     )
@@ -134,7 +134,7 @@ def test_the_agent_process_survives_and_a_latched_bad_team_policy_does_not_stop_
     try:
         first = _agent_process(bundles["a"], tmp_path / "agent1.log")
         procs.append(first)
-        client = AsyncParameterClient(node, "medc_agent")  # medc-agent's node name
+        client = AsyncParameterClient(node, "medc_agent_0")  # medc-agent's node name: medc_<agent_id>
         assert spin_until(executor, lambda: client.services_are_ready(), 60)
         for name in ("deep2000", "deepest", "bomb"):
             own.publish(String(data=str(hostile[name][0])))
@@ -153,7 +153,7 @@ def test_the_agent_process_survives_and_a_latched_bad_team_policy_does_not_stop_
         # The deep bundle is still latched on the team topic: a new agent starts and runs anyway.
         second = _agent_process(bundles["a"], tmp_path / "agent2.log")
         procs.append(second)
-        client = AsyncParameterClient(node, "medc_agent")
+        client = AsyncParameterClient(node, "medc_agent_0")
         time.sleep(1.0)
         assert spin_until(executor, lambda: client.services_are_ready(), 60)
         deadline = time.monotonic() + 5

@@ -9,20 +9,26 @@ from pathlib import Path
 import pytest
 
 BIN = Path(sys.executable).parent
+TEAM = str(Path(__file__).resolve().parents[2] / "models" / "team" / "A3W2.safetensors")
 
 
 @pytest.mark.ros
 @pytest.mark.parametrize(
-    ("script", "param", "message"),
+    ("script", "params", "message"),
     [
-        ("medc-agent", "agent_id:=agent_7", "unknown agent id 'agent_7'"),
-        ("medc-sim", "mode:=fast", "mode must be 'stepped' or 'realtime'"),
-        ("medc-sim", "walls:=99", "walls must be an integer"),
+        ("medc-agent", ["agent_id:=agent_7", f"policy:={TEAM}"], "unknown agent id 'agent_7'"),
+        # An agent never idles without a policy: it refuses to start, saying why.
+        ("medc-agent", ["agent_id:=agent_1"], "no policy bundle: start the agent with -p policy:="),
+        ("medc-agent", ["policy:=/no/such/bundle.safetensors"], "is not an existing file"),
+        ("medc-agent", [f"policy:={TEAM}", "grid:=30", "observation:=maps"], "refused, not starting"),
+        ("medc-sim", ["mode:=fast"], "mode must be 'stepped' or 'realtime'"),
+        ("medc-sim", ["walls:=99"], "walls must be an integer"),
     ],
 )
-def test_bad_parameter_is_refused_clearly(script, param, message):
-    out = subprocess.run(
-        [str(BIN / script), "--ros-args", "-p", param], capture_output=True, text=True, timeout=60
-    )
+def test_bad_parameter_is_refused_clearly(script, params, message):
+    args = [str(BIN / script), "--ros-args"]
+    for param in params:
+        args += ["-p", param]
+    out = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
-    assert message in out.stderr
+    assert message in out.stderr and "Traceback" not in out.stderr

@@ -14,19 +14,20 @@ from builtin_interfaces.msg import Time
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
 from medc_sim import messages
-from medc_sim.contract import agent_index, xy_to_cell
+from medc_sim.contract import GridGeometry, agent_index, xy_to_cell
 from medc_sim.launcher import load_config, resolve_policies, ros_args
 from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
 
 IDS = ["agent_0", "agent_1", "agent_2"]
+GEO10 = GridGeometry(10, 10, 1.0)
 
 
 def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
     for o in observers:
         for j, (cell, value) in enumerate(zip(core.positions(), core.readings())):
-            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, 1.0))
+            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, GEO10))
             o.add_reading(IDS[j], messages.reading_msg(IDS[j], value, 0.0, stamp))
         o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
 
@@ -101,20 +102,21 @@ def test_observer_rejects_bad_messages():
     o = TeamObserver("agent_1", 3, 10)
     stamp = Time(sec=1)
     walls = torch.zeros((10, 10), dtype=torch.bool)
+    o.add_map(messages.grid_msg(walls, Time(sec=0, nanosec=5), 1.0))  # the grid geometry for poses
     bad_map = messages.grid_msg(walls, stamp, 1.0)
     bad_map.data = bad_map.data[:-1]
     with pytest.raises(ValueError, match="99 cells"):
         o.add_map(bad_map)
     with pytest.raises(ValueError, match="8x8"):
         o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), stamp, 1.0))
-    pose = messages.pose_msg((2, 3), stamp, 1.0)
+    pose = messages.pose_msg((2, 3), stamp, GEO10)
     pose.pose.position.x = math.nan
     with pytest.raises(ValueError, match="not finite"):
         o.add_pose("agent_0", pose)
     with pytest.raises(ValueError, match="outside"):
-        o.add_pose("agent_0", messages.pose_msg((12, 3), stamp, 1.0))
+        o.add_pose("agent_0", messages.pose_msg((12, 3), stamp, GEO10))
     with pytest.raises(ValueError, match="unknown agent"):
-        o.add_pose("agent_3", messages.pose_msg((2, 3), stamp, 1.0))
+        o.add_pose("agent_3", messages.pose_msg((2, 3), stamp, GEO10))
     with pytest.raises(ValueError, match="names agent"):
         o.add_reading("agent_0", messages.reading_msg("agent_2", 1.0, 0.0, stamp))
     with pytest.raises(ValueError, match="finite"):
@@ -124,7 +126,7 @@ def test_observer_rejects_bad_messages():
     # Nothing bad was kept: a complete good step still gives an observation.
     o.add_map(messages.grid_msg(walls, stamp, 1.0))
     for j in range(3):
-        o.add_pose(IDS[j], messages.pose_msg((j, j), stamp, 1.0))
+        o.add_pose(IDS[j], messages.pose_msg((j, j), stamp, GEO10))
         o.add_reading(IDS[j], messages.reading_msg(IDS[j], 2.0, 0.0, stamp))
     o.add_status(messages.status_msg(IDS, 0, 0, stamp, stamp))
     obs, mask, tick = o.observe()
@@ -185,8 +187,9 @@ def test_contract_conversions():
         agent_index("agent_3", 3)
     with pytest.raises(ValueError):
         agent_index("robot", 3)
-    assert xy_to_cell(3.5, 2.5, 1.0, 10, 10) == (2, 3)
-    assert xy_to_cell(350.0, 250.0, 100.0, 10, 10) == (2, 3)
+    # REP 103: y north; environment row 0 is the northern row, at the top of the grid.
+    assert xy_to_cell(3.5, 2.5, 1.0, 10, 10) == (7, 3)
+    assert xy_to_cell(350.0, 950.0, 100.0, 10, 10) == (0, 3)
 
 
 def test_launch_config_is_checked(tmp_path, bundles):
@@ -274,3 +277,130 @@ def test_bridge_connects_only_to_loopback_endpoints(tmp_path):
         bridge.review(0, "QmUnknown", 0.5)
     with pytest.raises(BridgeError, match="not a content id"):
         bridge.fetch("../secrets")
+
+
+def test_map_frame_follows_rep_103():
+    """One mapping (medc_sim.contract): x east, y north; message row j = environment row H-1-j;
+    move N (row - 1) heads +y, E (col + 1) heads +x; the OccupancyGrid origin is honoured."""
+    import math as m
+
+    from medc_sim import contract
+    from medc_training.envs.grid import ACTIONS
+
+    g = GridGeometry(10, 10, 1.0)
+    assert g.cell_to_xy(0, 0) == (0.5, 9.5)  # environment row 0 = the northern row
+    assert g.cell_to_xy(9, 3) == (3.5, 0.5)
+    for action, (drow, dcol) in enumerate(ACTIONS):
+        di, dj = contract.MOVE_STEPS[action]
+        assert (di, dj) == (dcol, -drow)
+        x0, y0 = g.cell_to_xy(5, 5)
+        x1, y1 = g.cell_to_xy(5 + drow, 5 + dcol)
+        assert m.isclose(m.atan2(y1 - y0, x1 - x0), contract.MOVE_HEADINGS[action])
+    assert contract.MOVE_HEADINGS[0] == m.pi / 2 and contract.MOVE_HEADINGS[2] == 0.0  # N, E
+    # Any point of a cell's square snaps to it (altitude and yaw are not looked at).
+    assert g.xy_to_cell(3.01, 0.99) == g.xy_to_cell(3.99, 0.0) == (9, 3)
+    # A translated, rotated origin (yaw pi/2: the grid's +x points north).
+    r = GridGeometry(10, 10, 2.0, origin_x=-5.0, origin_y=3.0, origin_yaw=m.pi / 2)
+    x, y = r.cell_to_xy(9, 0)  # message cell (0, 0): centre (1, 1) m from the origin, rotated
+    assert m.isclose(x, -6.0) and m.isclose(y, 4.0)
+    for row, col in [(0, 0), (3, 7), (9, 9)]:
+        assert r.xy_to_cell(*r.cell_to_xy(row, col)) == (row, col)
+    assert m.isclose(r.move_heading(2), m.pi / 2)  # E of the grid = north in the map frame
+    # Walls: message data row 0 is the southern row.
+    walls = torch.zeros((4, 3), dtype=torch.bool)
+    walls[0, 2] = True  # north-east corner
+    data = contract.walls_to_occupancy(walls)
+    assert data[3 * 3 + 2] == 100 and sum(data) == 100
+    assert (contract.occupancy_to_walls(data, 4, 3) == walls.numpy()).all()
+
+
+def _map(walls, load: Time, header: Time | None = None, resolution: float = 1.0, origin=(0.0, 0.0)):
+    msg = messages.grid_msg(walls, load, resolution)
+    msg.header.stamp = header or load
+    msg.info.origin.position.x, msg.info.origin.position.y = origin
+    return msg
+
+
+def _round(o: TeamObserver, cells, stamp: Time, episode: int, step: int, map_stamp: Time, geo=GEO10):
+    for j, cell in enumerate(cells):
+        o.add_pose(IDS[j], messages.pose_msg(cell, stamp, geo))
+        o.add_reading(IDS[j], messages.reading_msg(IDS[j], 5.0 + j, 0.0, stamp))
+    return o.add_status(messages.status_msg(IDS, episode, step, stamp, map_stamp))
+
+
+def test_observer_follows_a_restarted_driver_and_says_what_a_step_waits_for():
+    walls = torch.zeros((10, 10), dtype=torch.bool)
+    o = TeamObserver("agent_0", 3, 10)
+    m1 = Time(sec=100)
+    o.add_map(_map(walls, m1))
+    cells = [(1, 1), (2, 2), (3, 3)]
+    for step in range(3):
+        _round(o, cells, Time(sec=101 + step), 4, step, m1)
+        assert o.ready()
+        o.observe()
+    # A re-sent step (same stamp) is answered already; an older step of the same episode is dropped.
+    assert o.answered_tick(_round(o, cells, Time(sec=103), 4, 2, m1))
+    with pytest.raises(ValueError, match="older than the one answered"):
+        _round(o, cells, Time(sec=104), 4, 1, m1)
+    # The driver restarts: episode 0 step 0 on a new map (even with the same map, step 0 restarts).
+    m2 = Time(sec=200)
+    o.add_map(_map(walls, m2))
+    _round(o, [(5, 5), (6, 6), (7, 7)], Time(sec=201), 0, 0, m2)
+    assert o.ready()
+    _, _, tick = o.observe()
+    assert (tick.episode, tick.step) == (0, 0) and "the driver restarted" in o.notes[-1]
+    assert float(o.memory.visit_map.sum()) == 3  # memory reset: only this step's visits
+    _round(o, cells, Time(sec=202), 0, 0, m2)  # step 0 again with a new stamp: a new start
+    assert o.ready()
+
+    # A map_stamp equal to the map's header.stamp while its map_load_time is 0: said precisely.
+    o2 = TeamObserver("agent_0", 3, 10)
+    o2.add_map(_map(walls, Time(sec=0), header=Time(sec=7)))
+    _round(o2, cells, Time(sec=8), 0, 0, Time(sec=7))
+    need, have = o2.waiting_for()
+    assert not o2.ready() and "info.map_load_time 7.000000000" in need[0]
+    assert any("header.stamp is 7.000000000 has info.map_load_time 0.000000000" in h for h in have)
+    # A reading stamped 1 us off its pose.
+    o3 = TeamObserver("agent_0", 3, 10)
+    o3.add_map(_map(walls, Time(sec=1)))
+    stamp = Time(sec=2)
+    for j, cell in enumerate(cells):
+        o3.add_pose(IDS[j], messages.pose_msg(cell, stamp, GEO10))
+        off = Time(sec=2, nanosec=1000) if j == 1 else stamp
+        o3.add_reading(IDS[j], messages.reading_msg(IDS[j], 5.0, 0.0, off))
+    o3.add_status(messages.status_msg(IDS, 0, 0, stamp, Time(sec=1)))
+    need, have = o3.waiting_for()
+    assert need == ["the reading of agent_1 stamped 2.000000000"]
+    assert have == ["latest reading of agent_1 stamped 2.000001000 (+1.000 us from the status)"]
+    # Poses and readings with no status for them.
+    o4 = TeamObserver("agent_0", 3, 10)
+    for j, cell in enumerate(cells):
+        o4.add_pose(IDS[j], messages.pose_msg(cell, stamp, GEO10))
+        o4.add_reading(IDS[j], messages.reading_msg(IDS[j], 5.0, 0.0, stamp))
+    assert o4.orphan_round() == 2_000_000_000
+
+
+def test_observer_takes_the_grid_from_the_map():
+    """Origin and resolution come from the OccupancyGrid; walls as 1 are free, and said so."""
+    walls = torch.zeros((10, 10), dtype=torch.bool)
+    walls[0, 4] = True
+    geo = GridGeometry(10, 10, 2.5, origin_x=-12.5, origin_y=40.0)
+    o = TeamObserver("agent_0", 3, 10)
+    o.add_map(_map(walls, Time(sec=1), resolution=2.5, origin=(-12.5, 40.0)))
+    assert not o.notes
+    _round(o, [(0, 3), (2, 2), (9, 9)], Time(sec=2), 0, 0, Time(sec=1), geo)
+    _, mask, _ = o.observe()
+    assert not bool(mask[2])  # E of (0, 3) is the wall at (0, 4)
+    with pytest.raises(ValueError, match="outside"):
+        o.add_pose("agent_1", messages.pose_msg((1, 1), Time(sec=3), GEO10))  # at the wrong origin
+    faint = _map(walls, Time(sec=5))
+    faint.data = [1 if v else 0 for v in faint.data]
+    o.add_map(faint)
+    assert "1 cells valued 1..49: they are free" in o.notes[-1]
+    other = _map(walls, Time(sec=6))
+    other.header.frame_id = "world"
+    with pytest.raises(ValueError, match="frame 'world'"):
+        o.add_map(other)
+    strict = TeamObserver("agent_0", 3, 10, resolution=1.0)
+    with pytest.raises(ValueError, match="resolution"):
+        strict.add_map(_map(walls, Time(sec=1), resolution=2.5))

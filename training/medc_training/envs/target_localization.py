@@ -19,11 +19,14 @@ Readings (:func:`sensor_reading`)
         I(p) = S * A**k(p) / (1 + d(p, s)**2) + BG
 
     d = Euclidean distance between cell centres, in cells; S = :data:`SOURCE_STRENGTH`
-    (1000 counts/s: the rate 1 cell from the source, before walls); A =
-    :data:`WALL_ATTENUATION` (0.5, each wall crossed halves the rate); k(p) = number of
-    wall segments the straight line from s to p crosses (counted as entries into wall
-    cells along the line, sampled H+W times, at most 0.71 cell apart); BG = :data:`BACKGROUND`
-    (1 count/s). The ``+1`` in the denominator keeps the reading at the source finite.
+    (1000 counts/s: with the background the rate is S + BG = 1001 on the source cell and
+    S/2 + BG = 501 one cell away, before walls); A = :data:`WALL_ATTENUATION` (0.5, each wall
+    crossed halves the rate); k(p) = number of walls the straight line from s to p crosses:
+    the line is sampled at t = (k + 0.5)/(H+W), k = 0..H+W-1 (float32, at most 0.71 cell
+    apart), each sample rounded to a cell (half to even), and every run of consecutive wall
+    samples counts as one wall (docs/ros.md, "Sensor model", gives it step by step);
+    BG = :data:`BACKGROUND` (1 count/s). The ``+1`` in the denominator keeps the reading at
+    the source finite.
     With ``noise=True`` the reading is a Poisson draw with mean I(p) (counts in 1 s).
 
 Observation of agent i (:func:`build_observations`), 5 maps G×G, float32 in [0, 1]:

@@ -1,6 +1,10 @@
 """medc-agent: run one agent node (medc_agents.node.AgentNode) until Ctrl-C.
 
-Usage: ``medc-agent --ros-args -p agent_id:=agent_0 -p policy:=models/team/agent.safetensors``.
+Usage: ``medc-agent --ros-args -p agent_id:=agent_0 -p policy:=models/team/A3W2.safetensors``:
+the team size, grid and observation come from the bundle's manifest. The node is named
+``medc_<agent_id>`` (``-r __node:=NAME`` overrides it). A bad parameter (e.g. agent_id agent_7 in
+a team of 3) or a policy it cannot run (none, missing, invalid, not fitting) ends it with status 2
+and the reason on stderr: an agent never idles without a policy.
 """
 
 from __future__ import annotations
@@ -10,15 +14,33 @@ import sys
 from medc_sim.ros_env import require_interfaces
 
 
+def agent_id_from_arguments() -> str | None:
+    """The ``agent_id`` parameter given on the command line or in a parameter file, read by a
+    short-lived probe node (rclpy must be initialised): the node's default name depends on it."""
+    import rclpy
+
+    probe = rclpy.create_node("medc_agent", start_parameter_services=False, enable_rosout=False)
+    try:
+        probe.declare_parameter("agent_id", "agent_0")
+        value = probe.get_parameter("agent_id").value
+        return value if isinstance(value, str) else None
+    except Exception:  # a wrongly typed value: AgentNode reports it
+        return None
+    finally:
+        probe.destroy_node()
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-agent``. A bad parameter (e.g. agent_id agent_7 in a team of 3)
-    ends it with status 2."""
+    """Console script ``medc-agent``."""
     require_interfaces()
     from medc_sim.executors import run_node
 
-    from medc_agents.node import AgentNode
+    from medc_agents.node import AgentNode, default_node_name
 
-    return run_node("medc-agent", argv, AgentNode)
+    def make() -> AgentNode:
+        return AgentNode(node_name=default_node_name(agent_id_from_arguments()))
+
+    return run_node("medc-agent", argv, make)
 
 
 if __name__ == "__main__":

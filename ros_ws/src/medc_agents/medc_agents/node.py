@@ -14,10 +14,12 @@ RecursionError or MemoryError from a hostile file included) ends as a logged ref
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from collections.abc import Callable
 
 import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
@@ -31,9 +33,12 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, shown, strip_cid
-from medc_agents.team_state import TeamObserver
+from medc_agents.team_state import TeamObserver, Tick, show_stamp
 
 NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
+#: Default of the agent's ``stall_timeout_s`` (docs/ros.md): longer than a driver's re-send period
+#: (the simulator's resend_s is 0.5 s), so one lost best-effort message is not reported.
+STALL_TIMEOUT_S = 2.0
 
 
 def _reason(exc: BaseException) -> str:
@@ -42,6 +47,60 @@ def _reason(exc: BaseException) -> str:
     text = str(exc) if isinstance(exc, PolicyRejected) else f"could not be loaded ({type(exc).__name__})"
     clean = "".join(ch if " " <= ch <= "~" else "?" for ch in text[:2001])
     return clean if len(clean) <= 2000 else clean[:2000] + "..."
+
+
+def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) -> tuple[int, int, str]:
+    """(agents, grid, observation) an agent runs with: each value given (> 0, non-empty) wins,
+    the others come from the manifest of the bundle at ``policy`` (``environment.agents``,
+    ``environment.grid``, ``observation.name``; a bundle without an observation name takes
+    'maps').
+
+    Raises:
+        PolicyRejected: no policy, an unreadable or invalid bundle, or a value neither given nor
+        in the manifest; the message says which and what to pass.
+    """
+    from pathlib import Path
+
+    from medc_training.bundle import BundleError, read_manifest
+
+    if not policy:
+        raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
+                             "(its manifest gives the team size, grid and observation)")
+    if agents > 0 and grid > 0 and observation:
+        return agents, grid, observation
+    if looks_like_cid(policy) or not Path(policy).expanduser().is_file():
+        raise PolicyRejected(f"policy bundle {shown(policy)} is not an existing file")
+    try:
+        manifest = read_manifest(Path(policy).expanduser())
+    except BundleError as exc:
+        raise PolicyRejected(f"policy bundle {shown(policy)} is invalid: {exc}") from exc
+    except Exception as exc:  # a file must never crash the start with a traceback
+        why = type(exc).__name__
+        raise PolicyRejected(f"policy bundle {shown(policy)} could not be loaded ({why})") from exc
+    env = manifest.get("environment") or {}
+
+    def from_manifest(key: str, given: int) -> int:
+        if given > 0:
+            return given
+        value = env.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise PolicyRejected(f"policy bundle {shown(policy)} names no environment.{key} in its manifest: "
+                                 f"pass -p {key}:=<n>")
+        return value
+
+    agents, grid = from_manifest("agents", agents), from_manifest("grid", grid)
+    if not observation:
+        obs = manifest.get("observation") or {}
+        observation = str(obs.get("name", "maps")) if isinstance(obs, dict) else "maps"
+    return agents, grid, observation
+
+
+def default_node_name(agent_id: str | None) -> str:
+    """``medc_<agent_id>`` (e.g. medc_agent_1), unique per agent; ``medc_agent`` for an id that is
+    not of the form agent_<i>."""
+    if agent_id and contract.AGENT_ID_PATTERN.match(agent_id):
+        return f"medc_{agent_id}"
+    return "medc_agent"
 
 
 class AgentNode(Node):
@@ -55,15 +114,20 @@ class AgentNode(Node):
         **kwargs,
     ) -> None:
         """``feed``: take the team's messages from a :class:`TeamFeed` shared by the agent nodes of
-        this process, instead of subscribing to them itself."""
-        super().__init__(node_name or f"medc_{agent_id or 'agent'}", **kwargs)
+        this process, instead of subscribing to them itself.
+
+        Raises:
+            ValueError: a bad parameter, or no usable policy bundle (PolicyRejected): the node
+            refuses to start rather than idle without a policy.
+        """
+        super().__init__(node_name or default_node_name(agent_id), **kwargs)
         p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
         self.agent_id = p(
             "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
         )
         self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
-        num_agents = p("agents", 3, "Number of agents in the team", True)
-        grid = p("grid", 30, "Grid side in cells", True)
+        num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
+        grid = p("grid", 0, "Grid side in cells; 0: the policy bundle's manifest's", True)
         observation = p(
             "observation",
             "",
@@ -71,7 +135,7 @@ class AgentNode(Node):
             "empty: the one each policy bundle's manifest names",
             True,
         )
-        resolution = p("resolution", 1.0, "Cell side in metres (map frame)", True)
+        resolution = p("resolution", 0.0, "Cell side in metres a map must have; 0: the map's own", True)
         self.bridge_service = p(
             "bridge_service",
             "/medc/registry/fetch_bundle",
@@ -90,13 +154,25 @@ class AgentNode(Node):
             "A bundle whose dry run on one blank observation takes longer (seconds) is refused",
             True,
         )
+        self.stall_timeout_s = float(p(
+            "stall_timeout_s",
+            STALL_TIMEOUT_S,
+            "A team step that cannot be decided for this long (seconds) is logged once, with what it "
+            "waits for, and published as a diagnostic",
+            True,
+        ))
+        initial = p("policy", "", "Path of the policy bundle (.safetensors) to run; set it to swap policies")
+        explicit_observation = observation
+        num_agents, grid, observation = scenario_from_bundle(
+            str(initial), int(num_agents), int(grid), str(observation))
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
-        self.observer = TeamObserver(self.agent_id, num_agents, grid, resolution,
+        self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
                                      observation or DEFAULT_OBSERVATION)
         spec = self.observer.observation
         self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
-                               observation=observation or None, grid=grid if not observation else None)
+                               observation=explicit_observation or None,
+                               grid=grid if not explicit_observation else None)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.decisions = 0
@@ -104,21 +180,28 @@ class AgentNode(Node):
         self._last_move: AgentMove | None = None
         self._unanswered: tuple | None = None  # (obs, mask, tick) the policy failed on
         self._fetch_client = None
+        #: Stall reports logged (one per stalled step), for tests and monitoring.
+        self.stalls_reported = 0
+        self._stall_since: tuple[object, float] | None = None  # (what, since when)
+        self._stall_report: tuple[object, str] | None = None  # (what, report) once logged
+        self._noted: set[str] = set()
 
-        initial = p("policy", "", "Path of the policy bundle (.safetensors) to run; set it to swap policies")
-        if initial:
-            try:
-                self.slot.swap(initial)
-                self.observer.use_observation(self.slot.observation)
-                self.get_logger().info(f"running policy {self.slot.current.description} "
-                                       f"(observation {self.slot.observation})")
-            except Exception as exc:  # PolicyRejected, or anything else: the node still starts
-                self.get_logger().error(f"initial policy refused: {_reason(exc)}")
+        try:
+            self.slot.swap(str(initial))
+        except Exception as exc:  # PolicyRejected, or anything else: refuse to start, with the reason
+            raise PolicyRejected(f"policy {shown(initial)} refused, not starting: {_reason(exc)}") from None
+        self.observer.use_observation(self.slot.observation)
+        self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
+                               f"{num_agents} agents on a {grid}x{grid} grid (observation "
+                               f"{self.slot.observation})")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         ns = self.namespace_
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
+        )
+        self.diag_pub = self.create_publisher(
+            DiagnosticArray, contract.DIAGNOSTICS_TOPIC, contract.DIAGNOSTICS_QOS
         )
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
@@ -131,6 +214,76 @@ class AgentNode(Node):
             feed.agents.append(self)
         for topic in (contract.policy_topic(ns, self.agent_id), contract.team_policy_topic(ns)):
             self.create_subscription(String, topic, self._on_policy_msg, contract.LATCHED_QOS)
+        if self.stall_timeout_s > 0:
+            self.create_timer(min(0.25, self.stall_timeout_s / 4), self._watch)
+
+    # -- stalls and diagnostics ----------------------------------------------------------------
+    def _diagnose(self, level: bytes, message: str, values: dict[str, str]) -> None:
+        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: team step", message=message,
+                                  hardware_id=self.agent_id)
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.diag_pub.publish(array)
+
+    def _flush_notes(self) -> None:
+        """Log each new note of the observer once (a restarted driver, a map with faint cells)."""
+        notes, self.observer.notes[:] = list(self.observer.notes), []
+        for note in notes:
+            if note in self._noted:
+                continue
+            self._noted.add(note)
+            self.get_logger().warning(note)
+            self._diagnose(DiagnosticStatus.OK if "restarted" in note else DiagnosticStatus.WARN, note, {})
+
+    def _watch(self) -> None:
+        """Report, once, a team step this agent has not been able to decide for stall_timeout_s."""
+        self._flush_notes()
+        o = self.observer
+        t = o.pending
+        what: object = None
+        if t is not None and not o.answered_tick(t):
+            what = t
+        else:
+            orphan = o.orphan_round()
+            if orphan is not None:
+                what = ("orphan", orphan)
+        now = time.monotonic()
+        if what is None:
+            self._stall_since = None
+            return
+        if self._stall_since is None or self._stall_since[0] != what:
+            self._stall_since = (what, now)
+            return
+        waited = now - self._stall_since[1]
+        if waited < self.stall_timeout_s or (self._stall_report and self._stall_report[0] == what):
+            return
+        if isinstance(what, Tick):
+            need, have = o.waiting_for()
+            head = f"episode {what.episode} step {what.step} (stamp {show_stamp(what.stamp)})"
+            if self.slot.current is None:
+                need.append("a policy")
+        else:
+            head = f"poses and readings of every agent stamped {show_stamp(what[1])}"
+            need = [f"an EpisodeStatus with header.stamp {show_stamp(what[1])}"]
+            have = [f"last status answered: episode {o.mem_episode} step {o.mem_step} stamped "
+                    f"{show_stamp(o.mem_stamp)}" if o.mem_step >= 0 else "no status answered yet"]
+        report = (f"stalled: {head} not decided after {waited:.1f} s; waiting for: {'; '.join(need) or '?'}; "
+                  f"have: {'; '.join(have) or 'nothing else'}")
+        self._stall_report = (what, report)
+        self.stalls_reported += 1
+        self.get_logger().warning(report)
+        self._diagnose(DiagnosticStatus.WARN, report, {
+            "waiting_for": "; ".join(need), "have": "; ".join(have), "waited_s": f"{waited:.1f}"})
+
+    def _stall_over(self, tick) -> None:
+        if self._stall_report is not None and self._stall_report[0] == tick:
+            message = f"deciding again: episode {tick.episode} step {tick.step} decided"
+            self.get_logger().info(message)
+            self._diagnose(DiagnosticStatus.OK, message, {})
+        self._stall_report = None if self._stall_report is None or self._stall_report[0] == tick \
+            else self._stall_report
+        self._stall_since = None
 
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
@@ -141,6 +294,7 @@ class AgentNode(Node):
 
     def on_map(self, msg: OccupancyGrid) -> None:
         self._guard("map", self.observer.add_map, msg)
+        self._flush_notes()
 
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
@@ -165,7 +319,7 @@ class AgentNode(Node):
         except ValueError as exc:
             self._drop("status", exc)
             return
-        if tick is not None and self.observer.answered(tick.episode, tick.step):
+        if tick is not None and self.observer.answered_tick(tick):
             # The simulator re-sent a step it has not got every move for: ours may have been lost,
             # or the policy failed on it.
             last = self._last_move
@@ -202,6 +356,8 @@ class AgentNode(Node):
     def publish_move(self, tick, action: int) -> None:
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
         self._unanswered = None
+        self._stall_over(tick)
+        self._flush_notes()
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME

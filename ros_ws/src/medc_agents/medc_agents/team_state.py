@@ -8,9 +8,18 @@ ROS exactly what it saw in training. The memory holds everything any observation
 so a policy swap to a model that takes another variant keeps the episode's history.
 
 Messages of one team step share one header stamp; an :class:`EpisodeStatus` names the step and
-the walls map that holds. The agent decides once it has the status, the map, and every team
-member's pose and reading for that stamp. Each check on a message raises ``ValueError`` with
-the reason; the node logs it and drops the message.
+the walls map that holds (its ``info.map_load_time``). The agent decides once it has the status,
+the map, and every team member's pose and reading for that stamp. Poses are in the ``map`` frame
+(REP 103: x east, y north) and are turned into cells with the grid geometry of the map
+(``info.origin``, ``info.resolution``; ``medc_sim.contract.GridGeometry``). Each check on a
+message raises ``ValueError`` with the reason; the node logs it and drops the message.
+:meth:`TeamObserver.waiting_for` says what a step still lacks, for the node's stall report.
+
+Episodes (docs/ros.md, "Episodes and restarts"): a status starts a new episode (the memory is
+reset) when its ``step`` is 0 (and it is not a re-send of the step-0 status already answered:
+same stamp), or its ``episode`` or ``map_stamp`` differs from the episode in memory. So a driver
+that restarts (episode 0 step 0 again, a new map) is followed at once. Within one episode on one
+map a status for an older step is dropped, and one for the step already answered is a re-send.
 """
 
 from __future__ import annotations
@@ -21,7 +30,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from medc_sim.contract import agent_index, xy_to_cell
+from medc_sim.contract import (
+    MAP_FRAME,
+    OCCUPIED_THRESHOLD,
+    GridGeometry,
+    agent_index,
+    geometry_of,
+    occupancy_to_walls,
+)
 
 #: How many distinct stamps of poses/readings to keep while waiting for a status.
 STAMP_HISTORY = 16
@@ -33,11 +49,16 @@ def stamp_key(stamp) -> int:
 
 
 def walls_from_grid(msg, height: int, width: int) -> torch.Tensor:
-    """bool [H,W] walls of a nav_msgs/OccupancyGrid (occupied = value >= 50).
+    """bool [H,W] walls (environment rows, row 0 = north) of a nav_msgs/OccupancyGrid: a cell is a
+    wall when its value is >= 50 (contract.OCCUPIED_THRESHOLD); 0..49 and -1 (unknown) are free.
+    Message row j is environment row H - 1 - j (contract.occupancy_to_walls).
 
     Raises:
-        ValueError: dimensions differ from ``height`` x ``width`` or the data has the wrong size.
+        ValueError: another frame, dimensions differ from ``height`` x ``width``, the data has the
+        wrong size or values outside -1..100.
     """
+    if msg.header.frame_id != MAP_FRAME:
+        raise ValueError(f"map in frame {msg.header.frame_id!r}, expected {MAP_FRAME!r}")
     w, h = int(msg.info.width), int(msg.info.height)
     if (h, w) != (height, width):
         raise ValueError(f"map is {h}x{w}, this agent works on a {height}x{width} grid")
@@ -46,18 +67,42 @@ def walls_from_grid(msg, height: int, width: int) -> torch.Tensor:
         raise ValueError(f"map data has {cells.size} cells, expected {h}x{w} = {h * w}")
     if cells.size and (cells.min() < -1 or cells.max() > 100):
         raise ValueError("map cells must be -1 (unknown), 0..100 (occupancy percent)")
-    return torch.from_numpy(cells.reshape(h, w) >= 50)
+    return torch.from_numpy(occupancy_to_walls(cells, h, w))
 
 
-def cell_from_pose(msg, resolution: float, height: int, width: int) -> tuple[int, int]:
-    """Grid cell (row, col) of a geometry_msgs/PoseStamped in the map frame.
+def faint_cells(msg) -> int:
+    """How many cells of an OccupancyGrid hold 1..49: free by the contract's threshold, but maybe
+    walls a driver meant (e.g. published as 1)."""
+    cells = np.asarray(msg.data, dtype=np.int16)
+    return int(((cells > 0) & (cells < OCCUPIED_THRESHOLD)).sum())
+
+
+def xy_from_pose(msg) -> tuple[float, float]:
+    """Map-frame (x, y) of a geometry_msgs/PoseStamped (z and orientation are ignored).
+
+    Raises:
+        ValueError: wrong frame or non-finite position.
+    """
+    if msg.header.frame_id != MAP_FRAME:
+        raise ValueError(f"pose in frame {msg.header.frame_id!r}, expected {MAP_FRAME!r}")
+    x, y = float(msg.pose.position.x), float(msg.pose.position.y)
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ValueError(f"position ({x}, {y}) is not finite")
+    return x, y
+
+
+def cell_from_pose(msg, geometry: GridGeometry) -> tuple[int, int]:
+    """Environment cell (row, col) of a geometry_msgs/PoseStamped in the map frame.
 
     Raises:
         ValueError: wrong frame, non-finite or off-grid position.
     """
-    if msg.header.frame_id != "map":
-        raise ValueError(f"pose in frame {msg.header.frame_id!r}, expected 'map'")
-    return xy_to_cell(msg.pose.position.x, msg.pose.position.y, resolution, height, width)
+    return geometry.xy_to_cell(*xy_from_pose(msg))
+
+
+def show_stamp(key: int) -> str:
+    """A stamp key (integer ns) as ``sec.nanosec`` seconds."""
+    return f"{key // 1_000_000_000}.{key % 1_000_000_000:09d}"
 
 
 def value_from_reading(msg, expected_agent: str) -> float:
@@ -89,8 +134,9 @@ class Tick:
 class TeamObserver:
     """Collects the team's poses, readings and map, and builds this agent's observation."""
 
-    def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 1.0,
+    def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
                  observation: str = "maps") -> None:
+        """``resolution``: metres per cell the maps must have; 0 = whatever the map says."""
         from medc_training.envs.grid import action_deltas
         from medc_training.envs.target_localization import check_observation
         from medc_training.envs.tl_observation import ObservationSpec, TeamMemory
@@ -100,15 +146,25 @@ class TeamObserver:
         self.index = agent_index(agent_id, num_agents)
         self.ids = [f"agent_{i}" for i in range(num_agents)]
         self.height = self.width = grid
-        self.resolution = resolution
+        self.resolution = float(resolution)
         self._deltas = action_deltas("cpu")
+        # Per stamp: raw map-frame (x, y) of each agent, and its reading.
         self._positions: OrderedDict[int, list] = OrderedDict()
         self._readings: OrderedDict[int, list] = OrderedDict()
-        self._maps: OrderedDict[int, torch.Tensor] = OrderedDict()
+        #: map_load_time key -> (walls [H,W], geometry, header stamp key)
+        self._maps: OrderedDict[int, tuple[torch.Tensor, GridGeometry, int]] = OrderedDict()
+        self._geometry: GridGeometry | None = None  # of the latest map
         self.pending: Tick | None = None
         # Memory of the episode being played, as in the environment.
         self.mem_episode = -1
         self.mem_step = -1
+        self.mem_stamp = -1
+        self.mem_map = -1
+        #: For the stall report: latest stamp received and latest drop reason, per (kind, agent).
+        self.latest: dict[tuple[str, int], int] = {}
+        self.last_drop: dict[tuple[str, int], str] = {}
+        #: Things worth one log line each (a restarted driver, a suspicious map); the node drains it.
+        self.notes: list[str] = []
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
         self.observation = check_observation(observation, grid)
         self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu")
@@ -131,58 +187,161 @@ class TeamObserver:
 
     def add_map(self, msg) -> None:
         walls = walls_from_grid(msg, self.height, self.width)
-        self._maps[stamp_key(msg.info.map_load_time)] = walls
+        geometry = geometry_of(msg)
+        if self.resolution > 0 and abs(geometry.resolution - self.resolution) > 1e-9 * self.resolution:
+            raise ValueError(f"map resolution is {geometry.resolution:g} m, this agent's 'resolution' "
+                             f"parameter is {self.resolution:g} m")
+        faint = faint_cells(msg)
+        if faint:
+            self.notes.append(
+                f"map with map_load_time {show_stamp(stamp_key(msg.info.map_load_time))} has {faint} cells "
+                f"valued 1..{OCCUPIED_THRESHOLD - 1}: they are free; a wall is >= {OCCUPIED_THRESHOLD} "
+                "(publish 100 for a wall, 0 for free)")
+        key = stamp_key(msg.info.map_load_time)
+        self._maps[key] = (walls, geometry, stamp_key(msg.header.stamp))
+        self._maps.move_to_end(key)
+        self._geometry = geometry
         while len(self._maps) > 4:
             self._maps.popitem(last=False)
 
+    def _record_drop(self, kind: str, idx: int, exc: ValueError) -> None:
+        self.last_drop[(kind, idx)] = str(exc)
+
     def add_pose(self, agent_id: str, msg) -> None:
         idx = agent_index(agent_id, self.num_agents)
-        cell = cell_from_pose(msg, self.resolution, self.height, self.width)
-        self._slot(self._positions, stamp_key(msg.header.stamp))[idx] = cell
+        try:
+            xy = xy_from_pose(msg)
+            if self._geometry is not None:
+                self._geometry.xy_to_cell(*xy)  # off the grid of the latest map: drop it now
+        except ValueError as exc:
+            self._record_drop("pose", idx, exc)
+            raise
+        key = stamp_key(msg.header.stamp)
+        self._slot(self._positions, key)[idx] = xy
+        self.latest[("pose", idx)] = key
 
     def add_reading(self, agent_id: str, msg) -> None:
         idx = agent_index(agent_id, self.num_agents)
-        value = value_from_reading(msg, agent_id)
-        self._slot(self._readings, stamp_key(msg.header.stamp))[idx] = value
+        try:
+            value = value_from_reading(msg, agent_id)
+        except ValueError as exc:
+            self._record_drop("reading", idx, exc)
+            raise
+        key = stamp_key(msg.header.stamp)
+        self._slot(self._readings, key)[idx] = value
+        self.latest[("reading", idx)] = key
 
     def add_status(self, msg) -> Tick | None:
-        """Take an EpisodeStatus; returns the tick to answer, or None (episode end / stale).
+        """Take an EpisodeStatus; returns the tick to answer, or None (episode end).
+
+        The returned tick may be one already answered (:meth:`answered`): a re-sent step.
 
         Raises:
-            ValueError: the status lists another team.
+            ValueError: the status lists another team, or is for an older step of the episode
+            being played (same episode and map, a lower step other than 0).
         """
         if list(msg.agent_ids) != self.ids:
             raise ValueError(f"status lists agents {list(msg.agent_ids)}, this team is {self.ids}")
         if msg.done:
             return None
         tick = Tick(int(msg.episode), int(msg.step), stamp_key(msg.header.stamp), stamp_key(msg.map_stamp))
-        if (tick.episode, tick.step) < (self.mem_episode, self.mem_step):
+        same_episode = (tick.episode, tick.map_stamp) == (self.mem_episode, self.mem_map)
+        if same_episode and 0 < tick.step < self.mem_step:
             raise ValueError(
                 f"status for episode {tick.episode} step {tick.step} is older than the one answered "
-                f"(episode {self.mem_episode} step {self.mem_step})"
+                f"(episode {self.mem_episode} step {self.mem_step}, same map)"
             )
-        self.pending = tick
+        if not self.answered_tick(tick):
+            self.pending = tick
         return tick
 
     # -- decision ------------------------------------------------------------------------------
+    def answered_tick(self, t: Tick) -> bool:
+        """``t`` is the step already observed (and so decided): same episode, map and step (and,
+        for step 0, the same stamp: a step 0 with a new stamp is a new start)."""
+        same = (t.episode, t.map_stamp, t.step) == (self.mem_episode, self.mem_map, self.mem_step)
+        return same and (t.step != 0 or t.stamp == self.mem_stamp)
+
+    def answered(self, episode: int, step: int) -> bool:
+        """This agent already observed (and so decided) (episode, step) of the episode in memory."""
+        return (episode, step) == (self.mem_episode, self.mem_step)
+
+    def _cells(self, t: Tick) -> list[tuple[int, int]] | None:
+        xys = self._positions.get(t.stamp)
+        entry = self._maps.get(t.map_stamp)
+        if xys is None or entry is None or None in xys:
+            return None
+        try:
+            return [entry[1].xy_to_cell(*xy) for xy in xys]
+        except ValueError:
+            return None
+
     def ready(self) -> bool:
         """The pending tick has everything it needs and has not been applied yet."""
         t = self.pending
-        if t is None or (t.episode, t.step) == (self.mem_episode, self.mem_step):
+        if t is None or self.answered_tick(t):
             return False
-        pos = self._positions.get(t.stamp)
         rd = self._readings.get(t.stamp)
-        return (
-            pos is not None
-            and rd is not None
-            and None not in pos
-            and None not in rd
-            and t.map_stamp in self._maps
-        )
+        return rd is not None and None not in rd and self._cells(t) is not None
 
-    def answered(self, episode: int, step: int) -> bool:
-        """This agent already observed (and so decided) (episode, step)."""
-        return (episode, step) == (self.mem_episode, self.mem_step)
+    def waiting_for(self) -> tuple[list[str], list[str]]:
+        """(what the pending tick still lacks, what the agent has instead), as sentences."""
+        t = self.pending
+        if t is None or self.answered_tick(t):
+            return [], []
+        need, have = [], []
+        if t.map_stamp not in self._maps:
+            need.append(f"the map with info.map_load_time {show_stamp(t.map_stamp)} "
+                        "(the status's map_stamp)")
+            if self._maps:
+                loads = ", ".join(show_stamp(k) for k in self._maps)
+                have.append(f"maps with info.map_load_time {loads}")
+                for load, (_, _, header) in self._maps.items():
+                    if header == t.map_stamp and load != t.map_stamp:
+                        have.append(f"the map whose header.stamp is {show_stamp(header)} has "
+                                    f"info.map_load_time {show_stamp(load)}: map_stamp must equal "
+                                    "info.map_load_time")
+            else:
+                have.append("no map on the map topic")
+        for kind, store in (("pose", self._positions), ("reading", self._readings)):
+            got = store.get(t.stamp) or [None] * self.num_agents
+            for j, value in enumerate(got):
+                if value is not None:
+                    continue
+                need.append(f"the {kind} of {self.ids[j]} stamped {show_stamp(t.stamp)}")
+                latest = self.latest.get((kind, j))
+                if latest is None:
+                    have.append(f"no {kind} of {self.ids[j]} yet")
+                else:
+                    off = (latest - t.stamp) / 1000.0
+                    have.append(f"latest {kind} of {self.ids[j]} stamped {show_stamp(latest)} "
+                                f"({off:+.3f} us from the status)")
+                if (kind, j) in self.last_drop:
+                    have.append(f"last {kind} of {self.ids[j]} dropped: {self.last_drop[(kind, j)]}")
+        entry = self._maps.get(t.map_stamp)
+        xys = self._positions.get(t.stamp)
+        if entry is not None and xys is not None:
+            for j, xy in enumerate(xys):
+                if xy is None:
+                    continue
+                try:
+                    entry[1].xy_to_cell(*xy)
+                except ValueError as exc:
+                    need.append(f"a pose of {self.ids[j]} on the map")
+                    have.append(f"{self.ids[j]}: {exc}")
+        return need, have
+
+    def orphan_round(self) -> int | None:
+        """The stamp of a complete round of poses and readings newer than the last answered step
+        for which no status came, if any (a driver that forgot the status, or stamped it apart)."""
+        for key in reversed(self._positions):
+            if key <= self.mem_stamp and self.mem_stamp >= 0:
+                continue
+            rd = self._readings.get(key)
+            complete = None not in self._positions[key] and rd is not None and None not in rd
+            if complete and (self.pending is None or self.pending.stamp != key):
+                return key
+        return None
 
     def observe(self) -> tuple[torch.Tensor, torch.Tensor, Tick]:
         """Apply the pending tick to the memory; returns (obs [C,H,W], mask [A], tick).
@@ -194,15 +353,22 @@ class TeamObserver:
 
         t = self.pending
         assert t is not None and self.ready()
-        positions = torch.tensor([self._positions[t.stamp]], dtype=torch.long)  # [1,N,2]
+        positions = torch.tensor([self._cells(t)], dtype=torch.long)  # [1,N,2]
         readings = torch.tensor([self._readings[t.stamp]], dtype=torch.float32)  # [1,N]
-        walls = self._maps[t.map_stamp].unsqueeze(0)
-        if t.episode != self.mem_episode or not self._memory_started:
+        walls = self._maps[t.map_stamp][0].unsqueeze(0)
+        new_episode = (t.episode, t.map_stamp) != (self.mem_episode, self.mem_map) or t.step == 0
+        if new_episode or not self._memory_started:
+            if self._memory_started and (t.episode, t.step) <= (self.mem_episode, self.mem_step):
+                self.notes.append(
+                    f"episode status went back from episode {self.mem_episode} step {self.mem_step} to "
+                    f"episode {t.episode} step {t.step} (map_load_time {show_stamp(self.mem_map)} -> "
+                    f"{show_stamp(t.map_stamp)}): the driver restarted; memory reset, following it")
             self.memory.start(walls, positions, readings)
             self._memory_started = True
         else:
             self.memory.record(walls, positions, readings)
         self.mem_episode, self.mem_step = t.episode, t.step
+        self.mem_stamp, self.mem_map = t.stamp, t.map_stamp
         m = self.memory
         estimate = m.estimate_map() if self.observation.estimate else None
         obs = observe(self.observation, positions, m.reading_map, m.visit_map, walls.float(), estimate)

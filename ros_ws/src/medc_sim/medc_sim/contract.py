@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass
 
 from rclpy.qos import (
     DurabilityPolicy,
@@ -99,7 +100,7 @@ def team_policy_topic(namespace: str) -> str:
 
 
 def map_topic(namespace: str) -> str:
-    """nav_msgs/OccupancyGrid, LATCHED_QOS: the walls of the current episode (100 = wall)."""
+    """nav_msgs/OccupancyGrid, LATCHED_QOS: the walls of the current episode (>= 50 = wall)."""
     return f"{_ns(namespace)}/map"
 
 
@@ -113,22 +114,165 @@ def results_topic(namespace: str) -> str:
     return f"{_ns(namespace)}/episode_result"
 
 
-def cell_to_xy(row: int, col: int, resolution: float) -> tuple[float, float]:
-    """Centre of grid cell (row, col) in the map frame: x along columns, y along rows."""
-    return (col + 0.5) * resolution, (row + 0.5) * resolution
+#: Topic of the agents' diagnostics (diagnostic_msgs/DiagnosticArray): the ROS convention's
+#: absolute ``/diagnostics``, so diagnostic aggregators and rqt_robot_monitor see it.
+DIAGNOSTICS_TOPIC = "/diagnostics"
+#: diagnostics: reliable, keep last 50, volatile (published when an agent's state changes).
+DIAGNOSTICS_QOS = QoSProfile(
+    depth=50,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+#: A cell is a wall when its OccupancyGrid value is >= this (0..49 and -1 unknown are free).
+OCCUPIED_THRESHOLD = 50
+#: The value the simulator publishes for a wall (and 0 for a free cell).
+OCCUPIED = 100
+
+# -- Frames (REP 103) ------------------------------------------------------------------------------
+#
+# The ``map`` frame is ENU: x east, y north, z up. The walls map (nav_msgs/OccupancyGrid) defines
+# the grid in it as nav_msgs does: cell (i, j) -- column i, row j of the message -- is the square
+# [i*r, (i+1)*r) x [j*r, (j+1)*r) of the grid frame whose pose in ``map`` is ``info.origin``
+# (r = ``info.resolution``); ``data[j * width + i]`` is that cell, so row j = 0 of the message is
+# the one at the origin, i.e. the southern row for an identity origin orientation.
+#
+# The training environment keeps cells as (row, col) with row 0 on top ("north", action N =
+# row - 1). The one mapping between the two is
+#
+#     i = col,    j = height - 1 - row          (and back: col = i, row = height - 1 - j)
+#
+# so the environment's north (row - 1) is +y of the grid frame, east (col + 1) is +x.
+
+
+def cell_to_ij(row: int, col: int, height: int) -> tuple[int, int]:
+    """The OccupancyGrid cell (i = column, j = row of the message) of environment cell (row, col)."""
+    return col, height - 1 - row
+
+
+def ij_to_cell(i: int, j: int, height: int) -> tuple[int, int]:
+    """The environment cell (row, col) of OccupancyGrid cell (i, j)."""
+    return height - 1 - j, i
+
+
+#: The 8 moves (actions 0..7 = N, NE, E, SE, S, SW, W, NW) as one-cell steps (di, dj) of the grid
+#: frame: N = +y (j + 1), E = +x (i + 1). Equal to the environment's (drow, dcol) with drow = -dj.
+MOVE_STEPS: tuple[tuple[int, int], ...] = (
+    (0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)
+)
+#: Heading of each move in the grid frame, radians counter-clockwise from +x (east), REP 103
+#: yaw: N = pi/2, NE = pi/4, E = 0, ..., W = pi, NW = 3 pi/4. In the map frame add the origin's yaw.
+MOVE_HEADINGS: tuple[float, ...] = tuple(math.atan2(dj, di) for di, dj in MOVE_STEPS)
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Where the grid lies in the ``map`` frame: ``info.origin`` (x, y, yaw) and ``info.resolution``
+    of the OccupancyGrid, and its size (``height`` rows = environment rows, ``width`` columns)."""
+
+    height: int
+    width: int
+    resolution: float = 1.0
+    origin_x: float = 0.0
+    origin_y: float = 0.0
+    origin_yaw: float = 0.0
+
+    def cell_to_xy(self, row: int, col: int) -> tuple[float, float]:
+        """Map-frame centre of environment cell (row, col): origin + R(yaw) (i + 0.5, j + 0.5) r."""
+        i, j = cell_to_ij(row, col, self.height)
+        gx, gy = (i + 0.5) * self.resolution, (j + 0.5) * self.resolution
+        c, s = math.cos(self.origin_yaw), math.sin(self.origin_yaw)
+        return self.origin_x + c * gx - s * gy, self.origin_y + s * gx + c * gy
+
+    def xy_to_cell(self, x: float, y: float) -> tuple[int, int]:
+        """The environment cell (row, col) whose square holds map-frame point (x, y) (z, yaw and
+        the offset from the cell centre are ignored: a point anywhere in a cell snaps to it).
+
+        Raises:
+            ValueError: a coordinate is not finite or the point lies outside the grid.
+        """
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"position ({x}, {y}) is not finite")
+        dx, dy = x - self.origin_x, y - self.origin_y
+        c, s = math.cos(self.origin_yaw), math.sin(self.origin_yaw)
+        gx, gy = c * dx + s * dy, -s * dx + c * dy
+        i, j = math.floor(gx / self.resolution), math.floor(gy / self.resolution)
+        if not (0 <= i < self.width and 0 <= j < self.height):
+            raise ValueError(
+                f"position ({x:.3f}, {y:.3f}) m is outside the {self.height}x{self.width} grid of the map "
+                f"(origin ({self.origin_x:g}, {self.origin_y:g}) m, yaw {self.origin_yaw:g} rad, "
+                f"resolution {self.resolution:g} m)"
+            )
+        return ij_to_cell(i, j, self.height)
+
+    def move_heading(self, action: int) -> float:
+        """Map-frame yaw (REP 103, radians) of move ``action``."""
+        return math.atan2(math.sin(MOVE_HEADINGS[action] + self.origin_yaw),
+                          math.cos(MOVE_HEADINGS[action] + self.origin_yaw))
+
+
+def yaw_of(q) -> float:
+    """Yaw of a geometry_msgs/Quaternion that rotates about z only.
+
+    Raises:
+        ValueError: not finite, not a unit quaternion, or a rotation out of the x-y plane.
+    """
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    if not all(math.isfinite(v) for v in (x, y, z, w)):
+        raise ValueError("orientation is not finite")
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if abs(norm - 1.0) > 1e-3:
+        raise ValueError(f"orientation is not a unit quaternion (norm {norm:.4f})")
+    if math.hypot(x, y) > 1e-3 * norm:
+        raise ValueError("map origin is rotated out of the x-y plane; only a yaw is allowed")
+    return 2.0 * math.atan2(z, w)
+
+
+def geometry_of(msg) -> GridGeometry:
+    """The GridGeometry a nav_msgs/OccupancyGrid defines.
+
+    Raises:
+        ValueError: resolution not positive/finite, origin not finite or rotated out of plane.
+    """
+    info = msg.info
+    res = float(info.resolution)
+    if not (math.isfinite(res) and res > 0):
+        raise ValueError(f"map resolution {res} is not a positive number of metres")
+    pos = info.origin.position
+    if not (math.isfinite(pos.x) and math.isfinite(pos.y)):
+        raise ValueError("map origin is not finite")
+    return GridGeometry(int(info.height), int(info.width), res, float(pos.x), float(pos.y),
+                        yaw_of(info.origin.orientation))
+
+
+def walls_to_occupancy(walls) -> list[int]:
+    """OccupancyGrid ``data`` of bool walls [H,W] (environment rows; numpy or a CPU tensor):
+    100 = wall, 0 = free; message row j holds environment row H - 1 - j."""
+    import numpy as np
+
+    cells = np.asarray(walls, dtype=bool)[::-1]
+    return (cells.astype(np.int8) * OCCUPIED).ravel().tolist()
+
+
+def occupancy_to_walls(data, height: int, width: int):
+    """bool numpy [H,W] walls (environment rows) of OccupancyGrid ``data``: value >= 50 is a wall."""
+    import numpy as np
+
+    cells = np.asarray(data, dtype=np.int16).reshape(height, width)
+    return np.ascontiguousarray(cells[::-1] >= OCCUPIED_THRESHOLD)
+
+
+def cell_to_xy(row: int, col: int, resolution: float, height: int) -> tuple[float, float]:
+    """Map-frame centre of environment cell (row, col) of a ``height``-row grid at the map's origin
+    (identity orientation): ``((col + 0.5) r, (height - 1 - row + 0.5) r)``."""
+    return GridGeometry(height, height, resolution).cell_to_xy(row, col)
 
 
 def xy_to_cell(x: float, y: float, resolution: float, height: int, width: int) -> tuple[int, int]:
-    """The grid cell (row, col) holding map-frame point (x, y).
+    """The environment cell (row, col) holding map-frame point (x, y), grid at the origin.
 
     Raises:
         ValueError: a coordinate is not finite or lies outside the ``height`` x ``width`` grid.
     """
-    if not (math.isfinite(x) and math.isfinite(y)):
-        raise ValueError(f"position ({x}, {y}) is not finite")
-    col, row = math.floor(x / resolution), math.floor(y / resolution)
-    if not (0 <= row < height and 0 <= col < width):
-        raise ValueError(
-            f"position ({x:.3f}, {y:.3f}) m is outside the {height}x{width} grid (resolution {resolution} m)"
-        )
-    return row, col
+    return GridGeometry(height, width, resolution).xy_to_cell(x, y)

@@ -127,20 +127,23 @@ def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
 
 
 def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
-    """Every bundle must take this scenario's observation, or its agent would refuse it."""
+    """Every bundle must take this scenario's observation (the variant its manifest names, on this
+    grid), or its agent would refuse it."""
     from medc_training.bundle import BundleError, read_manifest
+    from medc_training.envs.tl_observation import parse_observation
 
     for path in sorted(set(paths)):
         try:
             obs = read_manifest(path).get("observation") or {}
-        except BundleError as exc:
+            expected = parse_observation(obs.get("name", "maps")).shape(cfg.grid)
+        except (BundleError, ValueError) as exc:
             raise ValueError(f"policy {path} is not a valid bundle: {exc}") from exc
         shape = (obs.get("channels"), obs.get("height"), obs.get("width"))
-        if shape != (5, cfg.grid, cfg.grid):
+        if shape != expected:
             raise ValueError(
                 f"policy {path} takes observations of shape {shape}, but a {cfg.grid}x{cfg.grid} grid gives "
-                f"(5, {cfg.grid}, {cfg.grid}); set grid: {obs.get('height')} or use a bundle trained on "
-                "this grid"
+                f"{expected} for its observation {obs.get('name', 'maps')}; set grid: "
+                f"{obs.get('height')} or use a bundle trained on this grid"
             )
 
 

@@ -11,11 +11,13 @@ from nav_msgs.msg import OccupancyGrid
 from medc_sim import contract
 from medc_sim.sim_core import EpisodeResult
 
-OCCUPIED = 100
+OCCUPIED = contract.OCCUPIED
 
 
 def grid_msg(walls: torch.Tensor, stamp: Time, resolution: float) -> OccupancyGrid:
-    """nav_msgs/OccupancyGrid of bool ``walls`` [H,W]: row r, column c -> data[r * W + c]."""
+    """nav_msgs/OccupancyGrid of bool ``walls`` [H,W] (environment rows, row 0 = north), origin at
+    (0, 0) of the map frame with identity orientation: environment cell (row, col) is message cell
+    (i = col, j = H - 1 - row), ``data[j * W + i]`` (contract.walls_to_occupancy)."""
     grid = OccupancyGrid()
     grid.header.stamp = stamp
     grid.header.frame_id = contract.MAP_FRAME
@@ -24,16 +26,17 @@ def grid_msg(walls: torch.Tensor, stamp: Time, resolution: float) -> OccupancyGr
     h, w = walls.shape
     grid.info.width, grid.info.height = int(w), int(h)
     grid.info.origin.orientation.w = 1.0
-    grid.data = (walls.to(torch.int8) * OCCUPIED).flatten().tolist()
+    grid.data = contract.walls_to_occupancy(walls.cpu())
     return grid
 
 
-def pose_msg(cell: tuple[int, int], stamp: Time, resolution: float) -> PoseStamped:
-    """geometry_msgs/PoseStamped at the centre of grid ``cell`` (row, col), frame "map"."""
+def pose_msg(cell: tuple[int, int], stamp: Time, geometry: contract.GridGeometry) -> PoseStamped:
+    """geometry_msgs/PoseStamped at the centre of environment ``cell`` (row, col), frame "map"
+    (REP 103: x east, y north), on the grid ``geometry`` describes."""
     pose = PoseStamped()
     pose.header.stamp = stamp
     pose.header.frame_id = contract.MAP_FRAME
-    pose.pose.position.x, pose.pose.position.y = contract.cell_to_xy(cell[0], cell[1], resolution)
+    pose.pose.position.x, pose.pose.position.y = geometry.cell_to_xy(cell[0], cell[1])
     pose.pose.orientation.w = 1.0
     return pose
 

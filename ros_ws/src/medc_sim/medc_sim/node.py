@@ -69,12 +69,20 @@ class SimNode(Node):
             )
         )
         self.max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
+        self.stall_timeout_s = float(p(
+            "stall_timeout_s", 2.0,
+            "Stepped mode: a step whose moves are missing for this long is logged once, naming the agents",
+            True,
+        ))
+        self._stall_logged: tuple[int, int] | None = None
 
         # The environment's tensors are tiny; threads only add contention with the agent nodes.
         torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
         self.core = SimCore(cfg)
         self.ids = contract.agent_ids(self.core.num_agents)
         self.book = MoveBook(self.core.num_agents, self.core.num_actions)
+        #: The grid in the map frame (REP 103): at the origin, identity orientation.
+        self.geometry = contract.GridGeometry(cfg.grid, cfg.grid, self.resolution)
         self.dropped = 0
         self.resends = 0
         self.finished = False
@@ -163,7 +171,7 @@ class SimNode(Node):
         stamp = self._step_stamp
         noise = self.core.config.noise
         for i, (cell, value) in enumerate(zip(self.core.positions(), self.core.readings())):
-            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.resolution))
+            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.geometry))
             # Poisson counts: the variance is the mean.
             variance = value if noise else 0.0
             self.reading_pubs[i].publish(messages.reading_msg(self.ids[i], value, variance, stamp))
@@ -204,6 +212,15 @@ class SimNode(Node):
     def _resend_tick(self) -> None:
         if self.started and not self.finished and time.monotonic() - self._published_at >= self.resend_s:
             self.resends += 1
+            waited = time.perf_counter() - self._step_t0 if self._step_t0 is not None else 0.0
+            step = (self.book.episode, self.book.step)
+            if 0 < self.stall_timeout_s <= waited and self._stall_logged != step and not self.book.complete:
+                self._stall_logged = step
+                missing = ", ".join(self.ids[i] for i in self.book.missing)
+                self.get_logger().warning(
+                    f"episode {step[0]} step {step[1]}: no move from {missing} after {waited:.1f} s; "
+                    f"re-sending the step every {self.resend_s:g} s (the agents' logs and /diagnostics "
+                    "say what they wait for)")
             self._send_state()
 
     def _realtime_tick(self) -> None:

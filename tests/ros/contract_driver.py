@@ -1,0 +1,241 @@
+"""A small UAV-team driver written from docs/ros.md and the .msg files only (no medc_sim, no
+medc_training): its own world, walls and sensor model, in ENU coordinates (REP 103).
+
+It plays the part a real team's drivers (with a small coordinator) play: publishes the walls map,
+every UAV's pose and radiation reading and one EpisodeStatus per team step; waits for every
+agent's AgentMove, applies the moves and goes on. Used by tests/ros/test_contract_driver.py:
+
+    python contract_driver.py --out steps.jsonl --steps 12 --seed 1 [--misstamp-step 4]
+
+writes one JSON line per applied team step and exits 0 after ``--steps`` steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+import numpy as np
+
+# docs/ros.md, "Moves": action -> one-cell step (di, dj) in the grid frame (i east, j north).
+MOVES = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1))
+SOURCE_STRENGTH, ATTENUATION, BACKGROUND = 1000.0, 0.5, 1.0
+
+
+def rate(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray) -> np.ndarray:
+    """Noise-free readings (counts/s) at sensor cells [K,2] (i, j) for one source, exactly as
+    docs/ros.md "Sensor model" specifies (float32 arithmetic, environment rows r = H - 1 - j).
+
+    walls_ij: bool [W,H] indexed [i, j]."""
+    f32 = np.float32
+    width, height = walls_ij.shape
+    walls_rc = walls_ij.T[::-1]  # [row, col], row 0 = north
+    src = np.array([height - 1 - source_ij[1], source_ij[0]], dtype=f32)  # (row, col)
+    sen = np.stack([height - 1 - sensor_ij[:, 1], sensor_ij[:, 0]], axis=1).astype(f32)
+    delta = sen - src  # [K,2]
+    samples = height + width
+    t = (np.arange(samples, dtype=f32) + f32(0.5)) / f32(samples)
+    rows = np.rint(src[0] + delta[:, 0:1] * t).astype(np.int64)  # round half to even
+    cols = np.rint(src[1] + delta[:, 1:2] * t).astype(np.int64)
+    inside = walls_rc[rows, cols]  # [K,S]
+    crossings = inside[:, 0].astype(np.int64) + (inside[:, 1:] & ~inside[:, :-1]).sum(1)
+    dist2 = (delta * delta).sum(1, dtype=f32)
+    return f32(SOURCE_STRENGTH) * np.power(f32(ATTENUATION), crossings.astype(f32)) / (f32(1) + dist2) \
+        + f32(BACKGROUND)
+
+
+def make_world(seed: int, size: int, agents: int):
+    """Walls (two straight segments), a source and the agents' start cells, all in (i, j)."""
+    rng = np.random.default_rng(seed)
+    walls = np.zeros((size, size), dtype=bool)  # [i, j]
+    j0 = int(rng.integers(3, size - 3))
+    walls[1:6, j0] = True  # an east-west wall
+    i0 = int(rng.integers(8, size - 1))
+    walls[i0, max(0, j0 - 6):j0 - 1] = True  # a north-south wall, not touching the first
+    free = np.argwhere(~walls)
+    picks = rng.choice(len(free), agents + 1, replace=False)
+    source = tuple(int(v) for v in free[picks[0]])
+    starts = [tuple(int(v) for v in free[p]) for p in picks[1:]]
+    return walls, source, starts
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--steps", type=int, default=12)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--agents", type=int, default=3)
+    ap.add_argument("--size", type=int, default=13)
+    ap.add_argument("--max-steps", type=int, default=50)
+    ap.add_argument("--resolution", type=float, default=2.0)
+    ap.add_argument("--origin", type=float, nargs=2, default=(-13.0, 4.0))
+    ap.add_argument("--resend-s", type=float, default=3.0)
+    ap.add_argument("--misstamp-step", type=int, default=-1, help="this team step's first reading of "
+                    "agent_1 is stamped 1 us after its pose")
+    ap.add_argument("--namespace", default="/medc")
+    args = ap.parse_args(argv)
+
+    import rclpy
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PoseStamped
+    from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.qos import (
+        DurabilityPolicy,
+        HistoryPolicy,
+        QoSProfile,
+        ReliabilityPolicy,
+        qos_profile_sensor_data,
+    )
+
+    def qos(depth: int, latched: bool) -> QoSProfile:
+        durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
+        return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                          history=HistoryPolicy.KEEP_LAST, durability=durability)
+
+    rclpy.init()
+    node = rclpy.create_node("uav_driver")
+    ns, n, size, res = args.namespace, args.agents, args.size, args.resolution
+    ids = [f"agent_{k}" for k in range(n)]
+    pose_pubs = [node.create_publisher(PoseStamped, f"{ns}/{a}/pose", qos_profile_sensor_data) for a in ids]
+    read_pubs = [node.create_publisher(RadiationReading, f"{ns}/{a}/radiation", qos_profile_sensor_data)
+                 for a in ids]
+    map_pub = node.create_publisher(OccupancyGrid, f"{ns}/map", qos(1, True))
+    status_pub = node.create_publisher(EpisodeStatus, f"{ns}/episode", qos(20, False))
+    result_pub = node.create_publisher(EpisodeStatus, f"{ns}/episode_result", qos(1000, True))
+    moves: dict[int, int] = {}
+    state = {"episode": 0, "step": 0}
+
+    def on_move(k: int, msg) -> None:
+        if msg.agent_id == ids[k] and (msg.episode, msg.step) == (state["episode"], state["step"]) \
+                and 0 <= msg.action < 8:
+            moves[k] = int(msg.action)
+
+    for k, a in enumerate(ids):
+        node.create_subscription(AgentMove, f"{ns}/{a}/move", lambda m, k=k: on_move(k, m), qos(20, False))
+
+    # Discovery (docs/ros.md): before the first step every agent listens to every topic published
+    # here and publishes its move, or the first messages are lost (and re-sent after resend_s).
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (
+            any(p.get_subscription_count() < n for p in (status_pub, *pose_pubs, *read_pubs))
+            or any(node.count_publishers(f"{ns}/{a}/move") < 1 for a in ids)):
+        rclpy.spin_once(node, timeout_sec=0.05)
+    # A best-effort reader may match a moment after the writer sees it: let discovery settle.
+    settle = time.monotonic() + 1.0
+    while time.monotonic() < settle:
+        rclpy.spin_once(node, timeout_sec=0.05)
+
+    ox, oy = args.origin
+    log = open(args.out, "w")  # noqa: SIM115 (closed in the finally below)
+    world_seed = args.seed * 1000
+    walls, source, cells = make_world(world_seed, size, n)
+    done_steps = 0
+
+    def now():
+        return node.get_clock().now().to_msg()
+
+    def publish_map():
+        grid = OccupancyGrid()
+        grid.header.stamp = grid.info.map_load_time = now()
+        grid.header.frame_id = "map"
+        grid.info.resolution = res
+        grid.info.width = grid.info.height = size
+        grid.info.origin.position.x, grid.info.origin.position.y = ox, oy
+        grid.info.origin.orientation.w = 1.0
+        # data[j * width + i], row j = 0 at the origin (the southern row).
+        grid.data = [100 if walls[i, j] else 0 for j in range(size) for i in range(size)]
+        map_pub.publish(grid)
+        return grid.info.map_load_time
+
+    def publish_state(stamp, map_stamp, misstamp: bool):
+        values = rate(walls, source, np.array(cells))
+        for k in range(n):
+            pose = PoseStamped()
+            pose.header.stamp, pose.header.frame_id = stamp, "map"
+            i, j = cells[k]
+            # ENU, off the cell centre, at 10 m altitude, with some heading: all allowed.
+            pose.pose.position.x = ox + (i + 0.3) * res
+            pose.pose.position.y = oy + (j + 0.6) * res
+            pose.pose.position.z = 10.0
+            yaw = 0.7 * k
+            pose.pose.orientation.z, pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+            pose_pubs[k].publish(pose)
+            reading = RadiationReading()
+            reading.header.stamp, reading.header.frame_id = stamp, "map"
+            if misstamp and k == 1:
+                # The mistake: 1 us off its pose.
+                sec, nanosec = divmod(stamp.sec * 1_000_000_000 + stamp.nanosec + 1000, 1_000_000_000)
+                reading.header.stamp = Time(sec=sec, nanosec=nanosec)
+            reading.agent_id = ids[k]
+            reading.value, reading.variance = float(values[k]), 0.0
+            read_pubs[k].publish(reading)
+        status = EpisodeStatus()
+        status.header.stamp, status.header.frame_id = stamp, "map"
+        status.episode, status.step, status.map_stamp = state["episode"], state["step"], map_stamp
+        status.agent_ids = ids
+        status_pub.publish(status)
+        return values
+
+    map_stamp = publish_map()
+    episode_walls = walls
+    try:
+        while done_steps < args.steps:
+            stamp = now()
+            moves.clear()
+            values = publish_state(stamp, map_stamp, done_steps == args.misstamp_step)
+            sent = time.monotonic()
+            while len(moves) < n:
+                rclpy.spin_once(node, timeout_sec=0.02)
+                if time.monotonic() - sent > args.resend_s:  # re-send the step, same stamp
+                    values = publish_state(stamp, map_stamp, False)
+                    sent = time.monotonic()
+            actions = [moves[k] for k in range(n)]
+            before = list(cells)
+            valid = []
+            for k, a in enumerate(actions):
+                i, j = cells[k][0] + MOVES[a][0], cells[k][1] + MOVES[a][1]
+                ok = 0 <= i < size and 0 <= j < size and not walls[i, j]
+                valid.append(ok)
+                if ok:
+                    cells[k] = (i, j)
+            log.write(json.dumps({
+                "episode": state["episode"], "step": state["step"], "actions": actions, "valid": valid,
+                "readings": [float(v) for v in values], "walls": episode_walls.astype(int).tolist(),
+                "source": source, "cells": before,
+            }) + "\n")
+            log.flush()
+            done_steps += 1
+            state["step"] += 1
+            found = any(c == source for c in cells)
+            if found or state["step"] >= args.max_steps:
+                status = EpisodeStatus()
+                status.header.stamp, status.header.frame_id = now(), "map"
+                status.episode, status.step, status.map_stamp = state["episode"], state["step"], map_stamp
+                status.agent_ids = ids
+                status.done, status.success, status.truncated = True, found, not found
+                status.episode_length = state["step"]
+                status_pub.publish(status)
+                result_pub.publish(status)
+                state["episode"] += 1
+                state["step"] = 0
+                world_seed += 1
+                walls, source, cells = make_world(world_seed, size, n)
+                episode_walls = walls
+                map_stamp = publish_map()
+        # Let reliable messages go out before the process ends.
+        end = time.monotonic() + 0.3
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        log.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
