@@ -197,3 +197,24 @@ def test_observe_requires_the_estimate_when_the_variant_shows_it():
     maps = torch.zeros((1, 5, 5))
     with pytest.raises(ValueError, match="needs the source estimate"):
         observe(parse_observation("ego2+estimate"), pos, maps, maps, maps)
+
+
+@pytest.mark.parametrize(("grid", "walls"), [(5, 0), (13, 3), (22, 4)])
+def test_rates_from_every_cell_equal_the_sensor_model_bit_for_bit(grid, walls):
+    """The table path (grids up to 21x21) and the computed path (22x22) give exactly the
+    simulator's noise-free readings for every candidate source cell."""
+    from medc_training.envs.target_localization import (
+        expected_rate_from_sources,
+        generate_layouts,
+        rates_from_every_cell,
+    )
+
+    lay = generate_layouts(6, grid, walls, 3, torch.Generator().manual_seed(grid), torch.device("cpu"))
+    idx = torch.arange(grid * grid)
+    every = torch.stack((idx // grid, idx % grid), dim=-1)
+    got = rates_from_every_cell(lay["positions"], lay["walls"])
+    assert torch.equal(got, expected_rate_from_sources(lay["positions"], every, lay["walls"]))
+    # ... and column s is what sensor_reading returns with the source at cell s.
+    s = int(lay["target"][0, 0] * grid + lay["target"][0, 1])
+    direct = sensor_reading(lay["positions"][:1], lay["target"][:1], lay["walls"][:1])
+    assert torch.equal(got[0, :, s], direct[0])

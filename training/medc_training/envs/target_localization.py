@@ -94,6 +94,7 @@ __all__ = [
     "generate_layouts",
     "max_walls",
     "normalise_reading",
+    "rates_from_every_cell",
     "sensor_reading",
     "update_memory",
     "visit_norm",
@@ -202,6 +203,50 @@ def expected_rate_from_sources(
     entries = inside[..., 0].to(torch.float32) + (inside[..., 1:] > inside[..., :-1]).sum(-1)
     dist2 = (delta * delta).sum(-1)
     return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
+
+
+#: Largest (cells² × samples) for which :func:`rates_from_every_cell` keeps a table of the line
+#: samples of every (sensor cell, source cell) pair (int64: 64 MiB); larger grids compute them.
+_SAMPLE_TABLE_LIMIT = 1 << 23
+_SAMPLE_TABLES: dict[tuple[int, int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _sample_table(h: int, w: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(flat cell index of every line sample [H·W, H·W, H+W], squared distance [H·W, H·W]) for
+    sensor cell p (first index) and source cell s (second), computed by exactly the arithmetic of
+    :func:`expected_rate_from_sources`; None when the table would exceed _SAMPLE_TABLE_LIMIT."""
+    cells, samples = h * w, h + w
+    if cells * cells * samples > _SAMPLE_TABLE_LIMIT:
+        return None
+    key = (h, w, device)
+    if key not in _SAMPLE_TABLES:
+        idx = torch.arange(cells, device=device)
+        grid_cells = torch.stack((idx // w, idx % w), dim=-1)
+        src = grid_cells.to(torch.float32).unsqueeze(0)  # [1,M,2]
+        delta = grid_cells.to(torch.float32).unsqueeze(1) - src  # [P,M,2]
+        t = (torch.arange(samples, device=device, dtype=torch.float32) + 0.5) / samples
+        rows = (src[..., 0:1] + delta[..., 0:1] * t).round_()
+        cols = (src[..., 1:2] + delta[..., 1:2] * t).round_()
+        _SAMPLE_TABLES[key] = (rows.mul_(w).add_(cols).long(), (delta * delta).sum(-1))
+    return _SAMPLE_TABLES[key]
+
+
+def rates_from_every_cell(positions: torch.Tensor, walls: torch.Tensor) -> torch.Tensor:
+    """float32 [B,N,H·W]: :func:`expected_rate_from_sources` for every cell as a candidate source
+    (cells in row-major order), bit for bit. On grids up to 21×21 (_SAMPLE_TABLE_LIMIT) the line
+    samples come from a per-grid table made once, which halves the cost; larger grids compute
+    them each call."""
+    b, n = positions.shape[:2]
+    h, w = walls.shape[-2:]
+    table = _sample_table(h, w, positions.device)
+    if table is None:
+        idx = torch.arange(h * w, device=positions.device)
+        return expected_rate_from_sources(positions, torch.stack((idx // w, idx % w), dim=-1), walls)
+    samples_idx, dist2 = table
+    cell = positions[..., 0] * w + positions[..., 1]  # [B,N]
+    inside = walls.reshape(b, -1).gather(1, samples_idx[cell].view(b, -1)).view(b, n, h * w, h + w)
+    entries = inside[..., 0].to(torch.float32) + (inside[..., 1:] > inside[..., :-1]).sum(-1)
+    return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2[cell]) + BACKGROUND
 
 
 def update_memory(

@@ -168,10 +168,10 @@ class SourceEstimator:
 
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as :func:`sensor_reading` returns).
         """
-        from medc_training.envs.target_localization import expected_rate_from_sources
+        from medc_training.envs.target_localization import rates_from_every_cell
 
         k = positions.shape[0]
-        rate = expected_rate_from_sources(positions, self.cells, walls)  # [K,N,G²]
+        rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
         loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         log_post.add_(loglik)
         # Standing on a cell without the episode ending rules it out as the source.
