@@ -86,6 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grid", type=int, default=None, help="grid side (default: the CPU scale's)")
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("--noise", action="store_true", help="Poisson counting noise on the readings")
+    p.add_argument("--env", default="target_localization",
+                   help="application; fleet_coordination / maze_cleaning use the reproduction's settings "
+                        "(10x10, 400 steps, 3 agents, its target options, sampled evaluation) and take "
+                        "'maps' or 'egoR'")
+    p.add_argument("--eval-every", type=int, default=None)
     p.add_argument("--workers", type=int, default=2)
     args = p.parse_args(argv)
     jobs = []
@@ -94,13 +99,24 @@ def main(argv: list[str] | None = None) -> int:
             for seed in (int(s) for s in args.seeds.split(",")):
                 cfg = {"agents": args.agents, "walls": args.walls, "observation": variant, "arch": arch,
                        "total_steps": args.steps, "seed": seed, "method": "sparse"}
+                if args.env != "target_localization":
+                    from medc_training.cli import reproduce as r
+
+
+                    cfg = {**cfg, **r.OTHER_EVAL, "env": args.env, "walls": 0, "grid": r.OTHER_GRID,
+                           "max_steps": r.OTHER_MAX_STEPS,
+                           "env_options": {**r.OTHER_APPS[args.env]["target"], "observation": variant}}
+                    del cfg["observation"]
+                if args.eval_every:
+                    cfg["eval_every"] = args.eval_every
                 if args.grid:
                     cfg["grid"] = args.grid
                 if args.max_steps:
                     cfg["max_steps"] = args.max_steps
                 if args.noise:
-                    cfg["env_options"] = {"noise": True}
-                name = f"{variant}-{arch}" + ("-noise" if args.noise else "")
+                    cfg["env_options"] = {**cfg.get("env_options", {}), "noise": True}
+                short = "" if args.env == "target_localization" else args.env.split("_")[0] + "-"
+                name = f"{short}{variant}-{arch}" + ("-noise" if args.noise else "")
                 jobs.append({"name": f"{name}/seed{seed}", "config": cfg,
                              "out": str(args.out / name / f"seed{seed}")})
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:

@@ -159,6 +159,9 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
         spec = _observation_spec(obs.get("name", "maps"))
         obs["name"] = spec.name
         obs.setdefault("channel_names", list(spec.channels))
+    elif obs.get("name", "maps") != "maps" and default_channels is not None:
+        # An agent-centred window (fleet, maze): channel 0 marks the cells off the grid.
+        default_channels = ["off_grid", *default_channels[1:]]
     obs.setdefault("channels", c)
     obs.setdefault("height", h)
     obs.setdefault("width", w)
@@ -181,6 +184,16 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
         training["git_commit"] = _git_commit()
     full["training"] = training
     return validate_manifest(full)
+
+
+def _grid_task_side(name: Any, grid: int) -> int:
+    """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
+    import re
+
+    m = re.fullmatch(r"maps|ego([1-9][0-9]{0,2})", name) if isinstance(name, str) else None
+    if m is None:
+        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application")
+    return 2 * int(m.group(1)) + 1 if m.group(1) else grid
 
 
 def _observation_spec(name: Any):
@@ -325,17 +338,21 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     _check_names(manifest["actions"], num_actions, "actions")
     grid = manifest["environment"].get("grid")
     name = obs.get("name")
-    if name is not None:
-        if app != "target_localization":
-            raise BundleError(f"manifest: observation.name is for target_localization only, not {app}")
+    has_grid = isinstance(grid, int) and not isinstance(grid, bool)
+    if name is not None and app == "target_localization":
         ospec = _observation_spec(name)
         if list(obs["channel_names"]) != list(ospec.channels):
             raise BundleError(f"manifest: observation {ospec.name} has channels {list(ospec.channels)}, "
                               "but channel_names differ")
-        if isinstance(grid, int) and not isinstance(grid, bool) and ospec.shape(grid) != shape:
-            raise BundleError(f"manifest: environment.grid is {grid} but the observation is "
+        if has_grid and ospec.shape(grid) != shape:
+            raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
                               f"{shape[1]}x{shape[2]} with {shape[0]} channels; "
                               f"{ospec.name} on that grid is {list(ospec.shape(grid))}")
+    elif name is not None:
+        side = _grid_task_side(name, grid if has_grid else shape[1])
+        if (shape[1], shape[2]) != (side, side):
+            raise BundleError(f"manifest: observation {safe_repr(name)} is {side}x{side} here, but the "
+                              f"bundle declares {shape[1]}x{shape[2]}")
     elif grid is not None and (grid != shape[1] or grid != shape[2]):
         raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
                           f"{shape[1]}x{shape[2]}")
@@ -372,9 +389,10 @@ class PolicyBundle:
     def observation(self) -> str | None:
         """The observation variant the model takes (target localization; 'maps' when the manifest
         predates variants), or None for the other applications."""
+        name = self.manifest["observation"].get("name")
         if self.manifest.get("application") != "target_localization":
-            return None
-        return str(self.manifest["observation"].get("name", "maps"))
+            return None if name is None else str(name)
+        return str(name or "maps")
 
     @property
     def action_names(self) -> list[str]:

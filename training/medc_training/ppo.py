@@ -39,7 +39,7 @@ EVAL_SEED_OFFSET = 1_000_003
 def observation_name(env) -> str | None:
     """The observation variant an environment produces (target localization), or None."""
     spec = getattr(env, "observation", None)
-    return None if spec is None else spec.name
+    return getattr(env, "observation_name", None) if spec is None else spec.name
 
 
 def seed_everything(seed: int) -> None:

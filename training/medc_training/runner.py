@@ -142,7 +142,10 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
 def observation_section(env) -> dict:
     """``{"observation": {"name": ...}}`` for an environment with observation variants, else {}."""
     spec = getattr(env, "observation", None)
-    return {} if spec is None else {"observation": {"name": spec.name}}
+    if spec is not None:
+        return {"observation": {"name": spec.name}}
+    name = getattr(env, "observation_name", "maps")  # fleet coordination, maze cleaning
+    return {} if name == "maps" else {"observation": {"name": name}}
 
 
 def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:

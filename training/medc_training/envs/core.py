@@ -162,12 +162,51 @@ class GridTaskEnv(BatchedEnv):
     auto-reset with ``final_obs``.
 
     A subclass provides ``_start_episodes(rows | None)`` (new episodes in those rows, or in
-    all), ``_observe()`` (float32 [B,N,C,H,W]) and keeps ``positions``, ``blocked_pad``,
-    ``_deltas``, ``max_steps`` and ``copy_obs``; its ``step`` calls :meth:`_move` first and
-    returns :meth:`_finish_step`.
+    all), ``_observe_maps()`` (float32 [B,N,C,G,G], its absolute maps, channel 0 = own location)
+    and keeps ``positions``, ``blocked_pad``, ``_deltas``, ``max_steps`` and ``copy_obs``; its
+    ``step`` calls :meth:`_move` first and returns :meth:`_finish_step`.
+
+    Observation (``observation`` option, :meth:`_set_observation`): ``maps`` (the paper's absolute
+    maps) or ``egoR``: each map in a (2R+1)×(2R+1) window centred on the agent, with channel 0
+    (own location, always the centre in such a window) replaced by "off the grid" (1 outside),
+    and the channels named in ``WALL_CHANNELS`` reading 1 off the grid.
     """
 
     _started = False
+    _ego_radius = 0
+    #: Channels that mean "cannot go there": off-grid cells read 1 in an ego window.
+    WALL_CHANNELS: tuple[int, ...] = ()
+
+    def _set_observation(self, observation: str, channels: int) -> None:
+        """Validate the ``observation`` option and set ``observation_name`` and ``obs_shape``."""
+        import re
+
+        m = re.fullmatch(r"maps|ego([1-9][0-9]{0,2})", observation) if isinstance(observation, str) else None
+        if m is None:
+            raise ValueError(f"observation must be 'maps' or 'egoR' (R = window radius, e.g. ego9), "
+                             f"got {observation!r}")
+        self.observation_name = observation
+        self._ego_radius = int(m.group(1) or 0)
+        side = 2 * self._ego_radius + 1 if self._ego_radius else self.grid
+        self.obs_shape = (channels, side, side)
+        self._outside = torch.zeros(channels)
+        self._outside[[0, *self.WALL_CHANNELS]] = 1.0
+
+    def _observe(self) -> torch.Tensor:
+        """float32 [B,N,C,H,W]: every agent's observation of the current state."""
+        maps = self._observe_maps()
+        if not self._ego_radius:
+            return maps
+        from medc_training.envs.grid import agent_windows
+
+        maps[:, :, 0] = 0.0
+        return agent_windows(maps, self.positions, self._ego_radius, self._outside.to(maps.device))
+
+    def picture_maps(self, index: int) -> torch.Tensor:
+        return self._observe_maps()[index]
+
+    def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
+        return final_obs[index] if not self._ego_radius else self._final_pictures[index]
 
     def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         from medc_training.envs.grid import move_mask
@@ -201,6 +240,9 @@ class GridTaskEnv(BatchedEnv):
         final_obs = obs
         if bool(done.any()):
             rows = done.nonzero().squeeze(1)
+            if self.keep_final_pictures and self._ego_radius:
+                maps = self._observe_maps()
+                self._final_pictures = {int(r): maps[int(r)] for r in rows}
             self._start_episodes(rows)
             final_obs = obs.clone()
             obs[rows] = self._observe()[rows]
@@ -217,5 +259,5 @@ class GridTaskEnv(BatchedEnv):
         """Draw new episodes in ``rows`` (all environments when None)."""
 
     @abstractmethod
-    def _observe(self) -> torch.Tensor:
-        """float32 [B,N,C,H,W]: every agent's observation of the current state."""
+    def _observe_maps(self) -> torch.Tensor:
+        """float32 [B,N,C,G,G]: every agent's absolute maps of the current state."""

@@ -125,6 +125,7 @@ class FleetCoordination(GridTaskEnv):
         grid: int = 10,
         max_steps: int = 100,
         copy_obs: bool = True,
+        observation: str = "maps",
     ) -> None:
         self.grid = check_int("grid", grid, 3, 64)
         self.num_agents = check_int("agents", agents, 1, min(16, self.grid * self.grid // 2))
@@ -136,7 +137,7 @@ class FleetCoordination(GridTaskEnv):
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
-        self.obs_shape = (len(CHANNELS), self.grid, self.grid)
+        self._set_observation(observation, len(CHANNELS))
         self._deltas = action_deltas(self.device)
         free = torch.zeros((self.num_envs, self.grid, self.grid), dtype=torch.bool, device=self.device)
         self.blocked_pad = pad_blocked(free)
@@ -174,7 +175,7 @@ class FleetCoordination(GridTaskEnv):
             self.status[rows], self.carrier[rows] = status, carrier
             self.t[rows] = 0
 
-    def _observe(self) -> torch.Tensor:
+    def _observe_maps(self) -> torch.Tensor:
         return build_fleet_observations(
             self.positions, self.origin, self.destination, self.status, self.carrier, self.capacity, self.grid
         )

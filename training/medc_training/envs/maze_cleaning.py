@@ -109,6 +109,7 @@ class MazeCleaning(GridTaskEnv):
     """
 
     name = "maze_cleaning"
+    WALL_CHANNELS = (3,)
 
     def __init__(
         self,
@@ -120,6 +121,7 @@ class MazeCleaning(GridTaskEnv):
         complexity: float = 1.0,
         max_steps: int = 100,
         copy_obs: bool = True,
+        observation: str = "maps",
     ) -> None:
         self.grid = check_int("grid", grid, 3, 64)
         # The fewest free cells a maze of this size can have: its rooms.
@@ -136,7 +138,7 @@ class MazeCleaning(GridTaskEnv):
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
-        self.obs_shape = (len(CHANNELS), self.grid, self.grid)
+        self._set_observation(observation, len(CHANNELS))
         self._deltas = action_deltas(self.device)
         self._started = False
 
@@ -165,7 +167,7 @@ class MazeCleaning(GridTaskEnv):
             self.blocked_pad[rows] = pad_blocked(walls)
             self.t[rows] = 0
 
-    def _observe(self) -> torch.Tensor:
+    def _observe_maps(self) -> torch.Tensor:
         return build_maze_observations(self.positions, self.dirty, self.walls)
 
     def step(self, actions: torch.Tensor) -> StepOutput:
