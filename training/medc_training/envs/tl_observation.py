@@ -288,6 +288,7 @@ def observe(
     positions int64 [B,N,2]; reading_map, visit_map float32 [B,G,G] (:class:`TeamMemory`);
     walls bool or float [B,G,G]; estimate float32 [B,G,G] (required when ``spec.estimate``).
     """
+    from medc_training.envs.grid import agent_windows
     from medc_training.envs.target_localization import build_observations, visit_norm
 
     spec = parse_observation(spec)
@@ -308,7 +309,8 @@ def observe(
         return out
     r = spec.radius
     side = 2 * r + 1
-    # Team-wide maps, padded by r: walls (off-grid = wall), team count, readings, visits, estimate.
+    # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate; each agent
+    # sees them in a window centred on itself (grid.agent_windows, shared with fleet and maze).
     layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map)]
     if spec.estimate:
         layers.append(estimate)
@@ -318,18 +320,9 @@ def observe(
     layers[1] = count.view(b, g, g)
     stack = torch.stack(layers, dim=1)  # [B,C,G,G]
     c = stack.shape[1]
-    padded = torch.nn.functional.pad(stack, (r, r, r, r))
-    padded[:, 0, :r].fill_(1.0)
-    padded[:, 0, -r:].fill_(1.0)
-    padded[:, 0, :, :r].fill_(1.0)
-    padded[:, 0, :, -r:].fill_(1.0)
-    gp = g + 2 * r
-    offs = torch.arange(side, device=positions.device)
-    # Window of agent (b, i): padded rows row_i .. row_i + 2r, cols col_i .. col_i + 2r.
-    rows = positions[..., 0:1] + offs  # [B,N,side]
-    cols = positions[..., 1:2] + offs
-    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b, 1, n * side * side).expand(b, c, -1)
-    win = padded.view(b, c, gp * gp).gather(2, idx).view(b, c, n, side, side).transpose(1, 2)
+    outside = torch.zeros(c, device=positions.device)
+    outside[0] = 1.0
+    win = agent_windows(stack.unsqueeze(1).expand(b, n, c, g, g), positions, r, outside)
     if out is None:
         out = torch.empty((b, n, c, side, side), dtype=torch.float32, device=positions.device)
     out.copy_(win)
