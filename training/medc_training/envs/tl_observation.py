@@ -50,6 +50,15 @@ from dataclasses import dataclass
 
 import torch
 
+from medc_training.envs.grid import agent_windows
+from medc_training.envs.tl_sensing import (
+    CHANNELS,
+    build_observations,
+    rates_from_every_cell,
+    update_memory,
+    visit_norm,
+)
+
 __all__ = [
     "DEFAULT_OBSERVATION",
     "EGO_CHANNELS",
@@ -63,7 +72,7 @@ __all__ = [
     "parse_observation",
 ]
 
-MAP_CHANNELS: tuple[str, ...] = ("own_location", "team_locations", "readings", "visit_counts", "walls")
+MAP_CHANNELS: tuple[str, ...] = CHANNELS
 EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
 ESTIMATE_CHANNEL = "source_estimate"
 #: Examples of accepted names (any radius 1..MAX_RADIUS is accepted for ego views).
@@ -109,10 +118,6 @@ class ObservationSpec:
         """(C, H, W) of one agent's observation on a ``grid``×``grid`` area."""
         side = grid if self.view == "maps" else 2 * self.radius + 1
         return (len(self.channels), side, side)
-
-    def to_manifest(self) -> dict:
-        """The JSON-able description stored in bundle manifests."""
-        return {"name": self.name, "channels": list(self.channels)}
 
     def __str__(self) -> str:
         return self.name
@@ -168,8 +173,6 @@ class SourceEstimator:
 
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as :func:`sensor_reading` returns).
         """
-        from medc_training.envs.target_localization import rates_from_every_cell
-
         k = positions.shape[0]
         rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
         loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
@@ -232,7 +235,7 @@ class TeamMemory:
         """Forget ``rows`` (all when None) and record the first readings of their new episodes."""
         reading_map = torch.zeros((positions.shape[0], self.grid, self.grid), device=self.device)
         visit_map = torch.zeros_like(reading_map)
-        _record_maps(reading_map, visit_map, positions, readings)
+        update_memory(reading_map, visit_map, positions, readings)
         log_post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
@@ -248,7 +251,7 @@ class TeamMemory:
 
     def record(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor) -> None:
         """Record one team step's readings (every episode of the batch)."""
-        _record_maps(self.reading_map, self.visit_map, positions, readings)
+        update_memory(self.reading_map, self.visit_map, positions, readings)
         if self.estimator is not None:
             self.estimator.update(self.log_post, walls, positions, readings)
 
@@ -268,12 +271,6 @@ class TeamMemory:
                        est, out=out)
 
 
-def _record_maps(reading_map, visit_map, positions, readings) -> None:
-    from medc_training.envs.target_localization import update_memory
-
-    update_memory(reading_map, visit_map, positions, readings)
-
-
 def observe(
     spec: ObservationSpec,
     positions: torch.Tensor,
@@ -288,9 +285,6 @@ def observe(
     positions int64 [B,N,2]; reading_map, visit_map float32 [B,G,G] (:class:`TeamMemory`);
     walls bool or float [B,G,G]; estimate float32 [B,G,G] (required when ``spec.estimate``).
     """
-    from medc_training.envs.grid import agent_windows
-    from medc_training.envs.target_localization import build_observations, visit_norm
-
     spec = parse_observation(spec)
     if spec.estimate and estimate is None:
         raise ValueError(f"observation {spec.name} needs the source estimate map")
@@ -300,12 +294,11 @@ def observe(
         c = len(spec.channels)
         if out is None:
             out = torch.empty((b, n, c, g, g), dtype=torch.float32, device=positions.device)
-        if spec.estimate:
+        if spec.estimate:  # build_observations writes only into a contiguous 5-channel buffer
             out[:, :, :5].copy_(build_observations(positions, reading_map, visit_map, walls))
+            out[:, :, 5].copy_(estimate.unsqueeze(1))
         else:
             build_observations(positions, reading_map, visit_map, walls, out=out)
-        if spec.estimate:
-            out[:, :, 5].copy_(estimate.unsqueeze(1))
         return out
     r = spec.radius
     side = 2 * r + 1

@@ -205,7 +205,7 @@ class PolicySlot:
     def _bundle_observation(self, source: str) -> tuple[tuple[int, int, int], str]:
         """(shape on this grid, name) of the observation the bundle at ``source`` names."""
         from medc_training.bundle import BundleError, read_manifest
-        from medc_training.envs.target_localization import check_observation
+        from medc_training.envs.tl_observation import parse_observation
 
         if not isinstance(source, str) or looks_like_cid(source) or not Path(source).expanduser().is_file():
             load_policy(source, self.obs_shape, self.num_actions, self.application)  # the precise reason
@@ -217,7 +217,7 @@ class PolicySlot:
             why = type(exc).__name__
             raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
         try:
-            spec = check_observation(manifest["observation"].get("name", "maps"), self.grid)
+            spec = parse_observation(manifest["observation"].get("name", "maps"))
         except ValueError as exc:
             raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
         return spec.shape(self.grid), spec.name

@@ -138,8 +138,7 @@ class TeamObserver:
                  observation: str = "maps") -> None:
         """``resolution``: metres per cell the maps must have; 0 = whatever the map says."""
         from medc_training.envs.grid import action_deltas
-        from medc_training.envs.target_localization import check_observation
-        from medc_training.envs.tl_observation import ObservationSpec, TeamMemory
+        from medc_training.envs.tl_observation import ObservationSpec, TeamMemory, parse_observation
 
         self.agent_id = agent_id
         self.num_agents = num_agents
@@ -166,16 +165,16 @@ class TeamObserver:
         #: Things worth one log line each (a restarted driver, a suspicious map); the node drains it.
         self.notes: list[str] = []
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
-        self.observation = check_observation(observation, grid)
+        self.observation = parse_observation(observation)
         self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu")
         self._memory_started = False
 
     def use_observation(self, observation: str | None) -> None:
         """Build ``observation`` from now on (the memory keeps what every variant needs)."""
-        from medc_training.envs.target_localization import check_observation
+        from medc_training.envs.tl_observation import parse_observation
 
         if observation:
-            self.observation = check_observation(observation, self.height)
+            self.observation = parse_observation(observation)
 
     # -- inputs (each raises ValueError on bad input) ----------------------------------------
     def _slot(self, store: OrderedDict, key: int) -> list:
