@@ -188,12 +188,14 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
 
 def _grid_task_side(name: Any, grid: int) -> int:
     """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
-    import re
+    from medc_training.envs.grid import ego_radius
 
-    m = re.fullmatch(r"maps|ego([1-9][0-9]{0,2})", name) if isinstance(name, str) else None
-    if m is None:
-        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application")
-    return 2 * int(m.group(1)) + 1 if m.group(1) else grid
+    try:
+        radius = ego_radius(name)
+    except ValueError:  # its message holds the name: do not echo it
+        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application") \
+            from None
+    return 2 * radius + 1 if radius else grid
 
 
 def _observation_spec(name: Any):

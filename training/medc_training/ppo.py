@@ -36,12 +36,6 @@ from .nets import make_actor_critic, masked_logits
 EVAL_SEED_OFFSET = 1_000_003
 
 
-def observation_name(env) -> str | None:
-    """The observation variant an environment produces (target localization), or None."""
-    spec = getattr(env, "observation", None)
-    return getattr(env, "observation_name", None) if spec is None else spec.name
-
-
 def seed_everything(seed: int) -> None:
     """Seed Python, numpy and torch (CPU and CUDA) global generators."""
     random.seed(seed)
@@ -113,7 +107,8 @@ class Trainer:
         if cfg.method in ("medc", "il") and not self.experts:
             raise ValueError(f"method {cfg.method!r} needs at least one expert (--expert)")
         for expert in self.experts:
-            expert.check_compatible(self.obs_shape, self.A, observation=observation_name(self.env))
+            expert.check_compatible(self.obs_shape, self.A,
+                                    observation=getattr(self.env, "observation_name", None))
             if isinstance(expert, OracleExpert) or isinstance(getattr(expert, "inner", None), OracleExpert):
                 (expert if isinstance(expert, OracleExpert) else expert.inner).bind(self.env)
         self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None

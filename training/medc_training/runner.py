@@ -140,12 +140,11 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
 
 
 def observation_section(env) -> dict:
-    """``{"observation": {"name": ...}}`` for an environment with observation variants, else {}."""
-    spec = getattr(env, "observation", None)
-    if spec is not None:
-        return {"observation": {"name": spec.name}}
-    name = getattr(env, "observation_name", "maps")  # fleet coordination, maze cleaning
-    return {} if name == "maps" else {"observation": {"name": name}}
+    """``{"observation": {"name": ...}}`` for a bundle's manifest: always for target localization,
+    for the other applications only when they do not take the default 'maps'."""
+    name = getattr(env, "observation_name", "maps")
+    keep = name != "maps" or getattr(env, "name", None) == "target_localization"
+    return {"observation": {"name": name}} if keep else {}
 
 
 def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:

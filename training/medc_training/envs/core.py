@@ -179,14 +179,10 @@ class GridTaskEnv(BatchedEnv):
 
     def _set_observation(self, observation: str, channels: int) -> None:
         """Validate the ``observation`` option and set ``observation_name`` and ``obs_shape``."""
-        import re
+        from medc_training.envs.grid import ego_radius
 
-        m = re.fullmatch(r"maps|ego([1-9][0-9]{0,2})", observation) if isinstance(observation, str) else None
-        if m is None:
-            raise ValueError(f"observation must be 'maps' or 'egoR' (R = window radius, e.g. ego9), "
-                             f"got {observation!r}")
+        self._ego_radius = ego_radius(observation)
         self.observation_name = observation
-        self._ego_radius = int(m.group(1) or 0)
         side = 2 * self._ego_radius + 1 if self._ego_radius else self.grid
         self.obs_shape = (channels, side, side)
         self._outside = torch.zeros(channels)

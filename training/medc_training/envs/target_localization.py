@@ -285,6 +285,11 @@ class TargetLocalization(BatchedEnv):
         }
 
     @property
+    def observation_name(self) -> str:
+        """The observation variant's name (as every core has it)."""
+        return self.observation.name
+
+    @property
     def reading_map(self) -> torch.Tensor:
         """float32 [B,G,G] the team's latest normalised reading per cell (0 = never visited)."""
         return self.memory.reading_map
