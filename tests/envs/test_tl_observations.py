@@ -100,10 +100,11 @@ def test_a_mismatched_sensor_never_leaves_the_team_without_a_candidate():
     est = SourceEstimator(grid, "cpu")
     walls = torch.zeros((1, grid, grid), dtype=torch.bool)
     log_post = est.prior(walls)
-    for _ in range(20):  # readings no source could produce
-        est.update(log_post, walls, torch.tensor([[[2, 2]]]), torch.tensor([[1e6]]))
-    p = est.posterior(log_post)
-    assert torch.isfinite(p).all() and float(p.sum()) == pytest.approx(1.0, abs=1e-5)
+    for value in [1e6] * 20 + [3e38, float("inf"), float("nan")]:  # readings no source could produce
+        est.update(log_post, walls, torch.tensor([[[2, 2]]]), torch.tensor([[value]]))
+        p = est.posterior(log_post)
+        assert torch.isfinite(p).all() and float(p.sum()) == pytest.approx(1.0, abs=1e-5)
+        assert torch.isfinite(est.estimate_map(log_post)).all()
 
 
 def test_names_round_trip_and_bad_names_say_what_is_allowed():

@@ -82,6 +82,8 @@ OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+est
 DEFAULT_OBSERVATION = "ego6+estimate"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
+#: Largest reading the estimator takes (counts/s): 1000x the model's highest rate, S + BG = 1001.
+MAX_READING = 1e6
 MAX_RADIUS = 255
 #: Largest temporary (elements) of one expected-distance chunk.
 _CHUNK_ELEMENTS = 1 << 23
@@ -174,6 +176,9 @@ class SourceEstimator:
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as :func:`sensor_reading` returns).
         """
         k = positions.shape[0]
+        # No sensor of this model reads more than MAX_READING; a larger (or infinite) value from a
+        # mismatched or faulty sensor is taken as MAX_READING, so the float32 sums below stay finite.
+        readings = torch.nan_to_num(readings, nan=0.0, posinf=MAX_READING).clamp(0.0, MAX_READING)
         rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
         loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         log_post.add_(loglik)
