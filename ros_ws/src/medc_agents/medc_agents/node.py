@@ -32,7 +32,15 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid, shown, strip_cid
+from medc_agents.policy import (
+    PolicyRejected,
+    PolicySlot,
+    looks_like_cid,
+    manifest_observation,
+    read_policy_manifest,
+    shown,
+    strip_cid,
+)
 from medc_agents.team_state import TeamObserver, Tick, show_stamp
 
 NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
@@ -59,24 +67,12 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) 
         PolicyRejected: no policy, an unreadable or invalid bundle, or a value neither given nor
         in the manifest; the message says which and what to pass.
     """
-    from pathlib import Path
-
-    from medc_training.bundle import BundleError, read_manifest
-
     if not policy:
         raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
                              "(its manifest gives the team size, grid and observation)")
     if agents > 0 and grid > 0 and observation:
         return agents, grid, observation
-    if looks_like_cid(policy) or not Path(policy).expanduser().is_file():
-        raise PolicyRejected(f"policy bundle {shown(policy)} is not an existing file")
-    try:
-        manifest = read_manifest(Path(policy).expanduser())
-    except BundleError as exc:
-        raise PolicyRejected(f"policy bundle {shown(policy)} is invalid: {exc}") from exc
-    except Exception as exc:  # a file must never crash the start with a traceback
-        why = type(exc).__name__
-        raise PolicyRejected(f"policy bundle {shown(policy)} could not be loaded ({why})") from exc
+    manifest = read_policy_manifest(policy)
     env = manifest.get("environment") or {}
 
     def from_manifest(key: str, given: int) -> int:
@@ -89,10 +85,7 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) 
         return value
 
     agents, grid = from_manifest("agents", agents), from_manifest("grid", grid)
-    if not observation:
-        obs = manifest.get("observation") or {}
-        observation = str(obs.get("name", "maps")) if isinstance(obs, dict) else "maps"
-    return agents, grid, observation
+    return agents, grid, observation or manifest_observation(manifest)
 
 
 def default_node_name(agent_id: str | None) -> str:

@@ -93,10 +93,8 @@ def load_policy(
         ) from exc
 
 
-def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation) -> LoadedPolicy:
-    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, load_untrusted
-    from medc_training.experts import BundleExpert, ExpertError
-
+def _bundle_path(source) -> Path:
+    """The path of an existing, not oversized bundle file ``source``; PolicyRejected says why not."""
     if not isinstance(source, str) or not source.strip():
         raise PolicyRejected("empty policy source: send the path of a .safetensors policy bundle")
     if "\x00" in source:
@@ -118,6 +116,38 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
         raise PolicyRejected(f"cannot read policy bundle {shown(source)}: {why}") from exc
     if size > MAX_BUNDLE_BYTES:
         raise PolicyRejected(f"policy bundle {shown(source)} is {size} bytes, more than {MAX_BUNDLE_BYTES}")
+    return path
+
+
+def read_policy_manifest(source) -> dict:
+    """The validated manifest of the bundle file ``source`` (its weights are not read).
+
+    Raises:
+        PolicyRejected: the reasons :func:`load_policy` gives for the file, or an invalid manifest;
+        no other exception escapes, whatever the file holds.
+    """
+    from medc_training.bundle import BundleError, read_manifest
+
+    path = _bundle_path(source)
+    try:
+        return read_manifest(path)
+    except BundleError as exc:
+        raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
+    except Exception as exc:  # a file must never take the node down
+        why = type(exc).__name__
+        raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
+
+
+def manifest_observation(manifest: dict) -> str:
+    """The observation variant a (validated) manifest names; 'maps' when it predates variants."""
+    return str(manifest["observation"].get("name", "maps"))
+
+
+def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation) -> LoadedPolicy:
+    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, load_untrusted
+    from medc_training.experts import BundleExpert, ExpertError
+
+    path = _bundle_path(source)
     limit = MAX_FORWARD_SECONDS if max_forward_s is None else max_forward_s
     try:
         bundle = load_untrusted(path, device="cpu", max_forward_s=limit)
@@ -204,20 +234,11 @@ class PolicySlot:
 
     def _bundle_observation(self, source: str) -> tuple[tuple[int, int, int], str]:
         """(shape on this grid, name) of the observation the bundle at ``source`` names."""
-        from medc_training.bundle import BundleError, read_manifest
         from medc_training.envs.tl_observation import parse_observation
 
-        if not isinstance(source, str) or looks_like_cid(source) or not Path(source).expanduser().is_file():
-            load_policy(source, self.obs_shape, self.num_actions, self.application)  # the precise reason
+        manifest = read_policy_manifest(source)
         try:
-            manifest = read_manifest(Path(source).expanduser())
-        except BundleError as exc:
-            raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
-        except Exception as exc:  # a file must never take the node down
-            why = type(exc).__name__
-            raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
-        try:
-            spec = parse_observation(manifest["observation"].get("name", "maps"))
+            spec = parse_observation(manifest_observation(manifest))
         except ValueError as exc:
             raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
         return spec.shape(self.grid), spec.name
