@@ -495,12 +495,16 @@ class Report:
         #: The verdict word of every claim written, in order (for the counts).
         self.verdicts: list[str] = []
 
-    def gate(self, sparse_run: str) -> str:
-        """The gate line for ``sparse_run``'s environment (computed once); claims made with
-        ``gate=sparse_run`` are "not testable" unless it passed."""
+    def _gate(self, sparse_run: str) -> dict:
+        """:func:`learnability_gate` of ``sparse_run``, computed once per report."""
         if sparse_run not in self.gates:
             self.gates[sparse_run] = learnability_gate(self.out, sparse_run)
-        g = self.gates[sparse_run]
+        return self.gates[sparse_run]
+
+    def gate(self, sparse_run: str) -> str:
+        """The gate line for ``sparse_run``'s environment; claims made with ``gate=sparse_run``
+        are "not testable" unless it passed."""
+        g = self._gate(sparse_run)
         if g["n"] == 0:
             return "- **Learnability gate** — not run"
         word = "passed" if g["passed"] else (
@@ -511,8 +515,7 @@ class Report:
     def _untestable(self, gate: str | None) -> str | None:
         if gate is None:
             return None
-        self.gate(gate)
-        g = self.gates[gate]
+        g = self._gate(gate)
         if g["passed"]:
             return None
         return (f"not testable (MDRL-sparse did not pass the learnability gate: difference to random "
