@@ -186,6 +186,16 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     return validate_manifest(full)
 
 
+def manifest_observation(manifest: Mapping[str, Any]) -> str | None:
+    """The observation variant a validated manifest's model takes: its ``observation.name``; for
+    target localization 'maps' when the manifest predates variants; None for another
+    application's manifest without a name (its absolute maps)."""
+    name = manifest["observation"].get("name")
+    if name is None and manifest.get("application") == "target_localization":
+        return "maps"
+    return None if name is None else str(name)
+
+
 def _grid_task_side(name: Any, grid: int) -> int:
     """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
     from medc_training.envs.grid import ego_radius
@@ -391,10 +401,7 @@ class PolicyBundle:
     def observation(self) -> str | None:
         """The observation variant the model takes (target localization; 'maps' when the manifest
         predates variants), or None for the other applications."""
-        name = self.manifest["observation"].get("name")
-        if self.manifest.get("application") != "target_localization":
-            return None if name is None else str(name)
-        return str(name or "maps")
+        return manifest_observation(self.manifest)
 
     @property
     def action_names(self) -> list[str]:

@@ -236,7 +236,7 @@ class Plan:
                     folder="experts", max_steps=None, grid=None, greedy=True):
         """A DAgger job for one bundle, or None when a DAgger bundle for the same grid and step
         limit is already there (bundles made any other way are retrained)."""
-        from ..bundle import BundleError, read_manifest
+        from ..bundle import BundleError, manifest_observation, read_manifest
         from ..dagger import CloneConfig
 
         target = self.models / folder / f"{name}.safetensors"
@@ -246,7 +246,7 @@ class Plan:
                 manifest = read_manifest(target)
                 wanted = self.base["observation"] if env == "target_localization" else None
                 same = (manifest["environment"].get("grid") == grid
-                        and manifest["observation"].get("name", "maps" if wanted else None) == wanted
+                        and manifest_observation(manifest) == wanted
                         and manifest.get("environment", {}).get("max_steps") == max_steps
                         and manifest.get("training", {}).get("method") == "dagger")
                 if same:

@@ -36,7 +36,6 @@ from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
     looks_like_cid,
-    manifest_observation,
     read_policy_manifest,
     shown,
     strip_cid,
@@ -72,6 +71,8 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) 
                              "(its manifest gives the team size, grid and observation)")
     if agents > 0 and grid > 0 and observation:
         return agents, grid, observation
+    from medc_training.bundle import manifest_observation
+
     manifest = read_policy_manifest(policy)
     env = manifest.get("environment") or {}
 

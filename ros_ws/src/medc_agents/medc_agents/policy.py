@@ -138,11 +138,6 @@ def read_policy_manifest(source) -> dict:
         raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
 
 
-def manifest_observation(manifest: dict) -> str:
-    """The observation variant a (validated) manifest names; 'maps' when it predates variants."""
-    return str(manifest["observation"].get("name", "maps"))
-
-
 def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation) -> LoadedPolicy:
     from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, load_untrusted
     from medc_training.experts import BundleExpert, ExpertError
@@ -234,6 +229,7 @@ class PolicySlot:
 
     def _bundle_observation(self, source: str) -> tuple[tuple[int, int, int], str]:
         """(shape on this grid, name) of the observation the bundle at ``source`` names."""
+        from medc_training.bundle import manifest_observation
         from medc_training.envs.tl_observation import parse_observation
 
         manifest = read_policy_manifest(source)

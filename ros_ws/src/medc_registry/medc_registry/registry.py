@@ -749,7 +749,7 @@ def bundle_summary(data: bytes) -> dict[str, Any]:
     """What a requester must know before using a shared policy bundle, read from its validated
     manifest (the weights are never decoded): the observation variant it takes and its
     architecture. {} for bytes that are not a policy bundle (the registry stores any file)."""
-    from medc_training.bundle import BundleError, read_manifest
+    from medc_training.bundle import BundleError, manifest_observation, read_manifest
 
     try:
         manifest = read_manifest(data)
@@ -757,7 +757,7 @@ def bundle_summary(data: bytes) -> dict[str, Any]:
         return {}
     out: dict[str, Any] = {"architecture": manifest["architecture"].get("name", "?")}
     if manifest["application"] == "target_localization":
-        out["observation"] = manifest["observation"].get("name", "maps")
+        out["observation"] = manifest_observation(manifest)
     return out
 
 

@@ -129,20 +129,22 @@ def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
 def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
     grid), or its agent would refuse it."""
-    from medc_training.bundle import BundleError, read_manifest
+    from medc_training.bundle import BundleError, manifest_observation, read_manifest
     from medc_training.envs.tl_observation import parse_observation
 
     for path in sorted(set(paths)):
         try:
-            obs = read_manifest(path).get("observation") or {}
-            expected = parse_observation(obs.get("name", "maps")).shape(cfg.grid)
+            manifest = read_manifest(path)
+            obs = manifest["observation"]
+            name = manifest_observation(manifest) or "maps"
+            expected = parse_observation(name).shape(cfg.grid)
         except (BundleError, ValueError) as exc:
             raise ValueError(f"policy {path} is not a valid bundle: {exc}") from exc
         shape = (obs.get("channels"), obs.get("height"), obs.get("width"))
         if shape != expected:
             raise ValueError(
                 f"policy {path} takes observations of shape {shape}, but a {cfg.grid}x{cfg.grid} grid gives "
-                f"{expected} for its observation {obs.get('name', 'maps')}; set grid: "
+                f"{expected} for its observation {name}; set grid: "
                 f"{obs.get('height')} or use a bundle trained on this grid"
             )
 
