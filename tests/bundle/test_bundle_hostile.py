@@ -39,11 +39,6 @@ from medc_training.nets import (
 )
 
 
-@pytest.fixture(scope="module")
-def parts():
-    return valid_parts("lenet5", grid=10)
-
-
 def refused(data: bytes, message: str) -> str:
     """Every loader refuses ``data`` with ``message`` in a BundleError; returns the message."""
     for load in (load_bundle, read_manifest, load_untrusted):

@@ -26,11 +26,6 @@ from medc_training.bundle import (
 
 
 @pytest.fixture(scope="module")
-def parts():
-    return valid_parts("lenet5", grid=10)
-
-
-@pytest.fixture(scope="module")
 def good(parts) -> bytes:
     tensors, manifest = parts
     data = forge(tensors, manifest)
