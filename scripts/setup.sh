@@ -36,7 +36,8 @@ if ! stage_current pydeps "$d"; then
 fi
 
 # 2. The project's own packages, editable
-PKGS=(training ros_ws/src/medc_sim ros_ws/src/medc_agents ros_ws/src/medc_registry)
+PKGS=(training ros_ws/src/medc_common ros_ws/src/medc_sim ros_ws/src/medc_agents ros_ws/src/medc_registry
+      ros_ws/src/medc_bringup)
 d=$(digest training/pyproject.toml ros_ws/src/*/setup.py ros_ws/src/*/setup.cfg)
 if ! stage_current pkgs "$d"; then
   say "installing the project's packages (editable)"

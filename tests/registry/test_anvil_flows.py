@@ -6,10 +6,10 @@ import threading
 import time
 
 import pytest
+from medc_bringup.gas import APPLICATION, CID, DESCRIPTION
 from medc_registry import ChainClient, LocalContentStore, Registry, deploy_contracts
 from medc_registry.chain import ChainError, ContractRevert
 from medc_registry.cli import main as cli_main
-from medc_registry.gas import APPLICATION, CID, DESCRIPTION
 from medc_registry.nodes import NodeError, free_port, start_anvil
 from registry_helpers import APP, PRICE
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from medc_registry.gas import PAPER_GAS, format_report, measure
+from medc_bringup.gas import PAPER_GAS, format_report, measure
 
 
 @pytest.fixture(scope="module")

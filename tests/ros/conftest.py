@@ -64,7 +64,7 @@ def rclpy_context():
 @pytest.fixture
 def graph(rclpy_context):
     """A factory of in-process graphs (sim + agents on one executor), all torn down after the test."""
-    from medc_sim.launcher import build_graph, load_config, resolve_policies
+    from medc_bringup.launcher import build_graph, load_config, resolve_policies
     from rclpy.executors import SingleThreadedExecutor
 
     made = []

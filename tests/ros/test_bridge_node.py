@@ -4,7 +4,7 @@ agent, review; bad requests are answered with a reason and the node keeps servin
 from __future__ import annotations
 
 import pytest
-from medc_sim import contract
+from medc_common import contract
 from ros_helpers import spin_until
 from std_msgs.msg import String
 

@@ -53,7 +53,7 @@ def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
 @pytest.mark.ros
 def test_default_launch_config_runs_the_shipped_team_as_trained(graph, repo_root):
     """`medc-launch` with no config: the shipped team, its manifest's scenario, training's episodes."""
-    from medc_sim.launcher import load_config, resolve_policies
+    from medc_bringup.launcher import load_config, resolve_policies
 
     cfg = load_config(None)
     team = resolve_policies(cfg)

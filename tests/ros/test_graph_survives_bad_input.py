@@ -9,8 +9,9 @@ import pytest
 import torch
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
+from medc_common import contract
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
-from medc_sim import contract, messages
+from medc_sim import messages
 from nav_msgs.msg import OccupancyGrid
 from ros_helpers import reference_episodes, spin_until
 from std_msgs.msg import String

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from medc_sim import contract
+from medc_common import contract
 from rclpy.parameter import Parameter
 from ros_helpers import spin_until
 from std_msgs.msg import String

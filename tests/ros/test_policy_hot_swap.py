@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from medc_sim import contract
+from medc_common import contract
 from rclpy.parameter import Parameter
 from ros_helpers import replay_masks, spin_until
 from std_msgs.msg import String

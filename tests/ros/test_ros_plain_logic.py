@@ -13,9 +13,9 @@ import torch
 from builtin_interfaces.msg import Time
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
+from medc_bringup.launcher import load_config, resolve_policies, ros_args
+from medc_common.contract import GridGeometry, agent_index, xy_to_cell
 from medc_sim import messages
-from medc_sim.contract import GridGeometry, agent_index, xy_to_cell
-from medc_sim.launcher import load_config, resolve_policies, ros_args
 from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
@@ -237,7 +237,7 @@ def test_console_script_works_without_sourcing_env_sh():
     plain_shell = ("LD_LIBRARY_PATH", "PYTHONPATH", "AMENT_PREFIX_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
     env = {k: v for k, v in os.environ.items() if k not in plain_shell}
     code = (
-        "from medc_sim.ros_env import ensure_interfaces; ensure_interfaces(); "
+        "from medc_common.ros_env import ensure_interfaces; ensure_interfaces(); "
         "import rclpy; from medc_interfaces.msg import RadiationReading; "
         "rclpy.init(); n = rclpy.create_node('probe'); n.create_publisher(RadiationReading, 'r', 1); "
         "print('ok'); n.destroy_node(); rclpy.shutdown()"
@@ -280,11 +280,11 @@ def test_bridge_connects_only_to_loopback_endpoints(tmp_path):
 
 
 def test_map_frame_follows_rep_103():
-    """One mapping (medc_sim.contract): x east, y north; message row j = environment row H-1-j;
+    """One mapping (medc_common.contract): x east, y north; message row j = environment row H-1-j;
     move N (row - 1) heads +y, E (col + 1) heads +x; the OccupancyGrid origin is honoured."""
     import math as m
 
-    from medc_sim import contract
+    from medc_common import contract
     from medc_training.envs.grid import ACTIONS
 
     g = GridGeometry(10, 10, 1.0)

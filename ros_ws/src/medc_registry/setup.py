@@ -20,7 +20,6 @@ setup(
         "console_scripts": [
             "medc-registry = medc_registry.cli:main",
             "medc-bridge = medc_registry.bridge_node:main",
-            "medc-demo = medc_registry.demo:main",
         ],
     },
 )

@@ -19,8 +19,6 @@ setup(
     entry_points={
         "console_scripts": [
             "medc-sim = medc_sim.sim_node:main",
-            "medc-launch = medc_sim.launcher:main",
         ],
-        "medc_bench": ["ros = medc_sim.bench:main"],
     },
 )

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from medc_sim.ros_env import require_interfaces
+from medc_common.ros_env import require_interfaces
 
 
 def agent_id_from_arguments() -> str | None:
@@ -33,7 +33,7 @@ def agent_id_from_arguments() -> str | None:
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-agent``."""
     require_interfaces()
-    from medc_sim.executors import run_node
+    from medc_common.executors import run_node
 
     from medc_agents.node import AgentNode, default_node_name
 

@@ -1,6 +1,6 @@
 """The agent node: one per agent; observes the team, runs its policy bundle, publishes its move.
 
-Subscribes (names and QoS: medc_sim.contract, docs/ros.md): every team member's pose and
+Subscribes (names and QoS: medc_common.contract, docs/ros.md): every team member's pose and
 radiation reading, the walls map, the episode status, and its own and the team's policy topics.
 Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``.
 
@@ -21,10 +21,10 @@ from collections.abc import Callable
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from medc_common import contract
+from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
-from medc_sim import contract
-from medc_sim.params import declare
 from medc_training.bundle import MAX_FORWARD_SECONDS
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
 from nav_msgs.msg import OccupancyGrid

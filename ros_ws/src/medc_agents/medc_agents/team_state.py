@@ -11,7 +11,7 @@ Messages of one team step share one header stamp; an :class:`EpisodeStatus` name
 the walls map that holds (its ``info.map_load_time``). The agent decides once it has the status,
 the map, and every team member's pose and reading for that stamp. Poses are in the ``map`` frame
 (REP 103: x east, y north) and are turned into cells with the grid geometry of the map
-(``info.origin``, ``info.resolution``; ``medc_sim.contract.GridGeometry``). Each check on a
+(``info.origin``, ``info.resolution``; ``medc_common.contract.GridGeometry``). Each check on a
 message raises ``ValueError`` with the reason; the node logs it and drops the message.
 :meth:`TeamObserver.waiting_for` says what a step still lacks, for the node's stall report.
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from medc_sim.contract import (
+from medc_common.contract import (
     MAP_FRAME,
     OCCUPIED_THRESHOLD,
     GridGeometry,

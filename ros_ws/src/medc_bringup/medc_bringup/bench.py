@@ -60,10 +60,11 @@ def run_graph(
     (after ``warmup`` steps). Returns latencies and throughput."""
     import subprocess
 
+    from medc_common.executors import make_executor
+    from medc_sim.node import SimNode
     from rclpy.parameter import Parameter
 
-    from medc_sim.executors import make_executor
-    from medc_sim.launcher import (
+    from medc_bringup.launcher import (
         _child_env,
         _stop,
         agent_parameters,
@@ -73,7 +74,6 @@ def run_graph(
         ros_args,
         sim_parameters,
     )
-    from medc_sim.node import SimNode
 
     cfg = load_config(None, agents=agents, grid=grid, walls=walls, seed=seed, policy=str(bundle))
     resolve_policies(cfg)  # fills max_steps from the bundle and checks it fits the grid
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.steps, args.duration = 100, 10.0
 
-    from medc_sim.ros_env import require_interfaces
+    from medc_common.ros_env import require_interfaces
 
     require_interfaces()
     import rclpy

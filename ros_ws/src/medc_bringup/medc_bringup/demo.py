@@ -226,13 +226,12 @@ def curves_png(runs: dict[str, Path], path: Path, title: str) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import torch
+    from medc_registry.registry import Registry
     from medc_training.bundle import load_bundle, read_manifest
     from medc_training.config import scaled_config
     from medc_training.experts import BundleExpert
     from medc_training.ppo import Trainer
     from medc_training.runner import run_training
-
-    from medc_registry.registry import Registry
 
     root = _repo_root()
     out = Path(args.out).resolve()

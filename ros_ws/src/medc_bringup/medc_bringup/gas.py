@@ -1,4 +1,7 @@
-"""Gas used by every contract function, next to the paper's Table III.
+"""medc-gas-report: gas used by every contract function, next to the paper's Table III.
+
+An offline measurement (nothing at run time imports it): ``medc-gas-report`` prints Markdown
+tables, ``medc-gas-report --json`` one JSON object.
 
 Measured on the embedded eth-tester chain (py-evm); every figure is a transaction's ``gasUsed``
 (21,000 intrinsic gas included, as in the paper's table). ``updateInfo`` and ``updateReputation``
@@ -9,12 +12,14 @@ lists it.
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import json
+import sys
 from typing import Any
 
-from .chain import ChainClient
-from .registry import MAX_CANDIDATES, ONE, deploy_contracts
+from medc_registry.chain import ChainClient
+from medc_registry.registry import MAX_CANDIDATES, ONE, deploy_contracts
 
 #: The paper's Table III (gas).
 PAPER_GAS = {
@@ -114,7 +119,7 @@ def _allocation_scaling(candidates: tuple[int, ...]) -> list[dict[str, int | Non
     the candidates, so the cost does not depend on how many models were shared). ``None`` marks
     a scan the contract refuses (TooManyCandidates).
     """
-    from .registry import Deployment, Registry
+    from medc_registry.registry import Deployment, Registry
 
     chain = ChainClient.embedded()
     dep = deploy_contracts(chain)
@@ -216,8 +221,15 @@ def format_report(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main(as_json: bool = False) -> int:
-    """Print the report (Markdown, or one JSON object)."""
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-gas-report``: print the report (Markdown, or one JSON object)."""
+    parser = argparse.ArgumentParser(prog="medc-gas-report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", action="store_true", help="one JSON object instead of tables")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     report = measure()
-    print(json.dumps(report) if as_json else format_report(report))
+    print(json.dumps(report) if args.json else format_report(report))
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -24,8 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-
-from medc_sim.ros_env import interfaces_env, repo_root, require_interfaces
+from medc_common.ros_env import interfaces_env, repo_root, require_interfaces
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "launch.yaml"
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
@@ -160,7 +159,7 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
         ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
         fit the scenario's observation shape.
     """
-    from medc_sim.contract import agent_index
+    from medc_common.contract import agent_index
 
     root = repo_root() if root is None else root
     base = _absolute(cfg.policy, root)
@@ -275,9 +274,8 @@ def build_graph(
     Returns ``(sim, agents, nodes)``, ``nodes`` = every node to spin (the feed included).
     """
     from medc_agents.node import AgentNode, TeamFeed
-    from rclpy.parameter import Parameter
-
     from medc_sim.node import SimNode
+    from rclpy.parameter import Parameter
 
     def overrides(params: dict[str, Any]) -> list[Parameter]:
         return [Parameter(k, value=v) for k, v in params.items()]
@@ -305,8 +303,7 @@ def run_in_process(
     rclpy must be initialised by the caller.
     """
     import rclpy
-
-    from medc_sim.executors import make_executor
+    from medc_common.executors import make_executor
 
     sim, _, nodes = build_graph(cfg, policies, episodes)
     sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
@@ -354,9 +351,8 @@ def run_processes(
     rclpy must be initialised by the caller. True if ``episodes`` finished (0 = until Ctrl-C).
     """
     import rclpy
+    from medc_common import contract
     from medc_interfaces.msg import EpisodeStatus
-
-    from medc_sim import contract
 
     monitor = rclpy.create_node("medc_launch")
     seen: set[int] = set()

@@ -24,7 +24,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from medc_sim.ros_env import require_interfaces
+from medc_common.ros_env import require_interfaces
 
 _LOOPBACK = ("http://127.0.0.1", "http://localhost", "http://[::1]")
 
@@ -194,9 +194,9 @@ def connect_registry(
 
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
+    from medc_common import contract
+    from medc_common.params import declare
     from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
-    from medc_sim import contract
-    from medc_sim.params import declare
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -297,7 +297,7 @@ def bridge_node_class():
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
     require_interfaces()
-    from medc_sim.executors import run_node
+    from medc_common.executors import run_node
     from rclpy.executors import SingleThreadedExecutor
 
     return run_node("medc-bridge", argv, lambda: bridge_node_class()(), errors=(BridgeError,),

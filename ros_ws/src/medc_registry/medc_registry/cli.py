@@ -2,9 +2,9 @@
 
 State lives in a home directory (``--home``, ``$MEDC_HOME`` or ``./.medc``): ``registry.json``
 records the chain (JSON-RPC URL, contract addresses), the content store and, for a node started
-here, the anvil process and its state file. Every command except ``start``, ``deploy``, ``cid`` and
-``gas-report`` reads it and stops with a clear message when no chain is configured — the CLI never
-falls back to a throwaway chain.
+here, the anvil process and its state file. Every command except ``start``, ``deploy`` and ``cid``
+reads it and stops with a clear message when no chain is configured — the CLI never falls back to a
+throwaway chain. The gas report is ``medc-gas-report`` (medc_bringup).
 
     medc-registry start                       # persistent local anvil + contracts + local content store
     medc-registry register --account 1
@@ -389,12 +389,6 @@ def cmd_cid(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_gas_report(args: argparse.Namespace) -> int:
-    from .gas import main as gas_main
-
-    return gas_main(as_json=args.json)
-
-
 def _deadline(text: str) -> float:
     try:
         value = float(text)
@@ -469,8 +463,6 @@ def build_parser() -> argparse.ArgumentParser:
     sp = add("cid", cmd_cid, "print the CID `ipfs add --only-hash` gives for FILE", account=False)
     sp.add_argument("file")
     sp.add_argument("--cid-version", type=int, choices=(0, 1), default=0)
-    sp = add("gas-report", cmd_gas_report, "measure every function's gas next to the paper", account=False)
-    sp.add_argument("--json", action="store_true", help="one JSON object instead of tables")
     return p
 
 

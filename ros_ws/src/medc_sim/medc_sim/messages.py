@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped
+from medc_common import contract
 from medc_interfaces.msg import EpisodeStatus, RadiationReading
 from nav_msgs.msg import OccupancyGrid
 
-from medc_sim import contract
 from medc_sim.sim_core import EpisodeResult
 
 OCCUPIED = contract.OCCUPIED

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from medc_sim.contract import agent_index
+from medc_common.contract import agent_index
 
 
 class MoveRejected(ValueError):

@@ -3,7 +3,7 @@
 Publishes, per agent, its pose (geometry_msgs/PoseStamped, frame "map") and radiation reading
 (medc_interfaces/RadiationReading), both with sensor-data QoS; the walls map (nav_msgs/
 OccupancyGrid, transient local) and one medc_interfaces/EpisodeStatus per team step. Applies each
-agent's medc_interfaces/AgentMove. Topic names and QoS: medc_sim.contract and docs/ros.md.
+agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and docs/ros.md.
 
 Modes:
   stepped   waits for every agent's move, then steps (at most ``rate_hz`` steps/s; 0 = no limit).
@@ -20,13 +20,14 @@ from collections.abc import Callable
 
 import torch
 from geometry_msgs.msg import PoseStamped
+from medc_common import contract
+from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
-from medc_sim import contract, messages
+from medc_sim import messages
 from medc_sim.moves import MoveBook, MoveRejected
-from medc_sim.params import declare
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 
 

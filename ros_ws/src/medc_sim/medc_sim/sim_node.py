@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 import time
 
-from medc_sim.ros_env import require_interfaces
+from medc_common.ros_env import require_interfaces
 
 #: How long a finished simulator waits for a reader of its episode results before exiting.
 RESULTS_READER_WAIT_S = 15.0
@@ -35,7 +35,8 @@ def spin_episodes(node, executor) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
     require_interfaces()
-    from medc_sim.executors import run_node
+    from medc_common.executors import run_node
+
     from medc_sim.node import SimNode
 
     return run_node("medc-sim", argv, SimNode, spin=spin_episodes)

@@ -1,0 +1,19 @@
+from setuptools import find_packages, setup
+
+PACKAGE = "medc_common"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="MEDC developers",
+    maintainer_email="dev@medc.invalid",
+    description="See package.xml",
+    license="Apache-2.0",
+)
