@@ -146,6 +146,23 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
         cli_main([*home, "stop"])
 
 
+def test_bridge_opens_a_json_rpc_registry_through_the_home_spec(anvil, tmp_path):
+    """The bridge's parameters are a spec of medc_registry.home: key file, contracts, store."""
+    from medc_registry.bridge_node import BridgeError, connect_registry
+
+    chain = ChainClient.connect(anvil.url, anvil.extra["private_keys"])
+    dep = deploy_contracts(chain)
+    keys = tmp_path / "bridge.key"
+    keys.write_text("\n".join(anvil.extra["private_keys"][6:8]) + "\n")
+    reg = connect_registry(anvil.url, str(tmp_path / "store"), dep.users, dep.models, str(keys), account=1)
+    assert reg.address == chain.addresses[7] and reg.deployment.models == dep.models
+    reg.register_user()
+    model = reg.share_model(b"bridge bytes", APP, {"agents": 1, "walls": 2}, PRICE)
+    assert (tmp_path / "store").is_dir() and reg.fetch(model.cid) == b"bridge bytes"
+    with pytest.raises(BridgeError, match="no Models Manager contract at"):
+        connect_registry(anvil.url, str(tmp_path / "store"), dep.users, reg.address, str(keys))
+
+
 def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):
     keys = tmp_path / "keys.txt"
     keys.write_text("\n".join(anvil.extra["private_keys"][5:8]) + "\n")

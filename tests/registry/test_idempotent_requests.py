@@ -19,8 +19,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import pytest
 from medc_registry import ChainClient
 from medc_registry.chain import ChainError
-from medc_registry.cli import PENDING_FILE
 from medc_registry.cli import main as cli_main
+from medc_registry.home import PENDING_FILE
 from medc_registry.nodes import free_port, start_anvil
 from registry_helpers import APP, PRICE
 

@@ -26,8 +26,6 @@ from typing import Any
 
 from medc_common.ros_env import require_interfaces
 
-_LOOPBACK = ("http://127.0.0.1", "http://localhost", "http://[::1]")
-
 
 class BridgeError(ValueError):
     """A bridge request that cannot be served; the message says why."""
@@ -156,40 +154,27 @@ def connect_registry(
     private_key_file: str = "",
     account: int = 0,
 ) -> Any:
-    """A :class:`medc_registry.Registry` from the bridge's connection parameters.
+    """A :class:`medc_registry.Registry` from the bridge's connection parameters, a spec of
+    medc_registry.home with every endpoint on loopback.
 
     ``chain="embedded"`` starts an in-process chain with fresh contracts (demos and tests).
     Otherwise ``chain`` is a JSON-RPC URL on this machine, the contract addresses are required,
-    and the signing key is read from ``private_key_file`` (never passed as a parameter, which
-    any node of the graph could read).
+    and the signing keys are read from ``private_key_file`` (never passed as a parameter, which
+    any node of the graph could read); ``account`` indexes them.
 
     Raises:
-        BridgeError: a missing or non-loopback endpoint, or a missing key file.
+        BridgeError: a missing or non-loopback endpoint, a missing key file, a node that does not
+        answer, or contracts that are not on the chain.
     """
-    from medc_registry import ChainClient, KuboContentStore, LocalContentStore, Registry
-    from medc_registry.registry import Deployment
+    from medc_registry.home import RegistryHomeError, spec_settings
+    from medc_registry.registry import Registry
 
-    if content.startswith("http"):
-        if not content.startswith(_LOOPBACK):
-            raise BridgeError(f"content API {content!r} must be on loopback (127.0.0.1)")
-        store = KuboContentStore(content)
-    else:
-        store = LocalContentStore(content or tempfile.mkdtemp(prefix="medc-bridge-store-"))
-    if chain == "embedded":
-        reg = Registry.embedded(account=account)
-        return Registry(reg.chain, store, reg.deployment, account)
-    if not chain.startswith(_LOOPBACK):
-        raise BridgeError(f"chain {chain!r} must be 'embedded' or a JSON-RPC URL on loopback")
-    if not (users_manager and models_manager):
-        raise BridgeError(
-            "users_manager and models_manager contract addresses are required with a JSON-RPC chain"
-        )
     try:
-        key = Path(private_key_file).read_text().strip()
-    except OSError as exc:
-        raise BridgeError(f"cannot read private_key_file {private_key_file!r}: {exc}") from exc
-    client = ChainClient.connect(chain, [key])
-    return Registry(client, store, Deployment(users_manager, models_manager), 0)
+        settings = spec_settings(chain, content, users_manager, models_manager, private_key_file,
+                                 loopback_only=True)
+        return Registry.from_settings(settings, account)
+    except RegistryHomeError as exc:
+        raise BridgeError(str(exc)) from None
 
 
 def bridge_node_class():
@@ -214,7 +199,8 @@ def bridge_node_class():
             users = p("users_manager", "", "UsersManager contract address (JSON-RPC chain)", True)
             models = p("models_manager", "", "ModelsManager contract address (JSON-RPC chain)", True)
             key_file = p("private_key_file", "", "File holding the bridge account's private key", True)
-            account = p("account", 0, "Account index on the embedded chain", True)
+            account = p("account", 0, "Signing account index: of the embedded chain's funded accounts, "
+                        "or of the keys in private_key_file", True)
             cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
             if registry is None:
                 registry = connect_registry(chain, content, users, models, key_file, account)

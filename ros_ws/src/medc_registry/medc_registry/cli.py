@@ -2,9 +2,10 @@
 
 State lives in a home directory (``--home``, ``$MEDC_HOME`` or ``./.medc``): ``registry.json``
 records the chain (JSON-RPC URL, contract addresses), the content store and, for a node started
-here, the anvil process and its state file. Every command except ``start``, ``deploy`` and ``cid``
-reads it and stops with a clear message when no chain is configured — the CLI never falls back to a
-throwaway chain. The gas report is ``medc-gas-report`` (medc_bringup).
+here, the anvil process and its state file (medc_registry.home reads and writes it). Every command
+except ``start``, ``deploy`` and ``cid`` reads it and stops with a clear message when no chain is
+configured — the CLI never falls back to a throwaway chain. The gas report is ``medc-gas-report``
+(medc_bringup).
 
     medc-registry start                       # persistent local anvil + contracts + local content store
     medc-registry register --account 1
@@ -33,103 +34,35 @@ from typing import Any
 
 from .chain import DEFAULT_DEADLINE, ChainClient, ChainError
 from .cid import compute_cid
-from .content import ContentStore, ContentStoreError, KuboContentStore, LocalContentStore
-from .registry import Deployment, PendingRequests, Registry, deploy_contracts, format_eth
+from .content import ContentStoreError
+from .home import (
+    HOME_DEADLINE,
+    STATE_FILE,
+    RegistryHomeError,
+    home_dir,
+    load_state,
+    save_state,
+    state_settings,
+)
+from .registry import Registry, deploy_contracts, format_eth
 
-STATE_FILE = "registry.json"
-#: Paid requests sent but not confirmed yet (written before each payment is sent).
-PENDING_FILE = "pending-requests.json"
 #: Default total seconds for one chain call from the CLI (``--deadline``).
-CLI_DEADLINE = 30.0
+CLI_DEADLINE = HOME_DEADLINE
 
 
 class CliError(RuntimeError):
     """A user-facing error: printed without a traceback, exit status 2."""
 
 
-# ---------------------------------------------------------------- state
-def home_dir(args: argparse.Namespace) -> Path:
-    """The state directory."""
-    return Path(args.home or os.environ.get("MEDC_HOME") or ".medc").resolve()
-
-
-def load_state(home: Path) -> dict[str, Any]:
-    """``registry.json`` (CliError when absent)."""
-    path = home / STATE_FILE
-    if not path.is_file():
-        raise CliError(
-            f"no registry configured in {home}: run `medc-registry start` (local anvil node) or "
-            "`medc-registry deploy --rpc URL --key-file FILE` first, or pass --home DIR"
-        )
-    return json.loads(path.read_text())
-
-
-def save_state(home: Path, state: dict[str, Any]) -> None:
-    """Write ``registry.json`` atomically."""
-    home.mkdir(parents=True, exist_ok=True)
-    tmp = home / (STATE_FILE + ".tmp")
-    tmp.write_text(json.dumps(state, indent=2) + "\n")
-    os.replace(tmp, home / STATE_FILE)
-
-
-def _keys(home: Path, state: dict[str, Any]) -> list[str]:
-    keys: list[str] = []
-    env_key = os.environ.get("MEDC_PRIVATE_KEY")
-    if env_key:
-        keys.append(env_key.strip())
-    key_file = state.get("key_file")
-    if key_file:
-        keys += [ln.strip() for ln in Path(key_file).read_text().splitlines() if ln.strip()]
-    if state.get("node"):
-        cfg = home / "anvil-accounts.json"
-        if cfg.is_file():
-            keys += json.loads(cfg.read_text()).get("private_keys", [])
-    if not keys:
-        raise CliError("no signing keys: set MEDC_PRIVATE_KEY or deploy with --key-file")
-    return keys
-
-
-def open_chain(home: Path, state: dict[str, Any], deadline: float | None = None) -> ChainClient:
-    """A client for the configured chain (CliError when the node does not answer in ``deadline`` s)."""
-    deadline = CLI_DEADLINE if deadline is None else deadline
-    try:
-        return ChainClient.connect(
-            state["rpc_url"],
-            _keys(home, state),
-            poa=state.get("poa", False),
-            timeout=min(10.0, deadline),
-            deadline=deadline,
-        )
-    except ChainError as exc:
-        hint = " (run `medc-registry start` to restart the local node)" if state.get("node") else ""
-        raise CliError(f"chain at {state['rpc_url']} is not reachable{hint}: {exc}") from None
-
-
-def open_store(home: Path, state: dict[str, Any]) -> ContentStore:
-    """The configured content store."""
-    content = state.get("content", {"kind": "local", "root": str(home / "content")})
-    if content["kind"] == "kubo":
-        return KuboContentStore(content["url"])
-    return LocalContentStore(content["root"])
+# ---------------------------------------------------------------- state (medc_registry.home)
+def open_chain(home: Path, state: dict[str, Any], deadline: float = CLI_DEADLINE) -> ChainClient:
+    """A client for the chain ``state`` records (RegistryHomeError when the node does not answer)."""
+    return state_settings(home, state).open_chain(deadline)
 
 
 def open_registry(args: argparse.Namespace) -> Registry:
     """The registry for ``--account`` from the recorded state."""
-    home = home_dir(args)
-    state = load_state(home)
-    chain = open_chain(home, state, getattr(args, "deadline", None))
-    dep = Deployment(state["users_manager"], state["models_manager"])
-    if not chain.has_code(dep.models):
-        raise CliError(
-            f"no Models Manager contract at {dep.models} on {state['rpc_url']}: the chain's state was lost; "
-            f"remove {home / STATE_FILE} and run `medc-registry start` again"
-        )
-    try:
-        reg = Registry(chain, open_store(home, state), dep, args.account)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-    reg.pending = PendingRequests(home / PENDING_FILE)
-    return reg
+    return Registry.from_home(args.home, args.account, args.deadline)
 
 
 # ---------------------------------------------------------------- parsing helpers
@@ -185,7 +118,7 @@ def _qos(value: float) -> str:
 def cmd_start(args: argparse.Namespace) -> int:
     from .nodes import NodeError, _rpc_ready, start_anvil
 
-    home = home_dir(args)
+    home = home_dir(args.home)
     state_path = home / STATE_FILE
     state = json.loads(state_path.read_text()) if state_path.is_file() else None
     if state and not state.get("node"):
@@ -232,7 +165,7 @@ def record_deployment(home: Path, state: dict[str, Any], chain, dep, ipfs_api: s
 
 
 def cmd_deploy(args: argparse.Namespace) -> int:
-    home = home_dir(args)
+    home = home_dir(args.home)
     if (home / STATE_FILE).exists():
         raise CliError(f"{home / STATE_FILE} exists; use another --home for a second deployment")
     key_file = str(Path(args.key_file).resolve())
@@ -245,7 +178,7 @@ def cmd_deploy(args: argparse.Namespace) -> int:
 
 
 def cmd_stop(args: argparse.Namespace) -> int:
-    home = home_dir(args)
+    home = home_dir(args.home)
     state = load_state(home)
     node = state.get("node")
     if not node:
@@ -471,7 +404,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, ChainError, ContentStoreError, ValueError, OSError) as exc:
+    except (CliError, RegistryHomeError, ChainError, ContentStoreError, ValueError, OSError) as exc:
         print(f"medc-registry {args.command}: {exc}", file=sys.stderr)
         return 2
 

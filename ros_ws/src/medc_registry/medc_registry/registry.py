@@ -24,7 +24,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,7 +34,16 @@ from eth_utils import to_checksum_address
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
-from .content import ContentStore, LocalContentStore
+from .content import ContentStore
+from .home import (
+    EMBEDDED,
+    HOME_DEADLINE,
+    STATE_FILE,
+    RegistryHomeError,
+    RegistrySettings,
+    home_settings,
+    spec_settings,
+)
 
 ONE = 10**18
 MAX_FEATURES = 8
@@ -268,22 +276,55 @@ class Registry:
 
         ``store_dir`` defaults to a new temporary directory. Nothing on the chain persists.
         """
-        chain = ChainClient.embedded()
-        store = LocalContentStore(store_dir or tempfile.mkdtemp(prefix="medc-store-"))
-        return cls(chain, store, deploy_contracts(chain), account)
+        return cls.from_settings(spec_settings(EMBEDDED, str(store_dir or "")), account)
 
     @classmethod
-    def from_home(cls, home: str | None = None, account: int | str = 0) -> Registry:
+    def from_settings(
+        cls, settings: RegistrySettings, account: int | str = 0, deadline: float | None = None
+    ) -> Registry:
+        """The registry ``settings`` describe (medc_registry.home: a home folder or a spec).
+
+        An embedded chain gets fresh contracts; on a JSON-RPC chain the recorded Models Manager
+        must be there. ``deadline``: total seconds of one chain call (default: the client's).
+
+        Raises:
+            RegistryHomeError: the node does not answer, there are no signing keys, the contracts
+            are not on the chain, or ``account`` is not one of the signing accounts.
+        """
+        store = settings.open_store()
+        chain = settings.open_chain(deadline)
+        if settings.embedded:
+            deployment = deploy_contracts(chain)
+        else:
+            deployment = Deployment(settings.users_manager, settings.models_manager)
+            if not chain.has_code(deployment.models):
+                fix = (f"remove {settings.home / STATE_FILE} and run `medc-registry start` again"
+                       if settings.home is not None else "check the models_manager address")
+                raise RegistryHomeError(
+                    f"no Models Manager contract at {deployment.models} on {settings.chain}: the chain's "
+                    f"state was lost or the address is wrong; {fix}"
+                )
+        try:
+            reg = cls(chain, store, deployment, account)
+        except ValueError as exc:
+            raise RegistryHomeError(str(exc)) from None
+        reg.pending = PendingRequests(settings.pending_file)
+        return reg
+
+    @classmethod
+    def from_home(
+        cls,
+        home: str | os.PathLike[str] | None = None,
+        account: int | str = 0,
+        deadline: float = HOME_DEADLINE,
+    ) -> Registry:
         """The registry recorded by ``medc-registry start`` / ``deploy`` in ``home``.
 
-        ``home`` defaults to ``$MEDC_HOME`` or ``./.medc``. Raises ``RuntimeError`` with the command
-        to run when no chain is configured there or its node does not answer.
+        ``home`` defaults to ``$MEDC_HOME`` or ``./.medc``. Raises ``RegistryHomeError`` (a
+        ``RuntimeError``) with the command to run when no chain is configured there or its node
+        does not answer.
         """
-        import argparse
-
-        from .cli import open_registry
-
-        return open_registry(argparse.Namespace(home=home, account=account))
+        return cls.from_settings(home_settings(home), account, deadline)
 
     def as_user(self, account: int | str) -> Registry:
         """The same registry acting as another signing account (index or address)."""
