@@ -288,6 +288,7 @@ def test_map_frame_follows_rep_103():
     from medc_training.envs.grid import ACTIONS
 
     g = GridGeometry(10, 10, 1.0)
+    assert len(contract.MOVE_STEPS) == len(contract.MOVE_HEADINGS) == len(ACTIONS)
     assert g.cell_to_xy(0, 0) == (0.5, 9.5)  # environment row 0 = the northern row
     assert g.cell_to_xy(9, 3) == (3.5, 0.5)
     for action, (drow, dcol) in enumerate(ACTIONS):
@@ -312,6 +313,13 @@ def test_map_frame_follows_rep_103():
     data = contract.walls_to_occupancy(walls)
     assert data[3 * 3 + 2] == 100 and sum(data) == 100
     assert (contract.occupancy_to_walls(data, 4, 3) == walls.numpy()).all()
+
+
+def test_agent_takes_its_action_count_from_the_environment():
+    """The agent node checks bundles against the environment's action count, not a literal."""
+    from medc_agents.node import NUM_ACTIONS
+
+    assert make_batched("target_localization", grid=10, walls=1).num_actions == NUM_ACTIONS
 
 
 def _map(walls, load: Time, header: Time | None = None, resolution: float = 1.0, origin=(0.0, 0.0)):

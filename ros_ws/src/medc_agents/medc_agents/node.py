@@ -26,7 +26,7 @@ from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
 from medc_training.bundle import MAX_FORWARD_SECONDS
-from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
+from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -42,7 +42,8 @@ from medc_agents.policy import (
 )
 from medc_agents.team_state import TeamObserver, Tick, show_stamp
 
-NUM_ACTIONS = 8  # medc_training.envs.target_localization.ACTIONS
+#: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
+NUM_ACTIONS = len(ACTIONS)
 #: Default of the agent's ``stall_timeout_s`` (docs/ros.md): longer than a driver's re-send period
 #: (the simulator's resend_s is 0.5 s), so one lost best-effort message is not reported.
 STALL_TIMEOUT_S = 2.0
