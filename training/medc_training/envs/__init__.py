@@ -52,12 +52,15 @@ def make_batched(
     return cls(num_envs=num_envs, device=device, seed=seed, **options)
 
 
-def make_env(name: str, **options: Any):
+def make_env(name: str, render_mode: str | None = None, **options: Any):
     """A PettingZoo ``ParallelEnv`` over one environment of application ``name``.
 
     Options: those of :func:`make_batched` (except num_envs) plus ``render_mode``
     (None or "rgb_array").
     """
-    from medc_training.envs.parallel import GridParallelEnv
+    from medc_training.envs.parallel import GridParallelEnv, check_render_mode
 
-    return GridParallelEnv(name, **options)
+    check_render_mode(render_mode)
+    if "num_envs" in options or "copy_obs" in options:
+        raise ValueError("make_env always wraps one environment; use make_batched for num_envs/copy_obs")
+    return GridParallelEnv(make_batched(name, num_envs=1, copy_obs=True, **options), render_mode)

@@ -21,34 +21,31 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from medc_training.envs import ENV_NAMES, make_batched
+from medc_training.envs.core import BatchedEnv
 
 RENDER_MODES = ("rgb_array",)
 
 
+def check_render_mode(render_mode: str | None) -> None:
+    """Raises ValueError unless ``render_mode`` is None or one of :data:`RENDER_MODES`."""
+    if render_mode is not None and render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+
+
 class GridParallelEnv(ParallelEnv):
-    """``make_env(name, **options)``: one environment of ``name`` as a PettingZoo ParallelEnv."""
+    """``make_env(name, **options)``: one environment of ``name`` as a PettingZoo ParallelEnv,
+    over the batched core (B = 1, ``copy_obs=True``) that make_env builds for it."""
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": list(RENDER_MODES), "is_parallelizable": True}
 
-    def __init__(
-        self,
-        name: str,
-        render_mode: str | None = None,
-        seed: int | None = None,
-        device: str = "cpu",
-        **options: Any,
-    ) -> None:
-        if name not in ENV_NAMES:
-            raise ValueError(f"unknown environment {name!r}; choose one of {', '.join(ENV_NAMES)}")
-        if render_mode is not None and render_mode not in RENDER_MODES:
-            raise ValueError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
-        if "num_envs" in options or "copy_obs" in options:
-            raise ValueError("make_env always wraps one environment; use make_batched for num_envs/copy_obs")
-        self.core = make_batched(name, num_envs=1, device=device, seed=seed, copy_obs=True, **options)
+    def __init__(self, core: BatchedEnv, render_mode: str | None = None) -> None:
+        check_render_mode(render_mode)
+        if core.num_envs != 1:
+            raise ValueError(f"a ParallelEnv wraps one environment, got a core of {core.num_envs}")
+        self.core = core
         self.render_mode = render_mode
         self.core.keep_final_pictures = render_mode is not None
-        self.metadata = {**GridParallelEnv.metadata, "name": f"medc_{name}_v0"}
+        self.metadata = {**GridParallelEnv.metadata, "name": f"medc_{core.name}_v0"}
         self.possible_agents = [f"agent_{i}" for i in range(self.core.num_agents)]
         self.agents: list[str] = []
         c, h, w = self.core.obs_shape
