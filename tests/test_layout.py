@@ -1,41 +1,260 @@
-"""The repository layout of design.md section 2: valid ament_python packages, one-way imports."""
+"""The repository layout of design.md section 2: valid ament_python packages, one-way imports.
+
+Packages (docs/ros.md, "Packages"): ``medc_common`` (topic contract and ROS plumbing) is what the
+node packages share; ``medc_sim``, ``medc_agents`` and ``medc_registry`` are leaves that never
+import each other; ``medc_bringup`` (launcher, demo, benches, gas report) may import them all and
+nothing imports it. Every package.xml declares exactly what its package imports, and no module of
+the house takes part in an import cycle (function-local imports included).
+"""
 
 from __future__ import annotations
 
 import ast
+import sys
+import tomllib
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+ROS_SRC = REPO_ROOT / "ros_ws" / "src"
+TRAINING = REPO_ROOT / "training"
 
-AMENT_PYTHON = ["medc_sim", "medc_agents", "medc_registry"]
+AMENT_PYTHON = sorted(p.name for p in ROS_SRC.iterdir() if (p / "setup.py").is_file())
+#: Node packages that must not need one another (a UAV runs an agent without the simulator).
+LEAVES = ("medc_sim", "medc_agents", "medc_registry")
+SHARED = "medc_common"
+BRINGUP = "medc_bringup"
+#: Packages of this repository that a package may import (medc_interfaces: the messages).
+HOUSE = {*AMENT_PYTHON, "medc_interfaces", "medc_training"}
+
+#: rosdep keys of the third-party Python modules the ROS packages import.
+ROSDEP_KEYS = {
+    "numpy": "python3-numpy",
+    "torch": "python3-torch",
+    "yaml": "python3-yaml",
+    "matplotlib": "python3-matplotlib",
+    "web3": "python3-web3",
+    "eth_abi": "python3-eth-abi",
+    "eth_account": "python3-eth-account",
+    "eth_utils": "python3-eth-utils",
+    "httpx": "python3-httpx",
+    "requests": "python3-requests",
+}
+
+
+def test_the_expected_packages_exist() -> None:
+    assert set(AMENT_PYTHON) == {SHARED, *LEAVES, BRINGUP}
 
 
 @pytest.mark.parametrize("pkg", AMENT_PYTHON)
 def test_ament_python_package_is_valid(pkg: str) -> None:
-    root = REPO_ROOT / "ros_ws" / "src" / pkg
+    root = ROS_SRC / pkg
     tree = ET.parse(root / "package.xml").getroot()
     assert tree.tag == "package" and tree.get("format") == "3"
     assert tree.findtext("name") == pkg
     assert tree.find("export/build_type").text == "ament_python"
     assert (root / "resource" / pkg).is_file(), "ament index marker missing"
     assert (root / "setup.py").is_file() and (root / pkg / "__init__.py").is_file()
+    assert (root / "setup.cfg").read_text().count(f"$base/lib/{pkg}") == 2, "setup.cfg script dirs"
 
 
-def _imported_modules(path: Path) -> set[str]:
-    mods: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+# ---------------------------------------------------------------- modules and their imports
+def _house_modules() -> dict[str, tuple[Path, bool]]:
+    """Every module of the house: dotted name -> (file, is a package __init__)."""
+    roots = [(TRAINING, TRAINING / "medc_training")] + [(ROS_SRC / p, ROS_SRC / p / p) for p in AMENT_PYTHON]
+    modules: dict[str, tuple[Path, bool]] = {}
+    for base, package in roots:
+        for path in sorted(package.rglob("*.py")):
+            parts = list(path.relative_to(base).with_suffix("").parts)
+            is_package = parts[-1] == "__init__"
+            modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    return modules
+
+
+MODULES = _house_modules()
+
+
+def _imports(path: Path, is_package: bool, module: str) -> Iterator[tuple[str, int]]:
+    """``(absolute module name, line)`` of every import in ``path``, at any depth (function-local
+    imports included); relative imports resolved against ``module``; for ``from M import N`` the
+    submodule ``M.N`` when it is one of the house, else ``M``."""
+    package = module if is_package else module.rpartition(".")[0]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            mods.update(a.name.split(".")[0] for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            mods.add(node.module.split(".")[0])
-    return mods
+            for alias in node.names:
+                yield alias.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = parts[: len(parts) - (node.level - 1)]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            if name == "__future__":
+                continue
+            for alias in node.names:
+                sub = f"{name}.{alias.name}"
+                yield (sub if sub in MODULES else name), node.lineno
+
+
+def _house_target(name: str) -> str | None:
+    """The house module an import of ``name`` runs (its longest prefix that is one), if any."""
+    while name:
+        if name in MODULES:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def _top_level_imports(pkg: str) -> dict[str, str]:
+    """Top-level names the modules of ROS package ``pkg`` import (stdlib and itself left out),
+    each with one place that imports it."""
+    found: dict[str, str] = {}
+    for module, (path, is_package) in MODULES.items():
+        if module.split(".")[0] != pkg:
+            continue
+        for name, line in _imports(path, is_package, module):
+            top = name.split(".")[0]
+            if top != pkg and top not in sys.stdlib_module_names:
+                found.setdefault(top, f"{path.relative_to(REPO_ROOT)}:{line}")
+    return found
+
+
+def _is_ros_package(name: str) -> bool:
+    return name == "rclpy" or name.endswith(("_msgs", "_interfaces")) or name.startswith("medc_")
+
+
+def _exec_depends(pkg: str) -> list[str]:
+    tree = ET.parse(ROS_SRC / pkg / "package.xml").getroot()
+    return [e.text.strip() for e in tree.findall("exec_depend")]
+
+
+@pytest.mark.parametrize("pkg", AMENT_PYTHON)
+def test_package_xml_declares_exactly_what_the_package_imports(pkg: str) -> None:
+    imported = _top_level_imports(pkg)
+    unknown = sorted(n for n in imported if not _is_ros_package(n) and n not in ROSDEP_KEYS)
+    assert not unknown, (
+        f"{pkg} imports {unknown} ({', '.join(imported[n] for n in unknown)}): add its rosdep key to "
+        "ROSDEP_KEYS here and an <exec_depend> to the package.xml"
+    )
+    needed = {n if _is_ros_package(n) else ROSDEP_KEYS[n]: where for n, where in imported.items()}
+    declared = _exec_depends(pkg)
+    assert len(declared) == len(set(declared)), f"{pkg}/package.xml declares a dependency twice"
+    missing = sorted(set(needed) - set(declared))
+    assert not missing, f"{pkg}/package.xml lacks <exec_depend> for " + ", ".join(
+        f"{d} (imported at {needed[d]})" for d in missing)
+    unused = sorted(set(declared) - set(needed))
+    assert not unused, f"{pkg}/package.xml declares {unused}, which no module of {pkg} imports"
+
+
+def _package_graph() -> dict[str, set[str]]:
+    """House package -> the house packages its modules import."""
+    return {pkg: {n for n in _top_level_imports(pkg) if n in HOUSE} for pkg in AMENT_PYTHON}
+
+
+def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` as a path ``[a, b, ..., a]``, or None (iterative DFS, sorted order)."""
+    state: dict[str, int] = {}  # 1 = on the current path, 2 = done
+    for start in sorted(graph):
+        if start in state:
+            continue
+        path, stack = [start], [iter(sorted(graph[start]))]
+        state[start] = 1
+        while stack:
+            nxt = next(stack[-1], None)
+            if nxt is None:
+                state[path.pop()] = 2
+                stack.pop()
+            elif state.get(nxt) == 1:
+                return [*path[path.index(nxt):], nxt]
+            elif nxt not in state:
+                state[nxt] = 1
+                path.append(nxt)
+                stack.append(iter(sorted(graph.get(nxt, ()))))
+    return None
+
+
+def test_cycle_finder_reports_the_path() -> None:
+    assert _find_cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+    assert _find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert _find_cycle({"a": {"a"}}) == ["a", "a"]
+
+
+def test_package_graph_points_one_way() -> None:
+    graph = _package_graph()
+    cycle = _find_cycle(graph)
+    assert cycle is None, "package import cycle: " + " -> ".join(cycle)
+    for leaf in LEAVES:
+        others = graph[leaf] & {*LEAVES, BRINGUP}
+        assert not others, f"{leaf} imports {sorted(others)}: share it through {SHARED} instead"
+    assert graph[SHARED] <= {"medc_interfaces"}, f"{SHARED} must need no other MEDC package"
+    importers = sorted(p for p in AMENT_PYTHON if p != BRINGUP and BRINGUP in graph[p])
+    assert not importers, f"{importers} import {BRINGUP}; nothing at run time may need it"
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """House module -> the house modules it imports (function-local imports included)."""
+    graph: dict[str, set[str]] = {}
+    for module, (path, is_package) in MODULES.items():
+        targets = {_house_target(name) for name, _ in _imports(path, is_package, module)}
+        graph[module] = {t for t in targets if t is not None and t != module}
+    return graph
+
+
+def test_no_module_takes_part_in_an_import_cycle() -> None:
+    cycle = _find_cycle(_module_graph())
+    assert cycle is None, "import cycle (function-local imports count): " + " -> ".join(cycle)
+
+
+def test_the_gas_report_is_an_offline_tool() -> None:
+    """medc-gas-report measures the contracts; no other module (the CLI included) imports it."""
+    importers = sorted(m for m, targets in _module_graph().items() if "medc_bringup.gas" in targets)
+    assert importers == [], f"{importers} import the gas report"
 
 
 def test_training_never_imports_ros_web3_or_nodes() -> None:
-    forbidden = {"rclpy", "web3", "medc_sim", "medc_agents", "medc_registry", "medc_interfaces"}
-    for path in (REPO_ROOT / "training" / "medc_training").rglob("*.py"):
-        bad = _imported_modules(path) & forbidden
+    forbidden = {"rclpy", "web3", "medc_interfaces", *AMENT_PYTHON}
+    for module, (path, is_package) in MODULES.items():
+        if module.split(".")[0] != "medc_training":
+            continue
+        bad = {name.split(".")[0] for name, _ in _imports(path, is_package, module)} & forbidden
         assert not bad, f"{path.relative_to(REPO_ROOT)} imports {sorted(bad)}"
+
+
+# ---------------------------------------------------------------- console scripts
+def _entry_points() -> Iterator[tuple[str, str, str, str]]:
+    """``(declared in, group, name, "module:function")`` of every entry point of the house."""
+    for pkg in AMENT_PYTHON:
+        setup = ROS_SRC / pkg / "setup.py"
+        for node in ast.walk(ast.parse(setup.read_text())):
+            if isinstance(node, ast.keyword) and node.arg == "entry_points":
+                for group, specs in ast.literal_eval(node.value).items():
+                    for spec in specs:
+                        name, _, target = (s.strip() for s in spec.partition("="))
+                        yield pkg, group, name, target
+    project = tomllib.loads((TRAINING / "pyproject.toml").read_text())["project"]
+    for name, target in project["scripts"].items():
+        yield "medc_training", "console_scripts", name, target
+    for group, specs in project["entry-points"].items():
+        for name, target in specs.items():
+            yield "medc_training", group, name, target
+
+
+def test_every_entry_point_names_a_function_of_its_own_package() -> None:
+    seen: dict[tuple[str, str], str] = {}
+    for owner, group, name, target in _entry_points():
+        assert (group, name) not in seen, f"{group} {name} declared by {seen[(group, name)]} and {owner}"
+        seen[(group, name)] = owner
+        module, _, function = target.partition(":")
+        assert module.split(".")[0] == owner, f"{name} ({target}) is not in {owner}, which declares it"
+        assert module in MODULES, f"{name}: no module {module}"
+        tree = ast.parse(MODULES[module][0].read_text())
+        defined = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+        assert function in defined, f"{name}: {module} defines no function {function}"
+    scripts = {name for group, name in seen if group == "console_scripts"}
+    assert {"medc-launch", "medc-demo", "medc-gas-report", "medc-sim", "medc-agent", "medc-bridge",
+            "medc-registry"} <= scripts
+    assert seen[("medc_bench", "ros")] == BRINGUP
