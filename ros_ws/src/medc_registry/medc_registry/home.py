@@ -22,7 +22,7 @@ import json
 import os
 import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +64,7 @@ class RegistrySettings:
     #: The home the settings were read from (paid requests are recorded there); None for a spec.
     home: Path | None = None
     #: The chain is the anvil node `medc-registry start` runs in ``home``.
-    local_node: bool = field(default=False)
+    local_node: bool = False
 
     @property
     def embedded(self) -> bool:
