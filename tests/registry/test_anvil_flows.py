@@ -161,6 +161,8 @@ def test_bridge_opens_a_json_rpc_registry_through_the_home_spec(anvil, tmp_path)
     assert (tmp_path / "store").is_dir() and reg.fetch(model.cid) == b"bridge bytes"
     with pytest.raises(BridgeError, match="no Models Manager contract at"):
         connect_registry(anvil.url, str(tmp_path / "store"), dep.users, reg.address, str(keys))
+    with pytest.raises(BridgeError, match="account index 2 out of range"):
+        connect_registry(anvil.url, str(tmp_path / "store"), dep.users, dep.models, str(keys), account=2)
 
 
 def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):

@@ -66,7 +66,7 @@ def test_an_embedded_spec_opens_a_registry_on_the_given_store(tmp_path: Path) ->
     reg.register_user()
     model = reg.share_model(b"expert bytes", APP, {"agents": 1, "walls": 3}, PRICE)
     assert (tmp_path / "store").is_dir() and reg.fetch(model.cid) == b"expert bytes"
-    with pytest.raises(RegistryHomeError, match="account index 10 out of range"):
+    with pytest.raises(ValueError, match="account index 10 out of range"):
         Registry.from_settings(spec_settings("embedded", str(tmp_path / "store")), account=10)
 
 

@@ -164,7 +164,7 @@ def connect_registry(
 
     Raises:
         BridgeError: a missing or non-loopback endpoint, a missing key file, a node that does not
-        answer, or contracts that are not on the chain.
+        answer, contracts that are not on the chain, or an account without a key.
     """
     from medc_registry.home import RegistryHomeError, spec_settings
     from medc_registry.registry import Registry
@@ -173,7 +173,7 @@ def connect_registry(
         settings = spec_settings(chain, content, users_manager, models_manager, private_key_file,
                                  loopback_only=True)
         return Registry.from_settings(settings, account)
-    except RegistryHomeError as exc:
+    except (RegistryHomeError, ValueError) as exc:  # ValueError: an account it has no key for
         raise BridgeError(str(exc)) from None
 
 

@@ -288,8 +288,9 @@ class Registry:
         must be there. ``deadline``: total seconds of one chain call (default: the client's).
 
         Raises:
-            RegistryHomeError: the node does not answer, there are no signing keys, the contracts
-            are not on the chain, or ``account`` is not one of the signing accounts.
+            RegistryHomeError: the node does not answer, there are no signing keys, or the
+            contracts are not on the chain.
+            ValueError: ``account`` is not one of the signing accounts.
         """
         store = settings.open_store()
         chain = settings.open_chain(deadline)
@@ -304,10 +305,7 @@ class Registry:
                     f"no Models Manager contract at {deployment.models} on {settings.chain}: the chain's "
                     f"state was lost or the address is wrong; {fix}"
                 )
-        try:
-            reg = cls(chain, store, deployment, account)
-        except ValueError as exc:
-            raise RegistryHomeError(str(exc)) from None
+        reg = cls(chain, store, deployment, account)
         reg.pending = PendingRequests(settings.pending_file)
         return reg
 
