@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import secrets
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -147,6 +148,24 @@ def check_int(name: str, value: Any, lo: int, hi: int) -> int:
     if not lo <= value <= hi:
         raise ValueError(f"{name} must be an integer in {lo}..{hi}, got {value}")
     return value
+
+
+#: The longest episode (``max_steps``) any core accepts.
+MAX_EPISODE_STEPS = 1_000_000
+
+
+def check_core_options(grid: Any, agents: Any, max_steps: Any, *, grid_range: tuple[int, int],
+                       max_agents: Callable[[int], int]) -> tuple[int, int, int]:
+    """The options every core takes, checked the same way; returns (grid, agents, max_steps).
+
+    ``grid`` (side of the square area) must be in ``grid_range``, ``agents`` in
+    1..``max_agents(grid)`` and ``max_steps`` in 1..:data:`MAX_EPISODE_STEPS`; otherwise
+    ValueError names the option and what is allowed.
+    """
+    grid = check_int("grid", grid, *grid_range)
+    agents = check_int("agents", agents, 1, max_agents(grid))
+    max_steps = check_int("max_steps", max_steps, 1, MAX_EPISODE_STEPS)
+    return grid, agents, max_steps
 
 
 def check_bool(name: str, value: Any) -> bool:

@@ -55,7 +55,7 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
+from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_core_options, check_int
 from medc_training.envs.grid import (
     ACTION_NAMES,
     ACTIONS,
@@ -134,11 +134,12 @@ def max_walls(grid: int) -> int:
 
 
 def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[int, int, int, int]:
-    """Validate the scenario options; raise ValueError saying what is allowed."""
-    grid = check_int("grid", grid, 5, _MAX_GRID)
-    agents = check_int("agents", agents, 1, min(_MAX_AGENTS, grid * grid // 4))
+    """Validate the scenario options (the cores' shared check, then the walls); raise ValueError
+    saying what is allowed."""
+    grid, agents, max_steps = check_core_options(
+        grid, agents, max_steps, grid_range=(5, _MAX_GRID), max_agents=lambda g: min(_MAX_AGENTS, g * g // 4)
+    )
     walls = check_int("walls", walls, 0, max_walls(grid))
-    max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
     return agents, walls, grid, max_steps
 
 
