@@ -47,7 +47,7 @@ class GridParallelEnv(ParallelEnv):
             raise ValueError("make_env always wraps one environment; use make_batched for num_envs/copy_obs")
         self.core = make_batched(name, num_envs=1, device=device, seed=seed, copy_obs=True, **options)
         self.render_mode = render_mode
-        self.core.keep_final_pictures = render_mode is not None
+        self.core.keep_pictures(render_mode is not None)
         self.metadata = {**GridParallelEnv.metadata, "name": f"medc_{name}_v0"}
         self.possible_agents = [f"agent_{i}" for i in range(self.core.num_agents)]
         self.agents: list[str] = []

@@ -154,16 +154,17 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
     obs, _ = env.reset(seed=seed)
     core = env.unwrapped.core  # the batched core (B = 1) under the PettingZoo wrapper
     # The core starts a new episode as soon as this one ends: take the layout now.
-    walls = core.walls[0].cpu().numpy().copy()
-    ty, tx = core.target[0].tolist()
-    paths: list[list[tuple[int, int]]] = [[tuple(p)] for p in core.positions[0].tolist()]
+    start = core.state(0)
+    walls = start.walls.cpu().numpy()
+    ty, tx = start.target
+    paths: list[list[tuple[int, int]]] = [[p] for p in start.positions]
     steps, success = 0, False
     agents = list(env.agents)
     while env.agents:
         batch = np.stack([obs[a]["observation"] for a in agents])
         masks = np.stack([obs[a]["action_mask"] for a in agents]).astype(bool)
         acts = bundle.act(batch, masks, greedy=True).tolist()
-        before = core.positions[0].tolist()
+        before = core.state(0).positions
         obs, _, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, acts)})
         steps += 1
         if any(terms.values()) or any(truncs.values()):
@@ -174,8 +175,8 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
                 dr, dc = deltas[acts[i]] if m[acts[i]] else (0, 0)
                 paths[i].append((pos[0] + dr, pos[1] + dc))
             break
-        for i, p in enumerate(core.positions[0].tolist()):
-            paths[i].append(tuple(p))
+        for i, p in enumerate(core.state(0).positions):
+            paths[i].append(p)
     fig, ax = plt.subplots(figsize=(5, 5))
     ax.imshow(walls, cmap="Greys", origin="upper")
     ax.plot(tx, ty, marker="*", color="red", markersize=18, label="target")
