@@ -28,7 +28,7 @@ import torch
 from .buffer import RolloutBuffer
 from .config import TrainConfig
 from .evaluate import net_policy, play, summarize_episodes
-from .experts import Expert, OracleExpert, selection_weights
+from .experts import Expert, selection_weights
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
 from .nets import make_actor_critic, masked_logits
@@ -105,8 +105,7 @@ class Trainer:
         for expert in self.experts:
             expert.check_compatible(self.obs_shape, self.A,
                                     observation=getattr(self.env, "observation_name", None))
-            if isinstance(expert, OracleExpert) or isinstance(getattr(expert, "inner", None), OracleExpert):
-                (expert if isinstance(expert, OracleExpert) else expert.inner).bind(self.env)
+            expert.bind(self.env)
         self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None
         self.buffer = RolloutBuffer(cfg.rollout_len, self.B, self.N, self.obs_shape, self.A, self.device)
         self.global_step = 0
