@@ -276,6 +276,14 @@ class Trainer:
         """The learner whose policy is evaluated and shipped (itself; FRL picks one user)."""
         return self
 
+    def side_names(self) -> list[str]:
+        """Other learners whose evaluation curves the run loop records: none for one Trainer."""
+        return []
+
+    def side_evaluate(self) -> dict[str, dict]:
+        """Evaluation of each of :meth:`side_names` (none for one Trainer)."""
+        return {}
+
     def state_dict(self) -> dict:
         """Everything needed to resume: weights, optimiser, RNG states, counters."""
         return {
