@@ -6,18 +6,10 @@ import dataclasses
 
 import pytest
 import torch
-from medc_training.envs import ENV_NAMES, make_batched
+from env_scenarios import SMALL
+from medc_training.envs import make_batched
 from medc_training.envs.core import EnvState
 from medc_training.envs.target_localization import TargetLocalizationState
-
-SMALL = {
-    "target_localization": {"agents": 3, "walls": 2, "grid": 12, "max_steps": 40},
-    "fleet_coordination": {"agents": 3, "customers": 4, "capacity": 2, "grid": 6, "max_steps": 40},
-    "maze_cleaning": {"agents": 2, "grid": 7, "max_steps": 40},
-}
-@pytest.fixture(params=ENV_NAMES)
-def name(request: pytest.FixtureRequest) -> str:
-    return request.param
 
 
 def test_state_is_a_snapshot_of_copies(name: str) -> None:
