@@ -91,8 +91,12 @@ class _MaskChecked:
 def test_steps_mode_plays_exactly_that_many_steps_and_keeps_every_episode():
     env = _MaskChecked(make_batched("target_localization", num_envs=3, seed=2, **TL))
     steps = 2 * TL["max_steps"] + 5
-    result = play(env, None, steps=steps, seed=4)
+    seen = []
+    result = play(env, None, steps=steps, seed=4, on_step=lambda actions, out: seen.append((actions, out)))
     assert env.steps == steps
+    # on_step saw every step: the actions given and what the env returned
+    assert len(seen) == steps and all(a.shape == (3, TL["agents"]) for a, _ in seen)
+    assert sum(int(out.done.sum()) for _, out in seen) == len(result.lengths)
     assert len(result.lengths) >= 3 * 2  # each episode lasts at most max_steps
     # every step of every environment belongs to a kept episode or to the one still running
     running = sum(env.state(i).step for i in range(3))

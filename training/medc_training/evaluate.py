@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .envs import make_batched
+from .envs import StepOutput, make_batched
 from .nets import masked_logits
 
 #: A policy: action logits [M, A] for observations [M, C, H, W] and their move masks [M, A]
@@ -70,7 +70,8 @@ def net_policy(net: torch.nn.Module, device: torch.device | str | None = None) -
 @torch.no_grad()
 def play(env, policy: Policy | None = None, *, episodes: int | None = None, steps: int | None = None,
          greedy: bool = True, seed: int = 12345, sampling: str = "multinomial",
-         max_batched_steps: int = 100_000) -> PlayResult:
+         max_batched_steps: int = 100_000, on_step: Callable[[torch.Tensor, StepOutput], None] | None = None
+         ) -> PlayResult:
     """Reset ``env`` from ``seed`` and let ``policy`` play every agent of every environment.
 
     Give exactly one of ``episodes`` (play until that many episodes finished, at most
@@ -78,6 +79,7 @@ def play(env, policy: Policy | None = None, *, episodes: int | None = None, step
     (play exactly that many batched steps and keep every episode that finished). ``policy`` None
     plays uniformly random valid moves (always sampled); otherwise ``greedy`` takes the most
     probable valid move and ``greedy=False`` samples one (``sampling``: see :data:`SAMPLINGS`).
+    ``on_step(actions [B,N], out)``, if given, sees every step (e.g. to record a trace).
     """
     if (episodes is None) == (steps is None):
         raise ValueError("play needs exactly one of episodes= (finished episodes) or steps= (batched steps)")
@@ -108,7 +110,10 @@ def play(env, policy: Policy | None = None, *, episodes: int | None = None, step
             actions = (logits - torch.log(-torch.log(uniform.clamp_min(1e-20)))).argmax(-1)
         else:
             actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=gen).squeeze(-1)
-        out = env.step(actions.view(B, N).to(env.device))
+        actions = actions.view(B, N).to(env.device)
+        out = env.step(actions)
+        if on_step is not None:
+            on_step(actions, out)
         ret += out.reward.to(env.device).float()
         done = out.terminated | out.truncated
         if done.any():
