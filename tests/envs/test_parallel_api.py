@@ -5,19 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from env_scenarios import SMALL
 from medc_training.envs import ENV_NAMES, make_batched, make_env
 from pettingzoo.test import parallel_api_test, parallel_seed_test
-
-SMALL = {
-    "target_localization": {"agents": 3, "walls": 2, "grid": 12, "max_steps": 40},
-    "fleet_coordination": {"agents": 3, "customers": 4, "capacity": 2, "grid": 6, "max_steps": 40},
-    "maze_cleaning": {"agents": 2, "grid": 7, "max_steps": 40},
-}
-
-
-@pytest.fixture(params=ENV_NAMES)
-def name(request: pytest.FixtureRequest) -> str:
-    return request.param
 
 
 def test_parallel_api(name: str) -> None:

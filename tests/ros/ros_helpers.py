@@ -18,29 +18,29 @@ def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: in
 def reference_episodes(
     bundle: Path, episodes: int, *, seed: int, agents: int, walls: int, grid: int, max_steps: int
 ):
-    """Play ``episodes`` with the training environment and ``bundle`` greedy, as training would.
+    """Play ``episodes`` with the training environment and ``bundle`` greedy, through the play
+    loop that training's evaluations use.
 
     Returns (lengths, successes, trace) with trace = [(episode, step, actions)] like SimCore.trace.
     """
-    import torch
     from medc_training.bundle import load_bundle
+    from medc_training.evaluate import net_policy, play
 
     policy = load_bundle(bundle)
     env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
                        observation=policy.observation)
-    obs, mask = env.reset()
-    lengths, successes, trace, step = [], [], [], 0
-    with torch.no_grad():
-        while len(lengths) < episodes:
-            actions = policy.act(obs[0], mask[0], greedy=True)
-            trace.append((len(lengths), step, [int(a) for a in actions]))
-            out = env.step(actions.unsqueeze(0))
-            obs, mask, step = out.obs, out.mask, step + 1
-            if bool(out.terminated[0] | out.truncated[0]):
-                lengths.append(int(out.episode_length[0]))
-                successes.append(bool(out.success[0]))
-                step = 0
-    return lengths, successes, trace
+    trace: list[tuple[int, int, list[int]]] = []
+    clock = {"episode": 0, "step": 0}
+
+    def record(actions, out) -> None:
+        trace.append((clock["episode"], clock["step"], [int(a) for a in actions[0]]))
+        clock["step"] += 1
+        if bool(out.done[0]):
+            clock["episode"], clock["step"] = clock["episode"] + 1, 0
+
+    played = play(env, net_policy(policy.net, policy.device), episodes=episodes, greedy=True, seed=seed,
+                  on_step=record)
+    return list(played.lengths), list(played.successes), trace
 
 
 def spin_until(executor, condition, timeout_s: float) -> bool:

@@ -72,7 +72,7 @@ def test_missing_move_means_stay():
     before = core.positions()
     core.advance([None, None, None])
     assert core.positions() == before
-    moves = [int(core.env.mask[0, i].nonzero()[0]) for i in range(3)]
+    moves = [int(core.env.state(0).mask[i].nonzero()[0]) for i in range(3)]
     core.advance([moves[0], None, None])
     after = core.positions()
     assert after[0] != before[0] and after[1:] == before[1:]

@@ -36,7 +36,7 @@ import torch
 
 from .bundle import save_bundle
 from .config import EnvironmentConfig, check_run_fields
-from .evaluate import evaluate_policy
+from .evaluate import evaluate_policy, net_policy
 from .nets import make_actor_critic, masked_logits
 from .ppo import EVAL_SEED_OFFSET, make_env_for, seed_everything
 from .runner import BUNDLE, observation_section
@@ -155,13 +155,6 @@ class _Dataset:
         return self.obs[idx].float(), self.mask[idx], self.best[idx]
 
 
-class _Policy:
-    """What evaluate_policy needs: ``net`` and ``device``."""
-
-    def __init__(self, net, device) -> None:
-        self.net, self.device = net, device
-
-
 def clone_oracle(
     cfg: CloneConfig, out_dir: str | Path, progress: bool = False, bundle_to: str | Path | None = None
 ) -> dict:
@@ -185,7 +178,7 @@ def clone_oracle(
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(cfg.seed + 7)
     data = _Dataset(obs_shape, A, cfg.max_samples, device)
-    policy = _Policy(net, device)
+    policy = net_policy(net, device)
     eval_seed = cfg.seed + EVAL_SEED_OFFSET
 
     def evaluate(pol, greedy: bool) -> dict:

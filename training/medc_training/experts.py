@@ -50,6 +50,14 @@ class Expert(ABC):
         """
         return self.scores(obs[rows], mask[rows])
 
+    def bind(self, env) -> Expert:
+        """Attach the batched environment whose agents this expert advises; returns self.
+
+        The learner calls it for every expert. An expert that advises from the observations alone
+        (the default) ignores the environment; the oracle reads its state.
+        """
+        return self
+
     def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
                          observation: str | None = None) -> None:
         """Raise ExpertError if this expert cannot advise on that observation/action space.
@@ -124,7 +132,7 @@ class OracleExpert(Expert):
         self._cache_step: int | None = None
 
     def bind(self, env) -> OracleExpert:
-        """Attach the batched environment whose agents this oracle advises."""
+        """Attach the batched environment whose agents this oracle advises; returns self."""
         self.env = env
         return self
 
@@ -201,6 +209,11 @@ class MaliciousExpert(Expert):
         self.opposite = list(opposite) if opposite is not None else None
         self.attributes = inner.attributes
         self.name = f"malicious({inner.name})"
+
+    def bind(self, env) -> MaliciousExpert:
+        """Bind the inner expert (whose advice is mirrored) to ``env``; returns self."""
+        self.inner.bind(env)
+        return self
 
     def check_compatible(self, obs_shape: Sequence[int], num_actions: int,
                          observation: str | None = None) -> None:

@@ -53,7 +53,8 @@ def poisoned_parameters(kind: str, state: dict[str, torch.Tensor], trainer: Trai
 
 
 class FederatedGroup:
-    """U Trainers trained in lock-step with FedAvg every ``every`` updates."""
+    """U Trainers trained in lock-step with FedAvg every ``every`` updates (a
+    :class:`medc_training.learner.Learner`, as Trainer is)."""
 
     def __init__(self, cfg: TrainConfig, users: Sequence[dict] | None = None,
                  side_users: Sequence[int] = ()) -> None:
@@ -114,6 +115,10 @@ class FederatedGroup:
         """AyWz for target localization users, ``user<i>`` otherwise."""
         c = self.trainers[i].cfg
         return f"A{c.agents}W{c.walls}" if c.env == "target_localization" else f"user{i}"
+
+    def evaluate(self) -> dict:
+        """The focal user's evaluation (see Trainer.evaluate)."""
+        return self.focal.evaluate()
 
     def side_names(self) -> list[str]:
         """Names of the extra users whose evaluation curves the run loop records."""

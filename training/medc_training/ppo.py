@@ -3,7 +3,8 @@
 Read top to bottom: :meth:`Trainer.collect` fills a rollout of ``horizon`` training steps
 (each agent acts on its own observation with the one shared actor-critic; the team reward
 is every agent's reward), :meth:`Trainer.update` runs ``epochs`` passes of clipped PPO over
-it, :meth:`Trainer.evaluate` plays ``eval_steps`` greedy steps. The methods differ only in:
+it, :meth:`Trainer.evaluate` plays ``eval_steps`` greedy steps (through the one play loop,
+:func:`medc_training.evaluate.play`). The methods differ only in:
 
 - ``sparse``: nothing extra (MDRL-sparse).
 - ``rs``: the environment is built with ``reward_shaping=True`` (BFS-shaped reward).
@@ -26,7 +27,8 @@ import torch
 
 from .buffer import RolloutBuffer
 from .config import TrainConfig
-from .experts import Expert, OracleExpert, selection_weights
+from .evaluate import net_policy, play, summarize_episodes
+from .experts import Expert, selection_weights
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
 from .nets import make_actor_critic, masked_logits
@@ -70,13 +72,7 @@ class EpisodeStats:
         self.returns.extend(returns.tolist())
 
     def summary(self, default_length: float) -> dict:
-        n = len(self.lengths)
-        return {
-            "episodes": n,
-            "episode_length": float(np.mean(self.lengths)) if n else float(default_length),
-            "success_rate": float(np.mean(self.successes)) if n else 0.0,
-            "episode_return": float(np.mean(self.returns)) if n else 0.0,
-        }
+        return summarize_episodes(self.lengths, self.successes, self.returns, default_length)
 
 
 class Trainer:
@@ -109,8 +105,7 @@ class Trainer:
         for expert in self.experts:
             expert.check_compatible(self.obs_shape, self.A,
                                     observation=getattr(self.env, "observation_name", None))
-            if isinstance(expert, OracleExpert) or isinstance(getattr(expert, "inner", None), OracleExpert):
-                (expert if isinstance(expert, OracleExpert) else expert.inner).bind(self.env)
+            expert.bind(self.env)
         self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None
         self.buffer = RolloutBuffer(cfg.rollout_len, self.B, self.N, self.obs_shape, self.A, self.device)
         self.global_step = 0
@@ -264,29 +259,11 @@ class Trainer:
         """
         env, cfg = self.eval_env, self.cfg
         seed = self.eval_seed if seed is None else seed
-        obs, mask = env.reset(seed=seed)
-        Be, N = env.num_envs, env.num_agents
-        stats = EpisodeStats()
-        ret = torch.zeros(Be, device=self.device)
-        # Sampled evaluation draws from its own generator (Gumbel-max), restarted from the
-        # evaluation seed, so it neither consumes nor depends on the training random streams.
-        gen = None if cfg.eval_greedy else torch.Generator(device=self.device).manual_seed(seed)
-        for _ in range(max(1, cfg.eval_steps // Be)):
-            logits, _ = self.net(obs.reshape(Be * N, *self.obs_shape))
-            logits = masked_logits(logits, mask.reshape(Be * N, self.A))
-            if gen is not None:
-                uniform = torch.rand(logits.shape, generator=gen, device=self.device)
-                logits = logits - torch.log(-torch.log(uniform.clamp_min(1e-20)))
-            actions = logits.argmax(-1).view(Be, N)
-            out = env.step(actions)
-            ret += out.reward.to(self.device).float()
-            done = out.terminated | out.truncated
-            if done.any():
-                idx = done.nonzero(as_tuple=True)[0]
-                stats.add(out.episode_length[idx].cpu(), out.success[idx].cpu(), ret[idx].cpu())
-                ret[idx] = 0.0
-            obs, mask = out.obs, out.mask
-        return stats.summary(cfg.max_steps)
+        # Sampled evaluation draws from its own generator (Gumbel-max on the device), restarted from
+        # the evaluation seed, so it neither consumes nor depends on the training random streams.
+        played = play(env, net_policy(self.net), steps=max(1, cfg.eval_steps // env.num_envs),
+                      greedy=cfg.eval_greedy, seed=seed, sampling="gumbel")
+        return played.summary(cfg.max_steps)
 
     # -------------------------------------------------------------- the loop API ---
     def train_update(self) -> dict:
@@ -298,6 +275,14 @@ class Trainer:
     def focal(self) -> Trainer:
         """The learner whose policy is evaluated and shipped (itself; FRL picks one user)."""
         return self
+
+    def side_names(self) -> list[str]:
+        """Other learners whose evaluation curves the run loop records: none for one Trainer."""
+        return []
+
+    def side_evaluate(self) -> dict[str, dict]:
+        """Evaluation of each of :meth:`side_names` (none for one Trainer)."""
+        return {}
 
     def state_dict(self) -> dict:
         """Everything needed to resume: weights, optimiser, RNG states, counters."""

@@ -1,10 +1,11 @@
 """The run loop shared by every method: evaluate, update, log, checkpoint, ship.
 
-A *learner* is a :class:`medc_training.ppo.Trainer` or a
-:class:`medc_training.frl.FederatedGroup`; both offer ``train_update()``, ``focal`` (the
-Trainer that is evaluated and shipped), ``state_dict()``/``load_state_dict()`` and
-``global_step``. The loop checkpoints after every update (``checkpoint.safetensors``, no
-pickle), so a killed run loses at most one update when resumed with ``resume=True``.
+A *learner* (:class:`medc_training.learner.Learner`) is a :class:`medc_training.ppo.Trainer`
+or a :class:`medc_training.frl.FederatedGroup`; both offer ``train_update()``, ``evaluate()``,
+``focal`` (the Trainer that is evaluated and shipped), ``side_names()``/``side_evaluate()``
+(other users' curves), ``state_dict()``/``load_state_dict()`` and ``global_step``. The loop
+checkpoints after every update (``checkpoint.safetensors``, no pickle), so a killed run loses
+at most one update when resumed with ``resume=True``.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 
 from .bundle import load_state, save_bundle, save_state
 from .config import TrainConfig
+from .learner import check_learner
 from .metrics import MetricsLogger
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -32,7 +34,8 @@ def _progress(total: int, initial: int, enabled: bool):
 
 def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,
                  tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None) -> dict:
-    """Train ``learner`` to ``cfg.total_steps`` training steps, writing everything to ``out_dir``.
+    """Train ``learner`` (a :class:`medc_training.learner.Learner`) to ``cfg.total_steps`` training
+    steps, writing everything to ``out_dir``.
 
     Writes ``metrics.csv`` (one row per evaluation, see medc_training.metrics), ``tb/``
     (TensorBoard events), ``checkpoint.safetensors`` (after every update), and at the end
@@ -40,6 +43,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     ``summary.json``. ``max_updates`` stops early (used to simulate a killed run).
     Returns the summary dict.
     """
+    check_learner(learner)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT
@@ -62,7 +66,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     focal = learner.focal
     # FRL can report other users' curves too (e.g. the A3W3 user of the same federation).
     side_loggers: dict[str, MetricsLogger] = {}
-    for name in getattr(learner, "side_names", lambda: [])():
+    for name in learner.side_names():
         side_loggers[name] = MetricsLogger(out, tensorboard=False, csv_name=f"metrics_{name}.csv",
                                            resume_from_step=learner.global_step if resume else None)
     bar = _progress(cfg.total_steps, learner.global_step, progress)
@@ -72,7 +76,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     try:
         while True:
             if learner.global_step >= next_eval or learner.global_step >= cfg.total_steps:
-                ev = focal.evaluate()
+                ev = learner.evaluate()
                 tr = focal.take_train_stats()
                 row = {
                     "step": learner.global_step, "update": focal.updates,

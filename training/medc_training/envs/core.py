@@ -1,16 +1,22 @@
-"""What every batched environment core shares: the step result, seeding, option checks.
+"""What every batched environment core shares: the step result, seeding, option checks, the
+read-only state view.
 
 A batched core steps ``num_envs`` independent copies of one application at once, with
 torch tensor operations only (no numpy and no Python loop over the batch in ``step``), so
 the same code runs on a CUDA device. Finished environments reset automatically; the last
 observation of the finished episode is returned in :attr:`StepOutput.final_obs` so that
 PPO can bootstrap truncated episodes.
+
+Code outside a core reads its state through :meth:`BatchedEnv.state` (a snapshot of copies)
+and changes it only through its methods (``reset``, ``step``, :meth:`BatchedEnv.hold`,
+:meth:`BatchedEnv.keep_pictures`), never by writing its tensors.
 """
 
 from __future__ import annotations
 
 import secrets
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,6 +56,23 @@ class StepOutput:
     def done(self) -> torch.Tensor:
         """bool [B]: the episode ended this step (terminated or truncated)."""
         return self.terminated | self.truncated
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """A read-only snapshot of one environment of a batched core (:meth:`BatchedEnv.state`).
+
+    Its fields are copies: the core moving on does not change them, and changing them does not
+    change the core.
+
+    step:      steps taken in the current episode (0 right after a reset).
+    positions: each agent's cell (row, col), in agent order.
+    mask:      bool [N,A] the moves allowed now (True = allowed).
+    """
+
+    step: int
+    positions: tuple[tuple[int, int], ...]
+    mask: torch.Tensor
 
 
 class BatchedEnv(ABC):
@@ -106,8 +129,47 @@ class BatchedEnv(ABC):
         """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
         return self._obs[index].clone()
 
-    #: Set by a renderer that wants :meth:`final_picture_maps` of finished episodes.
-    keep_final_pictures: bool = False
+    _started = False
+    _keep_final_pictures = False
+
+    @property
+    def keep_final_pictures(self) -> bool:
+        """Whether the picture maps of episodes are kept as they finish, for
+        :meth:`final_picture_maps` (off unless a renderer asked, with :meth:`keep_pictures`)."""
+        return self._keep_final_pictures
+
+    def keep_pictures(self, keep: bool = True) -> None:
+        """Keep (or stop keeping) the picture maps of episodes as they finish, for a renderer that
+        draws :meth:`final_picture_maps` after the core has reset."""
+        self._keep_final_pictures = check_bool("keep", keep)
+
+    def _check_index(self, index: int) -> int:
+        if not self._started:
+            raise RuntimeError("call reset() before reading or changing the environment's state")
+        return check_int("index", index, 0, self.num_envs - 1)
+
+    def state(self, index: int) -> EnvState:
+        """A read-only snapshot of environment ``index`` (see :class:`EnvState`; a core may return
+        a subclass with more of its state)."""
+        index = self._check_index(index)
+        return EnvState(
+            step=int(self.t[index]),
+            positions=tuple((int(r), int(c)) for r, c in self.positions[index].tolist()),
+            mask=self.mask[index].clone(),
+        )
+
+    def hold(self, index: int, agents: Sequence[int]) -> None:
+        """Keep ``agents`` of environment ``index`` where they are on the next :meth:`step`.
+
+        Their moves in that step are disallowed, which leaves an agent in place whatever action it
+        is given; the mask is recomputed after every step, so the hold lasts one step. Masks that
+        ``reset``/``step`` returned before are not changed.
+        """
+        index = self._check_index(index)
+        rows = [check_int("agent", a, 0, self.num_agents - 1) for a in agents]
+        if rows:
+            self.mask = self.mask.clone()
+            self.mask[index, rows] = False
 
     def picture_maps(self, index: int) -> torch.Tensor:
         """float32 [N,C,G,G]: the absolute maps a picture of environment ``index`` is drawn from
@@ -149,6 +211,24 @@ def check_int(name: str, value: Any, lo: int, hi: int) -> int:
     return value
 
 
+#: The longest episode (``max_steps``) any core accepts.
+MAX_EPISODE_STEPS = 1_000_000
+
+
+def check_core_options(grid: Any, agents: Any, max_steps: Any, *, grid_range: tuple[int, int],
+                       max_agents: Callable[[int], int]) -> tuple[int, int, int]:
+    """The options every core takes, checked the same way; returns (grid, agents, max_steps).
+
+    ``grid`` (side of the square area) must be in ``grid_range``, ``agents`` in
+    1..``max_agents(grid)`` and ``max_steps`` in 1..:data:`MAX_EPISODE_STEPS`; otherwise
+    ValueError names the option and what is allowed.
+    """
+    grid = check_int("grid", grid, *grid_range)
+    agents = check_int("agents", agents, 1, max_agents(grid))
+    max_steps = check_int("max_steps", max_steps, 1, MAX_EPISODE_STEPS)
+    return grid, agents, max_steps
+
+
 def check_bool(name: str, value: Any) -> bool:
     """Return ``value`` if it is a bool; otherwise raise ValueError."""
     if not isinstance(value, bool):
@@ -172,7 +252,6 @@ class GridTaskEnv(BatchedEnv):
     and the channels named in ``WALL_CHANNELS`` reading 1 off the grid.
     """
 
-    _started = False
     _ego_radius = 0
     #: Channels that mean "cannot go there": off-grid cells read 1 in an ego window.
     WALL_CHANNELS: tuple[int, ...] = ()
@@ -236,7 +315,7 @@ class GridTaskEnv(BatchedEnv):
         final_obs = obs
         if bool(done.any()):
             rows = done.nonzero().squeeze(1)
-            if self.keep_final_pictures and self._ego_radius:
+            if self._keep_final_pictures and self._ego_radius:
                 maps = self._observe_maps()
                 self._final_pictures = {int(r): maps[int(r)] for r in rows}
             self._start_episodes(rows)

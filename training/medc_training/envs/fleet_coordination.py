@@ -37,7 +37,7 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_int
+from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_core_options, check_int
 from medc_training.envs.grid import ACTIONS, action_deltas, pad_blocked, random_free_cells
 
 __all__ = [
@@ -127,13 +127,13 @@ class FleetCoordination(GridTaskEnv):
         copy_obs: bool = True,
         observation: str = "maps",
     ) -> None:
-        self.grid = check_int("grid", grid, 3, 64)
-        self.num_agents = check_int("agents", agents, 1, min(16, self.grid * self.grid // 2))
+        self.grid, self.num_agents, self.max_steps = check_core_options(
+            grid, agents, max_steps, grid_range=(3, 64), max_agents=lambda g: min(16, g * g // 2)
+        )
         self.num_customers = check_int(
             "customers", customers, 1, min(64, self.grid * self.grid - self.num_agents)
         )
         self.capacity = check_int("capacity", capacity, 1, self.num_customers)
-        self.max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)

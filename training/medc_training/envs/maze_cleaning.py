@@ -34,7 +34,7 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_int
+from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_core_options
 from medc_training.envs.grid import (
     ACTIONS,
     action_deltas,
@@ -123,10 +123,10 @@ class MazeCleaning(GridTaskEnv):
         copy_obs: bool = True,
         observation: str = "maps",
     ) -> None:
-        self.grid = check_int("grid", grid, 3, 64)
-        # The fewest free cells a maze of this size can have: its rooms.
-        rooms = ((self.grid + 1) // 2) ** 2
-        self.num_agents = check_int("agents", agents, 1, min(16, rooms))
+        # At most one agent per room (the fewest free cells a maze of this size can have).
+        self.grid, self.num_agents, self.max_steps = check_core_options(
+            grid, agents, max_steps, grid_range=(3, 64), max_agents=lambda g: min(16, ((g + 1) // 2) ** 2)
+        )
         if (
             isinstance(complexity, bool)
             or not isinstance(complexity, int | float)
@@ -134,7 +134,6 @@ class MazeCleaning(GridTaskEnv):
         ):
             raise ValueError(f"complexity must be a number in [0, 1], got {complexity!r}")
         self.complexity = float(complexity)
-        self.max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)

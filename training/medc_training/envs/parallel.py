@@ -44,7 +44,7 @@ class GridParallelEnv(ParallelEnv):
             raise ValueError(f"a ParallelEnv wraps one environment, got a core of {core.num_envs}")
         self.core = core
         self.render_mode = render_mode
-        self.core.keep_final_pictures = render_mode is not None
+        self.core.keep_pictures(render_mode is not None)
         self.metadata = {**GridParallelEnv.metadata, "name": f"medc_{core.name}_v0"}
         self.possible_agents = [f"agent_{i}" for i in range(self.core.num_agents)]
         self.agents: list[str] = []

@@ -51,11 +51,19 @@ core below calls the very same functions.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from medc_training.envs.core import BatchedEnv, StepOutput, check_bool, check_int
+from medc_training.envs.core import (
+    BatchedEnv,
+    EnvState,
+    StepOutput,
+    check_bool,
+    check_core_options,
+    check_int,
+)
 from medc_training.envs.grid import (
     ACTION_NAMES,
     ACTIONS,
@@ -97,6 +105,7 @@ __all__ = [
     "VISIT_SATURATION",
     "WALL_ATTENUATION",
     "TargetLocalization",
+    "TargetLocalizationState",
     "build_observations",
     "check_options",
     "expected_rate_from_sources",
@@ -134,11 +143,12 @@ def max_walls(grid: int) -> int:
 
 
 def check_options(agents: int, walls: int, grid: int, max_steps: int) -> tuple[int, int, int, int]:
-    """Validate the scenario options; raise ValueError saying what is allowed."""
-    grid = check_int("grid", grid, 5, _MAX_GRID)
-    agents = check_int("agents", agents, 1, min(_MAX_AGENTS, grid * grid // 4))
+    """Validate the scenario options (the cores' shared check, then the walls); raise ValueError
+    saying what is allowed."""
+    grid, agents, max_steps = check_core_options(
+        grid, agents, max_steps, grid_range=(5, _MAX_GRID), max_agents=lambda g: min(_MAX_AGENTS, g * g // 4)
+    )
     walls = check_int("walls", walls, 0, max_walls(grid))
-    max_steps = check_int("max_steps", max_steps, 1, 1_000_000)
     return agents, walls, grid, max_steps
 
 
@@ -216,17 +226,33 @@ def _sample_walls(
     return (in_r.unsqueeze(-1) & in_c.unsqueeze(-2)).any(1)
 
 
+@dataclass(frozen=True)
+class TargetLocalizationState(EnvState):
+    """:class:`EnvState` of a target-localization environment, plus what a real UAV team would
+    publish and the core keeps internal (copies, like every field of EnvState).
+
+    target:   the source's cell (row, col).
+    walls:    bool [G,G] wall cells of the current episode.
+    readings: each agent's raw reading (counts/s, noise included) at its current cell: exactly
+              what the core recorded in its memory.
+    """
+
+    target: tuple[int, int]
+    walls: torch.Tensor
+    readings: tuple[float, ...]
+
+
 class TargetLocalization(BatchedEnv):
     """Batched target localization core (see the module docstring for the rules).
 
     ``make_batched("target_localization", num_envs=B, device="cpu", seed=0, agents=3,
     walls=2, grid=30, max_steps=100, reward_shaping=False, noise=False, copy_obs=True)``.
 
-    State tensors a simulator may read (row ``b`` = environment b): ``positions`` [B,N,2],
-    ``target`` [B,2], ``walls`` bool [B,G,G], ``distance`` [B,G,G] (BFS field), ``t`` [B]
-    (steps taken in the current episode), ``mask`` [B,N,A], ``readings`` [B,N] (the raw
-    readings, counts/s, the agents took at their current cells, noise included: exactly what
-    the core recorded in ``reading_map``/``visit_map`` [B,G,G]).
+    A simulator reads environment ``b`` through :meth:`state` (a :class:`TargetLocalizationState`
+    of copies: step, positions, mask, target, walls, raw readings), never by touching the
+    state tensors (``positions`` [B,N,2], ``target`` [B,2], ``walls`` bool [B,G,G], ``distance``
+    [B,G,G] (BFS field), ``t`` [B], ``mask`` [B,N,A], ``readings`` [B,N], the memory's
+    ``reading_map``/``visit_map`` [B,G,G]).
 
     The observations live in one buffer that each step updates in place, touching only the
     cells that changed (the agents' old and new cells), and is rebuilt only for
@@ -411,7 +437,7 @@ class TargetLocalization(BatchedEnv):
             else:
                 final_obs = self._final_obs
                 final_obs[rows] = self._obs[rows]
-            if self.keep_final_pictures and not self._incremental:
+            if self._keep_final_pictures and not self._incremental:
                 self._final_pictures = {int(r): self.picture_maps(int(r)) for r in rows}
             self._start_episodes(rows)
             if self._incremental:
@@ -441,6 +467,17 @@ class TargetLocalization(BatchedEnv):
 
     def render_extras(self, index: int) -> dict[str, Any]:
         return {"target": tuple(int(v) for v in self.target[index].tolist())}
+
+    def state(self, index: int) -> TargetLocalizationState:
+        base = super().state(index)
+        return TargetLocalizationState(
+            step=base.step,
+            positions=base.positions,
+            mask=base.mask,
+            target=tuple(int(v) for v in self.target[index].tolist()),
+            walls=self.walls[index].clone(),
+            readings=tuple(float(v) for v in self.readings[index].tolist()),
+        )
 
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the BFS distance to the target after each move; -inf if invalid."""

@@ -78,29 +78,16 @@ def _features(manifest: dict) -> dict[str, int]:
 
 
 def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int) -> dict:
-    """Greedy play of ``bundle`` for every agent of AyWz; mean episode length and success rate."""
-    import torch
+    """Greedy play of ``bundle`` for every agent of AyWz; mean episode length and success rate
+    (the summary of medc_training.evaluate.evaluate_policy)."""
     from medc_training.envs import make_batched
+    from medc_training.evaluate import evaluate_policy
 
-    n_envs = min(episodes, 32)
     env = make_batched(
-        APPLICATION, num_envs=n_envs, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
-        observation=bundle.observation,
+        APPLICATION, num_envs=min(episodes, 32), seed=seed, agents=agents, walls=walls, grid=grid,
+        max_steps=max_steps, observation=bundle.observation,
     )
-    obs, mask = env.reset(seed=seed)
-    lengths: list[int] = []
-    successes: list[bool] = []
-    with torch.no_grad():
-        while len(lengths) < episodes:
-            flat = obs.reshape(n_envs * agents, *env.obs_shape)
-            actions = bundle.act(flat, mask.reshape(n_envs * agents, -1), greedy=True).view(n_envs, agents)
-            out = env.step(actions)
-            done = (out.terminated | out.truncated).nonzero(as_tuple=True)[0]
-            lengths += out.episode_length[done].tolist()
-            successes += out.success[done].tolist()
-            obs, mask = out.obs, out.mask
-    lengths, successes = lengths[:episodes], successes[:episodes]
-    return {"episode_length": sum(lengths) / len(lengths), "success_rate": sum(successes) / len(successes)}
+    return evaluate_policy(env, bundle, episodes, greedy=True, seed=seed)
 
 
 def learning_score_of(metrics_csv: Path) -> float:
@@ -116,24 +103,14 @@ def random_policy_length(
     agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int
 ) -> float:
     """Mean episode length of uniformly random valid moves (the floor a trained team must beat)."""
-    import torch
     from medc_training.envs import make_batched
+    from medc_training.evaluate import evaluate_policy
 
     env = make_batched(  # random moves need no observation: the cheapest one
         APPLICATION, num_envs=32, seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
         observation="maps",
     )
-    gen = torch.Generator().manual_seed(seed)
-    _, mask = env.reset(seed=seed)
-    lengths: list[int] = []
-    while len(lengths) < episodes:
-        probs = mask.float() / mask.float().sum(-1, keepdim=True)
-        actions = torch.multinomial(probs.view(-1, probs.shape[-1]), 1, generator=gen).view(mask.shape[:2])
-        out = env.step(actions)
-        done = (out.terminated | out.truncated).nonzero(as_tuple=True)[0]
-        lengths += out.episode_length[done].tolist()
-        mask = out.mask
-    return sum(lengths[:episodes]) / episodes
+    return evaluate_policy(env, None, episodes, greedy=False, seed=seed)["episode_length"]
 
 
 def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
@@ -154,16 +131,17 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
     obs, _ = env.reset(seed=seed)
     core = env.unwrapped.core  # the batched core (B = 1) under the PettingZoo wrapper
     # The core starts a new episode as soon as this one ends: take the layout now.
-    walls = core.walls[0].cpu().numpy().copy()
-    ty, tx = core.target[0].tolist()
-    paths: list[list[tuple[int, int]]] = [[tuple(p)] for p in core.positions[0].tolist()]
+    start = core.state(0)
+    walls = start.walls.cpu().numpy()
+    ty, tx = start.target
+    paths: list[list[tuple[int, int]]] = [[p] for p in start.positions]
     steps, success = 0, False
     agents = list(env.agents)
     while env.agents:
         batch = np.stack([obs[a]["observation"] for a in agents])
         masks = np.stack([obs[a]["action_mask"] for a in agents]).astype(bool)
         acts = bundle.act(batch, masks, greedy=True).tolist()
-        before = core.positions[0].tolist()
+        before = core.state(0).positions
         obs, _, terms, truncs, _ = env.step({a: int(x) for a, x in zip(agents, acts)})
         steps += 1
         if any(terms.values()) or any(truncs.values()):
@@ -174,8 +152,8 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
                 dr, dc = deltas[acts[i]] if m[acts[i]] else (0, 0)
                 paths[i].append((pos[0] + dr, pos[1] + dc))
             break
-        for i, p in enumerate(core.positions[0].tolist()):
-            paths[i].append(tuple(p))
+        for i, p in enumerate(core.state(0).positions):
+            paths[i].append(p)
     fig, ax = plt.subplots(figsize=(5, 5))
     ax.imshow(walls, cmap="Greys", origin="upper")
     ax.plot(tx, ty, marker="*", color="red", markersize=18, label="target")

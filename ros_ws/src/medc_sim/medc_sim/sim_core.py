@@ -3,7 +3,8 @@
 No ROS in here: :class:`SimCore` is the training environment's batched core with B=1 (built
 with the same ``make_batched`` call and seed as training, so it produces the same episodes),
 plus what a real UAV would publish that the core keeps internal (positions, raw readings,
-walls). The simulator node only converts this to and from messages.
+walls), read through the core's read-only state view (``env.state(0)``). The simulator node
+only converts this to and from messages.
 """
 
 from __future__ import annotations
@@ -88,24 +89,23 @@ class SimCore:
     @property
     def step(self) -> int:
         """Steps taken in the current episode (0 right after reset)."""
-        return int(self.env.t[0])
+        return self.env.state(0).step
 
     def positions(self) -> list[tuple[int, int]]:
         """Each agent's cell (row, col), in agent order."""
-        return [(int(r), int(c)) for r, c in self.env.positions[0].tolist()]
+        return list(self.env.state(0).positions)
 
     def readings(self) -> list[float]:
         """Each agent's raw reading (counts/s) at its current cell, noise included: exactly what the
         core recorded in its memory, so the agents rebuild the core's observation."""
-        return [float(v) for v in self.env.readings[0].tolist()]
+        return list(self.env.state(0).readings)
 
     def walls(self) -> torch.Tensor:
-        """bool [H,W] wall cells of the current episode."""
-        return self.env.walls[0]
+        """bool [H,W] wall cells of the current episode (a copy)."""
+        return self.env.state(0).walls
 
     def target(self) -> tuple[int, int]:
-        r, c = self.env.target[0].tolist()
-        return int(r), int(c)
+        return self.env.state(0).target
 
     def advance(self, actions: list[int | None]) -> StepResult:
         """Apply one move per agent; ``None`` = the agent stays where it is.
@@ -119,10 +119,8 @@ class SimCore:
             self.trace.append((self.episode, self.step, list(actions)))
         stay = [i for i, a in enumerate(actions) if a is None]
         acts = torch.tensor([[0 if a is None else int(a) for a in actions]], dtype=torch.long)
-        if stay:
-            # The core keeps an agent in place when its move is not allowed by the mask; the mask
-            # is recomputed from the positions after every step, so this affects this step only.
-            self.env.mask[0, stay] = False
+        # The core keeps a held agent in place for this step only.
+        self.env.hold(0, stay)
         out = self.env.step(acts)
         result = StepResult(reward=float(out.reward[0]))
         if bool(out.terminated[0] | out.truncated[0]):
