@@ -141,7 +141,7 @@ def run_job(job: dict) -> dict:
     else:
         gen = torch.Generator().manual_seed(cfg.seed + 13)
         learner = Trainer(cfg, [parse_expert(s, generator=gen, device=cfg.device)
-                                for s in job.get("experts", [])])
+                                for s in job.get("experts", [])], job.get("expert_weights"))
     resume = (out / "checkpoint.safetensors").exists()
     try:
         summary = run_training(learner, cfg, out, resume=resume, tensorboard=False, save_final=False)

@@ -13,8 +13,10 @@ import itertools
 import json
 from typing import Any
 
+from medc_training.qos import ONE
+
 from .chain import ChainClient
-from .registry import MAX_CANDIDATES, ONE, deploy_contracts
+from .registry import MAX_CANDIDATES, deploy_contracts
 
 #: The paper's Table III (gas).
 PAPER_GAS = {
