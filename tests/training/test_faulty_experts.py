@@ -9,8 +9,8 @@ from medc_training.experts import (
     MaliciousExpert,
     RandomExpert,
     parse_expert,
-    qos,
 )
+from medc_training.qos import QOS_EXACT, attribute_distance, expert_weights_from_attributes, qos
 
 
 class FixedExpert(Expert):
@@ -83,5 +83,8 @@ def test_malicious_needs_an_opposite_table_for_unusual_action_sets():
 
 def test_qos_exact_match_does_not_divide_by_zero():
     attrs = {"agents": 3, "walls": 2}
-    assert qos(attrs, attrs) == pytest.approx(0.25 / 0.5)
-    assert qos(attrs, attrs) > qos({"agents": 1, "walls": 2}, attrs)
+    assert attribute_distance(attrs, attrs) == 0
+    assert qos(attribute_distance(attrs, attrs)) == QOS_EXACT  # the contract's D_m = 0 rule, no floor
+    assert qos(attribute_distance(attrs, attrs)) > qos(attribute_distance({"agents": 1, "walls": 2}, attrs))
+    # The exact match takes the whole roulette wheel; the other expert is never drawn.
+    assert expert_weights_from_attributes([{"agents": 1, "walls": 2}, attrs], attrs) == [0.0, 1.0]

@@ -2,8 +2,10 @@
 
 import pytest
 import torch
-from medc_training.experts import BiasedExpert, RandomExpert, selection_weights
+from medc_training.config import TrainConfig
+from medc_training.experts import BiasedExpert, RandomExpert
 from medc_training.medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
+from medc_training.ppo import Trainer
 
 ALL = torch.ones(1, 4, dtype=torch.bool)
 
@@ -67,10 +69,12 @@ def test_selection_weights_follow_qos_distance():
             super().__init__(0)
             self.attributes = attrs
 
-    target = {"agents": 3, "walls": 2, "grid": 10}
-    free, complex_ = E({"agents": 1, "walls": 0, "grid": 10}), E({"agents": 1, "walls": 3, "grid": 10})
-    w = selection_weights([free, complex_], target)
-    # D(free) = 2 + 2 = 4, D(complex) = 2 + 1 = 3: R_S ∝ 1/D -> (1/4, 1/3) normalised
+    cfg = TrainConfig(method="medc", agents=3, walls=2, grid=13, max_steps=12, num_envs=2, horizon=8,
+                      eval_envs=2, eval_steps=8, total_steps=16)
+    free, complex_ = E({"agents": 1, "walls": 0, "grid": 13}), E({"agents": 1, "walls": 3, "grid": 13})
+    w = Trainer(cfg, [free, complex_]).expert_weights
+    # D(free) = (2 + 2 + 0) / 3, D(complex) = (2 + 1 + 0) / 3: R_S ∝ 1/D -> (1/4, 1/3) normalised
+    assert w.dtype == torch.float32
     assert w.tolist() == pytest.approx([3 / 7, 4 / 7], abs=1e-6)
     assert w.sum().item() == pytest.approx(1.0)
 

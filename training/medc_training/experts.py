@@ -13,8 +13,8 @@ Kinds:
 - :class:`MaliciousExpert` — knows the right action (from an inner expert) and suggests
   the opposite direction: its score for ``a`` is the inner score for ``OPPOSITE[a]``.
 
-Each expert carries ``attributes`` (the environment it was trained for, if known), used to
-compute R_S from the QoS formula (:func:`selection_weights`).
+Each expert carries ``attributes`` (the environment it was trained for, if known), from which
+the trainer computes R_S by the contract's QoS rule (:mod:`medc_training.qos`).
 """
 
 from __future__ import annotations
@@ -237,37 +237,6 @@ class MaliciousExpert(Expert):
     def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
         full = torch.ones_like(mask)
         return self._mirror(self.inner.scores_rows(obs, full, rows), mask[rows])
-
-
-def distance(expert_attrs: dict, target_attrs: dict, weights: dict | None = None) -> float:
-    """D_m = Σ w_i |E_i^m − E_i^r| over the attributes both sides describe (equal weights)."""
-    keys = sorted(set(expert_attrs) & set(target_attrs))
-    total = 0.0
-    for k in keys:
-        a, b = expert_attrs[k], target_attrs[k]
-        numeric = all(isinstance(x, int | float) and not isinstance(x, bool) for x in (a, b))
-        if not numeric:
-            continue
-        total += (weights or {}).get(k, 1.0) * abs(float(a) - float(b))
-    return total
-
-
-def qos(expert_attrs: dict | None, target_attrs: dict, rep_owner: float = 0.5, rep_model: float = 0.5,
-        weights: dict | None = None, min_distance: float = 0.5) -> float:
-    """QoS_m = Rep_owner × Rep_model / D_m (paper Eq. QoS).
-
-    ``min_distance`` floors D_m: an expert trained on exactly this environment (D_m = 0)
-    gets the largest finite QoS instead of a division by zero. An expert with unknown
-    attributes counts as distance 1.
-    """
-    d = 1.0 if not expert_attrs else distance(expert_attrs, target_attrs, weights)
-    return rep_owner * rep_model / max(d, min_distance)
-
-
-def selection_weights(experts: Sequence[Expert], target_attrs: dict) -> torch.Tensor:
-    """R_S_i = QoS_i / Σ_j QoS_j for each expert (the roulette wheel's slices)."""
-    values = torch.tensor([qos(e.attributes, target_attrs) for e in experts], dtype=torch.float64)
-    return (values / values.sum()).float()
 
 
 def parse_expert(spec: str, generator: torch.Generator | None = None, device: str = "cpu") -> Expert:

@@ -28,10 +28,11 @@ import torch
 from .buffer import RolloutBuffer
 from .config import TrainConfig
 from .evaluate import net_policy, play, summarize_episodes
-from .experts import Expert, selection_weights
+from .experts import Expert
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
 from .nets import make_actor_critic, masked_logits
+from .qos import expert_weights_from_attributes, normalised_weights
 
 #: Evaluation episodes are drawn from ``seed + EVAL_SEED_OFFSET``: a stream far from the training
 #: environments' seeds, and the same for every method and every user of an FRL group.
@@ -76,9 +77,15 @@ class EpisodeStats:
 
 
 class Trainer:
-    """One learner: environment, shared actor-critic, optimiser, experts, counters."""
+    """One learner: environment, shared actor-critic, optimiser, experts, counters.
 
-    def __init__(self, cfg: TrainConfig, experts: Sequence[Expert] = (), env=None, eval_env=None) -> None:
+    ``expert_weights`` are the experts' roulette-wheel slices R_S, one per expert (finite, >= 0,
+    not all 0; normalised here), e.g. the R_S of the registry's allocation. None: computed from
+    the experts' environment attributes by the contract's QoS rule (:mod:`medc_training.qos`).
+    """
+
+    def __init__(self, cfg: TrainConfig, experts: Sequence[Expert] = (),
+                 expert_weights: Sequence[float] | None = None, env=None, eval_env=None) -> None:
         cfg.validate()
         self.cfg = cfg
         if cfg.torch_threads:
@@ -106,7 +113,7 @@ class Trainer:
             expert.check_compatible(self.obs_shape, self.A,
                                     observation=getattr(self.env, "observation_name", None))
             expert.bind(self.env)
-        self.expert_weights = selection_weights(self.experts, cfg.env_attributes()) if self.experts else None
+        self.expert_weights = self._expert_weights(expert_weights, cfg)
         self.buffer = RolloutBuffer(cfg.rollout_len, self.B, self.N, self.obs_shape, self.A, self.device)
         self.global_step = 0
         self.updates = 0
@@ -116,6 +123,21 @@ class Trainer:
         self._last_step_mark = 0
         self._ep_return = torch.zeros(self.B, device=self.device)
         self.reset_envs(cfg.seed)
+
+    def _expert_weights(self, weights, cfg: TrainConfig) -> torch.Tensor | None:
+        """R_S as float32 [num experts]: the given weights normalised, or the QoS rule's."""
+        if weights is None:
+            if not self.experts:
+                return None
+            weights = expert_weights_from_attributes([e.attributes for e in self.experts],
+                                                     cfg.env_attributes())
+        else:
+            if isinstance(weights, torch.Tensor):
+                weights = weights.detach().cpu().tolist()
+            weights = normalised_weights(weights, len(self.experts))
+            if not weights:
+                return None
+        return torch.tensor(weights, dtype=torch.float64).float()
 
     # ----------------------------------------------------------------- rollout -----
     def reset_envs(self, seed: int | None) -> None:

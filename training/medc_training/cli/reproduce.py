@@ -141,7 +141,7 @@ def run_job(job: dict) -> dict:
     else:
         gen = torch.Generator().manual_seed(cfg.seed + 13)
         learner = Trainer(cfg, [parse_expert(s, generator=gen, device=cfg.device)
-                                for s in job.get("experts", [])])
+                                for s in job.get("experts", [])], job.get("expert_weights"))
     resume = (out / "checkpoint.safetensors").exists()
     try:
         summary = run_training(learner, cfg, out, resume=resume, tensorboard=False, save_final=False)
@@ -822,8 +822,11 @@ the same episodes; target localization is judged greedy, fleet and maze sampled)
 
 {expert_table(plan.models) or "(no expert bundles found)"}
 
-R_S of each expert follows the QoS formula with equal reputations (0.5) and D_m =
-|Δagents| + |Δwalls| (+ |Δgrid|, 0 here), floored at 0.5.
+R_S of each expert follows the Models Manager contract's QoS rule (`medc_training.qos`) with
+equal reputations (0.5): D_m is the mean |ΔE_i| over the environment attributes the expert and
+the run both name (agents, walls, grid, step limit; the last two differ by 0 here), no expert
+matches a run exactly (D_m = 0), and one without attributes (random, biased) counts as one unit
+off in one of them.
 
 """
     protocol = out / "protocol.md"

@@ -71,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
                         "malicious:oracle | oracle")
+    p.add_argument("--expert-weight", action="append", type=float, metavar="W",
+                   help="repeatable, one per --expert in the same order: its roulette-wheel weight R_S "
+                        "(normalised; default: from the experts' environment attributes by the "
+                        "contract's QoS rule, medc_training.qos)")
     p.add_argument("--steps", type=int, default=100_000, help="training steps (environment steps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -122,15 +126,16 @@ def config_from_args(args: argparse.Namespace):
     return scaled_config(args.scale, **overrides)
 
 
-def make_learner(cfg, expert_specs: list[str]):
-    """A Trainer (or an FRL group) for the config, with experts parsed from their specs."""
+def make_learner(cfg, expert_specs: list[str], expert_weights: list[float] | None = None):
+    """A Trainer (or an FRL group) for the config, with experts parsed from their specs and their
+    R_S (``expert_weights``, one per spec; None = from the QoS rule, see medc_training.qos)."""
     import torch
 
     from ..experts import parse_expert
     from ..ppo import Trainer
 
     if cfg.method == "frl":
-        if expert_specs:
+        if expert_specs or expert_weights:
             raise ValueError("--expert is not used by --method frl (FRL shares parameters, not actions)")
         from ..frl import FederatedGroup
 
@@ -139,14 +144,14 @@ def make_learner(cfg, expert_specs: list[str]):
         raise ValueError(f"--expert is only used by --method medc or il, not {cfg.method}")
     gen = torch.Generator().manual_seed(cfg.seed + 13)
     experts = [parse_expert(spec, generator=gen, device=cfg.device) for spec in expert_specs]
-    return Trainer(cfg, experts)
+    return Trainer(cfg, experts, expert_weights)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg = config_from_args(args)
-        learner = make_learner(cfg, args.expert)
+        learner = make_learner(cfg, args.expert, args.expert_weight)
         from ..runner import run_training
 
         summary = run_training(learner, cfg, args.out, resume=args.resume, progress=not args.quiet,

@@ -209,6 +209,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from medc_training.config import scaled_config
     from medc_training.experts import BundleExpert
     from medc_training.ppo import Trainer
+    from medc_training.qos import selection_weights
     from medc_training.runner import run_training
 
     root = _repo_root()
@@ -299,11 +300,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f"({bundle.manifest['architecture'].get('name', '?')}, sha256 {bundle.sha256[:12]}...)"
         )
     qos_order_ok = all(qos_values[i] >= qos_values[i + 1] for i in range(len(qos_values) - 1))
-    finite = [q for q in qos_values if math.isfinite(q)]
-    cap = (max(finite) * 2) if finite else 1.0
-    weights = torch.tensor([q if math.isfinite(q) else cap for q in qos_values], dtype=torch.float64)
-    r_s = (weights / weights.sum()).float()
-    say.say("R_S (roulette-wheel slices) = " + ", ".join(f"{x:.2f}" for x in r_s.tolist()))
+    # R_S by the contract's rule (medc_training.qos): exact matches, if any, share the wheel by
+    # Rep_owner * Rep_model, the order the contract gives them.
+    rep_products = [a.model.reputation * requester.user(a.owner).reputation for a in allocations]
+    r_s = selection_weights(qos_values, rep_products)
+    say.say("R_S (roulette-wheel slices) = " + ", ".join(f"{x:.2f}" for x in r_s))
 
     # 4. ---------------------------------------------------------------- train: MEDC vs sparse
     say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone")
@@ -317,8 +318,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                   "--seed", str(args.seed), "--threads", "1", "--quiet", "--out", str(out / "sparse")]
     t = time.monotonic()
     with subprocess.Popen(sparse_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sparse:
-        trainer = Trainer(cfg, experts)
-        trainer.expert_weights = r_s
+        trainer = Trainer(cfg, experts, expert_weights=r_s)
         results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress)
         results["medc"]["wall_s"] = round(time.monotonic() - t, 1)
         sparse_out, sparse_err = sparse.communicate()

@@ -19,7 +19,8 @@ import sys
 from typing import Any
 
 from medc_registry.chain import ChainClient
-from medc_registry.registry import MAX_CANDIDATES, ONE, deploy_contracts
+from medc_registry.registry import MAX_CANDIDATES, deploy_contracts
+from medc_training.qos import ONE
 
 #: The paper's Table III (gas).
 PAPER_GAS = {

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from eth_utils import to_checksum_address
+from medc_training.qos import fixed_weights, from_fixed, is_exact, to_fixed
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
@@ -45,29 +46,14 @@ from .home import (
     spec_settings,
 )
 
-ONE = 10**18
 MAX_FEATURES = 8
 #: Most candidate models one allocateModels call examines (the contract's MAX_CANDIDATES).
 MAX_CANDIDATES = 256
 #: Most models one request may ask for (so a ranking page always has room for new candidates).
 MAX_COUNT = MAX_CANDIDATES // 2
 _UINT32 = 2**32 - 1
-_QOS_EXACT = 2**256 - 1
 
 Features = Mapping[str, int] | Sequence[int]
-
-
-def to_fixed(value: float, name: str = "value") -> int:
-    """A float in [0, 1] as fixed point (1e18 = 1.0)."""
-    v = float(value)
-    if not (math.isfinite(v) and 0.0 <= v <= 1.0):
-        raise ValueError(f"{name} must be between 0 and 1, got {value!r}")
-    return round(v * ONE)
-
-
-def from_fixed(value: int) -> float:
-    """Fixed point (1e18 = 1.0) as a float."""
-    return value / ONE
 
 
 def format_eth(wei: int) -> str:
@@ -708,7 +694,7 @@ class Registry:
         out = []
         for ev in self.models.events.ModelAllocated().process_receipt(receipt, errors=DISCARD):
             a = ev["args"]
-            qos = math.inf if a["qos"] == _QOS_EXACT else from_fixed(a["qos"])
+            qos = math.inf if is_exact(a["qos"]) else from_fixed(a["qos"])
             out.append(
                 Allocation(
                     a["allocationId"],
@@ -824,16 +810,7 @@ def _features(features: Features) -> tuple[tuple[str, ...], list[int]]:
 def _weights(weights: Features) -> tuple[tuple[str, ...], list[int]]:
     if isinstance(weights, Mapping):
         names = tuple(sorted(weights))
-        raw = [float(weights[n]) for n in names]
+        raw = [weights[n] for n in names]
     else:
-        names, raw = (), [float(w) for w in weights]
-    if not raw or any(not math.isfinite(w) or w < 0 for w in raw):
-        raise ValueError(f"weights must be non-negative numbers, got {raw!r}")
-    total = sum(raw)
-    if total <= 0 or abs(total - 1.0) > 1e-9:
-        raise ValueError(f"weights must sum to 1, got {total}")
-    fixed = [round(w * ONE) for w in raw]
-    fixed[-1] += ONE - sum(fixed)  # absorb rounding so the on-chain sum is exactly 1e18
-    if fixed[-1] < 0:
-        raise ValueError("weights must sum to 1")
-    return names, fixed
+        names, raw = (), list(weights)
+    return names, fixed_weights(raw)
