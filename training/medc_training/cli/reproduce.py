@@ -35,7 +35,7 @@ import sys
 from pathlib import Path
 
 from ..experiments.catalogue import BUDGETS, PHASES
-from ..experiments.engines import LocalPool, RayCluster
+from ..experiments.engines import INTERRUPTED, LocalPool, RayCluster
 from ..experiments.plan import Plan
 from ..experiments.report import build_report
 from ..experiments.reproduction import record_command, reproduce
@@ -103,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error(str(exc))
     command = "medc-reproduce " + " ".join(argv if argv is not None else sys.argv[1:])
     command = record_command(out, command, report_only=phases == ["report"])
-    elapsed = reproduce(plan, phases, engine, retrain=args.retrain, other_apps=not args.no_other_apps)
+    try:
+        elapsed = reproduce(plan, phases, engine, retrain=args.retrain, other_apps=not args.no_other_apps)
+    except KeyboardInterrupt:
+        print(f"medc-reproduce: interrupted; {INTERRUPTED}", file=sys.stderr)
+        return 130
     path = build_report(out, args.scale, args.seeds, command, plan, elapsed)
     print(f"report: {path}")
     print(json.dumps({"report": str(path), "elapsed_s": elapsed}))

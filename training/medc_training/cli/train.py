@@ -172,12 +172,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from ..experiments.engines import run_jobs
+    from ..experiments.engines import INTERRUPTED, run_jobs
     from ..experiments.jobs import SUMMARY
     from .reproduce import engine_from_args
 
     jobs = sweep_jobs(args)
-    run_jobs(jobs, engine_from_args(args), "medc-train")
+    try:
+        run_jobs(jobs, engine_from_args(args), "medc-train")
+    except KeyboardInterrupt:
+        print(f"medc-train: interrupted; {INTERRUPTED}", file=sys.stderr)
+        return 130
     runs = {}
     for job in jobs:
         summary = json.loads((Path(job["out"]) / SUMMARY).read_text())

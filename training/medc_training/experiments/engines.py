@@ -15,6 +15,10 @@ from dataclasses import dataclass
 
 from .jobs import job_done, run_job
 
+#: What an interrupted sweep leaves behind (said by the CLIs on Ctrl-C).
+INTERRUPTED = ("finished runs are kept; unfinished ones left no run folder and resume from their "
+               "checkpoint when the same command is run again")
+
 
 def _worker_init(threads: int = 1) -> None:
     import torch
@@ -47,8 +51,11 @@ class LocalPool:
             futures = {pool.submit(run_job, job): job for job in todo}
             for fut in as_completed(futures):
                 done(futures[fut], fut.result())
-        except BaseException:  # Ctrl-C or a failed job: drop what has not started
-            pool.shutdown(wait=False, cancel_futures=True)
+        except BaseException:  # Ctrl-C or a failed job: stop the workers, drop what has not started
+            # (ProcessPoolExecutor has no public way to stop running work before Python 3.14)
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                proc.terminate()
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
         pool.shutdown()
 
