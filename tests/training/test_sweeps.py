@@ -152,3 +152,64 @@ def test_ctrl_c_stops_a_pool_sweep_and_leaves_no_run_folders(tmp_path):
     stamps = [c.stat().st_mtime_ns for c in ckpts]
     time.sleep(1.5)
     assert [c.stat().st_mtime_ns for c in ckpts] == stamps, "the pool's workers were stopped"
+
+
+def _ray_worker_running(task_name: str) -> int | None:
+    """The pid of the Ray worker whose process title says it runs ``task_name`` (ray::NAME)."""
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            title = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0].decode().strip()
+        except OSError:
+            continue
+        if title == f"ray::{task_name}":
+            return int(pid)
+    return None
+
+
+def _kill_worker_mid_run(job: dict, engine: RayCluster) -> BaseException | None:
+    """Run ``job`` on ``engine`` in a thread, SIGKILL its Ray worker after 2 updates; the engine's
+    error (None when it finished the job)."""
+    import threading
+
+    result: dict = {}
+
+    def sweep() -> None:
+        try:
+            run_jobs([job], engine, "lost")
+        except BaseException as exc:
+            result["error"] = exc
+
+    thread = threading.Thread(target=sweep)
+    thread.start()
+    deadline = time.time() + 120
+    ckpt = partial_dir(Path(job["out"])) / CHECKPOINT
+    while time.time() < deadline:
+        try:
+            if ckpt.exists() and load_state(ckpt)["learner"]["updates"] >= 2:
+                break
+        except ValueError:
+            pass
+        time.sleep(0.2)
+    pid = _ray_worker_running(job["name"])
+    assert pid is not None, "the job's Ray worker was not found"
+    os.kill(pid, signal.SIGKILL)
+    thread.join(timeout=180)
+    assert not thread.is_alive()
+    return result.get("error")
+
+
+def test_a_lost_ray_worker_is_retried_or_left_unfinished_for_the_rerun(local_ray, tmp_path):
+    job = _plan(tmp_path, steps=8192)[0]
+    job["name"] = f"lost-{os.getpid()}/seed0"  # its worker's process title, unique on the machine
+    out = Path(job["out"])
+    # with a retry, the task starts again on a new worker and resumes from the checkpoint
+    assert _kill_worker_mid_run(job, RayCluster(retries=1)) is None
+    steps = [int(r["step"]) for r in read_metrics(out / "metrics.csv")]
+    assert steps == sorted(set(steps)) and steps[-1] == 8192 and not partial_dir(out).exists()
+    # without one, the run is left unfinished (no run folder) and the next rerun finishes it
+    job = {**job, "name": f"lost-{os.getpid()}/seed1", "out": str(tmp_path / "lost1")}
+    error = _kill_worker_mid_run(job, RayCluster(retries=0))
+    assert isinstance(error, RuntimeError) and "run the same command again to resume" in str(error)
+    assert not Path(job["out"]).exists() and (partial_dir(Path(job["out"])) / CHECKPOINT).exists()
+    assert len(run_jobs([job], RayCluster(), "rerun")) == 1
+    assert json.loads((Path(job["out"]) / SUMMARY).read_text())["steps"] == 8192
