@@ -213,3 +213,15 @@ def test_a_lost_ray_worker_is_retried_or_left_unfinished_for_the_rerun(local_ray
     assert not Path(job["out"]).exists() and (partial_dir(Path(job["out"])) / CHECKPOINT).exists()
     assert len(run_jobs([job], RayCluster(), "rerun")) == 1
     assert json.loads((Path(job["out"]) / SUMMARY).read_text())["steps"] == 8192
+
+
+def test_runs_the_ray_cluster_cannot_schedule_are_refused_not_waited_for(local_ray, tmp_path):
+    job = _plan(tmp_path)[0]
+    job["config"]["device"] = "cuda"
+    if ray.cluster_resources().get("GPU", 0):
+        pytest.skip("this machine's Ray cluster has a GPU")
+    with pytest.raises(RuntimeError, match="asks for 1 GPU"):
+        run_jobs([job], RayCluster(), "gpu")
+    with pytest.raises(RuntimeError, match="lower --cpus-per-run"):
+        run_jobs(_plan(tmp_path), RayCluster(cpus_per_run=3), "cpu")
+    assert not Path(job["out"]).exists() and not partial_dir(Path(job["out"])).exists()

@@ -91,6 +91,17 @@ class RayCluster:
         cuda = str(job["config"].get("device", "cpu")).startswith("cuda")
         return {"num_cpus": self.cpus_per_run, "num_gpus": self.gpus_per_run if cuda else 0}
 
+    def _check_feasible(self, ray, todo: list[dict]) -> None:
+        """Refuse runs the cluster could never schedule (Ray would wait for them forever)."""
+        have = ray.cluster_resources()
+        for kind, key in (("CPU", "num_cpus"), ("GPU", "num_gpus")):
+            need = max(self.resources(job)[key] for job in todo)
+            if need > have.get(kind, 0):
+                raise RuntimeError(
+                    f"a run asks for {need:g} {kind}(s) but the Ray cluster has {have.get(kind, 0):g}: "
+                    + ("start its workers with `ray start ... --num-gpus N`, or train on --device cpu"
+                       if kind == "GPU" else "lower --cpus-per-run"))
+
     def run(self, todo: list[dict], done) -> None:
         try:
             import ray
@@ -103,6 +114,12 @@ class RayCluster:
                 ray.init(num_cpus=self.num_cpus, include_dashboard=False)
             else:
                 ray.init(address=self.address)
+        try:
+            self._check_feasible(ray, todo)
+        except BaseException:
+            if started:
+                ray.shutdown()
+            raise
         task = ray.remote(_ray_task)
         cwd = os.getcwd()
         refs = {task.options(**self.resources(job), max_retries=self.retries, name=job["name"])
