@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 
 from ..stats import compare, learning_score, mean_ci
-from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, long_tags_on_disk
+from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, long_tags_on_disk, tl_architectures
 from .figures import FIGURES, TAGGED, Figure, Panel, tag_marker
 from .plan import Plan
 
@@ -285,6 +285,7 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
             r.add(extra)
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
+    archs = " and ".join(f"`{a}`" for a in tl_architectures())  # as the catalogue mixes them
     header = f"""# Reproduction report — scale `{scale}`
 
 Made by:
@@ -324,7 +325,7 @@ this code: DAgger cloning of the scripted oracle in their own environment (`medc
 `medc_training.dagger`), the cheapest way to get competent experts on 2 CPU cores; the paper's
 experts were PPO-trained at full scale. The oracle sees the target; the clones see only the
 agents' observations. Two architectures are mixed among the target-localization experts
-(`lenet5` and `convnet-small`; MEDC needs only their actions, so one run uses both). Each
+({archs}; MEDC needs only their actions, so one run uses both). Each
 bundle's own evaluation (128 finished episodes, greedy and sampled, against a random team on
 the same episodes; target localization is judged greedy, fleet and maze sampled):
 
