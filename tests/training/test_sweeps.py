@@ -98,7 +98,8 @@ def test_medc_train_seed_sweep_on_ray_equals_the_pool_sweep(local_ray, tmp_path,
     assert not (tmp_path / "x").exists()
 
 
-def _wait_for_checkpoint(proc, ckpt: Path, updates: int = 2, timeout: float = 90) -> None:
+def _wait_for_checkpoint(proc, ckpt: Path, updates: int = 2, timeout: float = 120) -> None:
+    """Wait until ``ckpt`` holds ``updates`` updates (``proc``, if given, must still be running)."""
     deadline = time.time() + timeout
     while time.time() < deadline:
         try:
@@ -106,7 +107,7 @@ def _wait_for_checkpoint(proc, ckpt: Path, updates: int = 2, timeout: float = 90
                 return
         except ValueError:  # read while being replaced
             pass
-        assert proc.poll() is None, proc.stderr.read().decode()
+        assert proc is None or proc.poll() is None, proc.stderr.read().decode()
         time.sleep(0.2)
     raise AssertionError(f"no checkpoint with {updates} updates at {ckpt} within {timeout}s")
 
@@ -181,15 +182,7 @@ def _kill_worker_mid_run(job: dict, engine: RayCluster) -> BaseException | None:
 
     thread = threading.Thread(target=sweep)
     thread.start()
-    deadline = time.time() + 120
-    ckpt = partial_dir(Path(job["out"])) / CHECKPOINT
-    while time.time() < deadline:
-        try:
-            if ckpt.exists() and load_state(ckpt)["learner"]["updates"] >= 2:
-                break
-        except ValueError:
-            pass
-        time.sleep(0.2)
+    _wait_for_checkpoint(None, partial_dir(Path(job["out"])) / CHECKPOINT)
     pid = _ray_worker_running(job["name"])
     assert pid is not None, "the job's Ray worker was not found"
     os.kill(pid, signal.SIGKILL)
