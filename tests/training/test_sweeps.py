@@ -192,20 +192,20 @@ def _kill_worker_mid_run(job: dict, engine: RayCluster) -> BaseException | None:
 
 
 def test_a_lost_ray_worker_is_retried_or_left_unfinished_for_the_rerun(local_ray, tmp_path):
-    job = _plan(tmp_path, steps=8192)[0]
+    job = _plan(tmp_path, steps=2048)[0]
     job["name"] = f"lost-{os.getpid()}/seed0"  # its worker's process title, unique on the machine
     out = Path(job["out"])
     # with a retry, the task starts again on a new worker and resumes from the checkpoint
     assert _kill_worker_mid_run(job, RayCluster(retries=1)) is None
     steps = [int(r["step"]) for r in read_metrics(out / "metrics.csv")]
-    assert steps == sorted(set(steps)) and steps[-1] == 8192 and not partial_dir(out).exists()
+    assert steps == sorted(set(steps)) and steps[-1] == 2048 and not partial_dir(out).exists()
     # without one, the run is left unfinished (no run folder) and the next rerun finishes it
     job = {**job, "name": f"lost-{os.getpid()}/seed1", "out": str(tmp_path / "lost1")}
     error = _kill_worker_mid_run(job, RayCluster(retries=0))
     assert isinstance(error, RuntimeError) and "run the same command again to resume" in str(error)
     assert not Path(job["out"]).exists() and (partial_dir(Path(job["out"])) / CHECKPOINT).exists()
     assert len(run_jobs([job], RayCluster(), "rerun")) == 1
-    assert json.loads((Path(job["out"]) / SUMMARY).read_text())["steps"] == 8192
+    assert json.loads((Path(job["out"]) / SUMMARY).read_text())["steps"] == 2048
 
 
 def test_runs_the_ray_cluster_cannot_schedule_are_refused_not_waited_for(local_ray, tmp_path):
