@@ -1,11 +1,14 @@
-"""medc-reproduce: the experiment plan matches the paper's figures; claim verdicts are honest."""
+"""medc-reproduce (medc_training.experiments): the plan matches the paper's figures; verdicts are honest."""
 
 import json
 from pathlib import Path
 
 import pytest
-from medc_training.cli.reproduce import FRL_USERS, SIX, Plan, compare, t95, verdict
 from medc_training.cli.train import parse_users
+from medc_training.experiments.catalogue import FRL_USERS, SIX
+from medc_training.experiments.plan import Plan
+from medc_training.experiments.report import verdict
+from medc_training.stats import compare, t95
 
 
 def _plan(tmp_path, seeds=2):
@@ -13,7 +16,7 @@ def _plan(tmp_path, seeds=2):
 
 
 def test_fig6_runs_free_complex_and_combined_experts_against_sparse(tmp_path):
-    jobs = _plan(tmp_path).tl("fig6")
+    jobs = _plan(tmp_path).jobs("fig6")
     names = {j["name"] for j in jobs}
     for w in (2, 3):
         for run in ("sparse", "medc-free", "medc-complex", "medc-combined"):
@@ -23,7 +26,7 @@ def test_fig6_runs_free_complex_and_combined_experts_against_sparse(tmp_path):
 
 
 def test_fig8_uses_the_papers_six_experts_and_eight_frl_users(tmp_path):
-    jobs = _plan(tmp_path, seeds=1).tl("fig8")
+    jobs = _plan(tmp_path, seeds=1).jobs("fig8")
     medc = next(j for j in jobs if j["name"] == "A3W2-medc-six/seed0")
     assert tuple(Path(e).stem for e in medc["experts"]) == SIX
     frl = next(j for j in jobs if j["name"] == "A3W2-frl8/seed0")
@@ -31,7 +34,7 @@ def test_fig8_uses_the_papers_six_experts_and_eight_frl_users(tmp_path):
 
 
 def test_fig9_has_three_faulty_users_in_medc_and_frl(tmp_path):
-    jobs = _plan(tmp_path, seeds=1).tl("fig9")
+    jobs = _plan(tmp_path, seeds=1).jobs("fig9")
     medc = next(j for j in jobs if j["name"] == "A3W2-medc-six-3faulty/seed0")
     faulty = [e for e in medc["experts"] if e in ("random", "biased:0") or e.startswith("malicious:")]
     assert len(faulty) == 3 and len(medc["experts"]) == 6
@@ -59,7 +62,7 @@ def test_frl_user_list_parsing():
 
 def test_long_supplement_names_carry_their_step_count(tmp_path):
     plan = Plan("cpu", 4, tmp_path / "out", Path("models"), {"long_steps": 1_000_000})
-    jobs = plan.long_runs()
+    jobs = plan.jobs("long")
     assert len(jobs) == 9  # at most 3 seeds x (sparse, MEDC six, MEDC oracle)
     assert {j["name"].split("/")[0] for j in jobs} == {
         "long1M-A3W2-sparse", "long1M-A3W2-medc-six", "long1M-A3W2-medc-oracle"}
@@ -68,18 +71,18 @@ def test_long_supplement_names_carry_their_step_count(tmp_path):
 
 def test_device_reaches_every_run_and_bad_devices_are_refused(tmp_path):
     plan = Plan("paper", 1, tmp_path / "out", Path("models"), device="cuda:0")
-    jobs = plan.tl("fig8") + plan.expert_jobs(retrain=True)
+    jobs = plan.jobs("fig8") + plan.expert_jobs(retrain=True)
     assert jobs and all(j["config"]["device"] == "cuda:0" for j in jobs)
-    assert all(j["config"]["device"] == "cpu" for j in _plan(tmp_path).tl("fig6"))
+    assert all(j["config"]["device"] == "cpu" for j in _plan(tmp_path).jobs("fig6"))
     with pytest.raises(ValueError, match="device"):
         Plan("cpu", 1, tmp_path / "out", Path("models"), device="tpu")
 
 
 def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp_path):
-    from medc_training.cli.reproduce import OTHER_GRID, OTHER_MAX_STEPS
+    from medc_training.experiments.catalogue import OTHER_GRID, OTHER_MAX_STEPS
 
     plan = _plan(tmp_path, seeds=1)
-    jobs = plan.other_apps()
+    jobs = plan.jobs("fig10")
     assert {j["config"]["env"] for j in jobs} == {"fleet_coordination", "maze_cleaning"}
     for job in jobs:
         cfg = job["config"]
@@ -87,7 +90,7 @@ def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp
         assert cfg["eval_greedy"] is False
         # every evaluation environment can finish at least one full-length episode
         assert cfg["eval_steps"] // cfg["eval_envs"] >= cfg["max_steps"]
-    paper = Plan("paper", 1, tmp_path / "paper", Path("models")).other_apps()
+    paper = Plan("paper", 1, tmp_path / "paper", Path("models")).jobs("fig10")
     assert {j["config"]["eval_every"] for j in paper} == {40_000}  # the paper's interval
 
 
@@ -103,7 +106,7 @@ def test_medc_train_flags_reach_the_config():
 
 def test_long_other_supplement_pits_medc_against_sparse_and_il_truthful_and_faulty(tmp_path):
     plan = Plan("cpu", 4, tmp_path / "out", Path("models"), {"long_steps": 1_000_000})
-    jobs = plan.long_other_runs()
+    jobs = plan.jobs("long-other")
     assert len(jobs) == 30  # 2 applications x 3 seeds x (sparse, MEDC, IL, MEDC-3faulty, IL-3faulty)
     assert {j["name"].split("/")[0] for j in jobs} == {
         f"long1M-{app}-{m}" for app in ("fleet", "maze")
@@ -115,14 +118,15 @@ def test_long_other_supplement_pits_medc_against_sparse_and_il_truthful_and_faul
     assert faulty[:2] == ["random", "biased:0"] and faulty[2].startswith("malicious:")
     assert [Path(e).stem for e in faulty[3:]] == ["fleet-A1C8", "fleet-A3C4", "fleet-A2C8"]
     # the same faulty set as Fig. 11 at 100k steps
-    fig11 = next(j for j in plan.other_apps() if j["name"] == "fleet-il-3faulty/seed0")["experts"]
+    fig11 = next(j for j in plan.jobs("fig10") if j["name"] == "fleet-il-3faulty/seed0")["experts"]
     assert fig11 == faulty
     assert all(j["config"]["total_steps"] == 1_000_000 and j["config"]["grid"] == 10 for j in jobs)
 
 
 def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exists(tmp_path):
     from medc_training.bundle import load_bundle, read_manifest
-    from medc_training.cli.reproduce import TL_EXPERTS, run_job
+    from medc_training.experiments.catalogue import TL_EXPERTS
+    from medc_training.experiments.jobs import run_job
 
     models = tmp_path / "models"
     plan = Plan("cpu", 1, tmp_path / "out", models)
@@ -145,7 +149,7 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     assert not (Path(job["out"]) / "policy.safetensors").exists()
     assert (Path(job["out"]) / "metrics.csv").exists()
     # The report's expert table reads the bundle's own evaluation from its manifest.
-    from medc_training.cli.reproduce import expert_table
+    from medc_training.experiments.report import expert_table
 
     (models / "team").mkdir()
     (models / "team" / "broken.safetensors").write_bytes(b"not a bundle")
@@ -174,8 +178,8 @@ def _fake_runs(out, name, finals, cfg):
 
 
 def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
-    from medc_training.cli.reproduce import Report, learnability_gate
     from medc_training.config import TrainConfig
+    from medc_training.experiments.report import Report, learnability_gate
 
     cfg = TrainConfig(agents=1, walls=0, grid=6, max_steps=20, eval_envs=8, observation="maps").to_dict()
     _fake_runs(tmp_path, "learned-sparse", [3.0, 4.0, 3.5], cfg)

@@ -10,6 +10,12 @@ Examples::
     medc-train --method medc --expert random --expert biased:2 --expert malicious:oracle ...
     medc-train --method frl --frl-users A1W0,A3W0,A2W1,A2W2,A2W3,A3W1,A3W2,A3W3 ...
     medc-train ... --out runs/a3w2-medc --resume      # continue a killed run
+    medc-train ... --out runs/a3w2-medc --seeds 0 1 2  # a sweep: one run per seed in OUT/seed-N
+    medc-train ... --out runs/a3w2-medc --seeds 0 1 2 --ray HEAD:6379   # ... as Ray tasks on a cluster
+
+A sweep (``--seeds``) runs through the same engines as ``medc-reproduce``: a local process pool
+(``--jobs``) or Ray (``--ray``, docs/training.md). Each seed's folder appears only when its run
+has finished; rerunning the sweep skips finished seeds and resumes unfinished ones.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import json
 import math
 import re
 import sys
+from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
 from ..envs.tl_observation import DEFAULT_OBSERVATION
@@ -77,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "contract's QoS rule, medc_training.qos)")
     p.add_argument("--steps", type=int, default=100_000, help="training steps (environment steps)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, nargs="+", metavar="SEED",
+                   help="a sweep: one run per seed into OUT/seed-SEED (instead of --seed); see --jobs, --ray")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.safetensors")
@@ -102,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-tensorboard", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from .reproduce import add_engine_arguments
+
+    add_engine_arguments(p)
     return p
 
 
@@ -126,40 +138,59 @@ def config_from_args(args: argparse.Namespace):
     return scaled_config(args.scale, **overrides)
 
 
-def make_learner(cfg, expert_specs: list[str], expert_weights: list[float] | None = None):
-    """A Trainer (or an FRL group) for the config, with experts parsed from their specs and their
-    R_S (``expert_weights``, one per spec; None = from the QoS rule, see medc_training.qos)."""
-    import torch
+def sweep_jobs(args: argparse.Namespace) -> list[dict]:
+    """One job per ``--seeds`` seed: the run medc-train would make with ``--seed N --out OUT/seed-N``."""
+    from ..experiments.jobs import check_experts
 
-    from ..experts import parse_expert
-    from ..ppo import Trainer
-
-    if cfg.method == "frl":
-        if expert_specs or expert_weights:
-            raise ValueError("--expert is not used by --method frl (FRL shares parameters, not actions)")
-        from ..frl import FederatedGroup
-
-        return FederatedGroup(cfg)
-    if expert_specs and cfg.method not in ("medc", "il"):
-        raise ValueError(f"--expert is only used by --method medc or il, not {cfg.method}")
-    gen = torch.Generator().manual_seed(cfg.seed + 13)
-    experts = [parse_expert(spec, generator=gen, device=cfg.device) for spec in expert_specs]
-    return Trainer(cfg, experts, expert_weights)
+    jobs = []
+    for seed in dict.fromkeys(args.seeds):
+        args.seed = seed
+        cfg = config_from_args(args).validate()
+        check_experts(cfg.method, args.expert)
+        jobs.append({"name": f"seed-{seed}", "config": cfg.to_dict(), "experts": list(args.expert),
+                     "expert_weights": args.expert_weight, "out": str(Path(args.out) / f"seed-{seed}"),
+                     "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True})
+    return jobs
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    p = build_parser()
+    args = p.parse_args(argv)
+    if args.seeds is None and (args.ray is not None or args.jobs is not None):
+        p.error("--ray and --jobs run a sweep: give the seeds with --seeds")
     try:
+        if args.seeds is not None:
+            return _sweep(args)
         cfg = config_from_args(args)
-        learner = make_learner(cfg, args.expert, args.expert_weight)
+        from ..experiments.jobs import make_learner
         from ..runner import run_training
 
+        learner = make_learner(cfg, args.expert, args.expert_weight)
         summary = run_training(learner, cfg, args.out, resume=args.resume, progress=not args.quiet,
                                tensorboard=not args.no_tensorboard)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"medc-train: error: {exc}", file=sys.stderr)
         return 2
     print(json.dumps({k: v for k, v in summary.items() if k != "config"}))
+    return 0
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from ..experiments.engines import INTERRUPTED, run_jobs
+    from ..experiments.jobs import SUMMARY
+    from .reproduce import engine_from_args
+
+    jobs = sweep_jobs(args)
+    try:
+        run_jobs(jobs, engine_from_args(args), "medc-train")
+    except KeyboardInterrupt:
+        print(f"medc-train: interrupted; {INTERRUPTED}", file=sys.stderr)
+        return 130
+    runs = {}
+    for job in jobs:
+        summary = json.loads((Path(job["out"]) / SUMMARY).read_text())
+        runs[job["name"]] = {k: v for k, v in summary.items() if k != "config"}
+    print(json.dumps({"runs": runs}))
     return 0
 
 

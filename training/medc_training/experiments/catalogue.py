@@ -1,0 +1,86 @@
+"""The catalogue the experiments draw on: phases, budgets per scale, the experts and users.
+
+Everything here is data; :mod:`.figures` declares which runs each paper figure makes from it and
+:mod:`.plan` turns those declarations into jobs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
+
+# Per-scale budget: training steps of each experiment run, of each expert, of the team.
+BUDGETS = {
+    "cpu": {"steps": 150_000, "expert_steps": 128_000, "team_steps": 128_000, "fleet_maze_steps": 100_000,
+            "long_steps": 200_000},
+    "paper": {"steps": 20_000_000, "expert_steps": 2_000_000, "team_steps": 2_000_000,
+              "fleet_maze_steps": 20_000_000, "long_steps": 20_000_000},
+}
+
+# Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
+# users A1W0, A3W0, A2W1, A2W2, A2W3, A3W1 plus the "complex" A1W3 of Fig. 6. Two
+# architectures are mixed on purpose: MEDC only needs actions from its experts. On the default
+# agent-centred observation with the source estimate an MLP clones the oracle well (on the
+# paper's absolute maps it did not: A3W2, 51k steps of DAgger, greedy 33 steps against
+# LeNet-5's 7, random 36), so the MLP is mixed with the paper's LeNet-5.
+TL_EXPERTS = (
+    ("A1W0", 1, 0, "mlp"),
+    ("A1W3", 1, 3, "lenet5"),
+    ("A3W0", 3, 0, "mlp"),
+    ("A2W1", 2, 1, "lenet5"),
+    ("A2W2", 2, 2, "mlp"),
+    ("A2W3", 2, 3, "lenet5"),
+    ("A3W1", 3, 1, "mlp"),
+)
+SIX = ("A1W0", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1")        # paper Section V-C, first 6 users
+PROPER5 = ("A1W0", "A3W0", "A2W1", "A2W2", "A3W1")            # Fig. 7 "proper experts"
+FRL_USERS = ((1, 0), (3, 0), (2, 1), (2, 2), (2, 3), (3, 1), (3, 2), (3, 3))
+FAULTY_USERS = {"A2W1": "random", "A2W2": "biased", "A3W1": "malicious"}  # Fig. 9: 3 of the 8
+
+# Fleet coordination and maze cleaning: the paper's 10x10 grid at every scale. The paper gives
+# no step limit; 400 lets a uniformly random team finish some episodes (measured on 64
+# episodes: maze complexity 1.0 42%, fleet with 8 customers 9%; at 100 steps neither ever
+# finishes, and every curve sits flat at the limit). A memoryless greedy policy repeats one
+# move forever in these coverage tasks, so they are evaluated on sampled actions, 16
+# environments x 400 steps per evaluation.
+OTHER_GRID = 10
+OTHER_MAX_STEPS = 400
+OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MAX_STEPS}
+
+# Fleet coordination / maze cleaning experts: (name, agents, env options); the user of
+# interest is 3 agents (fleet: 8 customers; maze: complexity 1.0). "short" prefixes run names.
+OTHER_APPS = {
+    "fleet_coordination": {
+        "short": "fleet",
+        "title": "Fleet coordination",
+        "target": {"customers": 8},
+        "experts": (("fleet-A1C4", 1, {"customers": 4}), ("fleet-A2C4", 2, {"customers": 4}),
+                    ("fleet-A2C6", 2, {"customers": 6}), ("fleet-A1C8", 1, {"customers": 8}),
+                    ("fleet-A3C4", 3, {"customers": 4}), ("fleet-A2C8", 2, {"customers": 8})),
+    },
+    "maze_cleaning": {
+        "short": "maze",
+        "title": "Maze cleaning",
+        "target": {"complexity": 1.0},
+        "experts": (("maze-A1C0", 1, {"complexity": 0.0}), ("maze-A2C0", 2, {"complexity": 0.0}),
+                    ("maze-A1C1", 1, {"complexity": 1.0}), ("maze-A2C1", 2, {"complexity": 1.0}),
+                    ("maze-A3C0", 3, {"complexity": 0.0}), ("maze-A2C05", 2, {"complexity": 0.5})),
+    },
+}
+
+
+def tl_architectures() -> tuple[str, ...]:
+    """The architectures mixed among the target-localization experts, in catalogue order."""
+    return tuple(dict.fromkeys(arch for *_, arch in TL_EXPERTS))
+
+
+def long_tag(steps: int) -> str:
+    """Run-name prefix of a supplementary long run, e.g. long200k."""
+    return f"long{steps // 1000}k" if steps % 1_000_000 else f"long{steps // 1_000_000}M"
+
+
+def long_tags_on_disk(runs: Path, marker: str) -> list[str]:
+    """The long_tag prefixes of the runs ``<tag>-<marker>`` under ``runs``, shortest run first."""
+    tags = {d.name[: -len(marker) - 1] for d in runs.glob(f"long*-{marker}")}
+    return sorted(tags, key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))

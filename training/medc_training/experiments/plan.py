@@ -1,0 +1,129 @@
+"""The job plan: the runs of a phase's figure (see :mod:`.figures`) for one scale and output folder,
+and the DAgger jobs that train the experts. Planning only reads; :mod:`.jobs` runs the jobs."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict
+from pathlib import Path
+
+from .catalogue import BUDGETS, OTHER_APPS, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, TL_EXPERTS, long_tag
+from .figures import FIGURES, TAGGED, Figure, Run
+
+
+class Plan:
+    """Builds the job list of each phase for one scale and output folder."""
+
+    def __init__(self, scale: str, seeds: int, out: Path, models: Path, budget: dict | None = None,
+                 other_seeds: int | None = None, device: str = "cpu") -> None:
+        from ..config import scaled_config
+
+        self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
+        self.other_seeds = seeds if other_seeds is None else other_seeds
+        self.budget = dict(BUDGETS[scale])
+        self.budget.update({k: v for k, v in (budget or {}).items() if v})
+        self.base = scaled_config(scale, device=device).to_dict()
+
+    def cfg(self, **overrides) -> dict:
+        return {**self.base, **overrides}
+
+    def expert_path(self, name: str) -> str:
+        return str(self.models / "experts" / f"{name}.safetensors")
+
+    def figure(self, phase: str) -> Figure:
+        """The figure declaration of ``phase`` at this plan's budget."""
+        if phase in TAGGED:
+            return FIGURES[phase](long_tag(self.budget["long_steps"]))
+        return FIGURES[phase]()
+
+    def jobs(self, phase: str) -> list[dict]:
+        """One job per run of the phase's figure and seed."""
+        fig = self.figure(phase)
+        seeds = self.seeds if fig.seeds == "seeds" else self.other_seeds
+        if fig.max_seeds is not None:
+            seeds = min(seeds, fig.max_seeds)
+        steps = self.budget[fig.steps]
+        return [self.job(fig.phase, run, seed, steps) for seed in range(seeds) for run in fig.runs()]
+
+    def job(self, fig: str, run: Run, seed: int, steps: int) -> dict:
+        cfg = self.run_config(run, seed, steps)
+        experts = [re.sub(r"@(.+)$", lambda m: self.expert_path(m.group(1)), e) for e in run.experts]
+        return {"name": f"{run.name}/seed{seed}", "fig": fig, "config": cfg, "experts": experts,
+                "side_users": list(run.side_users), "out": str(self.out / "runs" / run.name / f"seed{seed}")}
+
+    def run_config(self, run: Run, seed: int, steps: int) -> dict:
+        """The TrainConfig (as a dict) of one seed of ``run`` with ``steps`` training steps."""
+        if run.env == "target_localization":
+            cfg = self.cfg(env=run.env, agents=run.agents, walls=run.walls, method=run.method,
+                           total_steps=steps, seed=seed)
+        else:
+            cfg = self.cfg(env=run.env, agents=run.agents, walls=run.walls,
+                           env_options=OTHER_APPS[run.env]["target"], total_steps=steps, seed=seed,
+                           max_steps=OTHER_MAX_STEPS, grid=OTHER_GRID, **self.other_eval(), method=run.method)
+        if run.frl_users:
+            cfg["frl_users"] = [dict(u) for u in run.frl_users]
+        if run.max_evals:
+            cfg["eval_every"] = max(cfg["eval_every"], steps // run.max_evals)
+        return cfg
+
+    def other_eval(self) -> dict:
+        """Fleet/maze evaluation settings (sampled actions; see OTHER_EVAL). At the paper scale
+        they are evaluated at the paper's interval; at the CPU scale, where one evaluation
+        (6,400 steps) would outweigh 4,096 training steps, about six times per run."""
+        every = self.base["eval_every"]
+        if self.scale == "cpu":
+            every = max(every, self.budget["fleet_maze_steps"] // 6)
+        return {**OTHER_EVAL, "eval_every": every}
+
+    # experts and the shipped team are DAgger clones of the scripted oracle (medc_training.dagger)
+    def expert_jobs(self, retrain: bool) -> list[dict]:
+        jobs = []
+        steps = self.budget["expert_steps"]
+        for name, agents, walls, arch in TL_EXPERTS:
+            jobs.append(self._expert_job(name, "target_localization", agents, arch, steps, retrain,
+                                         walls=walls))
+        team = self._expert_job("A3W2", "target_localization", 3, "mlp", self.budget["team_steps"],
+                                retrain, walls=2, folder="team")
+        jobs.append(team)
+        return [j for j in jobs if j is not None]
+
+    def other_expert_jobs(self, retrain: bool) -> list[dict]:
+        jobs = []
+        for app, spec in OTHER_APPS.items():
+            for i, (name, agents, options) in enumerate(spec["experts"]):
+                arch = "lenet5" if i == 1 else "mlp"
+                jobs.append(self._expert_job(name, app, agents, arch, self.budget["expert_steps"],
+                                             retrain, env_options=options, max_steps=OTHER_MAX_STEPS,
+                                             grid=OTHER_GRID, greedy=False))
+        return [j for j in jobs if j is not None]
+
+    def _expert_job(self, name, env, agents, arch, steps, retrain, walls=0, env_options=None,
+                    folder="experts", max_steps=None, grid=None, greedy=True):
+        """A DAgger job for one bundle, or None when a DAgger bundle for the same grid and step
+        limit is already there (bundles made any other way are retrained). The bundle is what
+        marks a clone job done: a planned one always runs, and replaces its old training folder."""
+        from ..bundle import BundleError, manifest_observation, read_manifest
+        from ..dagger import CloneConfig
+
+        target = self.models / folder / f"{name}.safetensors"
+        grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]
+        if target.exists() and not retrain:
+            try:
+                manifest = read_manifest(target)
+                wanted = self.base["observation"] if env == "target_localization" else None
+                same = (manifest["environment"].get("grid") == grid
+                        and manifest_observation(manifest) == wanted
+                        and manifest.get("environment", {}).get("max_steps") == max_steps
+                        and manifest.get("training", {}).get("method") == "dagger")
+                if same:
+                    return None
+            except (BundleError, KeyError):
+                pass
+        cfg = CloneConfig(env=env, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
+                          observation=self.base["observation"],
+                          env_options=env_options or {}, arch=arch, total_steps=steps,
+                          seed=1000 + len(name) * 7 + agents, eval_greedy=greedy,
+                          device=self.base["device"]).validate()
+        out = self.out / "expert-training" / name
+        return {"name": f"expert {name}", "fig": "experts", "kind": "clone", "config": asdict(cfg),
+                "out": str(out), "bundle_to": str(target)}

@@ -1,0 +1,348 @@
+"""The report: report.md and its figures, built from whatever runs exist under OUT/runs/.
+
+Every section is generated from the figure declarations (:mod:`.figures`); every band, table
+and verdict uses :mod:`medc_training.stats`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from ..stats import compare, learning_score, mean_ci
+from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, long_tags_on_disk, tl_architectures
+from .figures import FIGURES, TAGGED, Figure, Panel, tag_marker
+from .plan import Plan
+
+
+def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
+                ) -> tuple[list[float], list[list[float]], list]:
+    """(steps, [episode-length curve per seed], [summary per seed]) of one run name."""
+    from ..metrics import read_metrics
+
+    curves, summaries, steps = [], [], []
+    for seed_dir in sorted((out / "runs" / name).glob("seed*")):
+        if not (seed_dir / "summary.json").exists() or not (seed_dir / csv_name).exists():
+            continue
+        rows = read_metrics(seed_dir / csv_name)
+        if len(rows) > len(steps):
+            steps = [r["step"] for r in rows]
+        curves.append([r["episode_length"] for r in rows])
+        summaries.append(json.loads((seed_dir / "summary.json").read_text()))
+    return steps, curves, summaries
+
+
+#: Seeds the learnability gate needs before it can pass.
+GATE_MIN_SEEDS = 3
+#: Finished episodes of random play measured per seed for the gate.
+GATE_RANDOM_EPISODES = 256
+
+
+def random_play_length(out: Path, cfg: dict) -> float:
+    """Mean episode length of uniformly random valid moves on a run's evaluation episodes (its
+    evaluation seed and environment), cached in OUT/random_play.json."""
+    from ..config import TrainConfig
+    from ..evaluate import evaluate_policy
+    from ..ppo import EVAL_SEED_OFFSET, make_env_for
+
+    c = TrainConfig.from_dict(cfg)
+    seed = c.seed + EVAL_SEED_OFFSET
+    key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
+           f"{json.dumps(c.env_options, sort_keys=True)}|seed={seed}")
+    cache_path = out / "random_play.json"
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    if key not in cache:
+        env = make_env_for(c, c.eval_envs, seed, False)
+        played = evaluate_policy(env, None, GATE_RANDOM_EPISODES, greedy=False, seed=seed)
+        cache[key] = played["episode_length"]
+        cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
+    return float(cache[key])
+
+
+def learnability_gate(out: Path, sparse_run: str) -> dict:
+    """Did MDRL-sparse learn in ``sparse_run``'s environment? Per seed, its final evaluation episode
+    length (mean of the last three evaluations) minus random play's on the same evaluation
+    episodes; passed when >= GATE_MIN_SEEDS seeds ran and the 95% CI of the mean difference lies
+    entirely below 0. Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
+    from ..metrics import read_metrics
+
+    finals, randoms = [], []
+    for seed_dir in sorted((out / "runs" / sparse_run).glob("seed*")):
+        if not (seed_dir / "summary.json").exists():
+            continue
+        summary = json.loads((seed_dir / "summary.json").read_text())
+        rows = read_metrics(seed_dir / "metrics.csv")
+        finals.append(sum(r["episode_length"] for r in rows[-3:]) / len(rows[-3:]))
+        randoms.append(random_play_length(out, summary["config"]))
+    diffs = [f - r for f, r in zip(finals, randoms)]
+    m, half = mean_ci(diffs)
+    passed = len(diffs) >= GATE_MIN_SEEDS and m + half < 0
+    ms, _ = mean_ci(finals)
+    mr, _ = mean_ci(randoms)
+    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on the same evaluation "
+            f"episodes: difference {m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
+    return {"passed": passed, "n": len(diffs), "sparse": ms, "random": mr, "diff": m, "half": half,
+            "text": text}
+
+
+def verdict(better: list[float], worse: list[float]) -> str:
+    """How the paper's claim "``better`` learns faster than ``worse``" fared (lower learning
+    score is better): held / contradicted when the 95% CI of the difference excludes 0, else
+    not resolved, saying which way the means lean."""
+    if not better or not worse:
+        return "not run"
+    c = compare(better, worse)
+    if c["diff"] == 0:
+        return "no difference"
+    if c["diff"] + c["half"] < 0:
+        return "held"
+    if c["diff"] - c["half"] > 0:
+        return "contradicted (CI excludes 0 the other way)"
+    if c["diff"] < 0:
+        return "not resolved (means lean the paper's way; CI includes 0)"
+    return "not resolved (means lean against the paper; CI includes 0)"
+
+
+class Report:
+    """Collects figures and claim verdicts into report.md."""
+
+    def __init__(self, out: Path, scale: str, seeds: int, command: str) -> None:
+        self.out, self.scale, self.seeds, self.command = out, scale, seeds, command
+        self.sections: list[str] = []
+        self.scores: dict[str, list[float]] = {}
+        #: Learnability gate of each environment, by its MDRL-sparse run name.
+        self.gates: dict[str, dict] = {}
+        #: The verdict word of every claim written, in order (for the counts).
+        self.verdicts: list[str] = []
+
+    def _gate(self, sparse_run: str) -> dict:
+        """:func:`learnability_gate` of ``sparse_run``, computed once per report."""
+        if sparse_run not in self.gates:
+            self.gates[sparse_run] = learnability_gate(self.out, sparse_run)
+        return self.gates[sparse_run]
+
+    def gate(self, sparse_run: str) -> str:
+        """The gate line for ``sparse_run``'s environment; claims made with ``gate=sparse_run``
+        are "not testable" unless it passed."""
+        g = self._gate(sparse_run)
+        if g["n"] == 0:
+            return "- **Learnability gate** — not run"
+        word = "passed" if g["passed"] else (
+            f"NOT passed (needs >= {GATE_MIN_SEEDS} seeds and a CI below 0): the scale is too small for "
+            "MDRL-sparse to learn here, so this environment's claims are not testable")
+        return f"- **Learnability gate** ({sparse_run}) — {word}: {g['text']}"
+
+    def _untestable(self, gate: str | None) -> str | None:
+        if gate is None:
+            return None
+        g = self._gate(gate)
+        if g["passed"]:
+            return None
+        return (f"not testable (MDRL-sparse did not pass the learnability gate: difference to random "
+                f"play {g['diff']:+.2f} ± {g['half']:.2f}, n = {g['n']})")
+
+    def series(self, names: dict[str, str], csv_name: str = "metrics.csv") -> dict:
+        data = {}
+        for label, name in names.items():
+            steps, curves, summaries = load_curves(self.out, name, csv_name)
+            if curves:
+                data[label] = (steps, curves, summaries)
+                self.scores[name if csv_name == "metrics.csv" else f"{name}:{csv_name}"] = \
+                    [learning_score(c) for c in curves]
+        return data
+
+    def figure(self, png: str, title: str, names: dict[str, str], csv_name: str = "metrics.csv",
+               ylabel: str = "mean episode length (greedy eval)") -> dict:
+        from ..plots import plot_methods
+
+        data = self.series(names, csv_name)
+        if data:
+            plot_methods({k: (v[0], v[1]) for k, v in data.items()}, self.out / png, title, ylabel)
+        return data
+
+    def table(self, data: dict, wall: bool = False) -> str:
+        head = "| method | seeds | learning score (mean eval ep. length) ± 95% CI | final ep. length ± CI |"
+        sep = "|---|---|---|---|"
+        if wall:
+            head += " train wall time (s) |"
+            sep += "---|"
+        lines = [head, sep]
+        for label, (_, curves, summaries) in data.items():
+            m, h = mean_ci([learning_score(c) for c in curves])
+            fm, fh = mean_ci([c[-1] for c in curves])
+            line = f"| {label} | {len(curves)} | {m:.2f} ± {h:.2f} | {fm:.2f} ± {fh:.2f} |"
+            if wall:
+                line += f" {sum(s['train_seconds'] for s in summaries) / len(summaries):.1f} |"
+            lines.append(line)
+        return "\n".join(lines)
+
+    def claim(self, text: str, better: str, worse: str, gate: str | None = None) -> str:
+        a, b = self.scores.get(better, []), self.scores.get(worse, [])
+        c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
+        blocked = self._untestable(gate) if a and b else None
+        word = blocked or verdict(a, b)
+        self.verdicts.append(word)
+        return (f"- **{text}** — {word}: difference of learning scores "
+                f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
+
+    def claim_no_worse(self, text: str, faulty: str, sparse: str, margin: float,
+                       gate: str | None = None) -> str:
+        a, b = self.scores.get(faulty, []), self.scores.get(sparse, [])
+        if not a or not b:
+            return f"- **{text}** — not run"
+        c = compare(a, b)
+        ok = c["diff"] - c["half"] <= margin
+        word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
+        word = self._untestable(gate) or word
+        self.verdicts.append(word)
+        return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
+                f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
+
+    def add(self, text: str) -> None:
+        self.sections.append(text)
+
+    def verdict_counts(self) -> str:
+        """One line counting the claims by verdict (held, contradicted, not resolved, ...)."""
+        kinds = ("held", "contradicted", "did not hold", "inconclusive", "not resolved", "not testable",
+                 "no difference", "not run")
+        counts = {k: sum(v.startswith(k) for v in self.verdicts) for k in kinds}
+        return (f"{len(self.verdicts)} claims: " + ", ".join(f"{n} {k}" for k, n in counts.items() if n)
+                if self.verdicts else "no claims")
+
+    def write(self, header: str) -> Path:
+        path = self.out / "report.md"
+        path.write_text(header + "\n\n".join(self.sections) + "\n")
+        return path
+
+
+def expert_table(models: Path) -> str:
+    """One row per shipped expert/team bundle: how its DAgger evaluation compares with a random
+    team on the same episodes (read from the bundle manifests; empty if there are none)."""
+    from ..bundle import BundleError, read_manifest
+
+    rows = []
+    for path in [f for d in ("experts", "team") for f in sorted((models / d).glob("*.safetensors"))]:
+        try:
+            man = read_manifest(path)
+            m, t = man["metrics"], man["training"]
+            rows.append(f"| {path.parent.name}/{path.stem} | {t['arch']} | {t['method']} {t['steps']:,} | "
+                        f"{m['greedy_episode_length']:.1f} ({m['greedy_success_rate']:.0%}) | "
+                        f"{m['sampled_episode_length']:.1f} ({m['sampled_success_rate']:.0%}) | "
+                        f"{m['random_episode_length']:.1f} ({m['random_success_rate']:.0%}) |")
+        except (BundleError, KeyError, TypeError, ValueError):
+            rows.append(f"| {path.parent.name}/{path.stem} | ? | no DAgger evaluation in manifest | | | |")
+    if not rows:
+        return ""
+    return ("| bundle | arch | training, steps | greedy: mean ep. length (found) | sampled | random team |\n"
+            "|---|---|---|---|---|---|\n" + "\n".join(rows))
+
+
+def report_figures(runs: Path) -> list[Figure]:
+    """The figures of the report: every phase's, the tagged supplements once per step count that ran."""
+    figures = []
+    for phase, make in FIGURES.items():
+        if phase in TAGGED:
+            figures += [make(tag) for tag in long_tags_on_disk(runs, tag_marker(phase))]
+        else:
+            figures.append(make())
+    return figures
+
+
+def panel_section(r: Report, panel: Panel) -> str | None:
+    """A panel's plot and section (its table, gate and claims), or None when none of its runs exist."""
+    from ..plots import plot_methods
+
+    data: dict = {}
+    for s in panel.series:
+        data.update(r.series({s.label: s.run.name}, s.csv))
+    if not data:
+        return None
+    plot_methods({k: (v[0], v[1]) for k, v in data.items()}, r.out / panel.png, panel.title, panel.ylabel)
+    table = r.table(data, wall=panel.wall)
+    lines = [r.gate(panel.gate.name)]
+    for c in panel.claims:
+        if c.margin is None:
+            lines.append(r.claim(c.text, c.better.key, c.worse.key, gate=panel.gate.name))
+        else:
+            lines.append(r.claim_no_worse(c.text, c.better.key, c.worse.key, c.margin, gate=panel.gate.name))
+    text = f"{panel.heading}\n\n![{panel.alt}]({panel.png})\n\n{table}\n\n" + "\n".join(lines)
+    return text + (f"\n\n{panel.note}" if panel.note else "")
+
+
+def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
+    from ..config import SCALES
+
+    r = Report(out, scale, seeds, command)
+    budget = plan.budget
+    for fig in report_figures(out / "runs"):
+        for panel in fig.panels:
+            section = panel_section(r, panel)
+            if section:
+                r.add(section)
+        extra = fig.extra and fig.extra(lambda run: load_curves(out, run.name)[2])
+        if extra:
+            r.add(extra)
+    scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
+    timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
+    archs = " and ".join(f"`{a}`" for a in tl_architectures())  # as the catalogue mixes them
+    header = f"""# Reproduction report — scale `{scale}`
+
+Made by:
+
+```
+{command}
+```
+
+Seeds: {seeds} per configuration (0..{seeds - 1}); curves are means over seeds with 95% CI bands
+(Student t). Wall time of the phases run by this invocation:
+{timing or 'none (report rebuilt from existing runs)'}.
+
+**Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
+mean length of the finished test episodes (max {plan.base['max_steps']} when the target is never found)
+is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {OTHER_GRID}×{OTHER_GRID}
+grid with a {OTHER_MAX_STEPS}-step limit and are tested on actions sampled from the policy
+({OTHER_EVAL['eval_envs']} environments × {OTHER_MAX_STEPS} steps per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task.
+Each claim compares *learning scores*: the mean evaluation episode length over the whole run
+(the area under the learning curve divided by its length; lower = faster and better learning),
+per seed, as a difference of means with a 95% CI (Welch standard error, Student t). "held" /
+"contradicted" mean the CI of the difference excludes 0 in / against the paper's direction;
+"not resolved" means the CI includes 0 (the note says which way the means lean); "no
+difference" means identical scores (e.g. every episode hit the step limit).
+
+**Scale.** Training steps per run: {budget['steps']:,} (fleet/maze {budget['fleet_maze_steps']:,}); experts
+{budget['expert_steps']:,}; shipped team {budget['team_steps']:,}. Hyperparameters that differ from the
+paper's table at this scale (everything else is the paper's: lr 3e-4, clip 0.2, entropy 0.01,
+γ 0.99, λ 0.95, R_E 0.1, Q 0.05, R_S = QoS_i/ΣQoS_j):
+
+| setting | value |
+|---|---|
+{scale_rows}
+
+**Experts.** The expert bundles in `models/experts/` (and the shipped team) were trained by
+this code: DAgger cloning of the scripted oracle in their own environment (`medc-clone`, see
+`medc_training.dagger`), the cheapest way to get competent experts on 2 CPU cores; the paper's
+experts were PPO-trained at full scale. The oracle sees the target; the clones see only the
+agents' observations. Two architectures are mixed among the target-localization experts
+({archs}; MEDC needs only their actions, so one run uses both). Each
+bundle's own evaluation (128 finished episodes, greedy and sampled, against a random team on
+the same episodes; target localization is judged greedy, fleet and maze sampled):
+
+{expert_table(plan.models) or "(no expert bundles found)"}
+
+R_S of each expert follows the Models Manager contract's QoS rule (`medc_training.qos`) with
+equal reputations (0.5): D_m is the mean |ΔE_i| over the environment attributes the expert and
+the run both name (agents, walls, grid, step limit; the last two differ by 0 here), no expert
+matches a run exactly (D_m = 0), and one without attributes (random, biased) counts as one unit
+off in one of them.
+
+"""
+    protocol = out / "protocol.md"
+    if protocol.exists():  # fixed before the runs it governs; see its first line
+        header += "## Protocol\n\n" + protocol.read_text().strip() + "\n\n"
+    header += f"**Verdicts.** {r.verdict_counts()} (each listed under its figure below).\n\n"
+    notes = out / "discussion.md"
+    if notes.exists():  # hand-written interpretation, kept across regenerations of the report
+        header += "## Discussion\n\n" + notes.read_text().strip() + "\n\n## Figures and claims\n\n"
+    return r.write(header)
