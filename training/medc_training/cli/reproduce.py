@@ -82,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--other-seeds", type=int, default=2, help="seeds for Figs. 10-11 (default 2)")
     p.add_argument("--retrain", action="store_true", help="retrain experts even if bundles exist")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
+    p.add_argument("--app", action="append", choices=("fleet_coordination", "maze_cleaning"), default=None,
+                   help="repeatable: plan the experts and runs of only this fleet/maze application "
+                        "(default both); target localization is not affected")
     p.add_argument("--device", default="cpu",
                    help="torch device of every run: cpu or cuda (with cuda, --jobs 1, or --ray)")
     add_engine_arguments(p)
@@ -94,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     budget = {"steps": args.steps, "expert_steps": args.expert_steps, "team_steps": args.team_steps,
               "fleet_maze_steps": args.other_steps, "long_steps": args.long_steps}
     try:
-        plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds, device=args.device)
+        plan = Plan(args.scale, args.seeds, out, models, budget, args.other_seeds, device=args.device,
+                    apps=args.app)
     except ValueError as exc:
         p.error(str(exc))
     try:

@@ -15,10 +15,15 @@ class Plan:
     """Builds the job list of each phase for one scale and output folder."""
 
     def __init__(self, scale: str, seeds: int, out: Path, models: Path, budget: dict | None = None,
-                 other_seeds: int | None = None, device: str = "cpu") -> None:
+                 other_seeds: int | None = None, device: str = "cpu", apps=None) -> None:
         from ..config import scaled_config
 
         self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
+        #: Fleet coordination / maze cleaning applications whose experts and runs are planned.
+        self.apps = tuple(OTHER_APPS) if apps is None else tuple(apps)
+        unknown = set(self.apps) - set(OTHER_APPS)
+        if unknown:
+            raise ValueError(f"unknown application(s) {sorted(unknown)}; choose from {sorted(OTHER_APPS)}")
         self.other_seeds = seeds if other_seeds is None else other_seeds
         self.budget = dict(BUDGETS[scale])
         self.budget.update({k: v for k, v in (budget or {}).items() if v})
@@ -43,7 +48,8 @@ class Plan:
         if fig.max_seeds is not None:
             seeds = min(seeds, fig.max_seeds)
         steps = self.budget[fig.steps]
-        return [self.job(fig.phase, run, seed, steps) for seed in range(seeds) for run in fig.runs()]
+        runs = [r for r in fig.runs() if r.env == "target_localization" or r.env in self.apps]
+        return [self.job(fig.phase, run, seed, steps) for seed in range(seeds) for run in runs]
 
     def job(self, fig: str, run: Run, seed: int, steps: int) -> dict:
         cfg = self.run_config(run, seed, steps)
@@ -89,8 +95,8 @@ class Plan:
 
     def other_expert_jobs(self, retrain: bool) -> list[dict]:
         jobs = []
-        for app, spec in OTHER_APPS.items():
-            for i, (name, agents, options) in enumerate(spec["experts"]):
+        for app in self.apps:
+            for i, (name, agents, options) in enumerate(OTHER_APPS[app]["experts"]):
                 arch = "lenet5" if i == 1 else "mlp"
                 jobs.append(self._expert_job(name, app, agents, arch, self.budget["expert_steps"],
                                              retrain, env_options=options, max_steps=OTHER_MAX_STEPS,
@@ -110,9 +116,12 @@ class Plan:
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                wanted = self.base["observation"] if env == "target_localization" else None
+                if env == "target_localization":
+                    wanted = self.base["observation"]
+                else:  # the observation is an env option of fleet coordination / maze cleaning
+                    wanted = (env_options or {}).get("observation", "maps")
                 same = (manifest["environment"].get("grid") == grid
-                        and manifest_observation(manifest) == wanted
+                        and (manifest_observation(manifest) or "maps") == wanted
                         and manifest.get("environment", {}).get("max_steps") == max_steps
                         and manifest.get("training", {}).get("method") == "dagger")
                 if same:
