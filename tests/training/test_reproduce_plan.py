@@ -92,6 +92,34 @@ def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp
         assert cfg["eval_steps"] // cfg["eval_envs"] >= cfg["max_steps"]
     paper = Plan("paper", 1, tmp_path / "paper", Path("models")).jobs("fig10")
     assert {j["config"]["eval_every"] for j in paper} == {40_000}  # the paper's interval
+    # maze cleaning (its runs, FRL users and experts) on the ego9 window; fleet on the maps
+    for job in jobs:
+        options = [job["config"]["env_options"], *(u["env_options"] for u in job["config"]["frl_users"])]
+        wanted = "ego9" if job["config"]["env"] == "maze_cleaning" else None
+        assert {o.get("observation") for o in options} == {wanted}
+    for job in plan.other_expert_jobs(retrain=True):
+        wanted = "ego9" if job["config"]["env"] == "maze_cleaning" else None
+        assert job["config"]["env_options"].get("observation") == wanted
+
+
+def test_app_filter_plans_only_the_named_fleet_or_maze_application(tmp_path):
+    maze = Plan("cpu", 1, tmp_path / "out", Path("models"), other_seeds=3, apps=["maze_cleaning"])
+    jobs = maze.jobs("fig10")
+    assert {j["config"]["env"] for j in jobs} == {"maze_cleaning"}
+    assert {j["name"].split("/")[1] for j in jobs} == {"seed0", "seed1", "seed2"}
+    assert len(jobs) == 7 * 3  # sparse, MEDC, FRL, IL; MEDC, FRL, IL with 3 faulty
+    experts = maze.other_expert_jobs(retrain=True)
+    assert len(experts) == 6 and {j["config"]["env"] for j in experts} == {"maze_cleaning"}
+    # target localization is not affected by the filter
+    assert maze.jobs("fig8") == Plan("cpu", 1, tmp_path / "out", Path("models")).jobs("fig8")
+    with pytest.raises(ValueError, match="unknown application"):
+        Plan("cpu", 1, tmp_path / "out", Path("models"), apps=["fleet"])
+    # the shipped maze bundles are ego9 DAgger clones: reused for ego9, retrained for the maps
+    shipped = Plan("cpu", 1, tmp_path / "out", Path("models"), apps=["maze_cleaning"])
+    again = dict(name="maze-A1C0", env="maze_cleaning", agents=1, arch="mlp", steps=128_000, retrain=False,
+                 max_steps=400, grid=10)
+    assert shipped._expert_job(**again, env_options={"complexity": 0.0, "observation": "ego9"}) is None
+    assert shipped._expert_job(**again, env_options={"complexity": 0.0})
 
 
 def test_medc_train_flags_reach_the_config():
