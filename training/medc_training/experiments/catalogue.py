@@ -85,7 +85,8 @@ def long_tag(steps: int) -> str:
     return f"long{steps // 1000}k" if steps % 1_000_000 else f"long{steps // 1_000_000}M"
 
 
-def long_tags_on_disk(runs: Path, marker: str) -> list[str]:
-    """The long_tag prefixes of the runs ``<tag>-<marker>`` under ``runs``, shortest run first."""
-    tags = {d.name[: -len(marker) - 1] for d in runs.glob(f"long*-{marker}")}
+def long_tags_on_disk(runs: Path, markers) -> list[str]:
+    """The long_tag prefixes of the runs ``<tag>-<marker>`` under ``runs`` for any of ``markers``,
+    shortest run first."""
+    tags = {d.name[: -len(m) - 1] for m in markers for d in runs.glob(f"long*-{m}")}
     return sorted(tags, key=lambda t: float(t[4:-1]) * (1000 if t.endswith("k") else 1_000_000))

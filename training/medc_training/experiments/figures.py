@@ -308,7 +308,8 @@ FIGURES: dict[str, Callable[..., Figure]] = {
 TAGGED = ("long", "long-other")
 
 
-def tag_marker(phase: str) -> str:
-    """What follows ``<tag>-`` in the name of a tagged phase's first gate run, to find the tags
-    that ran (e.g. ``A3W2-sparse`` for ``long``)."""
-    return FIGURES[phase]("").panels[0].gate.name[1:]
+def tag_markers(phase: str) -> tuple[str, ...]:
+    """What follows ``<tag>-`` in the names of a tagged phase's gate runs, one per panel, to find
+    the tags that ran (e.g. ``A3W2-sparse`` for ``long``; ``fleet-sparse`` and ``maze-sparse``
+    for ``long-other``, either of which may have run alone)."""
+    return tuple(dict.fromkeys(p.gate.name[1:] for p in FIGURES[phase]("").panels))

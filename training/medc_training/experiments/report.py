@@ -12,7 +12,7 @@ from pathlib import Path
 
 from ..stats import compare, learning_score, mean_ci
 from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, long_tags_on_disk, tl_architectures
-from .figures import FIGURES, TAGGED, Figure, Panel, tag_marker
+from .figures import FIGURES, TAGGED, Figure, Panel, tag_markers
 from .plan import Plan
 
 
@@ -243,7 +243,7 @@ def report_figures(runs: Path) -> list[Figure]:
     figures = []
     for phase, make in FIGURES.items():
         if phase in TAGGED:
-            figures += [make(tag) for tag in long_tags_on_disk(runs, tag_marker(phase))]
+            figures += [make(tag) for tag in long_tags_on_disk(runs, tag_markers(phase))]
         else:
             figures.append(make())
     return figures
