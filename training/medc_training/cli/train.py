@@ -146,7 +146,7 @@ def sweep_jobs(args: argparse.Namespace) -> list[dict]:
     for seed in dict.fromkeys(args.seeds):
         args.seed = seed
         cfg = config_from_args(args).validate()
-        check_experts(cfg.method, args.expert)
+        check_experts(cfg.method, args.expert, args.expert_weight)
         jobs.append({"name": f"seed-{seed}", "config": cfg.to_dict(), "experts": list(args.expert),
                      "expert_weights": args.expert_weight, "out": str(Path(args.out) / f"seed-{seed}"),
                      "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True})

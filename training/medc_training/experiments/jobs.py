@@ -16,8 +16,11 @@ from pathlib import Path
 SUMMARY = "summary.json"
 
 
-def check_experts(method: str, expert_specs) -> None:
-    """Refuse experts given to a method that does not use them (a clear error, not silence)."""
+def check_experts(method: str, expert_specs, expert_weights=None) -> None:
+    """Refuse experts given to a method that does not use them, and expert weights given without
+    experts (a clear error, not silence)."""
+    if expert_weights is not None and not expert_specs:
+        raise ValueError("expert weights were given without experts: give one --expert per weight")
     if not expert_specs:
         return
     if method == "frl":
@@ -36,9 +39,7 @@ def make_learner(cfg, expert_specs=(), expert_weights=None, side_users=()):
     from ..experts import parse_expert
     from ..ppo import Trainer
 
-    check_experts(cfg.method, expert_specs)
-    if expert_weights is not None and not expert_specs:
-        raise ValueError("expert weights were given without experts: give one --expert per weight")
+    check_experts(cfg.method, expert_specs, expert_weights)
     if cfg.method == "frl":
         from ..frl import FederatedGroup
 
