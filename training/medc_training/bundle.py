@@ -198,18 +198,19 @@ def manifest_observation(manifest: Mapping[str, Any]) -> str | None:
 
 def _grid_task_side(name: Any, grid: int) -> int:
     """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
-    from medc_training.envs.grid import ego_radius
+    from medc_training.envs.observation import parse_observation
 
     try:
-        radius = ego_radius(name)
+        spec = parse_observation(name)
     except ValueError:  # its message holds the name: do not echo it
-        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application") \
-            from None
-    return 2 * radius + 1 if radius else grid
+        spec = None
+    if spec is None or spec.estimate:
+        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application")
+    return spec.side(grid)
 
 
 def _observation_spec(name: Any):
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.observation import parse_observation
 
     try:
         return parse_observation(name)

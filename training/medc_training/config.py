@@ -50,9 +50,32 @@ class EnvironmentConfig:
     env_options: dict = field(default_factory=dict)
     """Extra keyword options passed to make_batched (e.g. customers for fleet coordination)."""
     observation: str = DEFAULT_OBSERVATION
-    """Target localization's observation variant (medc_training.envs.tl_observation): 'maps' (the
-    paper's 5 absolute maps), 'maps+estimate', 'egoR', 'egoR+estimate'. Ignored by the other
-    applications."""
+    """The observation (medc_training.envs.observation): 'maps' (the application's absolute maps),
+    'egoR' (agent-centred windows), and for target localization 'maps+estimate', 'egoR+estimate'.
+    The default is target localization's; fleet coordination and maze cleaning take 'maps' unless
+    this field is set to something else (or ``env_options`` name an observation)."""
+
+    def make_options(self, reward_shaping: bool = False) -> dict:
+        """The keyword options of :func:`medc_training.envs.make_batched` this config describes
+        (besides num_envs, device and seed). Raises ValueError when ``observation`` and
+        ``env_options['observation']`` disagree."""
+        from .envs import core_has_estimate, core_options
+
+        accepted = core_options(self.env)
+        options = dict(self.env_options)
+        options.update(agents=self.agents, grid=self.grid, max_steps=self.max_steps)
+        if "walls" in accepted:
+            options["walls"] = self.walls
+        if "reward_shaping" in accepted:
+            options["reward_shaping"] = reward_shaping
+        # The default observation is target localization's; an application without a source
+        # estimate keeps its own default unless told otherwise (configs written before the field
+        # applied to every application hold the default).
+        given = core_has_estimate(self.env) or self.observation != DEFAULT_OBSERVATION
+        if given and options.setdefault("observation", self.observation) != self.observation:
+            raise ValueError(f"observation {self.observation!r} and env_options observation "
+                             f"{options['observation']!r} disagree; give one")
+        return options
 
     def env_attributes(self) -> dict:
         """The environment's descriptive features as stored in bundle manifests."""

@@ -47,16 +47,11 @@ def seed_everything(seed: int) -> None:
 
 
 def make_env_for(cfg: TrainConfig, num_envs: int, seed: int, reward_shaping: bool):
-    """The batched environment a config describes (walls only for target localization)."""
+    """The batched environment a config describes (:meth:`TrainConfig.make_options`)."""
     from .envs import make_batched
 
-    options = dict(cfg.env_options)
-    if cfg.env == "target_localization":
-        options["walls"] = cfg.walls
-        options["reward_shaping"] = reward_shaping
-        options["observation"] = cfg.observation
-    return make_batched(cfg.env, num_envs=num_envs, device=cfg.device, seed=seed, agents=cfg.agents,
-                        grid=cfg.grid, max_steps=cfg.max_steps, **options)
+    return make_batched(cfg.env, num_envs=num_envs, device=cfg.device, seed=seed,
+                        **cfg.make_options(reward_shaping))
 
 
 @dataclass

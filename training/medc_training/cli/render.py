@@ -36,10 +36,9 @@ def main(argv: list[str] | None = None) -> int:
                 break
             obs = nxt
         area = save_frame_png(env.render(), args.out_dir / f"{name}_area.png")
-        spec = getattr(env.core, "observation", None)
         maps = save_observation_png(
             obs["agent_0"]["observation"], args.out_dir / f"{name}_agent_0.png", application=name,
-            channel_names=None if spec is None else spec.channels,
+            channel_names=env.core.observation_channels,
         )
         print(area)
         print(maps)

@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
+from ..envs import core_has_estimate
 from ..envs.tl_observation import DEFAULT_OBSERVATION
 
 USER_RE = re.compile(r"^A(\d+)W(\d+)(?::(random|biased|malicious))?$")
@@ -72,8 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=int, help="grid side (default: the scale's, cpu 13 / paper 30)")
     p.add_argument("--max-steps", type=int, help="episode step limit (default: the scale's)")
     p.add_argument("--observation",
-                   help="target-localization observation: maps (the paper's 5 maps) | maps+estimate | egoR | "
-                        f"egoR+estimate (default {DEFAULT_OBSERVATION}; docs/environments.md)")
+                   help="observation: maps (the application's absolute maps) | egoR (agent-centred "
+                        "windows) | for target localization also maps+estimate | egoR+estimate "
+                        f"(default: {DEFAULT_OBSERVATION} for target localization, maps for the others; "
+                        "docs/environments.md)")
     p.add_argument("--method", choices=METHODS, default="sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
@@ -133,6 +136,10 @@ def config_from_args(args: argparse.Namespace):
     if args.frl_users:
         overrides["frl_users"] = parse_users(args.frl_users)
     env_options = parse_env_options(args.env_option)
+    if args.observation is not None and not core_has_estimate(args.env):
+        # Given explicitly, it reaches the core even when it is target localization's default
+        # name, so that an application without a source estimate refuses '+estimate' views.
+        env_options.setdefault("observation", args.observation)
     if env_options:
         overrides["env_options"] = env_options
     return scaled_config(args.scale, **overrides)

@@ -15,7 +15,9 @@ from medc_training.envs.core import BatchedEnv, StepOutput
 
 ENV_NAMES: tuple[str, ...] = ("target_localization", "fleet_coordination", "maze_cleaning")
 
-__all__ = ["ENV_NAMES", "BatchedEnv", "StepOutput", "make_batched", "make_env"]
+__all__ = [
+    "ENV_NAMES", "BatchedEnv", "StepOutput", "core_has_estimate", "core_options", "make_batched", "make_env",
+]
 
 
 def _core_class(name: str) -> type[BatchedEnv]:
@@ -34,6 +36,17 @@ def _core_class(name: str) -> type[BatchedEnv]:
     raise ValueError(f"unknown environment {name!r}; choose one of {', '.join(ENV_NAMES)}")
 
 
+def core_options(name: str) -> tuple[str, ...]:
+    """The keyword options application ``name``'s core takes (besides num_envs, device, seed)."""
+    common = ("self", "num_envs", "device", "seed")
+    return tuple(p for p in inspect.signature(_core_class(name).__init__).parameters if p not in common)
+
+
+def core_has_estimate(name: str) -> bool:
+    """Whether application ``name`` can show the team's source estimate (``+estimate`` views)."""
+    return _core_class(name).HAS_ESTIMATE
+
+
 def make_batched(
     name: str, num_envs: int = 1, device: str = "cpu", seed: int | None = None, **options: Any
 ) -> BatchedEnv:
@@ -44,8 +57,7 @@ def make_batched(
     reward_shaping, noise.
     """
     cls = _core_class(name)
-    common = ("self", "num_envs", "device", "seed")
-    allowed = [p for p in inspect.signature(cls.__init__).parameters if p not in common]
+    allowed = core_options(name)
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         raise ValueError(f"unknown option(s) {unknown} for {name}; allowed options: {', '.join(allowed)}")

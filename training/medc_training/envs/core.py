@@ -79,10 +79,19 @@ class BatchedEnv(ABC):
     """Interface shared by the three batched cores (see the concrete classes).
 
     Attributes: ``num_envs``, ``num_agents``, ``num_actions``, ``obs_shape`` (C, H, W),
+    ``observation`` (the :class:`~medc_training.envs.observation.ObservationSpec` it produces),
     ``device``, ``name``, ``attributes`` (dict of the environment's descriptive features).
+
+    The episode is this class's: :meth:`reset` and :meth:`step` own the moves, the step clock
+    ``t``, truncation at ``max_steps``, the final observation and auto-reset. An application
+    implements :meth:`_start_episodes`, :meth:`_transition` and :meth:`_observe` (plus its oracle)
+    and keeps ``positions`` int64 [B,N,2], ``blocked_pad`` (:func:`~medc_training.envs.grid.pad_blocked`),
+    ``_deltas`` (:func:`~medc_training.envs.grid.action_deltas`), ``max_steps`` and ``copy_obs``.
     """
 
     name: str = ""
+    #: Whether the application can show the team's source estimate (``+estimate`` observations).
+    HAS_ESTIMATE = False
     num_envs: int
     num_agents: int
     num_actions: int
@@ -113,17 +122,107 @@ class BatchedEnv(ABC):
     def attributes(self) -> dict[str, Any]:
         """The environment's descriptive features (what a model registry compares)."""
 
-    @abstractmethod
+    # -- the episode: one place for reset, moves, the clock, truncation and auto-reset ---------
     def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Start a new episode in every environment; returns (obs [B,N,C,H,W], mask [B,N,A])."""
+        """Start a new episode in every environment; returns (obs [B,N,C,H,W], mask [B,N,A]).
+
+        With ``seed`` the core's generator restarts from it (and :meth:`_reseeded` forgets
+        anything drawn ahead, such as a pool of layouts)."""
+        from medc_training.envs.grid import move_mask
+
+        if seed is not None:
+            self._seed(seed)
+            self._reseeded()
+        self._start_episodes(None)
+        self._started = True
+        self._obs = self._observe()
+        self._final_obs = None if self.copy_obs else torch.zeros_like(self._obs)
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
+
+    def step(self, actions: torch.Tensor) -> StepOutput:
+        """Apply one action per agent (int64 [B,N]); finished environments auto-reset.
+
+        The one episode loop of every core: moves (a disallowed move leaves the agent in place),
+        the application's :meth:`_transition`, the observation, the step clock, truncation at
+        ``max_steps``, the final observation of finished episodes and their restart."""
+        from medc_training.envs.grid import move_mask
+
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        actions = self._check_actions(actions)
+        allowed = self.mask.gather(2, actions.unsqueeze(2))  # [B,N,1]
+        previous = self.positions
+        self.positions = self.positions + self._deltas[actions] * allowed
+        reward, success = self._transition(actions)
+        self._observe_step(previous)
+        self.t += 1
+        episode_length = self.t.clone()
+        truncated = (self.t >= self.max_steps) & ~success
+        done = success | truncated
+        if bool(done.any()):
+            rows = done.nonzero().squeeze(1)
+            if self.copy_obs:
+                final_obs = self._obs.clone()
+            else:
+                final_obs = self._final_obs
+                final_obs[rows] = self._obs[rows]
+            if self._keep_final_pictures and not self.observes_pictures:
+                self._final_pictures = {int(r): self.picture_maps(int(r)) for r in rows}
+            self._start_episodes(rows)
+            self._obs[rows] = self._observe(rows)
+            obs = self._obs.clone() if self.copy_obs else self._obs
+        else:
+            obs = self._obs.clone() if self.copy_obs else self._obs
+            final_obs = obs if self.copy_obs else self._final_obs
+        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
+        return StepOutput(obs, self.mask, reward, success, truncated, final_obs, episode_length,
+                          success.clone())
+
+    # -- what an application implements ----------------------------------------------------
+    @abstractmethod
+    def _start_episodes(self, rows: torch.Tensor | None) -> None:
+        """Draw new episodes in ``rows`` (all environments when None): ``positions``,
+        ``blocked_pad``, the step clock ``t`` (0) and the application's own state."""
 
     @abstractmethod
-    def step(self, actions: torch.Tensor) -> StepOutput:
-        """Apply one action per agent (int64 [B,N]); finished environments auto-reset."""
+    def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The application's rules after the moves (``positions`` already moved): update its
+        state and return (team reward float32 [B], success bool [B])."""
+
+    @abstractmethod
+    def _observe(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """float32 [B,N,C,H,W]: every agent's observation of the current state ([R,N,C,H,W] of
+        ``rows`` only, when given)."""
+
+    def _observe_step(self, previous: torch.Tensor) -> None:
+        """Bring ``_obs`` up to date after a step (``previous`` = positions before the moves).
+        A core whose observation changes in a few cells per step overrides this to update in
+        place; the default rebuilds it."""
+        self._obs = self._observe()
+
+    def _reseeded(self) -> None:  # noqa: B027 (a hook: most cores draw nothing ahead)
+        """Forget whatever was drawn ahead from the old generator state (nothing by default)."""
+
+    @property
+    def observes_pictures(self) -> bool:
+        """Whether the observations are the absolute maps a picture is drawn from (then a
+        finished episode's picture is its final observation)."""
+        return self.observation.view == "maps" and not self.observation.estimate
 
     @abstractmethod
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A] scripted expert's scores for the current state (-inf = invalid)."""
+
+    @property
+    def observation_name(self) -> str:
+        """The observation's name ('maps', 'ego9', 'ego6+estimate', ...), as manifests record it."""
+        return self.observation.name
+
+    @property
+    def observation_channels(self) -> tuple[str, ...]:
+        """The name of each observation channel, in order."""
+        return self.observation.channels
 
     def current_obs(self, index: int) -> torch.Tensor:
         """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
@@ -178,7 +277,7 @@ class BatchedEnv(ABC):
 
     def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
         """:meth:`picture_maps` of the episode that just ended in environment ``index``."""
-        return final_obs[index]
+        return final_obs[index] if self.observes_pictures else self._final_pictures[index]
 
     def render_extras(self, index: int) -> dict[str, Any]:
         """What a picture of environment ``index`` needs beyond the observation maps."""
@@ -236,102 +335,55 @@ def check_bool(name: str, value: Any) -> bool:
     return value
 
 
-class GridTaskEnv(BatchedEnv):
-    """Episode bookkeeping shared by the cores whose whole state is redrawn at each episode
-    start (fleet coordination, maze cleaning): reset, moves, the step clock, truncation and
-    auto-reset with ``final_obs``.
+class MapsObservationEnv(BatchedEnv):
+    """Observation of the cores whose state is drawn as absolute maps (fleet coordination, maze
+    cleaning): the maps themselves, or the agent-centred window of each (``observation`` option).
 
-    A subclass provides ``_start_episodes(rows | None)`` (new episodes in those rows, or in
-    all), ``_observe_maps()`` (float32 [B,N,C,G,G], its absolute maps, channel 0 = own location)
-    and keeps ``positions``, ``blocked_pad``, ``_deltas``, ``max_steps`` and ``copy_obs``; its
-    ``step`` calls :meth:`_move` first and returns :meth:`_finish_step`.
+    A subclass provides ``_observe_maps()`` (float32 [B,N,C,G,G], its absolute maps, channel 0 =
+    own location) and calls :meth:`_set_observation` in its constructor.
 
-    Observation (``observation`` option, :meth:`_set_observation`): ``maps`` (the paper's absolute
-    maps) or ``egoR``: each map in a (2R+1)×(2R+1) window centred on the agent, with channel 0
-    (own location, always the centre in such a window) replaced by "off the grid" (1 outside),
-    and the channels named in ``WALL_CHANNELS`` reading 1 off the grid.
+    ``maps`` is the paper's absolute maps; ``egoR`` shows each map in a (2R+1)×(2R+1) window
+    centred on the agent, with channel 0 (own location, always the centre in such a window)
+    replaced by "off the grid" (1 outside), and the channels named in ``WALL_CHANNELS`` reading 1
+    off the grid. These applications have no source estimate: ``+estimate`` is refused.
     """
 
-    _ego_radius = 0
     #: Channels that mean "cannot go there": off-grid cells read 1 in an ego window.
     WALL_CHANNELS: tuple[int, ...] = ()
+    #: The names of the application's absolute maps (channel 0 = own location).
+    CHANNELS: tuple[str, ...] = ()
 
-    def _set_observation(self, observation: str, channels: int) -> None:
-        """Validate the ``observation`` option and set ``observation_name`` and ``obs_shape``."""
-        from medc_training.envs.grid import ego_radius
+    @property
+    def observation_channels(self) -> tuple[str, ...]:
+        if self.observation.view == "maps":
+            return self.CHANNELS
+        return ("off_grid", *self.CHANNELS[1:])
 
-        self._ego_radius = ego_radius(observation)
-        self.observation_name = observation
-        side = 2 * self._ego_radius + 1 if self._ego_radius else self.grid
-        self.obs_shape = (channels, side, side)
+    def _set_observation(self, observation: Any, channels: int) -> None:
+        """Validate the ``observation`` option and set ``observation`` and ``obs_shape``."""
+        from medc_training.envs.observation import parse_observation
+
+        spec = parse_observation(observation)
+        if spec.estimate:
+            raise ValueError(f"{self.name} has no source estimate: use observation 'maps' or 'egoR' "
+                             f"(R = window radius, e.g. ego9), not {spec.name!r}")
+        self.observation = spec
+        self.obs_shape = spec.shape(self.grid, channels)
         self._outside = torch.zeros(channels)
         self._outside[[0, *self.WALL_CHANNELS]] = 1.0
 
-    def _observe(self) -> torch.Tensor:
-        """float32 [B,N,C,H,W]: every agent's observation of the current state."""
+    def _observe(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         maps = self._observe_maps()
-        if not self._ego_radius:
-            return maps
-        from medc_training.envs.grid import agent_windows
+        if self.observation.view == "ego":
+            from medc_training.envs.grid import agent_windows
 
-        maps[:, :, 0] = 0.0
-        return agent_windows(maps, self.positions, self._ego_radius, self._outside.to(maps.device))
+            maps[:, :, 0] = 0.0
+            maps = agent_windows(maps, self.positions, self.observation.radius,
+                                 self._outside.to(maps.device))
+        return maps if rows is None else maps[rows]
 
     def picture_maps(self, index: int) -> torch.Tensor:
         return self._observe_maps()[index]
-
-    def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
-        return final_obs[index] if not self._ego_radius else self._final_pictures[index]
-
-    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        from medc_training.envs.grid import move_mask
-
-        if seed is not None:
-            self._seed(seed)
-        self._start_episodes(None)
-        self._started = True
-        self._obs = self._observe()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
-
-    def _move(self, actions: torch.Tensor) -> None:
-        """Validate ``actions`` and move every agent whose move is allowed (others stay)."""
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
-        actions = self._check_actions(actions)
-        allowed = self.mask.gather(2, actions.unsqueeze(2))
-        self.positions = self.positions + self._deltas[actions] * allowed
-
-    def _finish_step(self, reward: torch.Tensor, success: torch.Tensor) -> StepOutput:
-        """Advance the clock, end finished episodes (success, or truncation at ``max_steps``),
-        start new ones in their rows, and package the step."""
-        from medc_training.envs.grid import move_mask
-
-        self.t += 1
-        episode_length = self.t.clone()
-        truncated = (self.t >= self.max_steps) & ~success
-        done = success | truncated
-        obs = self._observe()
-        final_obs = obs
-        if bool(done.any()):
-            rows = done.nonzero().squeeze(1)
-            if self._keep_final_pictures and self._ego_radius:
-                maps = self._observe_maps()
-                self._final_pictures = {int(r): maps[int(r)] for r in rows}
-            self._start_episodes(rows)
-            final_obs = obs.clone()
-            obs[rows] = self._observe()[rows]
-        self._obs = obs
-        if self.copy_obs:
-            obs = obs.clone()
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return StepOutput(
-            obs, self.mask, reward, success, truncated, final_obs, episode_length, success.clone()
-        )
-
-    @abstractmethod
-    def _start_episodes(self, rows: torch.Tensor | None) -> None:
-        """Draw new episodes in ``rows`` (all environments when None)."""
 
     @abstractmethod
     def _observe_maps(self) -> torch.Tensor:

@@ -37,7 +37,7 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_core_options, check_int
+from medc_training.envs.core import MapsObservationEnv, check_bool, check_core_options, check_int
 from medc_training.envs.grid import ACTIONS, action_deltas, pad_blocked, random_free_cells
 
 __all__ = [
@@ -105,7 +105,7 @@ def build_fleet_observations(
     return out.view(b, n, len(CHANNELS), grid, grid)
 
 
-class FleetCoordination(GridTaskEnv):
+class FleetCoordination(MapsObservationEnv):
     """Batched fleet coordination core (rules: module docstring).
 
     ``make_batched("fleet_coordination", num_envs=B, device="cpu", seed=0, agents=3,
@@ -113,6 +113,7 @@ class FleetCoordination(GridTaskEnv):
     """
 
     name = "fleet_coordination"
+    CHANNELS = CHANNELS
 
     def __init__(
         self,
@@ -137,7 +138,7 @@ class FleetCoordination(GridTaskEnv):
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
-        self._set_observation(observation, len(CHANNELS))
+        self._set_observation(observation, len(self.CHANNELS))
         self._deltas = action_deltas(self.device)
         free = torch.zeros((self.num_envs, self.grid, self.grid), dtype=torch.bool, device=self.device)
         self.blocked_pad = pad_blocked(free)
@@ -180,8 +181,7 @@ class FleetCoordination(GridTaskEnv):
             self.positions, self.origin, self.destination, self.status, self.carrier, self.capacity, self.grid
         )
 
-    def step(self, actions: torch.Tensor) -> StepOutput:
-        self._move(actions)
+    def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         g = self.grid
         cell = self.positions[..., 0] * g + self.positions[..., 1]  # [B,N]
         o_cell = self.origin[..., 0] * g + self.origin[..., 1]
@@ -200,7 +200,7 @@ class FleetCoordination(GridTaskEnv):
             picked += take.sum(-1)
         success = (self.status == DELIVERED).all(-1)
         reward = PICKUP_REWARD * picked - TIME_COST + DELIVERY_BONUS * success.float()
-        return self._finish_step(reward, success)
+        return reward, success
 
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the moves, after each action, to the vehicle's nearest goal."""

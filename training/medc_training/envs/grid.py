@@ -88,18 +88,6 @@ def bfs_distance(free: torch.Tensor, sources: torch.Tensor, check_every: int = 4
             return dist
 
 
-def ego_radius(observation) -> int:
-    """The window radius an observation name of fleet coordination / maze cleaning gives:
-    0 for 'maps' (the absolute maps), R for 'egoR'. Raises ValueError for anything else."""
-    import re
-
-    m = re.fullmatch(r"maps|ego([1-9][0-9]{0,2})", observation) if isinstance(observation, str) else None
-    if m is None:
-        raise ValueError(f"observation must be 'maps' or 'egoR' (R = window radius, e.g. ego9), "
-                         f"got {observation!r}")
-    return int(m.group(1) or 0)
-
-
 def agent_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
                   outside: torch.Tensor | None = None) -> torch.Tensor:
     """Agent-centred windows of every agent's own maps: float32 [B,N,C,2r+1,2r+1].

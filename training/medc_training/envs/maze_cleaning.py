@@ -34,7 +34,7 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import GridTaskEnv, StepOutput, check_bool, check_core_options
+from medc_training.envs.core import MapsObservationEnv, check_bool, check_core_options
 from medc_training.envs.grid import (
     ACTIONS,
     action_deltas,
@@ -101,7 +101,7 @@ def build_maze_observations(
     return out.view(b, n, len(CHANNELS), g, g)
 
 
-class MazeCleaning(GridTaskEnv):
+class MazeCleaning(MapsObservationEnv):
     """Batched maze cleaning core (rules: module docstring).
 
     ``make_batched("maze_cleaning", num_envs=B, device="cpu", seed=0, agents=3, grid=10,
@@ -109,6 +109,7 @@ class MazeCleaning(GridTaskEnv):
     """
 
     name = "maze_cleaning"
+    CHANNELS = CHANNELS
     WALL_CHANNELS = (3,)
 
     def __init__(
@@ -137,7 +138,7 @@ class MazeCleaning(GridTaskEnv):
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
-        self._set_observation(observation, len(CHANNELS))
+        self._set_observation(observation, len(self.CHANNELS))
         self._deltas = action_deltas(self.device)
         self._started = False
 
@@ -169,8 +170,7 @@ class MazeCleaning(GridTaskEnv):
     def _observe_maps(self) -> torch.Tensor:
         return build_maze_observations(self.positions, self.dirty, self.walls)
 
-    def step(self, actions: torch.Tensor) -> StepOutput:
-        self._move(actions)
+    def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         b = self.num_envs
         cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
         before = self.dirty.view(b, -1).sum(1)
@@ -178,7 +178,7 @@ class MazeCleaning(GridTaskEnv):
         left = self.dirty.view(b, -1).sum(1)
         reward = CLEAN_REWARD * (before - left).float() - TIME_COST
         success = left == 0
-        return self._finish_step(reward, success)
+        return reward, success
 
     def oracle_action_scores(self) -> torch.Tensor:
         """float32 [B,N,A]: minus the BFS distance to the nearest dirty cell after each move."""

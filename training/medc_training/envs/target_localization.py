@@ -59,7 +59,6 @@ import torch
 from medc_training.envs.core import (
     BatchedEnv,
     EnvState,
-    StepOutput,
     check_bool,
     check_core_options,
     check_int,
@@ -71,7 +70,6 @@ from medc_training.envs.grid import (
     action_deltas,
     bfs_distance,
     gather_cells,
-    move_mask,
     neighbour_index,
     pad_blocked,
     random_free_cells,
@@ -80,16 +78,21 @@ from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory, p
 from medc_training.envs.tl_sensing import (
     BACKGROUND,
     CHANNELS,
+    DEFAULT_SENSING,
     SOURCE_STRENGTH,
     VISIT_SATURATION,
     WALL_ATTENUATION,
+    SensingModel,
     build_observations,
     expected_rate_from_sources,
     normalise_reading,
+    parse_sensing,
     rates_from_every_cell,
+    realistic_rates,
     sensor_reading,
     update_memory,
     visit_norm,
+    wall_rectangles,
 )
 
 __all__ = [
@@ -264,6 +267,7 @@ class TargetLocalization(BatchedEnv):
     """
 
     name = "target_localization"
+    HAS_ESTIMATE = True
 
     def __init__(
         self,
@@ -275,24 +279,36 @@ class TargetLocalization(BatchedEnv):
         grid: int = 30,
         max_steps: int = 100,
         reward_shaping: bool = False,
-        noise: bool = False,
+        noise: bool | None = None,
         copy_obs: bool = True,
         observation: str = DEFAULT_OBSERVATION,
+        sensing: str | dict | SensingModel = DEFAULT_SENSING,
+        posterior: bool = False,
     ) -> None:
         self.num_agents, self.num_walls, self.grid, self.max_steps = check_options(
             agents, walls, grid, max_steps
         )
         self.reward_shaping = check_bool("reward_shaping", reward_shaping)
+        self.sensing = parse_sensing(sensing)
+        if noise is None:
+            noise = self.sensing.noise
         self.noise = check_bool("noise", noise)
+        if self.sensing.noise and not self.noise:
+            raise ValueError(f"the {self.sensing.name} sensing model always counts Poisson noise; "
+                             "leave noise unset (or True)")
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
         self.observation = parse_observation(observation)
         self.obs_shape = self.observation.shape(self.grid)
-        # The paper's maps change in a few cells per step and are updated in place; every
-        # other observation is rebuilt from the team memory each step.
-        self._incremental = self.observation.name == "maps"
-        self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device)
+        # The paper's maps change in a few cells per step and are updated in place
+        # (_observe_step); every other observation is rebuilt from the team memory each step.
+        b, n = self.num_envs, self.num_agents
+        maps_size = len(CHANNELS) * self.grid ** 2
+        self._agent_base = torch.arange(b * n, device=self.device).view(b, n) * maps_size
+        self._others = ~torch.eye(n, dtype=torch.bool, device=self.device)
+        self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device, self.sensing,
+                                 posterior=check_bool("posterior", posterior), max_walls=self.num_walls)
         self._deltas = action_deltas(self.device)
         # Layouts are generated in chunks and handed out on reset: one batched BFS serves
         # many episodes, so auto-resets cost little inside the step loop.
@@ -308,12 +324,9 @@ class TargetLocalization(BatchedEnv):
             "walls": self.num_walls,
             "grid": self.grid,
             "max_steps": self.max_steps,
+            # The paper-simple model is the one every committed bundle and registry entry assumes.
+            **({} if self.sensing.name == DEFAULT_SENSING else {"sensing": self.sensing.name}),
         }
-
-    @property
-    def observation_name(self) -> str:
-        """The observation variant's name (as every core has it)."""
-        return self.observation.name
 
     @property
     def reading_map(self) -> torch.Tensor:
@@ -331,6 +344,12 @@ class TargetLocalization(BatchedEnv):
             fresh = generate_layouts(
                 max(self._chunk, k), self.grid, self.num_walls, self.num_agents, self.generator, self.device
             )
+            if not self.sensing.known:  # the episode's source strength and background, unknown to the team
+                count = len(fresh["target"])
+                u = torch.rand((2, count), generator=self.generator, device=self.device)
+                (s_lo, s_hi), (b_lo, b_hi) = self.sensing.strength, self.sensing.background
+                fresh["strength"] = s_lo + (s_hi - s_lo) * u[0]
+                fresh["background"] = b_lo + (b_hi - b_lo) * u[1]
             if self._pool is not None and self._pool_next < len(self._pool["target"]):
                 fresh = {key: torch.cat((self._pool[key][self._pool_next :], v)) for key, v in fresh.items()}
             self._pool, self._pool_next = fresh, 0
@@ -344,9 +363,8 @@ class TargetLocalization(BatchedEnv):
         lay = self._take_layouts(k)
         blocked = pad_blocked(lay["walls"])
         dist_pad = torch.nn.functional.pad(lay["distance"], (1, 1, 1, 1), value=float("inf"))
-        readings = sensor_reading(
-            lay["positions"], lay["target"], lay["walls"], noise=self.noise, generator=self.generator
-        )
+        readings = self._read(lay["positions"], lay["target"], lay["walls"], lay.get("strength"),
+                              lay.get("background"))
         self.memory.start(lay["walls"], lay["positions"], readings, rows)
         team_dist = gather_cells(lay["distance"], lay["positions"]).mean(1)
         if rows is None:
@@ -356,6 +374,7 @@ class TargetLocalization(BatchedEnv):
             self.walls_f = lay["walls"].float()
             self.team_dist = team_dist
             self.readings = readings
+            self.strength, self.background = lay.get("strength"), lay.get("background")
             self.t = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         else:
             self.walls[rows], self.blocked_pad[rows], self.dist_pad[rows] = lay["walls"], blocked, dist_pad
@@ -364,94 +383,77 @@ class TargetLocalization(BatchedEnv):
             self.walls_f[rows] = lay["walls"].float()
             self.team_dist[rows] = team_dist
             self.readings[rows] = readings
+            if self.strength is not None:
+                self.strength[rows], self.background[rows] = lay["strength"], lay["background"]
             self.t[rows] = 0
 
-    # -- API -------------------------------------------------------------------------------
-    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        if seed is not None:
-            self._seed(seed)
-            self._pool, self._pool_next = None, 0
-        self._start_episodes(None)
-        self._started = True
-        b, n, hw = self.num_envs, self.num_agents, self.grid * self.grid
-        self._obs = self.memory.observe(self.positions, self.walls_f)
-        self._final_obs = torch.zeros_like(self._obs) if not self.copy_obs else None
-        # Flat offset of channel 0 of agent (b, i) in the observation buffer.
-        self._agent_base = torch.arange(b * n, device=self.device).view(b, n) * (5 * hw)
-        self._others = ~torch.eye(n, dtype=torch.bool, device=self.device)
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return (self._obs.clone() if self.copy_obs else self._obs), self.mask
+    def _reseeded(self) -> None:
+        self._pool, self._pool_next = None, 0
+
+    # -- the transition and the observation (the episode loop is BatchedEnv's) -------------
+    def _read(self, positions: torch.Tensor, target: torch.Tensor, walls: torch.Tensor,
+              strength: torch.Tensor | None, background: torch.Tensor | None) -> torch.Tensor:
+        """The sensors' readings (counts/s) under the sensing model."""
+        if strength is None:  # paper-simple: the sampled line, known strength and background
+            return sensor_reading(positions, target, walls, noise=self.noise, generator=self.generator)
+        rate = realistic_rates(self.sensing, positions, target, walls, strength, background,
+                               wall_rectangles(walls, max(1, self.num_walls)))
+        return torch.poisson(rate, generator=self.generator) if self.noise else rate
+
+    def found(self) -> torch.Tensor:
+        """bool [B]: an agent is within the success radius of the source."""
+        if self.sensing.success_radius < 1.0:
+            return (self.positions == self.target.unsqueeze(1)).all(-1).any(-1)
+        delta = (self.positions - self.target.unsqueeze(1)).float()
+        radius = self.sensing.success_radius
+        return ((delta * delta).sum(-1) <= radius * radius).any(-1)
+
+    def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        found = self.found()
+        readings = self._read(self.positions, self.target, self.walls, self.strength, self.background)
+        self.memory.record(self.walls, self.positions, readings)
+        self.readings = readings
+        reward = found.float() * SUCCESS_REWARD
+        if self.reward_shaping:
+            team_dist = gather_cells(self.distance, self.positions).mean(1)
+            reward += SHAPING_SCALE * (self.team_dist - team_dist)
+            self.team_dist = team_dist
+        return reward, found
+
+    def _observe(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        return self.memory.observe(self.positions, self.walls_f, rows=rows)
+
+    def _observe_step(self, previous: torch.Tensor) -> None:
+        if not self.observes_pictures:
+            self.memory.observe(self.positions, self.walls_f, out=self._obs)
+            return
+        g = self.grid
+        self._update_obs(previous[..., 0] * g + previous[..., 1],
+                         self.positions[..., 0] * g + self.positions[..., 1])
 
     def _update_obs(self, old_cell: torch.Tensor, new_cell: torch.Tensor) -> None:
-        """Apply one step's changes to the observation buffer (only the cells that changed)."""
+        """Apply one step's changes to the absolute maps (only the cells that changed)."""
         hw = self.grid * self.grid
         flat = self._obs.view(-1)
+        # Flat offset of map 0 of agent (b, i) in the observation buffer, and of each map in it.
         base = self._agent_base  # [B,N]
+        own, team, reading, visits = (CHANNELS.index(c) * hw for c in
+                                      ("own_location", "team_locations", "readings", "visit_counts"))
         pair_old = base.unsqueeze(2) + old_cell.unsqueeze(1)  # [B,i,j]: agent i's map at j's cell
         pair_new = base.unsqueeze(2) + new_cell.unsqueeze(1)
         b = new_cell.shape[0]
         # Clear before set, so that an agent moving onto a cell another agent just left stays
         # marked. index_fill_/index_copy_ on the flat view are much cheaper than advanced
         # indexing; duplicate indices only ever carry equal values.
-        flat.index_fill_(0, (base + old_cell).view(-1), 0.0)
-        flat.index_fill_(0, (base + new_cell).view(-1), 1.0)
+        flat.index_fill_(0, (base + old_cell).view(-1) + own, 0.0)
+        flat.index_fill_(0, (base + new_cell).view(-1) + own, 1.0)
         if self.num_agents > 1:
-            flat.index_fill_(0, pair_old[:, self._others].view(-1) + hw, 0.0)
-            flat.index_fill_(0, pair_new[:, self._others].view(-1) + hw, 1.0)
+            flat.index_fill_(0, pair_old[:, self._others].view(-1) + team, 0.0)
+            flat.index_fill_(0, pair_new[:, self._others].view(-1) + team, 1.0)
         readings = self.reading_map.view(b, -1).gather(1, new_cell).unsqueeze(1).expand_as(pair_new)
-        visits = visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
-        flat.index_copy_(0, (pair_new + 2 * hw).view(-1), readings.reshape(-1))
-        flat.index_copy_(0, (pair_new + 3 * hw).view(-1), visits.reshape(-1))
-
-    def step(self, actions: torch.Tensor) -> StepOutput:
-        if not self._started:
-            raise RuntimeError("call reset() before step()")
-        actions = self._check_actions(actions)
-        allowed = self.mask.gather(2, actions.unsqueeze(2))  # [B,N,1]
-        old_cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
-        self.positions = self.positions + self._deltas[actions] * allowed
-        new_cell = self.positions[..., 0] * self.grid + self.positions[..., 1]
-        found = (self.positions == self.target.unsqueeze(1)).all(-1).any(-1)
-        readings = sensor_reading(
-            self.positions, self.target, self.walls, noise=self.noise, generator=self.generator
-        )
-        self.memory.record(self.walls, self.positions, readings)
-        self.readings = readings
-        if self._incremental:
-            self._update_obs(old_cell, new_cell)
-        else:
-            self.memory.observe(self.positions, self.walls_f, out=self._obs)
-        reward = found.float() * SUCCESS_REWARD
-        if self.reward_shaping:
-            team_dist = gather_cells(self.distance, self.positions).mean(1)
-            reward += SHAPING_SCALE * (self.team_dist - team_dist)
-            self.team_dist = team_dist
-        self.t += 1
-        episode_length = self.t.clone()
-        truncated = (self.t >= self.max_steps) & ~found
-        done = found | truncated
-        if bool(done.any()):
-            rows = done.nonzero().squeeze(1)
-            if self.copy_obs:
-                final_obs = self._obs.clone()
-            else:
-                final_obs = self._final_obs
-                final_obs[rows] = self._obs[rows]
-            if self._keep_final_pictures and not self._incremental:
-                self._final_pictures = {int(r): self.picture_maps(int(r)) for r in rows}
-            self._start_episodes(rows)
-            if self._incremental:
-                self._obs[rows] = build_observations(
-                    self.positions[rows], self.reading_map[rows], self.visit_map[rows], self.walls_f[rows]
-                )
-            else:
-                self._obs[rows] = self.memory.observe(self.positions, self.walls_f, rows=rows)
-            obs = self._obs.clone() if self.copy_obs else self._obs
-        else:
-            obs = self._obs.clone() if self.copy_obs else self._obs
-            final_obs = obs if self.copy_obs else self._final_obs
-        self.mask = move_mask(self.positions, self.blocked_pad, self._deltas)
-        return StepOutput(obs, self.mask, reward, found, truncated, final_obs, episode_length, found.clone())
+        visit = visit_norm(self.visit_map.view(b, -1).gather(1, new_cell)).unsqueeze(1).expand_as(pair_new)
+        flat.index_copy_(0, (pair_new + reading).view(-1), readings.reshape(-1))
+        flat.index_copy_(0, (pair_new + visits).view(-1), visit.reshape(-1))
 
     def picture_maps(self, index: int) -> torch.Tensor:
         """The paper's 5 absolute maps of environment ``index`` (whatever the observation is)."""
@@ -459,11 +461,6 @@ class TargetLocalization(BatchedEnv):
         maps = build_observations(self.positions[sl], self.reading_map[sl], self.visit_map[sl],
                                   self.walls_f[sl])
         return maps[0]
-
-    def final_picture_maps(self, index: int, final_obs: torch.Tensor) -> torch.Tensor:
-        if self._incremental:  # the observations are the absolute maps
-            return final_obs[index]
-        return self._final_pictures[index]
 
     def render_extras(self, index: int) -> dict[str, Any]:
         return {"target": tuple(int(v) for v in self.target[index].tolist())}

@@ -45,18 +45,25 @@ Source estimate (:class:`SourceEstimator`)
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
-
 import torch
 
 from medc_training.envs.grid import agent_windows
+from medc_training.envs.observation import (
+    EGO_CHANNELS,
+    MAP_CHANNELS,
+    OBSERVATION_NAMES,
+    ObservationSpec,
+    parse_observation,
+)
 from medc_training.envs.tl_sensing import (
-    CHANNELS,
+    DEFAULT_SENSING,
     build_observations,
+    geometric_factor,
+    parse_sensing,
     rates_from_every_cell,
     update_memory,
     visit_norm,
+    wall_rectangles,
 )
 
 __all__ = [
@@ -72,11 +79,6 @@ __all__ = [
     "parse_observation",
 ]
 
-MAP_CHANNELS: tuple[str, ...] = CHANNELS
-EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
-ESTIMATE_CHANNEL = "source_estimate"
-#: Examples of accepted names (any radius 1..MAX_RADIUS is accepted for ego views).
-OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+estimate")
 #: The observation a target-localization environment produces unless told otherwise. Chosen by
 #: measurement (docs/environments.md, "Observations").
 DEFAULT_OBSERVATION = "ego6+estimate"
@@ -84,130 +86,116 @@ DEFAULT_OBSERVATION = "ego6+estimate"
 LOG_FLOOR = -104.0
 #: Largest reading the estimator takes (counts/s): 1000x the model's highest rate, S + BG = 1001.
 MAX_READING = 1e6
-MAX_RADIUS = 255
-#: Largest temporary (elements) of one expected-distance chunk.
-_CHUNK_ELEMENTS = 1 << 23
-_NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?$")
-
-
-@dataclass(frozen=True)
-class ObservationSpec:
-    """Which observation a model takes: ``view`` 'maps' or 'ego', ego ``radius``, ``estimate``."""
-
-    view: str = "maps"
-    radius: int = 0
-    estimate: bool = False
-
-    def __post_init__(self) -> None:
-        if self.view not in ("maps", "ego"):
-            raise ValueError(f"observation view must be 'maps' or 'ego', got {self.view!r}")
-        if self.view == "ego" and not 1 <= int(self.radius) <= MAX_RADIUS:
-            raise ValueError(f"ego observation radius must be 1..{MAX_RADIUS}, got {self.radius!r}")
-        if self.view == "maps" and self.radius:
-            raise ValueError("the 'maps' observation has no radius")
-
-    @property
-    def name(self) -> str:
-        base = "maps" if self.view == "maps" else f"ego{self.radius}"
-        return base + ("+estimate" if self.estimate else "")
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        base = MAP_CHANNELS if self.view == "maps" else EGO_CHANNELS
-        return base + ((ESTIMATE_CHANNEL,) if self.estimate else ())
-
-    def shape(self, grid: int) -> tuple[int, int, int]:
-        """(C, H, W) of one agent's observation on a ``grid``×``grid`` area."""
-        side = grid if self.view == "maps" else 2 * self.radius + 1
-        return (len(self.channels), side, side)
-
-    def __str__(self) -> str:
-        return self.name
-
-
-def parse_observation(value) -> ObservationSpec:
-    """An ObservationSpec from a name ('maps', 'ego6+estimate', ...), a manifest dict or a spec."""
-    if isinstance(value, ObservationSpec):
-        return value
-    if isinstance(value, dict):
-        value = value.get("name")
-    if not isinstance(value, str) or len(value) > 32:
-        raise ValueError(f"observation must be a name such as {', '.join(OBSERVATION_NAMES)}")
-    m = _NAME.match(value)
-    if m is None:
-        raise ValueError(
-            f"unknown observation {value[:32]!r}; use 'maps', 'maps+estimate', 'egoR' or 'egoR+estimate' "
-            "(R = window radius in cells, e.g. ego6+estimate)"
-        )
-    if m.group(2):
-        return ObservationSpec("ego", int(m.group(2)), bool(m.group(3)))
-    return ObservationSpec("maps", 0, bool(m.group(3)))
 
 
 class SourceEstimator:
     """The team's Bayes posterior over the source cell on a ``grid``×``grid`` area (module docstring).
 
-    Stateless apart from per-grid constants; the posterior lives in a ``log_post`` tensor
-    float32 [B, G*G] that the caller owns (:class:`TeamMemory`).
+    Stateless apart from per-grid constants; the posterior lives in a ``log_post`` tensor the caller
+    owns (:class:`TeamMemory`): float32 [B, G*G] when the sensing model's strength and background
+    are known, else [B, G*G, K] over (source cell, strength-and-background level), K = ns * nb
+    levels, strength-major (:class:`~medc_training.envs.tl_sensing.SensingModel`).
     """
 
-    def __init__(self, grid: int, device: torch.device | str) -> None:
+    def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING) -> None:
         self.grid = int(grid)
         self.device = torch.device(device)
+        self.sensing = parse_sensing(sensing)
         g = self.grid
         idx = torch.arange(g * g, device=self.device)
         self.cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2] (row, col)
-        diff = (self.cells.unsqueeze(1) - self.cells.unsqueeze(0)).abs()
-        # Chebyshev distance between every pair of cells: the moves needed without walls.
-        self.moves = diff.max(-1).values.to(torch.float32)  # [G²,G²]
         self.scale = 1.0 / max(1, g - 1)
+        s_lv = self.sensing.strength_levels(self.device)
+        b_lv = self.sensing.background_levels(self.device)
+        self.levels = self.sensing.levels[0] * self.sensing.levels[1]
+        #: [K] strength and background of each level, strength-major.
+        self.level_strength = s_lv.repeat_interleave(len(b_lv))
+        self.level_background = b_lv.repeat(len(s_lv))
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
-        """float32 [K, G²] log prior: 0 on free cells, LOG_FLOOR on walls."""
+        """float32 [K, G²] (or [K, G², levels]) log prior: 0 on free cells, LOG_FLOOR on walls."""
         k = walls.shape[0]
-        return torch.zeros((k, self.grid * self.grid), device=self.device).masked_fill_(
-            walls.reshape(k, -1).bool(), LOG_FLOOR
-        )
+        shape = (k, self.grid * self.grid) + ((self.levels,) if self.levels > 1 else ())
+        prior = torch.zeros(shape, device=self.device)
+        blocked = walls.reshape(k, -1).bool()
+        prior[blocked] = LOG_FLOOR
+        return prior
 
     def update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
-               readings: torch.Tensor) -> None:
+               readings: torch.Tensor, rects: torch.Tensor | None = None) -> None:
         """Fold the team's readings at ``positions`` (int64 [K,N,2]) into ``log_post`` in place.
 
-        walls bool [K,G,G]; readings float32 [K,N] (counts/s, as :func:`sensor_reading` returns).
+        walls bool [K,G,G]; readings float32 [K,N] (counts/s, as the sensor returns them); ``rects``
+        the episode's wall rectangles (:func:`~medc_training.envs.tl_sensing.wall_rectangles`; made
+        from ``walls`` when not given) for the exact line-of-sight rule. Cost: O(G² · levels) per
+        reading (plus O(G² · walls) for the line of sight).
         """
         k = positions.shape[0]
         # No sensor of this model reads more than MAX_READING; a larger (or infinite) value from a
         # mismatched or faulty sensor is taken as MAX_READING, so the float32 sums below stay finite.
         readings = torch.nan_to_num(readings, nan=0.0, posinf=MAX_READING).clamp(0.0, MAX_READING)
-        rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
-        loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
+        if self.sensing.line == "sampled" and self.levels == 1:
+            rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
+            loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
+        else:
+            f = geometric_factor(self.sensing, positions, self.cells, walls, rects)  # [K,N,G²]
+            rate = f.unsqueeze(-1) * self.level_strength + self.level_background  # [K,N,G²,L]
+            loglik = (readings.view(k, -1, 1, 1) * torch.log(rate) - rate).sum(1)  # [K,G²,L]
+            if self.levels == 1:
+                loglik = loglik.squeeze(-1)
         log_post.add_(loglik)
-        # Standing on a cell without the episode ending rules it out as the source.
-        g = self.grid
-        log_post.scatter_(1, positions[..., 0] * g + positions[..., 1], LOG_FLOOR)
-        log_post.masked_fill_(walls.reshape(k, -1).bool(), LOG_FLOOR)
-        log_post.sub_(log_post.max(1, keepdim=True).values).clamp_(min=LOG_FLOOR)
+        flat = log_post.view(k, self.grid * self.grid, -1)
+        # Standing within reach of a cell without the episode ending rules it out as the source.
+        flat[self.ruled_out(positions)] = LOG_FLOOR
+        flat[walls.reshape(k, -1).bool()] = LOG_FLOOR
+        top = flat.amax((1, 2), keepdim=True)
+        flat.sub_(top).clamp_(min=LOG_FLOOR)
 
-    @staticmethod
-    def posterior(log_post: torch.Tensor) -> torch.Tensor:
-        """float32 [K, G²] posterior probabilities (floored cells get exactly 0)."""
+    def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
+        """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would
+        have ended the episode there)."""
+        k = positions.shape[0]
+        g = self.grid
+        radius = self.sensing.success_radius
+        if radius < 1.0:
+            out = torch.zeros((k, g * g), dtype=torch.bool, device=self.device)
+            return out.scatter_(1, positions[..., 0] * g + positions[..., 1], True)
+        delta = positions.unsqueeze(2) - self.cells  # [K,N,G²,2]
+        return ((delta * delta).sum(-1) <= radius * radius).any(1)
+
+    def posterior(self, log_post: torch.Tensor) -> torch.Tensor:
+        """float32 [K, G²] posterior probabilities of the source cell (floored cells get exactly 0;
+        strength and background marginalised)."""
         p = torch.exp(log_post).masked_fill_(log_post <= LOG_FLOOR, 0.0)
+        if p.dim() == 3:
+            p = p.sum(-1)
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²]: E(c), the posterior-expected Chebyshev distance to the source.
 
-        A broadcast product summed per row rather than a matrix product: BLAS blocks a matrix
-        product differently for different K, so one episode's estimate would depend (in the last
-        bit) on how many episodes are batched with it; this way it never does.
+        O(G³) with a summed-area table: max(|dr|, |dc|) = sum over m = 1..G-1 of [the source is
+        outside the (2m-1)-wide square around c], so E(c) = sum_m (1 - P(square of radius m-1)).
+        Each episode's arithmetic is its own (no product across the batch), so one episode's
+        estimate never depends on how many are batched with it.
         """
         p = self.posterior(log_post)
-        cells = self.moves.shape[0]
-        rows = max(1, _CHUNK_ELEMENTS // (cells * cells))
-        out = torch.empty_like(p)
-        for i in range(0, p.shape[0], rows):
-            out[i:i + rows] = (p[i:i + rows].unsqueeze(1) * self.moves).sum(-1)
-        return out
+        k, g = p.shape[0], self.grid
+        table = torch.zeros((k, g + 1, g + 1), device=p.device)
+        table[:, 1:, 1:] = p.view(k, g, g).cumsum(1).cumsum(2)
+        idx = torch.arange(g, device=p.device)
+        radius = torch.arange(g - 1, device=p.device).view(-1, 1)  # [R,1], squares of radius 0..G-2
+        lo = (idx - radius).clamp(min=0)  # [R,G]
+        hi = (idx + radius + 1).clamp(max=g)
+        flat = table.view(k, -1)
+        w = g + 1
+
+        def corner(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:  # [K,R,G,G]
+            at = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # [R,G,G]
+            return flat[:, at.view(-1)].view(k, *at.shape)
+
+        inside = corner(hi, hi) - corner(lo, hi) - corner(hi, lo) + corner(lo, lo)
+        return (1.0 - inside).clamp_(min=0.0).sum(1).view(k, -1)
 
     def estimate_map(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G, G]: 1 - E(c)/(G-1), the map the observations show."""
@@ -220,45 +208,65 @@ class TeamMemory:
     """What a team knows in B episodes at once: the memory the observations are built from.
 
     ``reading_map`` float32 [B,G,G] (latest normalised reading per cell, 0 = never visited),
-    ``visit_map`` float32 [B,G,G] (raw visit counts), ``log_post`` float32 [B,G²] (the source
-    posterior, only kept when the observation shows the estimate). The batched core, the PettingZoo
-    env and the ROS agent node hold one each and feed it the same readings.
+    ``visit_map`` float32 [B,G,G] (raw visit counts), ``log_post`` (the source posterior,
+    :class:`SourceEstimator`; kept when the observation shows the estimate or ``posterior`` is
+    True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact line-of-sight
+    rule). The batched core, the PettingZoo env and the ROS agent node hold one each and feed it the
+    same readings, under the same ``sensing`` model.
     """
 
-    def __init__(self, spec: ObservationSpec, batch: int, grid: int, device: torch.device | str) -> None:
+    def __init__(self, spec: ObservationSpec, batch: int, grid: int, device: torch.device | str,
+                 sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1) -> None:
         self.spec = parse_observation(spec)
+        self.sensing = parse_sensing(sensing)
         self.grid = int(grid)
         self.device = torch.device(device)
+        self.max_walls = max(1, int(max_walls))
         g = self.grid
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
-        self.estimator = SourceEstimator(g, self.device) if self.spec.estimate else None
-        self.log_post = torch.zeros((batch, g * g), device=self.device) if self.spec.estimate else None
+        keep = self.spec.estimate or posterior
+        self.estimator = SourceEstimator(g, self.device, self.sensing) if keep else None
+        blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
+        self.log_post = self.estimator.prior(blank) if keep else None
+        self.rects = wall_rectangles(torch.zeros((batch, g, g), dtype=torch.bool, device=self.device),
+                                     self.max_walls)
 
     def start(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor,
               rows: torch.Tensor | None = None) -> None:
         """Forget ``rows`` (all when None) and record the first readings of their new episodes."""
         reading_map = torch.zeros((positions.shape[0], self.grid, self.grid), device=self.device)
         visit_map = torch.zeros_like(reading_map)
-        update_memory(reading_map, visit_map, positions, readings)
+        scale = self.sensing.max_rate
+        update_memory(reading_map, visit_map, positions, readings, scale)
+        rects = wall_rectangles(walls, self.max_walls) if self.sensing.line == "exact" else None
         log_post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
-            self.estimator.update(log_post, walls, positions, readings)
+            self.estimator.update(log_post, walls, positions, readings, rects)
         if rows is None:
             self.reading_map, self.visit_map = reading_map, visit_map
             if log_post is not None:
                 self.log_post = log_post
+            if rects is not None:
+                self.rects = rects
         else:
             self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
             if log_post is not None:
                 self.log_post[rows] = log_post
+            if rects is not None:
+                self.rects[rows] = rects
 
     def record(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor) -> None:
         """Record one team step's readings (every episode of the batch)."""
-        update_memory(self.reading_map, self.visit_map, positions, readings)
+        update_memory(self.reading_map, self.visit_map, positions, readings, self.sensing.max_rate)
         if self.estimator is not None:
-            self.estimator.update(self.log_post, walls, positions, readings)
+            self.estimator.update(self.log_post, walls, positions, readings,
+                                  self.rects if self.sensing.line == "exact" else None)
+
+    def posterior(self) -> torch.Tensor | None:
+        """float32 [B,G²] the source posterior, or None when this memory keeps none."""
+        return None if self.estimator is None else self.estimator.posterior(self.log_post)
 
     def estimate_map(self) -> torch.Tensor | None:
         """float32 [B,G,G] source-estimate map, or None when the observation has none."""

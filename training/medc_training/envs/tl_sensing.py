@@ -9,22 +9,31 @@ Pure batched functions; the ROS nodes call them on data from topics.
 from __future__ import annotations
 
 import math
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 
 __all__ = [
     "BACKGROUND",
     "CHANNELS",
+    "DEFAULT_SENSING",
+    "SENSING_PRESETS",
     "SOURCE_STRENGTH",
     "VISIT_SATURATION",
     "WALL_ATTENUATION",
+    "SensingModel",
     "build_observations",
     "expected_rate_from_sources",
+    "geometric_factor",
     "normalise_reading",
+    "parse_sensing",
     "rates_from_every_cell",
+    "realistic_rates",
     "sensor_reading",
     "update_memory",
     "visit_norm",
+    "wall_rectangles",
 ]
 
 SOURCE_STRENGTH = 1000.0
@@ -37,9 +46,12 @@ CHANNELS: tuple[str, ...] = ("own_location", "team_locations", "readings", "visi
 _READING_SCALE = 1.0 / math.log1p(SOURCE_STRENGTH + BACKGROUND)
 
 
-def normalise_reading(readings: torch.Tensor) -> torch.Tensor:
-    """Map raw readings (counts/s) to [0, 1]: log(1 + I) / log(1 + S + BG), clipped."""
-    return (torch.log1p(readings) * _READING_SCALE).clamp_(0.0, 1.0)
+def normalise_reading(readings: torch.Tensor, max_rate: float | None = None) -> torch.Tensor:
+    """Map raw readings (counts/s) to [0, 1]: log(1 + I) / log(1 + max_rate), clipped; the
+    paper-simple model's highest rate S + BG unless ``max_rate`` is given (a sensing model's
+    :attr:`SensingModel.max_rate`)."""
+    scale = _READING_SCALE if max_rate is None else 1.0 / math.log1p(max_rate)
+    return (torch.log1p(readings) * scale).clamp_(0.0, 1.0)
 
 
 def sensor_reading(
@@ -145,8 +157,9 @@ def update_memory(
     visit_map: torch.Tensor,
     positions: torch.Tensor,
     readings: torch.Tensor,
+    max_rate: float | None = None,
 ) -> None:
-    """Record the team's new readings, in place.
+    """Record the team's new readings, in place (``max_rate``: see :func:`normalise_reading`).
 
     reading_map: float32 [B,H,W] latest normalised reading per cell (0 = never visited).
     visit_map:   float32 [B,H,W] number of team visits per cell (raw counts).
@@ -156,7 +169,9 @@ def update_memory(
     b = positions.shape[0]
     w = reading_map.shape[-1]
     idx = positions[..., 0] * w + positions[..., 1]
-    reading_map.view(b, -1).scatter_(1, idx, normalise_reading(readings))
+    if max_rate == SOURCE_STRENGTH + BACKGROUND:
+        max_rate = None  # the paper-simple scale, bit for bit
+    reading_map.view(b, -1).scatter_(1, idx, normalise_reading(readings, max_rate))
     visit_map.view(b, -1).scatter_add_(1, idx, torch.ones_like(readings))
 
 
@@ -201,3 +216,249 @@ def build_observations(
 def visit_norm(visits: torch.Tensor) -> torch.Tensor:
     """Visit counts divided by VISIT_SATURATION, clipped to 1 (a new tensor)."""
     return (visits * (1.0 / VISIT_SATURATION)).clamp_(max=1.0)
+
+
+# ------------------------------------------------------------------------------------------
+# Sensing presets: the paper's simple model, and the field's realistic one
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SensingModel:
+    """How readings are made, and what the team knows of it (environment option ``sensing``).
+
+    The rate at cell p, from a source of strength S at cell s, with background B::
+
+        lambda(p) = S * A**k(p, s) / (1 + d(p, s)**2) + B
+
+    d in cells (one cell = ``cell_size_m`` metres); A = ``attenuation`` per obstruction the line
+    of sight crosses (0: an obstruction blocks it, the reading is background only); k counted by
+    the ``line`` rule: ``sampled`` (the paper-simple preset's rule: H+W samples along the line,
+    docs/ros.md) or ``exact`` (the segment between the two cell centres against each wall
+    segment's rectangle: exact geometry, O(walls) per pair).
+
+    S is drawn per episode uniformly from ``strength`` and B from ``background`` (a range with
+    equal ends is a known constant). With ``noise`` True readings are Poisson counts in one
+    second; False leaves it to the environment's ``noise`` option (the paper-simple preset only).
+    An episode succeeds when an agent is within ``success_radius`` cells (Euclidean) of the source.
+    The team's estimator marginalises S and B over ``levels`` = (strength levels, background
+    levels): the midpoints of equal-width bins of each range (a range with equal ends: one level).
+    """
+
+    name: str
+    strength: tuple[float, float]
+    background: tuple[float, float]
+    attenuation: float
+    noise: bool
+    success_radius: float
+    line: str
+    levels: tuple[int, int]
+    cell_size_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        for label, (lo, hi) in (("strength", self.strength), ("background", self.background)):
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi <= 1e9):
+                raise ValueError(f"sensing {label} must be a range 0 <= lo <= hi <= 1e9, got {(lo, hi)}")
+        if self.background[0] <= 0.0:
+            raise ValueError("sensing background must be > 0 (a Poisson likelihood needs a positive rate)")
+        if not 0.0 <= self.attenuation <= 1.0:
+            raise ValueError(f"sensing attenuation must be in [0, 1], got {self.attenuation}")
+        if not 0.0 <= self.success_radius <= 64.0:
+            raise ValueError(f"sensing success_radius must be in [0, 64] cells, got {self.success_radius}")
+        if self.line not in ("sampled", "exact"):
+            raise ValueError(f"sensing line must be 'sampled' or 'exact', got {self.line!r}")
+        ns, nb = self.levels
+        if not (1 <= ns <= 64 and 1 <= nb <= 64):
+            raise ValueError(f"sensing levels must be two integers in 1..64, got {self.levels}")
+        fixed_s, fixed_b = self.strength[0] == self.strength[1], self.background[0] == self.background[1]
+        if fixed_s != (ns == 1) or fixed_b != (nb == 1):
+            raise ValueError("sensing levels: a known (fixed) strength or background takes exactly 1 level, "
+                             "an unknown one at least 2")
+
+    @property
+    def known(self) -> bool:
+        """Whether the team knows the source's strength and the background (one level each)."""
+        return self.levels == (1, 1)
+
+    @property
+    def max_rate(self) -> float:
+        """The highest rate of the model (on the source, strongest source, highest background)."""
+        return self.strength[1] + self.background[1]
+
+    def strength_levels(self, device: torch.device | str = "cpu") -> torch.Tensor:
+        """float32 [ns]: the strengths the estimator weighs (bin midpoints of the range)."""
+        return _midpoints(self.strength, self.levels[0], device)
+
+    def background_levels(self, device: torch.device | str = "cpu") -> torch.Tensor:
+        """float32 [nb]: the backgrounds the estimator weighs."""
+        return _midpoints(self.background, self.levels[1], device)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (bundle manifests record it; :func:`parse_sensing` reads it back)."""
+        d = asdict(self)
+        for key in ("strength", "background", "levels"):
+            d[key] = list(d[key])
+        return d
+
+
+def _midpoints(bounds: tuple[float, float], count: int, device: torch.device | str) -> torch.Tensor:
+    lo, hi = bounds
+    width = (hi - lo) / count
+    values = [lo] if count == 1 else [lo + width * (i + 0.5) for i in range(count)]
+    return torch.tensor(values, dtype=torch.float32, device=device)
+
+
+#: The named presets. ``paper-simple`` is the model every committed result used (a strong source
+#: of known strength, background 1, walls halve the rate); ``realistic`` follows RAD-A2C's published
+#: ranges (Proctor et al. 2021: 20 m x 20 m area, 1 m moves; source 1e6-1e7 counts/s at 1 cm, i.e.
+#: 100-1000 counts/s at 1 m; background 10-50 counts/s; Poisson counts every step; obstructions
+#: that block the line of sight; success within 1.1 m). With one cell = 1 m and the 1/(1 + d^2)
+#: law, a strength of 200-2000 gives 100-1000 counts/s at 1 m and 2-20 at 10 m.
+SENSING_PRESETS: dict[str, SensingModel] = {
+    "paper-simple": SensingModel(
+        name="paper-simple", strength=(SOURCE_STRENGTH, SOURCE_STRENGTH), background=(BACKGROUND, BACKGROUND),
+        attenuation=WALL_ATTENUATION, noise=False, success_radius=0.0, line="sampled", levels=(1, 1),
+        cell_size_m=1.0,
+    ),
+    "realistic": SensingModel(
+        name="realistic", strength=(200.0, 2000.0), background=(10.0, 50.0), attenuation=0.0, noise=True,
+        success_radius=1.1, line="exact", levels=(8, 5), cell_size_m=1.0,
+    ),
+}
+DEFAULT_SENSING = "paper-simple"
+_SENSING_FIELDS = {"name", "strength", "background", "attenuation", "noise", "success_radius", "line",
+                   "levels", "cell_size_m"}
+
+
+def parse_sensing(value: Any) -> SensingModel:
+    """A SensingModel from a preset name, a dict (a manifest's ``sensing``: a preset's name with
+    any fields overridden) or a model. Raises ValueError saying what is accepted."""
+    if isinstance(value, SensingModel):
+        return value
+    if isinstance(value, str):
+        if value not in SENSING_PRESETS:
+            raise ValueError(f"unknown sensing preset {value[:40]!r}; "
+                             f"choose one of {sorted(SENSING_PRESETS)}")
+        return SENSING_PRESETS[value]
+    if isinstance(value, dict):
+        unknown = set(value) - _SENSING_FIELDS
+        if unknown:
+            raise ValueError(f"sensing: unknown fields {sorted(str(k)[:40] for k in unknown)}; "
+                             f"known: {sorted(_SENSING_FIELDS)}")
+        base = SENSING_PRESETS.get(value.get("name", DEFAULT_SENSING))
+        if base is None:
+            raise ValueError(f"sensing: name must be one of {sorted(SENSING_PRESETS)}")
+        fields = base.to_dict()
+        fields.update(value)
+        try:
+            return SensingModel(
+                name=str(fields["name"]),
+                strength=(float(fields["strength"][0]), float(fields["strength"][1])),
+                background=(float(fields["background"][0]), float(fields["background"][1])),
+                attenuation=float(fields["attenuation"]), noise=bool(fields["noise"]),
+                success_radius=float(fields["success_radius"]), line=str(fields["line"]),
+                levels=(int(fields["levels"][0]), int(fields["levels"][1])),
+                cell_size_m=float(fields["cell_size_m"]),
+            )
+        except (TypeError, IndexError, KeyError) as exc:
+            raise ValueError(f"sensing: malformed field ({type(exc).__name__})") from None
+    raise ValueError(f"sensing must be a preset name ({', '.join(sorted(SENSING_PRESETS))}) or a dict")
+
+
+def wall_rectangles(walls: torch.Tensor, most: int) -> torch.Tensor:
+    """float32 [B,most,4]: each wall segment of ``walls`` (bool [B,H,W]) as the rectangle
+    (top, left, bottom, right) its cells cover, in cell-centre coordinates (row - 0.5 .. row + 0.5);
+    unused slots are an empty rectangle far off the grid.
+
+    Walls never touch (not even diagonally), so every 8-connected group of wall cells is one
+    axis-aligned segment: its top-left cell has no wall above or to the left, and the segment runs
+    right or down from it.
+    """
+    b, _h, w = walls.shape
+    walls = walls.bool()
+    up = torch.nn.functional.pad(walls, (0, 0, 1, 0))[:, :-1]
+    left = torch.nn.functional.pad(walls, (1, 0, 0, 0))[:, :, :-1]
+    corner = walls & ~up & ~left  # [B,H,W]
+    # Run length down and right from every cell (walls are straight, so one of them is 1).
+    down_run = _run_length(walls.transpose(1, 2)).transpose(1, 2)
+    right_run = _run_length(walls)
+    count = corner.flatten(1).sum(1)
+    if b and int(count.max()) > most:
+        raise ValueError(f"the map has more than {most} wall segments")
+    rects = torch.full((b, most, 4), -1e6, dtype=torch.float32, device=walls.device)
+    rects[..., 2:] = -1e6 - 1.0  # empty: bottom < top
+    order = torch.argsort(corner.flatten(1).float(), dim=1, descending=True, stable=True)[:, :most]
+    valid = corner.flatten(1).gather(1, order)
+    r0 = (order // w).float()
+    c0 = (order % w).float()
+    dr = down_run.flatten(1).gather(1, order).float()
+    dc = right_run.flatten(1).gather(1, order).float()
+    found = torch.stack((r0 - 0.5, c0 - 0.5, r0 + dr - 0.5, c0 + dc - 0.5), -1)
+    return torch.where(valid.unsqueeze(-1), found, rects)
+
+
+def _run_length(walls: torch.Tensor) -> torch.Tensor:
+    """int64 [B,H,W]: how many wall cells run rightwards from each cell (0 on free cells)."""
+    w = walls.shape[-1]
+    out = torch.zeros(walls.shape, dtype=torch.long, device=walls.device)
+    run = torch.zeros(walls.shape[:-1], dtype=torch.long, device=walls.device)
+    for c in range(w - 1, -1, -1):
+        run = torch.where(walls[..., c], run + 1, 0)
+        out[..., c] = run
+    return out
+
+
+def _crossings(positions: torch.Tensor, sources: torch.Tensor, rects: torch.Tensor) -> torch.Tensor:
+    """float32 [B,N,M]: how many wall rectangles the segment from each sensor cell to each source
+    cell passes through (open segment against open rectangle, slab method).
+
+    positions int64 [B,N,2]; sources int64 [B,M,2] or [M,2]; rects float32 [B,Z,4].
+    """
+    b, n = positions.shape[:2]
+    if sources.dim() == 2:
+        sources = sources.unsqueeze(0).expand(b, -1, -1)
+    p = positions.to(torch.float32).view(b, n, 1, 1, 2)
+    d = sources.to(torch.float32).view(b, 1, -1, 1, 2) - p  # [B,N,M,1,2]
+    lo = torch.stack((rects[..., 0], rects[..., 1]), -1).view(b, 1, 1, -1, 2)  # [B,1,1,Z,2]
+    hi = torch.stack((rects[..., 2], rects[..., 3]), -1).view(b, 1, 1, -1, 2)
+    flat = d == 0
+    safe = torch.where(flat, torch.ones_like(d), d)
+    t1 = (lo - p) / safe
+    t2 = (hi - p) / safe
+    tmin = torch.minimum(t1, t2)
+    tmax = torch.maximum(t1, t2)
+    # Parallel to an axis: inside that slab for every t, or never.
+    inside = (p > lo) & (p < hi)
+    tmin = torch.where(flat, torch.where(inside, -math.inf, math.inf), tmin)
+    tmax = torch.where(flat, torch.where(inside, math.inf, -math.inf), tmax)
+    enter = tmin.amax(-1).clamp(min=0.0)  # [B,N,M,Z]
+    leave = tmax.amin(-1).clamp(max=1.0)
+    return (enter < leave).sum(-1).to(torch.float32)
+
+
+def geometric_factor(model: SensingModel, positions: torch.Tensor, sources: torch.Tensor,
+                     walls: torch.Tensor, rects: torch.Tensor | None = None) -> torch.Tensor:
+    """float32 [B,N,M]: A**k / (1 + d^2) for each sensor cell and candidate source cell, so that the
+    rate is S * factor + B. ``rects`` (from :func:`wall_rectangles`) for the ``exact`` line rule;
+    the ``sampled`` rule reads ``walls``."""
+    if model.line == "sampled":
+        rate = expected_rate_from_sources(positions, sources, walls)
+        return (rate - BACKGROUND) / SOURCE_STRENGTH
+    b = positions.shape[0]
+    if sources.dim() == 2:
+        sources = sources.unsqueeze(0).expand(b, -1, -1)
+    delta = positions.to(torch.float32).unsqueeze(2) - sources.to(torch.float32).unsqueeze(1)
+    dist2 = (delta * delta).sum(-1)
+    if rects is None:  # at most one segment per wall cell
+        rects = wall_rectangles(walls, max(1, int(walls.flatten(1).sum(1).max()) if b else 1))
+    k = _crossings(positions, sources, rects)
+    return torch.pow(torch.tensor(model.attenuation, device=k.device), k) / (1.0 + dist2)
+
+
+def realistic_rates(model: SensingModel, positions: torch.Tensor, target: torch.Tensor, walls: torch.Tensor,
+                    strength: torch.Tensor, background: torch.Tensor,
+                    rects: torch.Tensor | None = None) -> torch.Tensor:
+    """float32 [B,N]: the mean rate (counts/s) at each sensor for the episode's source (cell
+    ``target`` int64 [B,2], ``strength`` and ``background`` float32 [B])."""
+    f = geometric_factor(model, positions, target.unsqueeze(1), walls, rects)[..., 0]
+    return strength.unsqueeze(1) * f + background.unsqueeze(1)
