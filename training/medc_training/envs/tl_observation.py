@@ -84,6 +84,9 @@ __all__ = [
 DEFAULT_OBSERVATION = "ego6+estimate"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
+#: Below this relative log probability a cell's weight is taken as 0 (exp(-87) is about float32's
+#: smallest normal number).
+EXP_FLOOR = -87.0
 #: Largest reading the estimator takes (counts/s): 1000x the model's highest rate, S + BG = 1001.
 MAX_READING = 1e6
 
@@ -93,7 +96,7 @@ class SourceEstimator:
 
     Stateless apart from per-grid constants; the posterior lives in a ``log_post`` tensor the caller
     owns (:class:`TeamMemory`): float32 [B, G*G] when the sensing model's strength and background
-    are known, else [B, G*G, K] over (source cell, strength-and-background level), K = ns * nb
+    are known, else [B, L, G*G] over (strength-and-background level, source cell), L = ns * nb
     levels, strength-major (:class:`~medc_training.envs.tl_sensing.SensingModel`).
     """
 
@@ -105,6 +108,11 @@ class SourceEstimator:
         idx = torch.arange(g * g, device=self.device)
         self.cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2] (row, col)
         self.scale = 1.0 / max(1, g - 1)
+        # Diagonal coordinates of every cell and |i - j| between diagonals, for expected_moves.
+        self._u = self.cells[:, 0] + self.cells[:, 1]
+        self._v = self.cells[:, 0] - self.cells[:, 1] + (g - 1)
+        lines = torch.arange(2 * g - 1, device=self.device, dtype=torch.float32)
+        self._gap = (lines.unsqueeze(1) - lines.unsqueeze(0)).abs()
         s_lv = self.sensing.strength_levels(self.device)
         b_lv = self.sensing.background_levels(self.device)
         self.levels = self.sensing.levels[0] * self.sensing.levels[1]
@@ -113,13 +121,11 @@ class SourceEstimator:
         self.level_background = b_lv.repeat(len(s_lv))
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
-        """float32 [K, G²] (or [K, G², levels]) log prior: 0 on free cells, LOG_FLOOR on walls."""
+        """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
         k = walls.shape[0]
-        shape = (k, self.grid * self.grid) + ((self.levels,) if self.levels > 1 else ())
-        prior = torch.zeros(shape, device=self.device)
-        blocked = walls.reshape(k, -1).bool()
-        prior[blocked] = LOG_FLOOR
-        return prior
+        prior = torch.zeros((k, self.levels, self.grid * self.grid), device=self.device)
+        prior.masked_fill_(walls.reshape(k, 1, -1).bool(), LOG_FLOOR)
+        return prior if self.levels > 1 else prior.squeeze(1)
 
     def update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
                readings: torch.Tensor, rects: torch.Tensor | None = None) -> None:
@@ -139,15 +145,20 @@ class SourceEstimator:
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         else:
             f = geometric_factor(self.sensing, positions, self.cells, walls, rects)  # [K,N,G²]
-            rate = f.unsqueeze(-1) * self.level_strength + self.level_background  # [K,N,G²,L]
-            loglik = (readings.view(k, -1, 1, 1) * torch.log(rate) - rate).sum(1)  # [K,G²,L]
+            n = f.shape[1]
+            strength = self.level_strength.view(-1, 1)
+            background = self.level_background.view(-1, 1)
+            # sum_n r_n log(S f_n + B) - S sum_n f_n - n B: one log per reading, level and cell.
+            rate = torch.addcmul(background, f.unsqueeze(2), strength)  # [K,N,L,G²]
+            loglik = rate.log_().mul_(readings.view(k, n, 1, 1)).sum(1)  # [K,L,G²]
+            loglik.sub_(f.sum(1).unsqueeze(1) * strength).sub_(n * background)
             if self.levels == 1:
-                loglik = loglik.squeeze(-1)
+                loglik = loglik.squeeze(1)
         log_post.add_(loglik)
-        flat = log_post.view(k, self.grid * self.grid, -1)
+        flat = log_post.view(k, -1, self.grid * self.grid)
         # Standing within reach of a cell without the episode ending rules it out as the source.
-        flat[self.ruled_out(positions)] = LOG_FLOOR
-        flat[walls.reshape(k, -1).bool()] = LOG_FLOOR
+        out = self.ruled_out(positions) | walls.reshape(k, -1).bool()
+        flat.masked_fill_(out.unsqueeze(1), LOG_FLOOR)
         top = flat.amax((1, 2), keepdim=True)
         flat.sub_(top).clamp_(min=LOG_FLOOR)
 
@@ -164,38 +175,32 @@ class SourceEstimator:
         return ((delta * delta).sum(-1) <= radius * radius).any(1)
 
     def posterior(self, log_post: torch.Tensor) -> torch.Tensor:
-        """float32 [K, G²] posterior probabilities of the source cell (floored cells get exactly 0;
-        strength and background marginalised)."""
-        p = torch.exp(log_post).masked_fill_(log_post <= LOG_FLOOR, 0.0)
+        """float32 [K, G²] posterior probabilities of the source cell (strength and background
+        marginalised). Cells below :data:`EXP_FLOOR` get exactly 0: their weight is below float32's
+        smallest normal number (no denormals, which are slow) and could not move a sum that holds
+        the most probable cell's 1."""
+        p = torch.exp(log_post.clamp(min=EXP_FLOOR)).masked_fill_(log_post <= EXP_FLOOR, 0.0)
         if p.dim() == 3:
-            p = p.sum(-1)
+            p = p.sum(1)
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²]: E(c), the posterior-expected Chebyshev distance to the source.
 
-        O(G³) with a summed-area table: max(|dr|, |dc|) = sum over m = 1..G-1 of [the source is
-        outside the (2m-1)-wide square around c], so E(c) = sum_m (1 - P(square of radius m-1)).
-        Each episode's arithmetic is its own (no product across the batch), so one episode's
-        estimate never depends on how many are batched with it.
+        O(G²) per map: max(|dr|, |dc|) = (|u_c - u_s| + |v_c - v_s|) / 2 with u = row + col and
+        v = row - col, so E(c) = (A_u(u_c) + A_v(v_c)) / 2 where A_u(x) = sum_u P_u(u) |x - u| over
+        the posterior's marginal P_u on each diagonal (2G - 1 values), and likewise for v. Each
+        episode's arithmetic is its own (a broadcast product, not a matrix product that BLAS would
+        block by batch size), so one episode's estimate never depends on how many share its batch.
         """
         p = self.posterior(log_post)
         k, g = p.shape[0], self.grid
-        table = torch.zeros((k, g + 1, g + 1), device=p.device)
-        table[:, 1:, 1:] = p.view(k, g, g).cumsum(1).cumsum(2)
-        idx = torch.arange(g, device=p.device)
-        radius = torch.arange(g - 1, device=p.device).view(-1, 1)  # [R,1], squares of radius 0..G-2
-        lo = (idx - radius).clamp(min=0)  # [R,G]
-        hi = (idx + radius + 1).clamp(max=g)
-        flat = table.view(k, -1)
-        w = g + 1
-
-        def corner(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:  # [K,R,G,G]
-            at = rows.unsqueeze(-1) * w + cols.unsqueeze(-2)  # [R,G,G]
-            return flat[:, at.view(-1)].view(k, *at.shape)
-
-        inside = corner(hi, hi) - corner(lo, hi) - corner(hi, lo) + corner(lo, lo)
-        return (1.0 - inside).clamp_(min=0.0).sum(1).view(k, -1)
+        diagonals = 2 * g - 1
+        marginal_u = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._u, p)
+        marginal_v = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._v, p)
+        spread_u = (marginal_u.unsqueeze(1) * self._gap).sum(-1)  # [K, 2G-1]
+        spread_v = (marginal_v.unsqueeze(1) * self._gap).sum(-1)
+        return 0.5 * (spread_u[:, self._u] + spread_v[:, self._v])
 
     def estimate_map(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G, G]: 1 - E(c)/(G-1), the map the observations show."""

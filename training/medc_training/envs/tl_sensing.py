@@ -322,7 +322,7 @@ SENSING_PRESETS: dict[str, SensingModel] = {
     ),
     "realistic": SensingModel(
         name="realistic", strength=(200.0, 2000.0), background=(10.0, 50.0), attenuation=0.0, noise=True,
-        success_radius=1.1, line="exact", levels=(8, 5), cell_size_m=1.0,
+        success_radius=1.1, line="exact", levels=(6, 8), cell_size_m=1.0,
     ),
 }
 DEFAULT_SENSING = "paper-simple"
@@ -408,51 +408,79 @@ def _run_length(walls: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _crossings(positions: torch.Tensor, sources: torch.Tensor, rects: torch.Tensor) -> torch.Tensor:
-    """float32 [B,N,M]: how many wall rectangles the segment from each sensor cell to each source
-    cell passes through (open segment against open rectangle, slab method).
+#: Largest grid (cells per side) whose pair tables (:func:`_pair_tables`) are kept: 48 -> 64 MiB.
+_PAIR_TABLE_GRID = 48
+_PAIR_TABLES: dict[tuple[int, int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
 
-    positions int64 [B,N,2]; sources int64 [B,M,2] or [M,2]; rects float32 [B,Z,4].
+
+def _pair_tables(h: int, w: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(1 / (s - p) per axis float32 [H·W, H·W, 2] (inf where equal), 1 / (1 + d²) float32
+    [H·W, H·W]) for sensor cell p (first index) and source cell s; None above _PAIR_TABLE_GRID."""
+    if max(h, w) > _PAIR_TABLE_GRID:
+        return None
+    key = (h, w, device)
+    if key not in _PAIR_TABLES:
+        idx = torch.arange(h * w, device=device)
+        cells = torch.stack((idx // w, idx % w), dim=-1).to(torch.float32)
+        delta = cells.unsqueeze(0) - cells.unsqueeze(1)  # [P,S,2]: s - p
+        _PAIR_TABLES[key] = (1.0 / delta, 1.0 / (1.0 + (delta * delta).sum(-1)))
+    return _PAIR_TABLES[key]
+
+
+def _blocked(positions: torch.Tensor, inv: torch.Tensor, rects: torch.Tensor, count: bool) -> torch.Tensor:
+    """[B,N,M]: how many wall rectangles (``count``) or whether any (not ``count``) the segment
+    from each sensor cell to each candidate source cell passes through: the open segment against
+    each open rectangle, by the slab method.
+
+    positions int64 [B,N,2]; inv float32 [B,N,M,2] = 1 / (s - p) per axis (inf where equal);
+    rects float32 [B,Z,4] (top, left, bottom, right). Cell centres are integers and rectangle sides
+    half-integers, so no centre lies on a side and no 0 * inf arises. Candidates are the innermost
+    dimension of every temporary, so each operation runs over contiguous memory.
     """
     b, n = positions.shape[:2]
-    if sources.dim() == 2:
-        sources = sources.unsqueeze(0).expand(b, -1, -1)
-    p = positions.to(torch.float32).view(b, n, 1, 1, 2)
-    d = sources.to(torch.float32).view(b, 1, -1, 1, 2) - p  # [B,N,M,1,2]
-    lo = torch.stack((rects[..., 0], rects[..., 1]), -1).view(b, 1, 1, -1, 2)  # [B,1,1,Z,2]
-    hi = torch.stack((rects[..., 2], rects[..., 3]), -1).view(b, 1, 1, -1, 2)
-    flat = d == 0
-    safe = torch.where(flat, torch.ones_like(d), d)
-    t1 = (lo - p) / safe
-    t2 = (hi - p) / safe
-    tmin = torch.minimum(t1, t2)
-    tmax = torch.maximum(t1, t2)
-    # Parallel to an axis: inside that slab for every t, or never.
-    inside = (p > lo) & (p < hi)
-    tmin = torch.where(flat, torch.where(inside, -math.inf, math.inf), tmin)
-    tmax = torch.where(flat, torch.where(inside, math.inf, -math.inf), tmax)
-    enter = tmin.amax(-1).clamp(min=0.0)  # [B,N,M,Z]
-    leave = tmax.amin(-1).clamp(max=1.0)
-    return (enter < leave).sum(-1).to(torch.float32)
+    p = positions.to(torch.float32).view(b, n, 1, 2)
+    lo = (rects[:, None, :, 0:2] - p).unsqueeze(-1)  # [B,N,Z,2,1]: lo - p per axis
+    hi = (rects[:, None, :, 2:4] - p).unsqueeze(-1)
+    inv_r = inv[..., 0].unsqueeze(2)  # [B,N,1,M]
+    inv_c = inv[..., 1].unsqueeze(2)
+    a_r, b_r = lo[..., 0, :] * inv_r, hi[..., 0, :] * inv_r  # [B,N,Z,M]
+    a_c, b_c = lo[..., 1, :] * inv_c, hi[..., 1, :] * inv_c
+    enter = torch.maximum(torch.minimum(a_r, b_r), torch.minimum(a_c, b_c)).clamp_(min=0.0)
+    leave = torch.minimum(torch.maximum(a_r, b_r), torch.maximum(a_c, b_c)).clamp_(max=1.0)
+    hit = enter < leave  # [B,N,Z,M]
+    return hit.sum(2, dtype=torch.float32) if count else hit.any(2)
 
 
 def geometric_factor(model: SensingModel, positions: torch.Tensor, sources: torch.Tensor,
                      walls: torch.Tensor, rects: torch.Tensor | None = None) -> torch.Tensor:
     """float32 [B,N,M]: A**k / (1 + d^2) for each sensor cell and candidate source cell, so that the
-    rate is S * factor + B. ``rects`` (from :func:`wall_rectangles`) for the ``exact`` line rule;
-    the ``sampled`` rule reads ``walls``."""
+    rate is S * factor + B. ``sources`` int64 [B,M,2], or [M,2] for the same cells in every area
+    (every cell of the grid in row-major order takes per-grid tables). ``rects`` (from
+    :func:`wall_rectangles`; made from ``walls`` when None) for the ``exact`` line rule; the
+    ``sampled`` rule reads ``walls``."""
     if model.line == "sampled":
         rate = expected_rate_from_sources(positions, sources, walls)
         return (rate - BACKGROUND) / SOURCE_STRENGTH
     b = positions.shape[0]
-    if sources.dim() == 2:
-        sources = sources.unsqueeze(0).expand(b, -1, -1)
-    delta = positions.to(torch.float32).unsqueeze(2) - sources.to(torch.float32).unsqueeze(1)
-    dist2 = (delta * delta).sum(-1)
+    h, w = walls.shape[-2:]
+    every_cell = sources.dim() == 2 and len(sources) == h * w
+    tables = _pair_tables(h, w, positions.device) if every_cell else None
+    if tables is not None:
+        cell = positions[..., 0] * w + positions[..., 1]
+        inv, near = tables[0][cell], tables[1][cell]  # [B,N,M,2], [B,N,M]
+    else:
+        if sources.dim() == 2:
+            sources = sources.unsqueeze(0).expand(b, -1, -1)
+        delta = sources.to(torch.float32).unsqueeze(1) - positions.to(torch.float32).unsqueeze(2)
+        inv, near = 1.0 / delta, 1.0 / (1.0 + (delta * delta).sum(-1))
     if rects is None:  # at most one segment per wall cell
         rects = wall_rectangles(walls, max(1, int(walls.flatten(1).sum(1).max()) if b else 1))
-    k = _crossings(positions, sources, rects)
-    return torch.pow(torch.tensor(model.attenuation, device=k.device), k) / (1.0 + dist2)
+    if not bool((rects[..., 2] > rects[..., 0]).any()):  # no walls anywhere: nothing in the way
+        return near
+    if model.attenuation == 0.0:
+        return near.masked_fill(_blocked(positions, inv, rects, count=False), 0.0)
+    crossed = _blocked(positions, inv, rects, count=True)
+    return near * torch.pow(torch.tensor(model.attenuation, device=near.device), crossed)
 
 
 def realistic_rates(model: SensingModel, positions: torch.Tensor, target: torch.Tensor, walls: torch.Tensor,
