@@ -30,6 +30,7 @@ from pathlib import Path
 from ..config import METHODS, SCALES, scaled_config
 from ..envs import core_has_estimate
 from ..envs.tl_observation import DEFAULT_OBSERVATION
+from ..envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 
 USER_RE = re.compile(r"^A(\d+)W(\d+)(?::(random|biased|malicious))?$")
 
@@ -77,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "windows) | for target localization also maps+estimate | egoR+estimate "
                         f"(default: {DEFAULT_OBSERVATION} for target localization, maps for the others; "
                         "docs/environments.md)")
+    p.add_argument("--sensing", choices=sorted(SENSING_PRESETS),
+                   help="target localization's sensing model (default paper-simple; docs/environments.md)")
     p.add_argument("--method", choices=METHODS, default="sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
@@ -140,6 +143,8 @@ def config_from_args(args: argparse.Namespace):
         # Given explicitly, it reaches the core even when it is target localization's default
         # name, so that an application without a source estimate refuses '+estimate' views.
         env_options.setdefault("observation", args.observation)
+    if args.sensing is not None and args.sensing != DEFAULT_SENSING:
+        env_options.setdefault("sensing", args.sensing)
     if env_options:
         overrides["env_options"] = env_options
     return scaled_config(args.scale, **overrides)

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# MDRL-sparse (the default learner) on the realistic preset: the learned runs of the realistic-search
+# study (docs/environments.md, "Realistic search"). Resumable: a run with a summary.json is skipped.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+OUT=${OUT:-docs/reproduction/realistic/runs}
+STEPS=${STEPS:-100000}
+for grid in ${GRIDS:-20 30}; do
+  for walls in 0 2 5; do
+    for seed in 0 1 2; do
+      dir=$OUT/g${grid}w${walls}/seed${seed}
+      [[ -f $dir/summary.json ]] && continue
+      OMP_NUM_THREADS=1 medc-train --scale cpu --grid "$grid" --max-steps 100 --walls "$walls" \
+        --sensing realistic --steps "$STEPS" --seed "$seed" --threads 1 --out "$dir" >/dev/null
+      echo "done $dir"
+    done
+  done
+done
