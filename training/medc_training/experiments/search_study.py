@@ -1,0 +1,258 @@
+"""The realistic-search study: the learned team against the classical controllers on fixed episodes.
+
+The protocol is fixed in docs/environments.md ("Realistic search: protocol"): the realistic sensing
+preset, 3 agents, 100-step episodes, grids 20 and 30, walls 0, 2 and 5; random moves, the
+classical controllers (:mod:`medc_training.controllers`) and MDRL-sparse (the CPU-scale default
+learner, trained by ``scripts/realistic_runs.sh`` into ``<out>/runs/g{grid}w{walls}/seed{k}``)
+each play the same 512 seeded episodes per scenario to their end
+(:func:`medc_training.evaluate.play_episodes`).
+
+``python -m medc_training.experiments.search_study evaluate --out docs/reproduction/realistic``
+plays what is missing (one JSON of per-episode results per scenario and policy under
+``<out>/eval``; finished ones are skipped, so the command resumes), and ``report`` writes the table
+with 95% CIs and the protocol's verdicts (``<out>/table.md``, ``<out>/table.json``) and one figure
+of learning curves with the controllers as reference lines (``<out>/curves.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..stats import mean_ci
+
+#: The protocol's fixed values.
+GRIDS = (20, 30)
+WALLS = (0, 2, 5)
+AGENTS = 3
+MAX_STEPS = 100
+EPISODES = 512
+EVAL_SEED = 20261202
+SEEDS = (0, 1, 2)
+CLASSICAL = ("gradient", "greedy", "infotaxis")
+BASELINES = ("random", *CLASSICAL)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    grid: int
+    walls: int
+
+    @property
+    def name(self) -> str:
+        return f"g{self.grid}w{self.walls}"
+
+    def make_env(self, posterior: bool):
+        """The 512 environments the fixed episodes are played in (one round)."""
+        from ..envs import make_batched
+
+        return make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
+                            walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
+                            posterior=posterior, copy_obs=False)
+
+
+SCENARIOS = tuple(Scenario(g, w) for g in GRIDS for w in WALLS)
+
+
+def _policy(name: str, env, out: Path, scenario: Scenario):
+    """(policy, greedy) for a policy name: 'random', a controller, or 'learned-seed{k}'."""
+    from ..evaluate import net_policy
+
+    if name == "random":
+        return None, False
+    if name in CLASSICAL:
+        from ..controllers import controller_policy
+
+        return controller_policy(name, env), True
+    from ..bundle import load_bundle
+
+    seed = name.removeprefix("learned-seed")
+    bundle = load_bundle(out / "runs" / scenario.name / f"seed{seed}" / "policy.safetensors")
+    return net_policy(bundle.net), True
+
+
+def evaluate(out: Path, policies: list[str] | None = None, scenarios: list[str] | None = None) -> list[Path]:
+    """Play every missing (scenario, policy) evaluation; returns the files written."""
+    from ..evaluate import play_episodes
+
+    written = []
+    for sc in SCENARIOS:
+        if scenarios and sc.name not in scenarios:
+            continue
+        names = list(BASELINES) + [f"learned-seed{k}" for k in SEEDS
+                                   if (out / "runs" / sc.name / f"seed{k}" / "summary.json").exists()]
+        for name in names:
+            if policies and name not in policies and name.split("-")[0] not in policies:
+                continue
+            path = out / "eval" / sc.name / f"{name}.json"
+            if path.exists():
+                continue
+            env = sc.make_env(posterior=name in CLASSICAL)
+            policy, greedy = _policy(name, env, out, sc)
+            print(f"[search-study] {sc.name} {name} ...", file=sys.stderr, flush=True)
+            result = play_episodes(env, policy, episodes=EPISODES, seed=EVAL_SEED, greedy=greedy)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({"scenario": sc.name, "policy": name, "episodes": EPISODES,
+                                        "seed": EVAL_SEED, "lengths": list(result.lengths),
+                                        "successes": [bool(s) for s in result.successes]}))
+            written.append(path)
+    return written
+
+
+def _load(out: Path, sc: Scenario, name: str) -> dict | None:
+    path = out / "eval" / sc.name / f"{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _disjoint(a: tuple[float, float], b: tuple[float, float]) -> int:
+    """-1 when mean a is below b with disjoint CIs, +1 above, 0 when they overlap."""
+    (ma, ha), (mb, hb) = a, b
+    if ma + ha < mb - hb:
+        return -1
+    if ma - ha > mb + hb:
+        return 1
+    return 0
+
+
+def summarize(out: Path) -> list[dict]:
+    """One row per scenario: each policy's mean length and success rate with 95% CIs, and the
+    protocol's gate and verdict."""
+    rows = []
+    for sc in SCENARIOS:
+        row: dict = {"scenario": sc.name, "grid": sc.grid, "walls": sc.walls, "policies": {}}
+        for name in BASELINES:
+            data = _load(out, sc, name)
+            if data is not None:
+                row["policies"][name] = {
+                    "length": mean_ci([float(v) for v in data["lengths"]]),
+                    "success": mean_ci([float(v) for v in data["successes"]]),
+                }
+        learned = [d for k in SEEDS if (d := _load(out, sc, f"learned-seed{k}")) is not None]
+        if learned:
+            lengths = [sum(d["lengths"]) / len(d["lengths"]) for d in learned]
+            success = [sum(d["successes"]) / len(d["successes"]) for d in learned]
+            row["policies"]["learned"] = {"length": mean_ci(lengths), "success": mean_ci(success),
+                                          "seeds": len(learned)}
+        row.update(_verdict(row["policies"]))
+        rows.append(row)
+    return rows
+
+
+def _verdict(policies: dict) -> dict:
+    learned, rnd = policies.get("learned"), policies.get("random")
+    classical = {k: v for k, v in policies.items() if k in CLASSICAL}
+    missing = len(classical) < len(CLASSICAL) or (learned or {}).get("seeds", 0) < len(SEEDS)
+    if learned is None or rnd is None or missing:
+        return {"gate": "not run", "verdict": "not run"}
+    if _disjoint(learned["length"], rnd["length"]) != -1:
+        return {"gate": "fails", "verdict": "not testable"}
+    best = min(classical, key=lambda k: classical[k]["length"][0])
+    side = _disjoint(learned["length"], classical[best]["length"])
+    verdict = {-1: "yes", 1: "no", 0: "not resolved"}[side]
+    return {"gate": "passes", "best_classical": best, "verdict": verdict}
+
+
+def _cell(stat: tuple[float, float], scale: float = 1.0, digits: int = 1) -> str:
+    mean, half = stat
+    if math.isnan(mean):
+        return "–"
+    return f"{mean * scale:.{digits}f} ± {half * scale:.{digits}f}"
+
+
+def table_markdown(rows: list[dict]) -> str:
+    """The study's table: mean episode length (steps) and success rate (%) with 95% CIs."""
+    cols = ["random", *CLASSICAL, "learned"]
+    head = "| scenario | " + " | ".join(cols) + " | gate | learned beats best classical |"
+    lines = [head, "|" + " --- |" * (len(cols) + 3)]
+    for row in rows:
+        cells = []
+        for name in cols:
+            p = row["policies"].get(name)
+            cells.append("not run" if p is None else
+                         f"{_cell(p['length'])} steps, {_cell(p['success'], 100.0, 0)}%")
+        best = f" ({row['best_classical']})" if row.get("best_classical") else ""
+        grid = f"{row['grid']}×{row['grid']}, {row['walls']} walls"
+        lines.append(f"| {grid} | " + " | ".join(cells) + f" | {row['gate']} | {row['verdict']}{best} |")
+    return "\n".join(lines) + "\n"
+
+
+def figure(out: Path, rows: list[dict], png: Path) -> None:
+    """Learning curves of the learned runs (mean and 95% band over seeds of the fixed-episode
+    evaluations in metrics.csv) with each baseline's fixed-episode mean as a horizontal line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from ..metrics import read_metrics
+    from ..stats import curve_band
+
+    fig, axes = plt.subplots(len(GRIDS), len(WALLS), figsize=(4.2 * len(WALLS), 3.4 * len(GRIDS)),
+                             squeeze=False)
+    colours = {"random": "grey", "gradient": "tab:orange", "greedy": "tab:green", "infotaxis": "tab:purple"}
+    for ax, row in zip(axes.flat, rows):
+        curves, steps = [], None
+        for k in SEEDS:
+            path = out / "runs" / row["scenario"] / f"seed{k}" / "metrics.csv"
+            if path.exists():
+                data = read_metrics(path)
+                steps = [r["step"] for r in data]
+                curves.append([r["episode_length"] for r in data])
+        if curves:
+            n = min(len(c) for c in curves)
+            mean, half = curve_band([c[:n] for c in curves])
+            x = np.asarray(steps[:n])
+            ax.plot(x, mean, color="tab:blue", label=f"MDRL-sparse ({len(curves)} seeds)")
+            ax.fill_between(x, mean - half, mean + half, color="tab:blue", alpha=0.2)
+        for name, colour in colours.items():
+            p = row["policies"].get(name)
+            if p is not None:
+                ax.axhline(p["length"][0], color=colour, linestyle="--", label=name)
+        ax.set_title(f"{row['grid']}×{row['grid']}, {row['walls']} walls")
+        ax.set_xlabel("training steps")
+        ax.set_ylabel("mean episode length (512 fixed episodes)")
+        ax.set_ylim(0, MAX_STEPS + 2)
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def report(out: Path) -> dict:
+    """Write table.md, table.json and curves.png under ``out``; returns the JSON summary."""
+    rows = summarize(out)
+    (out / "table.md").write_text(table_markdown(rows))
+    (out / "table.json").write_text(json.dumps(rows, indent=1))
+    figure(out, rows, out / "curves.png")
+    return {"scenarios": len(rows), "verdicts": {r["scenario"]: r["verdict"] for r in rows}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m medc_training.experiments.search_study",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("command", choices=("evaluate", "report"))
+    p.add_argument("--out", type=Path, default=Path("docs/reproduction/realistic"))
+    p.add_argument("--policy", action="append", help="only these policies (random, gradient, greedy, "
+                   "infotaxis, learned, learned-seed0, ...)")
+    p.add_argument("--scenario", action="append", help="only these scenarios (g20w0, g30w5, ...)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.command == "evaluate":
+        written = evaluate(args.out, args.policy, args.scenario)
+        print(json.dumps({"written": [str(w) for w in written]}))
+    else:
+        print(json.dumps(report(args.out)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
