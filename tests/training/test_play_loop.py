@@ -13,8 +13,15 @@ from medc_training.bundle import load_bundle
 from medc_training.config import TrainConfig
 from medc_training.envs import make_batched
 from medc_training.envs.target_localization import SUCCESS_REWARD
-from medc_training.evaluate import (PlayResult, env_for_bundle, evaluate_policy, net_policy, play,
-                                    play_episodes, round_seed)
+from medc_training.evaluate import (
+    PlayResult,
+    env_for_bundle,
+    evaluate_policy,
+    net_policy,
+    play,
+    play_episodes,
+    round_seed,
+)
 from medc_training.ppo import EVAL_SEED_OFFSET, Trainer, make_env_for
 
 TL = dict(agents=2, walls=1, grid=8, max_steps=12)
@@ -116,10 +123,10 @@ def test_play_episodes_plays_the_same_episodes_for_every_policy():
             return out
 
     random = play_episodes(Recording("random"), None, episodes=7, seed=11)
-    greedy = play_episodes(Recording("greedy"), lambda obs, mask: torch.randn(mask.shape), episodes=7, seed=11)
-    assert seen["random"] == seen["greedy"] == _starts(env, 11, 3)
+    noisy = play_episodes(Recording("noisy"), lambda obs, mask: torch.randn(mask.shape), episodes=7, seed=11)
+    assert seen["random"] == seen["noisy"] == _starts(env, 11, 3)
     assert len(set(map(tuple, seen["random"]))) > 1  # the rounds and environments differ
-    assert random != greedy  # the same episodes, played differently
+    assert random != noisy  # the same episodes, played differently
 
 
 def test_play_episodes_returns_exactly_e_episodes_in_episode_order_and_is_deterministic():

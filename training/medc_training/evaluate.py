@@ -267,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
                                             "fixed episodes, each played to its end (play_episodes).")
     p.add_argument("bundle")
     p.add_argument("--episodes", type=int, default=256, help="episodes (default 256)")
-    p.add_argument("--envs", type=int, default=32, help="environments the episodes are split over (default 32)")
+    p.add_argument("--envs", type=int, default=32,
+                   help="environments the episodes are split over (default 32)")
     p.add_argument("--seed", type=int, default=12345)
     args = p.parse_args(argv)
     bundle = load_bundle(args.bundle)

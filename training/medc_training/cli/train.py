@@ -100,8 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-episodes", type=int,
                    help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
                         "window of --eval-steps test steps, which counts only the episodes that finish in it")
-    p.add_argument("--eval-steps", type=int, help="test steps per evaluation (legacy window, --eval-episodes 0)")
-    p.add_argument("--eval-envs", type=int, help="environments the evaluation episodes (or test steps) are split over")
+    p.add_argument("--eval-steps", type=int,
+                   help="test steps per evaluation (the legacy window, --eval-episodes 0)")
+    p.add_argument("--eval-envs", type=int,
+                   help="environments the evaluation episodes (or test steps) are split over")
     p.add_argument("--eval-sampled", action="store_true",
                    help="test on actions sampled from the policy instead of its argmax")
     p.add_argument("--expert-rate", type=float, help="R_E (default 0.1)")

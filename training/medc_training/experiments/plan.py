@@ -31,8 +31,8 @@ def window_evaluated(runs: Path) -> bool:
         kinds.setdefault(TrainConfig.from_dict(config).eval_episodes == 0, str(summary.parent))
     if len(kinds) > 1:
         raise ValueError(f"{runs} mixes evaluators: {kinds[True]} was evaluated with the legacy window "
-                         f"(eval_episodes 0), {kinds[False]} with fixed episodes; keep them in separate --out "
-                         "folders")
+                         f"(eval_episodes 0), {kinds[False]} with fixed episodes; keep them in separate "
+                         "--out folders")
     return kinds.get(True, False)
 
 

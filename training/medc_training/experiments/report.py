@@ -281,22 +281,31 @@ def panel_section(r: Report, panel: Panel) -> str | None:
     return text + (f"\n\n{panel.note}" if panel.note else "")
 
 
+#: How a report's curves were measured, by evaluator (:func:`metric_text`).
+WINDOW_METRIC = """\
+**Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
+mean length of the finished test episodes (max {max_steps} when the target is never found)
+is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {grid}×{grid}
+grid with a {limit}-step limit and are tested on actions sampled from the policy
+({envs} environments × {limit} steps per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task."""
+EPISODES_METRIC = """\
+**Metric.** Every `eval_every` training steps, {episodes} fixed greedy test episodes (the same for
+every evaluation, and for every method's run of a seed), each played to its end; their mean length
+(an episode that never finds the target counts {max_steps}) is plotted. Fleet coordination and maze
+cleaning (Figs. 10–11) run on the paper's {grid}×{grid} grid with a {limit}-step limit and are tested on
+actions sampled from the policy ({other} fixed episodes per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task."""
+
+
 def metric_text(plan: Plan) -> str:
     """The report's paragraph on how its curves were measured: the legacy window (a plan whose
     folder holds window-evaluated runs) or fixed episodes."""
+    values = {"max_steps": plan.base["max_steps"], "grid": OTHER_GRID, "limit": OTHER_MAX_STEPS}
     if plan.window_eval:
-        return f"""**Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
-mean length of the finished test episodes (max {plan.base['max_steps']} when the target is never found)
-is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {OTHER_GRID}×{OTHER_GRID}
-grid with a {OTHER_MAX_STEPS}-step limit and are tested on actions sampled from the policy
-({OTHER_EVAL['eval_envs']} environments × {OTHER_MAX_STEPS} steps per evaluation): a memoryless greedy policy
-repeats one move forever in a coverage task."""
-    return f"""**Metric.** Every `eval_every` training steps, {plan.base['eval_episodes']} fixed greedy test episodes (the same
-for every evaluation, method and seed's run), each played to its end; their mean length (an episode
-that never finds the target counts {plan.base['max_steps']}) is plotted. Fleet coordination and maze cleaning
-(Figs. 10–11) run on the paper's {OTHER_GRID}×{OTHER_GRID} grid with a {OTHER_MAX_STEPS}-step limit and are tested on
-actions sampled from the policy ({OTHER_EVAL['eval_episodes']} fixed episodes per evaluation): a memoryless greedy
-policy repeats one move forever in a coverage task."""
+        return WINDOW_METRIC.format(envs=OTHER_EVAL["eval_envs"], **values)
+    return EPISODES_METRIC.format(episodes=plan.base["eval_episodes"], other=OTHER_EVAL["eval_episodes"],
+                                  **values)
 
 
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
