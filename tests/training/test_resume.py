@@ -15,7 +15,7 @@ from medc_training.ppo import Trainer
 from medc_training.runner import CHECKPOINT, run_training
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, seed=3)
+            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, eval_episodes=4, seed=3)
 
 
 def test_resume_continues_from_the_checkpointed_step(tmp_path):

@@ -208,7 +208,6 @@ class TrainConfig(EnvironmentConfig):
         return cls(**{**LEGACY_EVAL, **data})
 
 
-
 # The CPU scale: what changes from the paper so that the whole reproduction runs on a
 # 2-core machine in well under an hour. Everything not listed keeps the paper's value.
 CPU_SCALE = {
