@@ -14,7 +14,7 @@ from medc_training.nets import make_actor_critic
 from medc_training.ppo import Trainer
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, seed=0)
+            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, eval_episodes=4, seed=0)
 
 
 def _bundle(tmp_path, arch, grid=6, agents=1, observation=DEFAULT_OBSERVATION):

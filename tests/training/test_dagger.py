@@ -89,6 +89,8 @@ def test_clone_beats_a_random_team_and_ships_a_bundle(tmp_path):
     assert [r.split(",")[0] for r in rows[1:]] == ["3", "5"]  # every 4th iteration and the last
     bundle = load_bundle(tmp_path / "expert.safetensors")
     assert bundle.manifest["training"]["method"] == "dagger"
+    assert bundle.manifest["training"]["evaluation"] == {"evaluator": "episodes", "episodes": 96, "envs": 16,
+                                                         "greedy": True}
     assert bundle.manifest["environment"] == {"agents": 3, "grid": 7, "max_steps": 20, "walls": 0}
     assert bundle.manifest["metrics"]["greedy_episode_length"] == pytest.approx(m["greedy_episode_length"])
     assert (tmp_path / "run" / "learning_curve.png").stat().st_size > 1000

@@ -17,7 +17,8 @@ from medc_training.experts import (
 from medc_training.ppo import Trainer
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, total_steps=64, arch="mlp", seed=2)
+            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, eval_episodes=4,
+            total_steps=64, arch="mlp", seed=2)
 
 
 class _Recorder(Expert):

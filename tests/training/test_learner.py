@@ -11,7 +11,8 @@ from medc_training.ppo import Trainer
 from medc_training.runner import run_training
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, total_steps=64, arch="mlp", seed=2)
+            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, eval_episodes=4,
+            total_steps=64, arch="mlp", seed=2)
 
 
 def test_trainer_and_federated_group_are_learners():

@@ -70,7 +70,7 @@ def test_selection_weights_follow_qos_distance():
             self.attributes = attrs
 
     cfg = TrainConfig(method="medc", agents=3, walls=2, grid=13, max_steps=12, num_envs=2, horizon=8,
-                      eval_envs=2, eval_steps=8, total_steps=16)
+                      eval_envs=2, eval_steps=8, eval_episodes=2, total_steps=16)
     free, complex_ = E({"agents": 1, "walls": 0, "grid": 13}), E({"agents": 1, "walls": 3, "grid": 13})
     w = Trainer(cfg, [free, complex_]).expert_weights
     # D(free) = (2 + 2 + 0) / 3, D(complex) = (2 + 1 + 0) / 3: R_S ∝ 1/D -> (1/4, 1/3) normalised

@@ -8,7 +8,8 @@ from medc_training.nets import masked_logits
 from medc_training.ppo import Trainer
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, total_steps=10**6, arch="mlp", seed=2)
+            epochs=1, minibatches=2, eval_steps=16, eval_envs=4, eval_episodes=4,
+            total_steps=10**6, arch="mlp", seed=2)
 
 
 def _own_logprobs(trainer):

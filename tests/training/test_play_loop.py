@@ -1,5 +1,6 @@
-"""The one play loop (medc_training.evaluate.play): its two stopping rules, its samplers, and that
-every evaluation that plays through it reproduces the committed numbers."""
+"""The play loops (medc_training.evaluate): play_episodes' fixed episodes, each played to its end;
+play's two stopping rules and its samplers; and that the legacy window evaluation and random
+baseline still reproduce the committed numbers."""
 
 from __future__ import annotations
 
@@ -12,7 +13,15 @@ from medc_training.bundle import load_bundle
 from medc_training.config import TrainConfig
 from medc_training.envs import make_batched
 from medc_training.envs.target_localization import SUCCESS_REWARD
-from medc_training.evaluate import PlayResult, env_for_bundle, evaluate_policy, net_policy, play
+from medc_training.evaluate import (
+    PlayResult,
+    env_for_bundle,
+    evaluate_policy,
+    net_policy,
+    play,
+    play_episodes,
+    round_seed,
+)
 from medc_training.ppo import EVAL_SEED_OFFSET, Trainer, make_env_for
 
 TL = dict(agents=2, walls=1, grid=8, max_steps=12)
@@ -36,16 +45,112 @@ def test_trainer_evaluation_reproduces_the_committed_first_evaluation(repo_root,
     assert ev["success_rate"] == float(row["success_rate"])
 
 
-def test_random_play_reproduces_the_committed_random_baseline(repo_root):
-    cfg, _ = _committed_run(repo_root, "runs/A3W2-sparse/seed0")
+def test_committed_runs_read_as_window_evaluated():
+    """A config recorded before eval_episodes existed means the legacy window it was made with."""
+    assert TrainConfig.from_dict({"seed": 1}).eval_episodes == 0
+    assert TrainConfig.from_dict({"eval_episodes": 32}).eval_episodes == 32
+    assert TrainConfig().eval_episodes > 0  # new configs evaluate on fixed episodes
+
+
+def test_random_play_reproduces_the_committed_random_baseline(repo_root, tmp_path):
+    """The gate's random baseline for a window-evaluated run is still the committed number; a run
+    evaluated on fixed episodes gets random play on exactly its evaluation episodes."""
+    from medc_training.experiments.report import random_play_length
+
+    folder = repo_root / "docs" / "reproduction" / "runs" / "A3W2-sparse" / "seed0"
+    config = json.loads((folder / "summary.json").read_text())["config"]
     committed = json.loads((repo_root / "docs" / "reproduction" / "random_play.json").read_text())
-    seed = cfg.seed + EVAL_SEED_OFFSET
+    seed = config["seed"] + EVAL_SEED_OFFSET
     key = next(k for k in committed if k.startswith("target_localization|agents=3|walls=2|")
                and k.endswith(f"seed={seed}"))
+    assert random_play_length(tmp_path, config) == committed[key]
+    assert list(json.loads((tmp_path / "random_play.json").read_text())) == [key]
+    fixed = {**config, "eval_episodes": 40, "eval_envs": 16}
+    cfg = TrainConfig.from_dict(fixed)
     env = make_env_for(cfg, cfg.eval_envs, seed, False)
-    played = evaluate_policy(env, None, 256, greedy=False, seed=seed)
-    assert played["episodes"] == 256
-    assert played["episode_length"] == committed[key]
+    expected = play_episodes(env, None, episodes=40, greedy=False, seed=seed).summary()["episode_length"]
+    assert random_play_length(tmp_path, fixed) == expected
+    assert f"{key}|episodes=40|envs=16" in json.loads((tmp_path / "random_play.json").read_text())
+
+
+class _FirstValidMove:
+    """A policy that always takes its first valid move (N, else NE, ...): on the episodes of seed 4
+    below it never finds the target."""
+
+    def __call__(self, obs, mask):
+        return torch.where(mask, -torch.arange(mask.shape[-1], dtype=torch.float32), 0.0)
+
+
+def test_play_episodes_counts_episodes_longer_than_any_window():
+    """Every episode lasts max_steps (the target is never found) and all of them are counted, where
+    a window shorter than max_steps counts none."""
+    env = make_batched("target_localization", num_envs=4, seed=1, agents=1, walls=0, grid=15, max_steps=40)
+    assert play(env, _FirstValidMove(), steps=30, seed=4).lengths == ()
+    result = play_episodes(env, _FirstValidMove(), episodes=10, seed=4)
+    assert result.lengths == (40,) * 10 and not any(result.successes)
+    assert result.summary()["episode_length"] == 40.0
+    assert result.ci95()["episode_length"] == (40.0, 0.0)
+
+
+def _starts(env, seed: int, rounds: int) -> list:
+    """The initial positions of every environment in each of play_episodes' rounds."""
+    starts = []
+    for r in range(rounds):
+        env.reset(seed=round_seed(seed, r))
+        starts.extend(env.state(i).positions for i in range(env.num_envs))
+    return starts
+
+
+def test_play_episodes_plays_the_same_episodes_for_every_policy():
+    """Episode i starts from the same state whoever plays it: the order is the episode order, not
+    the finish order, and a random team and a greedy policy play the same episodes."""
+    env = make_batched("target_localization", num_envs=3, seed=5, **TL)
+    seen: dict[str, list] = {}
+
+    class Recording:
+        """An env that remembers each environment's start of every round (after reset)."""
+
+        def __init__(self, name):
+            self.name = name
+            seen[name] = []
+
+        def __getattr__(self, attr):
+            return getattr(env, attr)
+
+        def reset(self, seed=None):
+            out = env.reset(seed=seed)
+            seen[self.name].extend(env.state(i).positions for i in range(env.num_envs))
+            return out
+
+    random = play_episodes(Recording("random"), None, episodes=7, seed=11)
+    noisy = play_episodes(Recording("noisy"), lambda obs, mask: torch.randn(mask.shape), episodes=7, seed=11)
+    assert seen["random"] == seen["noisy"] == _starts(env, 11, 3)
+    assert len(set(map(tuple, seen["random"]))) > 1  # the rounds and environments differ
+    assert random != noisy  # the same episodes, played differently
+
+
+def test_play_episodes_returns_exactly_e_episodes_in_episode_order_and_is_deterministic():
+    env = make_batched("target_localization", num_envs=4, seed=1, **TL)
+    result = play_episodes(env, None, episodes=10, seed=3)  # 10 is not a multiple of 4: 3 rounds
+    assert len(result.lengths) == len(result.successes) == len(result.returns) == 10
+    for length, success, ret in zip(result.lengths, result.successes, result.returns):
+        assert 1 <= length <= TL["max_steps"]
+        assert ret == (SUCCESS_REWARD if success else 0.0)
+        assert success or length == TL["max_steps"]
+    assert play_episodes(env, None, episodes=10, seed=3) == result
+    # more episodes from the same seed start with the same ones (rounds are seeded by their index)
+    assert play_episodes(env, None, episodes=12, seed=3).lengths[:10] == result.lengths
+    assert play_episodes(env, None, episodes=10, seed=4) != result
+    # episodes 0..3 are the first episode of each environment after a reset from the seed itself
+    first = {}
+    play(env, None, steps=TL["max_steps"], seed=3,
+         on_step=lambda a, out: [first.setdefault(int(i), int(out.episode_length[i]))
+                                 for i in out.done.nonzero(as_tuple=True)[0]])
+    assert tuple(first[i] for i in range(4)) == result.lengths[:4]
+    summary = result.summary()
+    ci = result.ci95()
+    assert summary["episodes"] == 10 and ci["episode_length"][0] == pytest.approx(summary["episode_length"])
+    assert ci["success_rate"][0] == pytest.approx(summary["success_rate"]) and ci["episode_length"][1] > 0
 
 
 def test_episodes_mode_keeps_the_first_episodes_and_their_returns():
@@ -110,8 +215,11 @@ def test_steps_mode_plays_exactly_that_many_steps_and_keeps_every_episode():
 def test_policy_callable_bundle_and_net_policy_agree(repo_root):
     bundle = load_bundle(repo_root / "models" / "team" / "A3W2.safetensors")
     by_bundle = evaluate_policy(env_for_bundle(bundle, num_envs=8, seed=5), bundle, 24, greedy=True, seed=5)
-    by_net = play(env_for_bundle(bundle, num_envs=8, seed=5), net_policy(bundle.net), episodes=24, seed=5)
-    assert by_net.summary() == by_bundle
+    by_net = play_episodes(env_for_bundle(bundle, num_envs=8, seed=5), net_policy(bundle.net), episodes=24,
+                           seed=5)
+    ci = by_net.ci95()
+    assert {**by_net.summary(), "episode_length_ci95": ci["episode_length"][1],
+            "success_rate_ci95": ci["success_rate"][1]} == by_bundle
     assert by_bundle["success_rate"] > 0.9  # the shipped team finds the target
 
 
@@ -143,6 +251,17 @@ def test_the_two_samplers_are_repeatable_and_draw_different_streams():
     assert multinomial != gumbel
     # both are random valid moves: similar mean lengths over the same episodes' distribution
     assert abs(multinomial.summary()["episode_length"] - gumbel.summary()["episode_length"]) < 4
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"episodes": 0}, "episodes must be a positive integer"),
+    ({"episodes": 2.0}, "episodes must be a positive integer"),
+    ({"episodes": 4, "sampling": "softmax"}, "sampling must be one of"),
+])
+def test_play_episodes_refuses_bad_arguments(kwargs, words):
+    env = make_batched("target_localization", num_envs=1, seed=0, **TL)
+    with pytest.raises(ValueError, match=words):
+        play_episodes(env, None, **kwargs)
 
 
 @pytest.mark.parametrize("kwargs, words", [

@@ -29,7 +29,7 @@ from medc_training.qos import (
 )
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=2, horizon=8,
-            eval_envs=2, eval_steps=8, total_steps=16, method="medc")
+            eval_envs=2, eval_steps=8, eval_episodes=2, total_steps=16, method="medc")
 
 
 def test_distance_is_the_mean_with_one_rounding_down():

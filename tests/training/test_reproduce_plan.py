@@ -227,3 +227,24 @@ def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
     assert "not testable (MDRL-sparse did not pass the learnability gate" in blocked
     assert "NOT passed" in r.gate("flat-sparse") and "passed" in r.gate("learned-sparse")
     assert r.verdict_counts() == "2 claims: 1 held, 1 not testable"
+
+
+def test_a_reproduction_keeps_the_evaluator_its_runs_were_made_with(tmp_path):
+    """The committed reproduction was evaluated with the legacy window: rerunning its commands plans
+    window runs (eval_episodes 0, written out), so its report never mixes two evaluators; a fresh
+    folder plans fixed-episode runs; a folder holding both is refused."""
+    committed = Plan("cpu", 3, Path("docs/reproduction"), Path("models"), {"long_steps": 1_000_000})
+    jobs = committed.jobs("fig6") + committed.jobs("fig10") + committed.jobs("long-other")
+    assert committed.window_eval and all(j["config"]["eval_episodes"] == 0 for j in jobs)
+    fresh = _plan(tmp_path)
+    jobs = fresh.jobs("fig6") + fresh.jobs("fig10")
+    assert not fresh.window_eval and all(j["config"]["eval_episodes"] > 0 for j in jobs)
+    for name, episodes in (("old", None), ("new", 64)):
+        d = tmp_path / "out" / "runs" / name / "seed0"
+        d.mkdir(parents=True)
+        config = {"seed": 0} if episodes is None else {"seed": 0, "eval_episodes": episodes}
+        (d / "summary.json").write_text(json.dumps({"config": config}))
+        if name == "old":
+            assert _plan(tmp_path).window_eval
+    with pytest.raises(ValueError, match="mixes evaluators"):
+        _plan(tmp_path)

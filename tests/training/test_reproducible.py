@@ -6,8 +6,8 @@ from medc_training.experts import RandomExpert
 from medc_training.ppo import Trainer
 
 TINY = dict(env="target_localization", agents=2, walls=1, grid=8, max_steps=12, num_envs=4, horizon=32,
-            epochs=2, minibatches=2, eval_steps=16, eval_envs=4, total_steps=64, method="medc",
-            expert_rate=0.5)
+            epochs=2, minibatches=2, eval_steps=16, eval_envs=4, eval_episodes=4,
+            total_steps=64, method="medc", expert_rate=0.5)
 
 
 def _weights(seed):

@@ -6,15 +6,16 @@ import subprocess
 import sys
 import time
 
+import pytest
 import torch
-from medc_training.bundle import load_state
+from medc_training.bundle import load_state, read_manifest
 from medc_training.config import TrainConfig
 from medc_training.metrics import read_metrics
 from medc_training.ppo import Trainer
 from medc_training.runner import CHECKPOINT, run_training
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, seed=3)
+            epochs=1, minibatches=2, eval_every=32, eval_steps=16, eval_envs=4, eval_episodes=4, seed=3)
 
 
 def test_resume_continues_from_the_checkpointed_step(tmp_path):
@@ -56,6 +57,25 @@ def test_resume_rejects_a_different_run(tmp_path):
         raise AssertionError("resuming with another team size must fail")
 
 
+def test_resume_rejects_another_evaluator(tmp_path):
+    """One run's learning curve never mixes two evaluators; a checkpoint written before
+    eval_episodes existed counts as the legacy window."""
+    from medc_training.bundle import save_state
+
+    cfg = TrainConfig(total_steps=64, **TINY)
+    assert cfg.eval_episodes > 0
+    run_training(Trainer(cfg), cfg, tmp_path, tensorboard=False, max_updates=1)
+    window = TrainConfig(total_steps=64, **{**TINY, "eval_episodes": 0})
+    with pytest.raises(ValueError, match="eval_episodes"):
+        run_training(Trainer(window), window, tmp_path, resume=True, tensorboard=False)
+    state = load_state(tmp_path / CHECKPOINT)
+    state["config"] = {k: v for k, v in state["config"].items() if k != "eval_episodes"}
+    save_state(tmp_path / CHECKPOINT, state)
+    with pytest.raises(ValueError, match="eval_episodes=0"):
+        run_training(Trainer(cfg), cfg, tmp_path, resume=True, tensorboard=False)
+    assert run_training(Trainer(window), window, tmp_path, resume=True, tensorboard=False)["steps"] == 64
+
+
 def test_cli_run_killed_with_sigkill_resumes(tmp_path):
     out = tmp_path / "run"
     args = [sys.executable, "-m", "medc_training.cli.train", "--agents", "2", "--walls", "0", "--grid", "6",
@@ -85,3 +105,7 @@ def test_cli_run_killed_with_sigkill_resumes(tmp_path):
     steps = [int(r["step"]) for r in read_metrics(out / "metrics.csv")]
     assert steps == sorted(set(steps)) and steps[-1] == total
     assert (out / "policy.safetensors").exists() and (out / "learning_curve.png").exists()
+    # the bundle records the evaluator its metrics were measured with (medc-train's default)
+    evaluation = read_manifest(out / "policy.safetensors")["training"]["evaluation"]
+    assert evaluation == {"evaluator": "episodes", "episodes": TrainConfig().eval_episodes, "envs": 32,
+                          "greedy": True}

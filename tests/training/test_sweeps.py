@@ -21,10 +21,10 @@ from medc_training.experiments.engines import LocalPool, RayCluster, run_jobs  #
 from medc_training.experiments.jobs import SUMMARY, partial_dir, run_job  # noqa: E402
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
-            epochs=1, minibatches=2, eval_every=128, eval_steps=16, eval_envs=4)
+            epochs=1, minibatches=2, eval_every=128, eval_steps=16, eval_envs=4, eval_episodes=4)
 TINY_ARGS = ["--agents", "2", "--walls", "0", "--grid", "6", "--max-steps", "12", "--num-envs", "4",
              "--horizon", "32", "--epochs", "1", "--eval-every", "128", "--eval-steps", "16",
-             "--eval-envs", "4", "--quiet", "--no-tensorboard"]
+             "--eval-envs", "4", "--eval-episodes", "4", "--quiet", "--no-tensorboard"]
 
 
 @pytest.fixture(scope="module")

@@ -86,6 +86,11 @@ class EnvironmentConfig:
         return attrs
 
 
+#: The evaluator every run recorded before ``eval_episodes`` existed used (and the committed
+#: reproduction keeps using, see medc_training.experiments.plan): the window of eval_steps.
+LEGACY_EVAL = {"eval_episodes": 0}
+
+
 @dataclass
 class TrainConfig(EnvironmentConfig):
     """Everything one training run needs. Field docstrings are the documentation.
@@ -146,8 +151,18 @@ class TrainConfig(EnvironmentConfig):
     # --- evaluation ----------------------------------------------------------------------
     eval_every: int = 40_000
     """E: evaluate every E training steps (and once before training)."""
+    eval_episodes: int = 64
+    """Episodes per evaluation: a fixed set drawn from the evaluation seed, each played to its end
+    (success or max_steps) by medc_training.evaluate.play_episodes, split over eval_envs
+    environments (ceil(eval_episodes / eval_envs) rounds). Every evaluation of a run, and every
+    method with the same seed, plays the same episodes, and none is left out for being long.
+    0: the legacy *window* (the paper's protocol, which made the committed reproduction):
+    eval_steps test steps and the mean length of the episodes that finished inside them, which
+    leans short (an episode longer than eval_steps / eval_envs is never counted). A config
+    recorded before this field existed means 0 (see from_dict)."""
     eval_steps: int = 4_000
-    """T: test steps per evaluation (split over eval_envs)."""
+    """T: test steps per evaluation (split over eval_envs); used only by the legacy window
+    (eval_episodes = 0)."""
     eval_envs: int = 16
     """Environments for evaluation."""
     eval_greedy: bool = True
@@ -168,8 +183,9 @@ class TrainConfig(EnvironmentConfig):
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
         check_run_fields(self, ("num_envs", "horizon", "epochs", "minibatches", "eval_envs", "frl_every"))
-        if self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0:
-            raise ValueError("walls, total_steps, eval_steps and eval_every must be >= 0")
+        if (self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0
+                or self.eval_episodes < 0):
+            raise ValueError("walls, total_steps, eval_episodes, eval_steps and eval_every must be >= 0")
         if self.horizon < self.num_envs:
             raise ValueError(f"horizon ({self.horizon}) must be >= num_envs ({self.num_envs})")
         if not 0.0 <= self.expert_rate <= 1.0:
@@ -192,14 +208,27 @@ class TrainConfig(EnvironmentConfig):
         """JSON-able copy (for checkpoints and manifests)."""
         return dataclasses.asdict(self)
 
+    @property
+    def evaluation(self) -> dict:
+        """The evaluator of this config, as recorded in bundle manifests: the fixed episodes
+        (``{"evaluator": "episodes", "episodes", "envs", "greedy"}``) or the legacy window
+        (``{"evaluator": "window", "steps", "envs", "greedy"}``)."""
+        if self.eval_episodes:
+            return {"evaluator": "episodes", "episodes": self.eval_episodes, "envs": self.eval_envs,
+                    "greedy": self.eval_greedy}
+        return {"evaluator": "window", "steps": self.eval_steps, "envs": self.eval_envs,
+                "greedy": self.eval_greedy}
+
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
-        """Inverse of to_dict; unknown keys are an error, not silently dropped."""
+        """Inverse of to_dict; unknown keys are an error, not silently dropped. A dict without
+        ``eval_episodes`` was recorded before that field existed, with the window evaluator, so
+        it reads as ``eval_episodes = 0`` (LEGACY_EVAL), not as today's default."""
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown config fields {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**data)
+        return cls(**{**LEGACY_EVAL, **data})
 
 
 # The CPU scale: what changes from the paper so that the whole reproduction runs on a

@@ -85,7 +85,9 @@ class CloneConfig(EnvironmentConfig):
     max_samples: int = 200_000
     """Dataset cap: the newest samples are kept."""
     eval_episodes: int = 128
-    """Finished episodes per evaluation (greedy and sampled)."""
+    """Episodes per evaluation (greedy, sampled, and the random team's at the end): a fixed set
+    from the evaluation seed, each played to its end (medc_training.evaluate.play_episodes),
+    split over eval_envs environments."""
     eval_every: int = 4
     """Evaluate after every ``eval_every``-th iteration, and after the last one."""
     eval_envs: int = 32
@@ -282,6 +284,8 @@ def clone_oracle(
             "iterations": cfg.iterations,
             "grad_steps": cfg.grad_steps,
             "beta_decay": cfg.beta_decay,
+            "evaluation": {"evaluator": "episodes", "episodes": cfg.eval_episodes, "envs": cfg.eval_envs,
+                           "greedy": cfg.eval_greedy},
         },
         "metrics": {k: float(v) for k, v in metrics.items()},
     }

@@ -1,17 +1,29 @@
-"""The one play loop: a policy (or uniformly random valid moves) plays a batched environment.
+"""Evaluation: a policy (or uniformly random valid moves) plays a batched environment.
 
-Every evaluation in the project plays through :func:`play`: the training evaluation
-(:meth:`medc_training.ppo.Trainer.evaluate`), DAgger's evaluations, the reproduction's random
-baseline, the demo's expert reviews and random floor, and this module's command line, which
-checks shipped bundles against a random team, e.g.::
+Two play loops share one move chooser:
 
-    python -m medc_training.evaluate models/team/A3W2.safetensors --episodes 256
+- :func:`play_episodes` plays a *fixed* set of seeded episodes, each to its end (success or the
+  step limit), and returns them in episode order: episode ``i`` is the same for every policy
+  played from the same seed, and no episode is left out for being long. Every evaluation in the
+  project plays through it: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`,
+  unless a config asks for the legacy window), DAgger's evaluations, the reproduction's random
+  baseline, the demo's expert reviews and random floor, and this module's command line, which
+  checks shipped bundles against a random team, e.g.::
+
+      python -m medc_training.evaluate models/team/A3W2.safetensors --episodes 512
+
+- :func:`play` plays a number of batched steps, or until a number of episodes finished, and
+  keeps the episodes that finished, in the order they finished, optionally showing every step to
+  a callback (a trace). Kept for traces and for the legacy *window* evaluator
+  (``TrainConfig.eval_episodes = 0``) that made the committed reproduction: it counts only the
+  episodes that finish inside the window, so it leans short.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -20,6 +32,7 @@ import torch
 
 from .envs import StepOutput, make_batched
 from .nets import masked_logits
+from .stats import mean_ci
 
 #: A policy: action logits [M, A] for observations [M, C, H, W] and their move masks [M, A]
 #: (the loop masks the logits itself, so a policy may ignore the mask).
@@ -48,7 +61,8 @@ def summarize_episodes(lengths: Sequence[float], successes: Sequence[float], ret
 
 @dataclass(frozen=True)
 class PlayResult:
-    """The finished episodes of one :func:`play`, in the order they finished."""
+    """Played episodes: :func:`play_episodes`' in episode order, :func:`play`'s in the order they
+    finished."""
 
     lengths: tuple[int, ...]
     successes: tuple[bool, ...]
@@ -58,6 +72,12 @@ class PlayResult:
         """``episodes``, mean ``episode_length``, ``success_rate``, mean ``episode_return``."""
         return summarize_episodes(self.lengths, self.successes, self.returns, default_length)
 
+    def ci95(self) -> dict[str, tuple[float, float]]:
+        """(mean, half-width of the Student-t 95% CI over episodes) of ``episode_length`` and
+        ``success_rate`` (medc_training.stats.mean_ci: half-width inf for one episode, nan for none)."""
+        return {"episode_length": mean_ci([float(x) for x in self.lengths]),
+                "success_rate": mean_ci([float(x) for x in self.successes])}
+
 
 def net_policy(net: torch.nn.Module, device: torch.device | str | None = None) -> Policy:
     """The policy of an actor-critic network (its action logits), fed on ``device`` if given."""
@@ -65,6 +85,108 @@ def net_policy(net: torch.nn.Module, device: torch.device | str | None = None) -
         return net(obs if device is None else obs.to(device))[0]
 
     return logits
+
+
+def _check_positive(name: str, value) -> None:
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def _check_sampling(sampling: str) -> None:
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
+
+
+def _choose(env, policy: Policy | None, obs: torch.Tensor, mask: torch.Tensor, greedy: bool, sampling: str,
+            gen: torch.Generator) -> torch.Tensor:
+    """int64 [B, N]: every agent's move, on ``env.device`` (see :func:`play` for the rules)."""
+    B, N, A = env.num_envs, env.num_agents, env.num_actions
+    device = gen.device
+    flat_mask = mask.reshape(B * N, A)
+    if policy is None:
+        logits = torch.zeros(B * N, A, device=device)
+    else:
+        logits = policy(obs.reshape(B * N, *env.obs_shape), flat_mask).to(device)
+    logits = masked_logits(logits, flat_mask.to(device))
+    if greedy and policy is not None:
+        actions = logits.argmax(-1)
+    elif sampling == "gumbel":
+        uniform = torch.rand(logits.shape, generator=gen, device=device)
+        actions = (logits - torch.log(-torch.log(uniform.clamp_min(1e-20)))).argmax(-1)
+    else:
+        actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=gen).squeeze(-1)
+    return actions.view(B, N).to(env.device)
+
+
+def _generator(env, seed: int, sampling: str) -> torch.Generator:
+    """The sampling generator, restarted at ``seed`` (on the env's device for ``gumbel``)."""
+    device = env.device if sampling == "gumbel" else torch.device("cpu")
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+def round_seed(seed: int, round_index: int) -> int:
+    """The reset seed of round ``round_index`` of :func:`play_episodes` from ``seed``: ``seed``
+    itself for round 0 (the episodes :func:`play` starts with), then a seed drawn from
+    numpy's SeedSequence of (seed, round), in 0..2**63-1."""
+    if round_index == 0:
+        return seed
+    return int(np.random.SeedSequence([seed, round_index]).generate_state(1, np.uint64)[0] >> 1)
+
+
+@torch.no_grad()
+def play_episodes(env, policy: Policy | None = None, *, episodes: int, seed: int = 12345, greedy: bool = True,
+                  sampling: str = "multinomial") -> PlayResult:
+    """Play exactly ``episodes`` fixed, seeded episodes, each to its end; in episode order.
+
+    The ``B = env.num_envs`` environments play ``ceil(episodes / B)`` rounds. Round ``r`` resets
+    ``env`` with :func:`round_seed` (seed, r) and lets each environment play its *first* episode
+    to its end (success or ``env.max_steps``, so a round takes at most ``max_steps`` batched
+    steps); the episodes that auto-reset after it are not counted. Episode ``i`` is environment
+    ``i % B`` of round ``i // B``; its start comes from the reset seed alone, so it is the same
+    episode for every policy played with the same ``env`` configuration, ``B`` and ``seed`` (as
+    Stable-Baselines3's evaluate_policy divides its episodes over environments, but with every
+    episode counted however long it lasts). The last round stops as soon as the episodes it
+    needs have ended.
+
+    ``policy`` None plays uniformly random valid moves (always sampled); otherwise ``greedy``
+    takes the most probable valid move and ``greedy=False`` samples one (``sampling``: see
+    :data:`SAMPLINGS`; one generator restarted at ``seed`` serves every round).
+    """
+    _check_positive("episodes", episodes)
+    _check_sampling(sampling)
+    limit = getattr(env, "max_steps", None)
+    if not isinstance(limit, int) or limit < 1:
+        raise ValueError(f"play_episodes needs an env with a positive integer max_steps, got {limit!r}")
+    gen = _generator(env, seed, sampling)
+    B = env.num_envs
+    lengths: list[int] = []
+    successes: list[bool] = []
+    returns: list[float] = []
+    for r in range(math.ceil(episodes / B)):
+        wanted = min(B, episodes - r * B)  # the environments whose first episode is counted
+        obs, mask = env.reset(seed=round_seed(seed, r))
+        ret = torch.zeros(B, device=env.device)
+        ended = torch.zeros(B, dtype=torch.bool, device=env.device)
+        length = torch.zeros(B, dtype=torch.long, device=env.device)
+        success = torch.zeros(B, dtype=torch.bool, device=env.device)
+        for _ in range(limit):
+            out = env.step(_choose(env, policy, obs, mask, greedy, sampling, gen))
+            running = ~ended
+            ret += torch.where(running, out.reward.to(env.device).float(), 0.0)
+            now = (out.terminated | out.truncated).to(env.device) & running
+            length = torch.where(now, out.episode_length.to(env.device), length)
+            success = torch.where(now, out.success.to(env.device), success)
+            ended |= now
+            if bool(ended[:wanted].all()):
+                break
+            obs, mask = out.obs, out.mask
+        else:
+            raise RuntimeError(f"play_episodes: round {r} had episodes still running after max_steps "
+                               f"= {limit} batched steps; the environment does not end its episodes there")
+        lengths.extend(length[:wanted].tolist())
+        successes.extend(success[:wanted].tolist())
+        returns.extend(ret[:wanted].tolist())
+    return PlayResult(tuple(lengths), tuple(successes), tuple(returns))
 
 
 @torch.no_grad()
@@ -76,41 +198,26 @@ def play(env, policy: Policy | None = None, *, episodes: int | None = None, step
 
     Give exactly one of ``episodes`` (play until that many episodes finished, at most
     ``max_batched_steps`` batched steps, and keep the first ``episodes`` of them) or ``steps``
-    (play exactly that many batched steps and keep every episode that finished). ``policy`` None
-    plays uniformly random valid moves (always sampled); otherwise ``greedy`` takes the most
-    probable valid move and ``greedy=False`` samples one (``sampling``: see :data:`SAMPLINGS`).
-    ``on_step(actions [B,N], out)``, if given, sees every step (e.g. to record a trace).
+    (play exactly that many batched steps and keep every episode that finished). Either way the
+    episodes kept are those that finished first, which leans short: evaluations use
+    :func:`play_episodes`. ``policy`` None plays uniformly random valid moves (always sampled);
+    otherwise ``greedy`` takes the most probable valid move and ``greedy=False`` samples one
+    (``sampling``: see :data:`SAMPLINGS`). ``on_step(actions [B,N], out)``, if given, sees every
+    step (e.g. to record a trace).
     """
     if (episodes is None) == (steps is None):
         raise ValueError("play needs exactly one of episodes= (finished episodes) or steps= (batched steps)")
     for name, value in (("episodes", episodes), ("steps", steps), ("max_batched_steps", max_batched_steps)):
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    if sampling not in SAMPLINGS:
-        raise ValueError(f"sampling must be one of {SAMPLINGS}, got {sampling!r}")
-    device = env.device if sampling == "gumbel" else torch.device("cpu")
-    gen = torch.Generator(device=device).manual_seed(seed)
+        _check_positive(name, value)
+    _check_sampling(sampling)
+    gen = _generator(env, seed, sampling)
     obs, mask = env.reset(seed=seed)
-    B, N, A = env.num_envs, env.num_agents, env.num_actions
-    ret = torch.zeros(B, device=env.device)
+    ret = torch.zeros(env.num_envs, device=env.device)
     lengths: list[int] = []
     successes: list[bool] = []
     returns: list[float] = []
     for _ in range(steps if steps is not None else max_batched_steps):
-        flat_mask = mask.reshape(B * N, A)
-        if policy is None:
-            logits = torch.zeros(B * N, A, device=device)
-        else:
-            logits = policy(obs.reshape(B * N, *env.obs_shape), flat_mask).to(device)
-        logits = masked_logits(logits, flat_mask.to(device))
-        if greedy and policy is not None:
-            actions = logits.argmax(-1)
-        elif sampling == "gumbel":
-            uniform = torch.rand(logits.shape, generator=gen, device=device)
-            actions = (logits - torch.log(-torch.log(uniform.clamp_min(1e-20)))).argmax(-1)
-        else:
-            actions = torch.multinomial(torch.softmax(logits, -1), 1, generator=gen).squeeze(-1)
-        actions = actions.view(B, N).to(env.device)
+        actions = _choose(env, policy, obs, mask, greedy, sampling, gen)
         out = env.step(actions)
         if on_step is not None:
             on_step(actions, out)
@@ -130,17 +237,19 @@ def play(env, policy: Policy | None = None, *, episodes: int | None = None, step
 
 
 def evaluate_policy(env, policy=None, episodes: int = 256, greedy: bool = True, seed: int = 12345,
-                    max_batched_steps: int = 100_000) -> dict:
-    """:func:`play` until ``episodes`` episodes finished; its summary (mean length, success rate,
-    mean return).
+                    sampling: str = "multinomial") -> dict:
+    """:func:`play_episodes` of ``episodes`` fixed episodes; its summary (mean length, success rate,
+    mean return) with the 95% CI half-widths ``episode_length_ci95`` and ``success_rate_ci95``.
 
     ``policy`` is a :data:`Policy`, a PolicyBundle (anything with ``net`` and ``device``), or None
     for uniformly random valid moves. Greedy = most probable valid move; otherwise sampled.
     """
     if policy is not None and hasattr(policy, "net"):
         policy = net_policy(policy.net, policy.device)
-    return play(env, policy, episodes=episodes, greedy=greedy, seed=seed,
-                max_batched_steps=max_batched_steps).summary()
+    played = play_episodes(env, policy, episodes=episodes, greedy=greedy, seed=seed, sampling=sampling)
+    ci = played.ci95()
+    return {**played.summary(), "episode_length_ci95": ci["episode_length"][1],
+            "success_rate_ci95": ci["success_rate"][1]}
 
 
 def env_for_bundle(bundle, num_envs: int = 32, seed: int = 12345):
@@ -154,14 +263,18 @@ def env_for_bundle(bundle, num_envs: int = 32, seed: int = 12345):
 def main(argv: list[str] | None = None) -> int:
     from .bundle import load_bundle
 
-    p = argparse.ArgumentParser(description="Evaluate a policy bundle against a random team.")
+    p = argparse.ArgumentParser(description="Evaluate a policy bundle against a random team on the same "
+                                            "fixed episodes, each played to its end (play_episodes).")
     p.add_argument("bundle")
-    p.add_argument("--episodes", type=int, default=256)
+    p.add_argument("--episodes", type=int, default=256, help="episodes (default 256)")
+    p.add_argument("--envs", type=int, default=32,
+                   help="environments the episodes are split over (default 32)")
     p.add_argument("--seed", type=int, default=12345)
     args = p.parse_args(argv)
     bundle = load_bundle(args.bundle)
+
     def run(policy, greedy):
-        env = env_for_bundle(bundle, seed=args.seed)
+        env = env_for_bundle(bundle, num_envs=args.envs, seed=args.seed)
         return evaluate_policy(env, policy, args.episodes, greedy, args.seed)
 
     result = {"greedy": run(bundle, True), "sampled": run(bundle, False), "random": run(None, False)}

@@ -3,7 +3,8 @@
 Read top to bottom: :meth:`Trainer.collect` fills a rollout of ``horizon`` training steps
 (each agent acts on its own observation with the one shared actor-critic; the team reward
 is every agent's reward), :meth:`Trainer.update` runs ``epochs`` passes of clipped PPO over
-it, :meth:`Trainer.evaluate` plays ``eval_steps`` greedy steps (through the one play loop,
+it, :meth:`Trainer.evaluate` plays ``eval_episodes`` fixed episodes to their ends
+(:func:`medc_training.evaluate.play_episodes`; or the legacy window of ``eval_steps`` test steps,
 :func:`medc_training.evaluate.play`). The methods differ only in:
 
 - ``sparse``: nothing extra (MDRL-sparse).
@@ -27,7 +28,7 @@ import torch
 
 from .buffer import RolloutBuffer
 from .config import TrainConfig
-from .evaluate import net_policy, play, summarize_episodes
+from .evaluate import net_policy, play, play_episodes, summarize_episodes
 from .experts import Expert
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
@@ -268,8 +269,11 @@ class Trainer:
     # -------------------------------------------------------------- evaluation -----
     @torch.no_grad()
     def evaluate(self, seed: int | None = None) -> dict:
-        """Test play for ``eval_steps`` training steps (greedy, or sampled when
-        ``cfg.eval_greedy`` is False); mean length of finished episodes.
+        """Test play, greedy (or sampled when ``cfg.eval_greedy`` is False): the summary of
+        ``cfg.eval_episodes`` fixed episodes, each played to its end
+        (:func:`medc_training.evaluate.play_episodes`); with ``eval_episodes`` 0, the legacy
+        window: ``eval_steps`` training steps and the mean length of the episodes that finished
+        inside them (``max_steps`` when none did).
 
         The evaluation environments restart from the same seed every time, so successive
         evaluations (and different methods with the same seed) face the same episodes.
@@ -278,7 +282,11 @@ class Trainer:
         seed = self.eval_seed if seed is None else seed
         # Sampled evaluation draws from its own generator (Gumbel-max on the device), restarted from
         # the evaluation seed, so it neither consumes nor depends on the training random streams.
-        played = play(env, net_policy(self.net), steps=max(1, cfg.eval_steps // env.num_envs),
+        policy = net_policy(self.net)
+        if cfg.eval_episodes:
+            return play_episodes(env, policy, episodes=cfg.eval_episodes, greedy=cfg.eval_greedy, seed=seed,
+                                 sampling="gumbel").summary()
+        played = play(env, policy, steps=max(1, cfg.eval_steps // env.num_envs),
                       greedy=cfg.eval_greedy, seed=seed, sampling="gumbel")
         return played.summary(cfg.max_steps)
 

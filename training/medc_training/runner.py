@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from .bundle import load_state, save_bundle, save_state
-from .config import TrainConfig
+from .config import LEGACY_EVAL, TrainConfig
 from .learner import check_learner
 from .metrics import MetricsLogger
 
@@ -53,8 +53,11 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         if not ckpt.exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
         state = load_state(ckpt, device=cfg.device)
-        saved_cfg = state["config"]
-        for key in ("env", "method", "agents", "walls", "grid", "seed", "arch", "num_envs", "horizon"):
+        # A checkpoint from before eval_episodes existed was evaluated with the legacy window.
+        saved_cfg = {**LEGACY_EVAL, **state["config"]}
+        # The evaluator too: one run's learning curve never mixes two evaluators.
+        for key in ("env", "method", "agents", "walls", "grid", "seed", "arch", "num_envs", "horizon",
+                    "eval_episodes", "eval_steps", "eval_envs", "eval_greedy"):
             if saved_cfg.get(key) != getattr(cfg, key):
                 raise ValueError(f"--resume: checkpoint was made with {key}={saved_cfg.get(key)!r}, "
                                  f"this run has {key}={getattr(cfg, key)!r}")
@@ -161,6 +164,7 @@ def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:
         "environment": env_attrs,
         **observation_section(trainer.env),
         "training": {"method": cfg.method, "steps": int(trainer.global_step), "seed": cfg.seed,
-                     "arch": cfg.arch, "horizon": cfg.horizon, "epochs": cfg.epochs},
+                     "arch": cfg.arch, "horizon": cfg.horizon, "epochs": cfg.epochs,
+                     "evaluation": cfg.evaluation},
         "metrics": {k: float(v) for k, v in metrics.items()},
     }

@@ -66,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--max-samples", type=int, default=d.max_samples, help="dataset cap (newest kept)")
-    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes)
+    p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
+                   help="fixed episodes per evaluation, each played to its end")
     p.add_argument("--eval-every", type=int, default=d.eval_every, help="evaluate every N iterations")
     p.add_argument(
         "--eval-sampled",

@@ -103,8 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=int, help="PPO epochs per update")
     p.add_argument("--lr", type=float, help="Adam learning rate (default: the scale's)")
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
-    p.add_argument("--eval-steps", type=int, help="test steps per evaluation")
-    p.add_argument("--eval-envs", type=int, help="environments the test steps are split over")
+    p.add_argument("--eval-episodes", type=int,
+                   help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
+                        "window of --eval-steps test steps, which counts only the episodes that finish in it")
+    p.add_argument("--eval-steps", type=int,
+                   help="test steps per evaluation (the legacy window, --eval-episodes 0)")
+    p.add_argument("--eval-envs", type=int,
+                   help="environments the evaluation episodes (or test steps) are split over")
     p.add_argument("--eval-sampled", action="store_true",
                    help="test on actions sampled from the policy instead of its argmax")
     p.add_argument("--expert-rate", type=float, help="R_E (default 0.1)")
@@ -129,7 +134,7 @@ def config_from_args(args: argparse.Namespace):
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
     for name in ("grid", "max_steps", "observation", "arch", "num_envs", "horizon", "epochs", "lr",
-                 "eval_every",
+                 "eval_every", "eval_episodes",
                  "eval_steps", "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:

@@ -42,11 +42,12 @@ FAULTY_USERS = {"A2W1": "random", "A2W2": "biased", "A3W1": "malicious"}  # Fig.
 # no step limit; 400 lets a uniformly random team finish some episodes (measured on 64
 # episodes: maze complexity 1.0 42%, fleet with 8 customers 9%; at 100 steps neither ever
 # finishes, and every curve sits flat at the limit). A memoryless greedy policy repeats one
-# move forever in these coverage tasks, so they are evaluated on sampled actions, 16
-# environments x 400 steps per evaluation.
+# move forever in these coverage tasks, so they are evaluated on sampled actions: 32 fixed
+# episodes over 16 environments (two rounds of at most 400 steps), or with the legacy window
+# (eval_episodes 0, the committed reproduction) 16 environments x 400 steps per evaluation.
 OTHER_GRID = 10
 OTHER_MAX_STEPS = 400
-OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MAX_STEPS}
+OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MAX_STEPS, "eval_episodes": 32}
 
 # Fleet coordination / maze cleaning experts: (name, agents, env options); the user of
 # interest is 3 agents (fleet: 8 customers; maze: complexity 1.0). "short" prefixes run names.

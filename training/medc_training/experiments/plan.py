@@ -1,8 +1,16 @@
 """The job plan: the runs of a phase's figure (see :mod:`.figures`) for one scale and output folder,
-and the DAgger jobs that train the experts. Planning only reads; :mod:`.jobs` runs the jobs."""
+and the DAgger jobs that train the experts. Planning only reads; :mod:`.jobs` runs the jobs.
+
+The evaluator of a plan's runs follows its output folder, so that one report never mixes two:
+a folder whose finished runs were evaluated with the legacy window (``eval_episodes`` 0, or
+recorded before the field existed, as the committed docs/reproduction) gets window runs, written
+with ``eval_episodes: 0`` in their configs; any other folder gets the fixed-episode evaluator
+(:func:`medc_training.evaluate.play_episodes`).
+"""
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import asdict
 from pathlib import Path
@@ -11,12 +19,30 @@ from .catalogue import BUDGETS, OTHER_APPS, OTHER_EVAL, OTHER_GRID, OTHER_MAX_ST
 from .figures import FIGURES, TAGGED, Figure, Run
 
 
+def window_evaluated(runs: Path) -> bool:
+    """Whether the finished runs under ``runs`` (``<name>/seed<k>/summary.json``) were evaluated
+    with the legacy window (False when there are none). Raises ValueError when some were and
+    some were not: such a folder's report would compare numbers of two evaluators."""
+    from ..config import TrainConfig
+
+    kinds: dict[bool, str] = {}
+    for summary in sorted(runs.glob("*/seed*/summary.json")):
+        config = json.loads(summary.read_text()).get("config", {})
+        kinds.setdefault(TrainConfig.from_dict(config).eval_episodes == 0, str(summary.parent))
+    if len(kinds) > 1:
+        raise ValueError(f"{runs} mixes evaluators: {kinds[True]} was evaluated with the legacy window "
+                         f"(eval_episodes 0), {kinds[False]} with fixed episodes; keep them in separate "
+                         "--out folders")
+    return kinds.get(True, False)
+
+
 class Plan:
-    """Builds the job list of each phase for one scale and output folder."""
+    """Builds the job list of each phase for one scale and output folder (see the module's note
+    on which evaluator its runs get)."""
 
     def __init__(self, scale: str, seeds: int, out: Path, models: Path, budget: dict | None = None,
                  other_seeds: int | None = None, device: str = "cpu", apps=None) -> None:
-        from ..config import scaled_config
+        from ..config import LEGACY_EVAL, scaled_config
 
         self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
         #: Fleet coordination / maze cleaning applications whose experts and runs are planned.
@@ -28,6 +54,10 @@ class Plan:
         self.budget = dict(BUDGETS[scale])
         self.budget.update({k: v for k, v in (budget or {}).items() if v})
         self.base = scaled_config(scale, device=device).to_dict()
+        #: The runs keep the legacy window evaluator of the runs already in ``out``.
+        self.window_eval = window_evaluated(out / "runs")
+        if self.window_eval:
+            self.base.update(LEGACY_EVAL)
 
     def cfg(self, **overrides) -> dict:
         return {**self.base, **overrides}
@@ -75,11 +105,14 @@ class Plan:
     def other_eval(self) -> dict:
         """Fleet/maze evaluation settings (sampled actions; see OTHER_EVAL). At the paper scale
         they are evaluated at the paper's interval; at the CPU scale, where one evaluation
-        (6,400 steps) would outweigh 4,096 training steps, about six times per run."""
+        (up to 12,800 steps; 6,400 with the window) would outweigh 4,096 training steps, about six
+        times per run."""
+        from ..config import LEGACY_EVAL
+
         every = self.base["eval_every"]
         if self.scale == "cpu":
             every = max(every, self.budget["fleet_maze_steps"] // 6)
-        return {**OTHER_EVAL, "eval_every": every}
+        return {**OTHER_EVAL, "eval_every": every, **(LEGACY_EVAL if self.window_eval else {})}
 
     # experts and the shipped team are DAgger clones of the scripted oracle (medc_training.dagger)
     def expert_jobs(self, retrain: bool) -> list[dict]:

@@ -35,27 +35,38 @@ def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
 
 #: Seeds the learnability gate needs before it can pass.
 GATE_MIN_SEEDS = 3
-#: Finished episodes of random play measured per seed for the gate.
+#: Random play's episodes per seed for the gate under the legacy window evaluator (the first to
+#: finish); under fixed episodes random play plays the run's own evaluation episodes.
 GATE_RANDOM_EPISODES = 256
 
 
 def random_play_length(out: Path, cfg: dict) -> float:
     """Mean episode length of uniformly random valid moves on a run's evaluation episodes (its
-    evaluation seed and environment), cached in OUT/random_play.json."""
+    evaluation seed and environment), cached in OUT/random_play.json.
+
+    With fixed-episode evaluation these are exactly the run's ``eval_episodes`` episodes, each
+    played to its end (:func:`medc_training.evaluate.play_episodes`); a run evaluated with the
+    legacy window (``eval_episodes`` 0) gets the legacy baseline it was gated with: the first
+    GATE_RANDOM_EPISODES episodes to finish (:func:`medc_training.evaluate.play`)."""
     from ..config import TrainConfig
-    from ..evaluate import evaluate_policy
+    from ..evaluate import play, play_episodes
     from ..ppo import EVAL_SEED_OFFSET, make_env_for
 
     c = TrainConfig.from_dict(cfg)
     seed = c.seed + EVAL_SEED_OFFSET
     key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
            f"{json.dumps(c.env_options, sort_keys=True)}|seed={seed}")
+    if c.eval_episodes:
+        key += f"|episodes={c.eval_episodes}|envs={c.eval_envs}"
     cache_path = out / "random_play.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     if key not in cache:
         env = make_env_for(c, c.eval_envs, seed, False)
-        played = evaluate_policy(env, None, GATE_RANDOM_EPISODES, greedy=False, seed=seed)
-        cache[key] = played["episode_length"]
+        if c.eval_episodes:
+            played = play_episodes(env, None, episodes=c.eval_episodes, greedy=False, seed=seed)
+        else:
+            played = play(env, None, episodes=GATE_RANDOM_EPISODES, greedy=False, seed=seed)
+        cache[key] = played.summary()["episode_length"]
         cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
     return float(cache[key])
 
@@ -270,6 +281,33 @@ def panel_section(r: Report, panel: Panel) -> str | None:
     return text + (f"\n\n{panel.note}" if panel.note else "")
 
 
+#: How a report's curves were measured, by evaluator (:func:`metric_text`).
+WINDOW_METRIC = """\
+**Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
+mean length of the finished test episodes (max {max_steps} when the target is never found)
+is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {grid}×{grid}
+grid with a {limit}-step limit and are tested on actions sampled from the policy
+({envs} environments × {limit} steps per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task."""
+EPISODES_METRIC = """\
+**Metric.** Every `eval_every` training steps, {episodes} fixed greedy test episodes (the same for
+every evaluation, and for every method's run of a seed), each played to its end; their mean length
+(an episode that never finds the target counts {max_steps}) is plotted. Fleet coordination and maze
+cleaning (Figs. 10–11) run on the paper's {grid}×{grid} grid with a {limit}-step limit and are tested on
+actions sampled from the policy ({other} fixed episodes per evaluation): a memoryless greedy policy
+repeats one move forever in a coverage task."""
+
+
+def metric_text(plan: Plan) -> str:
+    """The report's paragraph on how its curves were measured: the legacy window (a plan whose
+    folder holds window-evaluated runs) or fixed episodes."""
+    values = {"max_steps": plan.base["max_steps"], "grid": OTHER_GRID, "limit": OTHER_MAX_STEPS}
+    if plan.window_eval:
+        return WINDOW_METRIC.format(envs=OTHER_EVAL["eval_envs"], **values)
+    return EPISODES_METRIC.format(episodes=plan.base["eval_episodes"], other=OTHER_EVAL["eval_episodes"],
+                                  **values)
+
+
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
     from ..config import SCALES
 
@@ -298,12 +336,7 @@ Seeds: {seeds} per configuration (0..{seeds - 1}); curves are means over seeds w
 (Student t). Wall time of the phases run by this invocation:
 {timing or 'none (report rebuilt from existing runs)'}.
 
-**Metric.** As the paper: every `eval_every` training steps, `eval_steps` greedy test steps; the
-mean length of the finished test episodes (max {plan.base['max_steps']} when the target is never found)
-is plotted. Fleet coordination and maze cleaning (Figs. 10–11) run on the paper's {OTHER_GRID}×{OTHER_GRID}
-grid with a {OTHER_MAX_STEPS}-step limit and are tested on actions sampled from the policy
-({OTHER_EVAL['eval_envs']} environments × {OTHER_MAX_STEPS} steps per evaluation): a memoryless greedy policy
-repeats one move forever in a coverage task.
+{metric_text(plan)}
 Each claim compares *learning scores*: the mean evaluation episode length over the whole run
 (the area under the learning curve divided by its length; lower = faster and better learning),
 per seed, as a difference of means with a 95% CI (Welch standard error, Student t). "held" /

@@ -78,8 +78,9 @@ def _features(manifest: dict) -> dict[str, int]:
 
 
 def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int) -> dict:
-    """Greedy play of ``bundle`` for every agent of AyWz; mean episode length and success rate
-    (the summary of medc_training.evaluate.evaluate_policy)."""
+    """Greedy play of ``bundle`` for every agent of AyWz on ``episodes`` fixed episodes, each played
+    to its end; mean episode length and success rate (the summary of
+    medc_training.evaluate.evaluate_policy)."""
     from medc_training.envs import make_batched
     from medc_training.evaluate import evaluate_policy
 
@@ -102,7 +103,8 @@ def learning_score_of(metrics_csv: Path) -> float:
 def random_policy_length(
     agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int
 ) -> float:
-    """Mean episode length of uniformly random valid moves (the floor a trained team must beat)."""
+    """Mean episode length of uniformly random valid moves on ``episodes`` fixed episodes, each
+    played to its end (the floor a trained team must beat)."""
     from medc_training.envs import make_batched
     from medc_training.evaluate import evaluate_policy
 
