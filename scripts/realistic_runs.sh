@@ -12,7 +12,8 @@ for grid in ${GRIDS:-20 30}; do
       dir=$OUT/g${grid}w${walls}/seed${seed}
       [[ -f $dir/summary.json ]] && continue
       OMP_NUM_THREADS=1 medc-train --scale cpu --grid "$grid" --max-steps 100 --walls "$walls" \
-        --sensing realistic --steps "$STEPS" --seed "$seed" --threads 1 --out "$dir" >/dev/null
+        --sensing realistic --steps "$STEPS" --seed "$seed" --threads 1 --eval-every 8192 \
+        --eval-envs 64 --out "$dir" >/dev/null 2>&1
       echo "done $dir"
     done
   done
