@@ -19,6 +19,7 @@ from medc_sim import messages
 from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
+from medc_training.envs.grid import ACTIONS
 
 IDS = ["agent_0", "agent_1", "agent_2"]
 GEO10 = GridGeometry(10, 10, 1.0)
@@ -38,15 +39,35 @@ def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
 def test_agent_observation_from_messages_equals_training_observation(noise, observation):
     """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step,
     for every observation variant."""
-    core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5, noise=noise))
+    steps = _play_observation_parity(noise, observation, walls=1)
+    assert steps > 30
+
+
+@pytest.mark.parametrize("observation", ["maps", "maps+estimate", "ego4+estimate", "ego9+estimate"])
+def test_agent_observation_equals_training_observation_under_realistic_sensing(observation):
+    """The same, under the realistic sensing preset: Poisson counts of an unknown strength and
+    background, walls that block the line of sight (two wall segments), success within 1.1 cells;
+    the simulator ends the episodes where the core does, and some end beside the source."""
+    steps, beside = _play_observation_parity(None, observation, walls=2, sensing="realistic")
+    assert steps > 30 and beside > 0
+
+
+def _play_observation_parity(noise, observation, walls, sensing=None):
+    """Play 6 episodes with random valid moves in a SimCore and in the env, feeding the sim's messages
+    to one TeamObserver per agent; check every observation and mask, and every episode's end.
+    Returns the steps played (and, with ``sensing``, how many episodes ended with no agent on the
+    source cell)."""
+    extra = {} if sensing is None else {"sensing": sensing}
+    core = SimCore(SimConfig(agents=3, walls=walls, grid=10, max_steps=15, seed=5, noise=bool(noise),
+                             **extra))
     ref = make_batched(
-        "target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15, noise=noise,
-        observation=observation,
+        "target_localization", num_envs=1, seed=5, agents=3, walls=walls, grid=10, max_steps=15, noise=noise,
+        observation=observation, **extra,
     )
     ref_obs, ref_mask = ref.reset()
-    observers = [TeamObserver(a, 3, 10, observation=observation) for a in IDS]
+    observers = [TeamObserver(a, 3, 10, observation=observation, **extra) for a in IDS]
     gen = torch.Generator().manual_seed(0)
-    sec, episode, map_stamp, steps = 0, -1, None, 0
+    sec, episode, map_stamp, steps, beside = 0, -1, None, 0, 0
     while len(core.results) < 6:
         sec += 1
         if core.episode != episode:
@@ -60,11 +81,20 @@ def test_agent_observation_from_messages_equals_training_observation(noise, obse
             obs, mask, _ = o.observe()
             assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
             actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
-        core.advance(actions)
+        target = core.target()
+        # Every move is valid (masked), so this is where the agents stand after it.
+        moved = [(r + ACTIONS[a][0], c + ACTIONS[a][1]) for (r, c), a in zip(core.positions(), actions)]
+        result = core.advance(actions)
         out = ref.step(torch.tensor([actions]))
         ref_obs, ref_mask = out.obs, out.mask
+        assert (result.finished is not None) == bool(out.done[0])
+        if result.finished is not None:
+            assert result.finished.success == bool(out.success[0])
+            beside += result.finished.success and target not in moved
         steps += 1
-    assert steps > 30
+    if sensing is None:
+        return steps
+    return steps, beside
 
 
 def test_missing_move_means_stay():
