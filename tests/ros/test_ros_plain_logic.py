@@ -13,7 +13,7 @@ import torch
 from builtin_interfaces.msg import Time
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
-from medc_bringup.launcher import load_config, resolve_policies, ros_args
+from medc_bringup.launcher import agent_parameters, load_config, resolve_policies, ros_args, sim_parameters
 from medc_common.contract import GridGeometry, agent_index, xy_to_cell
 from medc_sim import messages
 from medc_sim.moves import MoveBook, MoveRejected
@@ -209,6 +209,79 @@ def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_pat
                        match="takes the observation 'ego4\\+estimate', but this environment produces 'maps'"):
         fixed.swap(str(ego))
     assert fixed.current.source == str(bundles["a"])
+
+
+def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_path):
+    """A bundle records the sensing preset it was trained under (environment.sensing; none means
+    paper-simple): the policy slot and the launcher refuse it for a team that senses with the other
+    preset, naming both, and take it under its own."""
+    from medc_training.bundle import BundleError, check_sensing, manifest_sensing, read_manifest
+
+    realistic, simple = bundles["realistic"], bundles["a"]
+    assert manifest_sensing(read_manifest(realistic)) == "realistic"
+    assert manifest_sensing(read_manifest(simple)) == "paper-simple"  # a manifest without it
+    both = "trained under the sensing model 'realistic', but this team senses with 'paper-simple'"
+    slot = PolicySlot((5, 10, 10), 8)  # the default team: paper-simple
+    slot.swap(str(simple))
+    with pytest.raises(PolicyRejected, match=both):
+        slot.swap(str(realistic))
+    assert slot.current.source == str(simple)  # the old one keeps running
+    team = PolicySlot((5, 10, 10), 8, sensing="realistic")
+    team.swap(str(realistic))
+    with pytest.raises(PolicyRejected, match="'paper-simple', but this team senses with 'realistic'"):
+        team.swap(str(simple))
+    assert team.current.source == str(realistic)
+    follow = PolicySlot((5, 10, 10), 8, grid=10, sensing="realistic")  # the bundle's observation
+    follow.swap(str(realistic))
+    # The launcher: a preset given in the config must be every bundle's; null takes the bundle's.
+    with pytest.raises(ValueError, match=both):
+        resolve_policies(load_config(None, policy=str(realistic), sensing="paper-simple"))
+    with pytest.raises(ValueError, match="'paper-simple', but this team senses with 'realistic'"):
+        resolve_policies(load_config(None, policy=str(simple), sensing="realistic"))
+    cfg = load_config(None, policy=str(realistic))
+    assert resolve_policies(cfg) == [str(realistic)] * 3 and cfg.sensing == "realistic"
+    cfg = load_config(None, policy=str(simple))
+    assert resolve_policies(cfg) == [str(simple)] * 3 and cfg.sensing == "paper-simple"
+    with pytest.raises(ValueError, match="'realistic', but this team senses with 'paper-simple'"):
+        resolve_policies(load_config(None, policy=str(simple), policies={"agent_1": str(realistic)}))
+    with pytest.raises(ValueError, match=r"sensing .* must be one of"):
+        load_config(None, sensing="noisy")
+    # Both nodes are given the launcher's preset.
+    cfg = load_config(None, policy=str(realistic))
+    resolve_policies(cfg)
+    assert sim_parameters(cfg)["sensing"] == "realistic"
+    assert agent_parameters(cfg, 0, str(realistic))["sensing"] == "realistic"
+    with pytest.raises(BundleError, match=r"environment\.sensing is 'noisy'"):
+        check_sensing({"environment": {"sensing": "noisy"}}, "paper-simple")
+
+
+def test_realistic_observer_takes_only_maps_of_wall_segments():
+    """Under the realistic preset a map's walls must be segments the exact line of sight takes as one
+    rectangle each, at most as many as the environment places on the grid; the paper-simple rule
+    samples the line and takes any map."""
+    from medc_agents.team_state import check_wall_segments
+
+    stamp = Time(sec=1)
+    straight = torch.zeros(10, 10, dtype=torch.bool)
+    straight[2, 1:5] = True
+    straight[5:9, 7] = True
+    ell = straight.clone()
+    ell[3:6, 1] = True  # an L: the first segment turns down
+    crowd = torch.zeros(10, 10, dtype=torch.bool)
+    crowd[0:9:2, 0] = crowd[0:9:2, 9] = True  # 10 single-cell segments
+    realistic = TeamObserver("agent_0", 3, 10, sensing="realistic")
+    assert realistic.max_walls == 2
+    realistic.add_map(_map(straight, stamp))
+    with pytest.raises(ValueError, match="straight segments one cell thick"):
+        realistic.add_map(_map(ell, stamp))
+    with pytest.raises(ValueError, match="10 wall segments; this agent's grid takes at most 2"):
+        realistic.add_map(_map(crowd, stamp))
+    with pytest.raises(ValueError, match="unknown sensing preset"):
+        TeamObserver("agent_0", 3, 10, sensing="noisy")
+    simple = TeamObserver("agent_0", 3, 10)
+    for walls in (straight, ell, crowd):
+        simple.add_map(_map(walls, stamp))
+    check_wall_segments(straight, 2)
 
 
 def test_contract_conversions():
