@@ -226,7 +226,8 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
         "max_steps": cfg.max_steps,
         "seed": cfg.seed,
         "noise": cfg.noise,
-        "sensing": cfg.sensing,
+        # None (resolve_policies not called): the node's default.
+        **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "mode": cfg.mode,
         "rate_hz": cfg.rate_hz,
         "resolution": cfg.resolution,
@@ -242,7 +243,7 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "agents": cfg.agents,
         "grid": cfg.grid,
         "resolution": cfg.resolution,
-        "sensing": cfg.sensing,
+        **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "policy": policy,
     }
 
