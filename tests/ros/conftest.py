@@ -16,11 +16,14 @@ GRID = 10
 
 
 def make_bundle(
-    path: Path, seed: int, grid: int = GRID, favour: int | None = None, gain: float = 300.0
+    path: Path, seed: int, grid: int = GRID, favour: int | None = None, gain: float = 300.0,
+    sensing: str | None = None,
 ) -> Path:
     """Save a lenet5 bundle with random weights whose greedy choice depends strongly on the input.
 
     ``favour``: the policy head ignores the input and always prefers that action.
+    ``sensing``: the sensing preset its manifest records (environment.sensing; None: none, which
+    means paper-simple).
     """
     import torch
     from medc_training.bundle import save_bundle
@@ -36,18 +39,21 @@ def make_bundle(
             net.policy.weight.zero_()
             net.policy.bias.zero_()
             net.policy.bias[favour] = 10.0
-    return save_bundle(path, net, {"application": "target_localization", "environment": {"grid": grid}})
+    env = {"grid": grid} if sensing is None else {"grid": grid, "sensing": sensing}
+    return save_bundle(path, net, {"application": "target_localization", "environment": env})
 
 
 @pytest.fixture(scope="session")
 def bundles(tmp_path_factory) -> dict[str, Path]:
-    """Test bundles for a 10x10 grid: 'a', 'b' (different random nets), 'north' (always N), 'grid30'."""
+    """Test bundles for a 10x10 grid: 'a', 'b' (different random nets), 'north' (always N), 'grid30',
+    'realistic' (trained, says its manifest, under the realistic sensing preset)."""
     d = tmp_path_factory.mktemp("bundles")
     return {
         "a": make_bundle(d / "a.safetensors", 1),
         "b": make_bundle(d / "b.safetensors", 2),
         "north": make_bundle(d / "north.safetensors", 3, favour=0),
         "grid30": make_bundle(d / "grid30.safetensors", 4, grid=30),
+        "realistic": make_bundle(d / "realistic.safetensors", 5, sensing="realistic"),
     }
 
 

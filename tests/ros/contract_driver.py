@@ -47,6 +47,41 @@ def rate(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray
         + f32(BACKGROUND)
 
 
+def realistic_factor(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The realistic preset's geometric factor (docs/ros.md "Sensor model": the rate is
+    S * factor + B) at sensor cells [K,2] (i, j) for one source: 1 / (1 + d^2), or 0 when the
+    segment between the two cell centres runs through the interior of a wall cell (the unit square
+    around its centre) for a positive length. Float64, by clipping the segment to each wall cell
+    (Liang-Barsky); returns (factor [K], grazing [K]): grazing = the segment touches a wall cell
+    in a single point (a corner) without running through any, where the model leaves it open.
+
+    walls_ij: bool [W,H] indexed [i, j]."""
+    src = np.asarray(source_ij, dtype=np.float64)
+    sen = np.asarray(sensor_ij, dtype=np.float64)
+    delta = src - sen  # [K,2]: the segment sen + t * delta, t in [0, 1]
+    enter = np.zeros(len(sen))
+    blocked = np.zeros(len(sen), dtype=bool)
+    touched = np.zeros(len(sen), dtype=bool)
+    for wall in np.argwhere(walls_ij):
+        enter[:] = 0.0
+        leave = np.ones(len(sen))
+        for axis in (0, 1):
+            lo, hi = wall[axis] - 0.5 - sen[:, axis], wall[axis] + 0.5 - sen[:, axis]
+            d = delta[:, axis]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a, b = lo / d, hi / d
+            moving = d != 0
+            # Not moving along this axis: inside the slab for every t, or for none.
+            inside = (lo < 0) & (hi > 0)
+            enter = np.where(moving, np.maximum(enter, np.minimum(a, b)), np.where(inside, enter, np.inf))
+            leave = np.where(moving, np.minimum(leave, np.maximum(a, b)), leave)
+        blocked |= enter < leave
+        touched |= enter == leave  # exact: the divisions are correctly rounded
+    near = 1.0 / (1.0 + (delta * delta).sum(1))
+    return np.where(blocked, 0.0, near), touched & ~blocked
+
+
 def make_world(seed: int, size: int, agents: int):
     """Walls (two straight segments), a source and the agents' start cells, all in (i, j)."""
     rng = np.random.default_rng(seed)

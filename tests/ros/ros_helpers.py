@@ -5,21 +5,24 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int, observation: str = "maps"):
-    """The noise-free target-localization core (B = 1) that the simulator node runs, producing the
-    observation a policy takes."""
+def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int, observation: str = "maps",
+                 sensing: str | None = None):
+    """The target-localization core (B = 1) that the simulator node runs, producing the observation a
+    policy takes: noise-free, or under ``sensing`` (a preset name) with that preset's noise."""
     from medc_training.envs import make_batched
 
+    extra = {"noise": False} if sensing is None else {"sensing": sensing, "noise": None}
     return make_batched("target_localization", num_envs=1, device="cpu", seed=seed, agents=agents,
-                        walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False, noise=False,
-                        observation=observation)
+                        walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False,
+                        observation=observation, **extra)
 
 
 def reference_episodes(
-    bundle: Path, episodes: int, *, seed: int, agents: int, walls: int, grid: int, max_steps: int
+    bundle: Path, episodes: int, *, seed: int, agents: int, walls: int, grid: int, max_steps: int,
+    sensing: str | None = None,
 ):
     """Play ``episodes`` with the training environment and ``bundle`` greedy, through the play
-    loop that training's evaluations use.
+    loop that training's evaluations use (under the ``sensing`` preset, when given).
 
     Returns (lengths, successes, trace) with trace = [(episode, step, actions)] like SimCore.trace.
     """
@@ -28,7 +31,7 @@ def reference_episodes(
 
     policy = load_bundle(bundle)
     env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
-                       observation=policy.observation)
+                       observation=policy.observation, sensing=sensing)
     trace: list[tuple[int, int, list[int]]] = []
     clock = {"episode": 0, "step": 0}
 

@@ -28,6 +28,25 @@ def test_in_process_graph_replays_training_step_for_step(graph, bundles, shared_
 
 
 @pytest.mark.ros
+def test_in_process_graph_replays_training_under_realistic_sensing(graph, bundles):
+    """The realistic preset end to end: the launcher takes it from the bundle's manifest and gives it
+    to the simulator (Poisson counts of an unknown strength and background, walls that block the
+    line of sight, success within 1.1 cells) and to every agent (its memory and source posterior):
+    the graph plays the training environment's episodes, move for move."""
+    scenario = {**SCENARIO, "walls": 2}
+    lengths, successes, trace = reference_episodes(bundles["realistic"], 10, sensing="realistic", **scenario)
+    executor, sim, agents = graph(bundles["realistic"], 10, **scenario)
+    assert sim.core.sensing.name == "realistic" and sim.core.noise
+    assert all(a.observer.sensing.name == a.slot.sensing == "realistic" for a in agents)
+    assert spin_until(executor, lambda: sim.finished, 120), f"only {len(sim.core.results)} episodes"
+    assert [r.length for r in sim.core.results] == lengths
+    assert [r.success for r in sim.core.results] == successes
+    assert sim.core.trace == trace
+    assert sim.dropped == 0 and all(a.dropped == 0 for a in agents)
+    assert len(set(lengths)) > 1
+
+
+@pytest.mark.ros
 @pytest.mark.parametrize("in_process", [False, True], ids=["processes", "launcher-in-process"])
 def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
     lengths, successes, _ = reference_episodes(bundles["b"], EPISODES, **SCENARIO)

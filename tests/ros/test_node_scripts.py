@@ -23,6 +23,11 @@ TEAM = str(Path(__file__).resolve().parents[2] / "models" / "team" / "A3W2.safet
         ("medc-agent", [f"policy:={TEAM}", "grid:=30", "observation:=maps"], "refused, not starting"),
         ("medc-sim", ["mode:=fast"], "mode must be 'stepped' or 'realtime'"),
         ("medc-sim", ["walls:=99"], "walls must be an integer"),
+        ("medc-sim", ["sensing:=noisy"], "unknown sensing preset 'noisy'"),
+        ("medc-agent", [f"policy:={TEAM}", "sensing:=noisy"], "sensing must be one of"),
+        # The shipped team was trained under paper-simple (its manifest names no sensing).
+        ("medc-agent", [f"policy:={TEAM}", "sensing:=realistic"],
+         "trained under the sensing model 'paper-simple', but this team senses with 'realistic'"),
     ],
 )
 def test_bad_parameter_is_refused_clearly(script, params, message):

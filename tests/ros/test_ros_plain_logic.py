@@ -13,12 +13,13 @@ import torch
 from builtin_interfaces.msg import Time
 from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
-from medc_bringup.launcher import load_config, resolve_policies, ros_args
+from medc_bringup.launcher import agent_parameters, load_config, resolve_policies, ros_args, sim_parameters
 from medc_common.contract import GridGeometry, agent_index, xy_to_cell
 from medc_sim import messages
 from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
+from medc_training.envs.grid import ACTIONS
 
 IDS = ["agent_0", "agent_1", "agent_2"]
 GEO10 = GridGeometry(10, 10, 1.0)
@@ -38,15 +39,35 @@ def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
 def test_agent_observation_from_messages_equals_training_observation(noise, observation):
     """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step,
     for every observation variant."""
-    core = SimCore(SimConfig(agents=3, walls=1, grid=10, max_steps=15, seed=5, noise=noise))
+    steps = _play_observation_parity(noise, observation, walls=1)
+    assert steps > 30
+
+
+@pytest.mark.parametrize("observation", ["maps", "maps+estimate", "ego4+estimate", "ego9+estimate"])
+def test_agent_observation_equals_training_observation_under_realistic_sensing(observation):
+    """The same, under the realistic sensing preset: Poisson counts of an unknown strength and
+    background, walls that block the line of sight (two wall segments), success within 1.1 cells;
+    the simulator ends the episodes where the core does, and some end beside the source."""
+    steps, beside = _play_observation_parity(None, observation, walls=2, sensing="realistic")
+    assert steps > 30 and beside > 0
+
+
+def _play_observation_parity(noise, observation, walls, sensing=None):
+    """Play 6 episodes with random valid moves in a SimCore and in the env, feeding the sim's messages
+    to one TeamObserver per agent; check every observation and mask, and every episode's end.
+    Returns the steps played (and, with ``sensing``, how many episodes ended with no agent on the
+    source cell)."""
+    extra = {} if sensing is None else {"sensing": sensing}
+    core = SimCore(SimConfig(agents=3, walls=walls, grid=10, max_steps=15, seed=5, noise=bool(noise),
+                             **extra))
     ref = make_batched(
-        "target_localization", num_envs=1, seed=5, agents=3, walls=1, grid=10, max_steps=15, noise=noise,
-        observation=observation,
+        "target_localization", num_envs=1, seed=5, agents=3, walls=walls, grid=10, max_steps=15, noise=noise,
+        observation=observation, **extra,
     )
     ref_obs, ref_mask = ref.reset()
-    observers = [TeamObserver(a, 3, 10, observation=observation) for a in IDS]
+    observers = [TeamObserver(a, 3, 10, observation=observation, **extra) for a in IDS]
     gen = torch.Generator().manual_seed(0)
-    sec, episode, map_stamp, steps = 0, -1, None, 0
+    sec, episode, map_stamp, steps, beside = 0, -1, None, 0, 0
     while len(core.results) < 6:
         sec += 1
         if core.episode != episode:
@@ -60,11 +81,20 @@ def test_agent_observation_from_messages_equals_training_observation(noise, obse
             obs, mask, _ = o.observe()
             assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
             actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
-        core.advance(actions)
+        target = core.target()
+        # Every move is valid (masked), so this is where the agents stand after it.
+        moved = [(r + ACTIONS[a][0], c + ACTIONS[a][1]) for (r, c), a in zip(core.positions(), actions)]
+        result = core.advance(actions)
         out = ref.step(torch.tensor([actions]))
         ref_obs, ref_mask = out.obs, out.mask
+        assert (result.finished is not None) == bool(out.done[0])
+        if result.finished is not None:
+            assert result.finished.success == bool(out.success[0])
+            beside += result.finished.success and target not in moved
         steps += 1
-    assert steps > 30
+    if sensing is None:
+        return steps
+    return steps, beside
 
 
 def test_missing_move_means_stay():
@@ -179,6 +209,79 @@ def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_pat
                        match="takes the observation 'ego4\\+estimate', but this environment produces 'maps'"):
         fixed.swap(str(ego))
     assert fixed.current.source == str(bundles["a"])
+
+
+def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_path):
+    """A bundle records the sensing preset it was trained under (environment.sensing; none means
+    paper-simple): the policy slot and the launcher refuse it for a team that senses with the other
+    preset, naming both, and take it under its own."""
+    from medc_training.bundle import BundleError, check_sensing, manifest_sensing, read_manifest
+
+    realistic, simple = bundles["realistic"], bundles["a"]
+    assert manifest_sensing(read_manifest(realistic)) == "realistic"
+    assert manifest_sensing(read_manifest(simple)) == "paper-simple"  # a manifest without it
+    both = "trained under the sensing model 'realistic', but this team senses with 'paper-simple'"
+    slot = PolicySlot((5, 10, 10), 8)  # the default team: paper-simple
+    slot.swap(str(simple))
+    with pytest.raises(PolicyRejected, match=both):
+        slot.swap(str(realistic))
+    assert slot.current.source == str(simple)  # the old one keeps running
+    team = PolicySlot((5, 10, 10), 8, sensing="realistic")
+    team.swap(str(realistic))
+    with pytest.raises(PolicyRejected, match="'paper-simple', but this team senses with 'realistic'"):
+        team.swap(str(simple))
+    assert team.current.source == str(realistic)
+    follow = PolicySlot((5, 10, 10), 8, grid=10, sensing="realistic")  # the bundle's observation
+    follow.swap(str(realistic))
+    # The launcher: a preset given in the config must be every bundle's; null takes the bundle's.
+    with pytest.raises(ValueError, match=both):
+        resolve_policies(load_config(None, policy=str(realistic), sensing="paper-simple"))
+    with pytest.raises(ValueError, match="'paper-simple', but this team senses with 'realistic'"):
+        resolve_policies(load_config(None, policy=str(simple), sensing="realistic"))
+    cfg = load_config(None, policy=str(realistic))
+    assert resolve_policies(cfg) == [str(realistic)] * 3 and cfg.sensing == "realistic"
+    cfg = load_config(None, policy=str(simple))
+    assert resolve_policies(cfg) == [str(simple)] * 3 and cfg.sensing == "paper-simple"
+    with pytest.raises(ValueError, match="'realistic', but this team senses with 'paper-simple'"):
+        resolve_policies(load_config(None, policy=str(simple), policies={"agent_1": str(realistic)}))
+    with pytest.raises(ValueError, match=r"sensing .* must be one of"):
+        load_config(None, sensing="noisy")
+    # Both nodes are given the launcher's preset.
+    cfg = load_config(None, policy=str(realistic))
+    resolve_policies(cfg)
+    assert sim_parameters(cfg)["sensing"] == "realistic"
+    assert agent_parameters(cfg, 0, str(realistic))["sensing"] == "realistic"
+    with pytest.raises(BundleError, match=r"environment\.sensing is 'noisy'"):
+        check_sensing({"environment": {"sensing": "noisy"}}, "paper-simple")
+
+
+def test_realistic_observer_takes_only_maps_of_wall_segments():
+    """Under the realistic preset a map's walls must be segments the exact line of sight takes as one
+    rectangle each, at most as many as the environment places on the grid; the paper-simple rule
+    samples the line and takes any map."""
+    from medc_agents.team_state import check_wall_segments
+
+    stamp = Time(sec=1)
+    straight = torch.zeros(10, 10, dtype=torch.bool)
+    straight[2, 1:5] = True
+    straight[5:9, 7] = True
+    ell = straight.clone()
+    ell[3:6, 1] = True  # an L: the first segment turns down
+    crowd = torch.zeros(10, 10, dtype=torch.bool)
+    crowd[0:9:2, 0] = crowd[0:9:2, 9] = True  # 10 single-cell segments
+    realistic = TeamObserver("agent_0", 3, 10, sensing="realistic")
+    assert realistic.max_walls == 2
+    realistic.add_map(_map(straight, stamp))
+    with pytest.raises(ValueError, match="straight segments one cell thick"):
+        realistic.add_map(_map(ell, stamp))
+    with pytest.raises(ValueError, match="10 wall segments; this agent's grid takes at most 2"):
+        realistic.add_map(_map(crowd, stamp))
+    with pytest.raises(ValueError, match="unknown sensing preset"):
+        TeamObserver("agent_0", 3, 10, sensing="noisy")
+    simple = TeamObserver("agent_0", 3, 10)
+    for walls in (straight, ell, crowd):
+        simple.add_map(_map(walls, stamp))
+    check_wall_segments(straight, 2)
 
 
 def test_contract_conversions():

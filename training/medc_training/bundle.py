@@ -196,6 +196,39 @@ def manifest_observation(manifest: Mapping[str, Any]) -> str | None:
     return None if name is None else str(name)
 
 
+def manifest_sensing(manifest: Mapping[str, Any]) -> str:
+    """The sensing preset a validated target-localization manifest's model was trained under: its
+    ``environment.sensing`` (the core records it when it is not the default), 'paper-simple' when
+    the manifest names none (every bundle made before the presets).
+
+    Raises:
+        BundleError: ``environment.sensing`` is not the name of a preset
+        (:data:`medc_training.envs.tl_sensing.SENSING_PRESETS`).
+    """
+    from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
+
+    name = (manifest.get("environment") or {}).get("sensing", DEFAULT_SENSING)
+    if not isinstance(name, str) or name not in SENSING_PRESETS:
+        raise BundleError(f"manifest: environment.sensing is {safe_repr(name)}, not one of "
+                          f"{', '.join(sorted(SENSING_PRESETS))}")
+    return name
+
+
+def check_sensing(manifest: Mapping[str, Any], sensing: str, what: str = "this bundle") -> None:
+    """Refuse a target-localization bundle trained under another sensing preset than ``sensing``
+    (the team's). Raises BundleError naming both presets; ``what`` names the bundle in it."""
+    from medc_training.envs.tl_sensing import parse_sensing
+
+    mine = manifest_sensing(manifest)
+    team = parse_sensing(sensing).name
+    if mine != team:
+        raise BundleError(
+            f"{what} was trained under the sensing model {mine!r}, but this team senses with {team!r}; "
+            f"use a bundle trained with sensing {team!r} (environment.sensing in its manifest; none "
+            f"means 'paper-simple'), or run the team with sensing {mine!r}"
+        )
+
+
 def _grid_task_side(name: Any, grid: int) -> int:
     """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
     from medc_training.envs.observation import parse_observation

@@ -27,6 +27,7 @@ from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
 from medc_training.bundle import MAX_FORWARD_SECONDS
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
+from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -131,6 +132,15 @@ class AgentNode(Node):
             True,
         )
         resolution = p("resolution", 0.0, "Cell side in metres a map must have; 0: the map's own", True)
+        sensing = p(
+            "sensing",
+            DEFAULT_SENSING,
+            f"Sensing model of the team's readings, a preset ({', '.join(sorted(SENSING_PRESETS))}; "
+            "docs/ros.md, 'Sensor model'); a bundle trained under another is refused",
+            True,
+        )
+        if sensing not in SENSING_PRESETS:
+            raise ValueError(f"sensing must be one of {sorted(SENSING_PRESETS)}, got {str(sensing)[:40]!r}")
         self.bridge_service = p(
             "bridge_service",
             "/medc/registry/fetch_bundle",
@@ -163,11 +173,11 @@ class AgentNode(Node):
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
-                                     observation or DEFAULT_OBSERVATION)
+                                     observation or DEFAULT_OBSERVATION, sensing)
         spec = self.observer.observation
         self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
                                observation=explicit_observation or None,
-                               grid=grid if not explicit_observation else None)
+                               grid=grid if not explicit_observation else None, sensing=sensing)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.decisions = 0
@@ -188,7 +198,7 @@ class AgentNode(Node):
         self.observer.use_observation(self.slot.observation)
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
-                               f"{self.slot.observation})")
+                               f"{self.slot.observation}, sensing {sensing})")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         ns = self.namespace_

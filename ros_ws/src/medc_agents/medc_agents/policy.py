@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from medc_training.envs.tl_sensing import DEFAULT_SENSING
 
 #: A bundle is a few MB at most; refuse anything far larger before reading it.
 MAX_BUNDLE_BYTES = 256 * 1024 * 1024
@@ -69,6 +70,7 @@ def load_policy(
     application: str | None = "target_localization",
     max_forward_s: float | None = None,
     observation: str | None = None,
+    sensing: str | None = None,
 ) -> LoadedPolicy:
     """Load and validate the bundle file at ``source`` for this observation/action space.
 
@@ -77,14 +79,17 @@ def load_policy(
     default ``MAX_FORWARD_SECONDS``), the same function the registry bridge vets fetched bundles
     with, and must then fit this agent's observation shape, action count and application.
     ``observation`` names the observation variant this agent builds (target localization); a
-    bundle that takes another variant is refused.
+    bundle that takes another variant is refused. ``sensing`` names the team's sensing preset
+    (``medc_training.envs.tl_sensing.SENSING_PRESETS``): a target-localization bundle trained under
+    another (its manifest's ``environment.sensing``; none = 'paper-simple') is refused, the message
+    naming both; None checks nothing.
 
     Raises:
         PolicyRejected: for every refusal and for any failure while loading (a RecursionError or
         a MemoryError included): no other exception escapes, whatever the file holds.
     """
     try:
-        return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
+        return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing)
     except PolicyRejected:
         raise
     except Exception as exc:  # a file or a message must never take the node down
@@ -138,8 +143,9 @@ def read_policy_manifest(source) -> dict:
         raise PolicyRejected(f"policy bundle {shown(source)} could not be loaded ({why})") from exc
 
 
-def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation) -> LoadedPolicy:
-    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, load_untrusted
+def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
+                 sensing=None) -> LoadedPolicy:
+    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, check_sensing, load_untrusted
     from medc_training.experts import BundleExpert, ExpertError
 
     path = _bundle_path(source)
@@ -153,12 +159,17 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
                                               application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
+    if sensing is not None and bundle.manifest.get("application") == "target_localization":
+        try:
+            check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
+        except BundleError as exc:
+            raise PolicyRejected(str(exc)) from exc
     return LoadedPolicy(bundle=bundle, source=str(path))
 
 
 #: Validated bundles by (path, size, mtime): agents of one process loading the same file share one
 #: PolicyBundle (loaded and checked once), which also lets a TeamFeed batch their forward passes.
-_LOADED: dict[tuple[str, int, int, tuple, int, str | None, str | None], LoadedPolicy] = {}
+_LOADED: dict[tuple[str, int, int, tuple, int, str | None, str | None, str | None], LoadedPolicy] = {}
 
 
 def load_policy_cached(
@@ -168,6 +179,7 @@ def load_policy_cached(
     application: str | None = "target_localization",
     max_forward_s: float | None = None,
     observation: str | None = None,
+    sensing: str | None = None,
 ) -> LoadedPolicy:
     """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
     try:
@@ -180,11 +192,13 @@ def load_policy_cached(
             num_actions,
             application,
             observation,
+            sensing,
         )
     except Exception:  # not stat-able (or not a path): load_policy gives the reason
-        return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
+        return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing)
     if key not in _LOADED:
-        _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation)
+        _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
+                                   sensing)
     return _LOADED[key]
 
 
@@ -199,10 +213,12 @@ class PolicySlot:
         max_forward_s: float | None = None,
         observation: str | None = None,
         grid: int | None = None,
+        sensing: str | None = DEFAULT_SENSING,
     ) -> None:
         """``observation``: the target-localization observation variant a bundle must take; None
         with a ``grid`` means "the one the bundle's manifest names" (its shape on that grid is then
-        the observation shape, and :attr:`observation` follows the running bundle)."""
+        the observation shape, and :attr:`observation` follows the running bundle). ``sensing``:
+        the team's sensing preset; a bundle trained under another is refused (None: no check)."""
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
@@ -210,6 +226,7 @@ class PolicySlot:
         self.observation = observation
         self.follow_bundle = observation is None and grid is not None
         self.grid = grid
+        self.sensing = sensing
         self.current: LoadedPolicy | None = None
 
     def swap(self, source: str) -> LoadedPolicy:
@@ -222,7 +239,7 @@ class PolicySlot:
         if self.follow_bundle:
             obs_shape, observation = self._bundle_observation(source)
         loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application,
-                                    self.max_forward_s, observation)
+                                    self.max_forward_s, observation, self.sensing)
         self.current = loaded
         self.obs_shape, self.observation = obs_shape, observation
         return loaded

@@ -70,6 +70,32 @@ def walls_from_grid(msg, height: int, width: int) -> torch.Tensor:
     return torch.from_numpy(occupancy_to_walls(cells, h, w))
 
 
+def check_wall_segments(walls: torch.Tensor, most: int) -> None:
+    """Check that bool ``walls`` [H,W] are at most ``most`` straight wall segments, one cell thick,
+    that the realistic sensing model's exact line-of-sight rule can take as one rectangle each
+    (``tl_sensing.wall_rectangles``: a segment starts at a wall cell with no wall above or to its
+    left and runs right or down), as the environment places them (segments that never touch).
+
+    Raises:
+        ValueError: more segments, or wall cells that are not such segments (an L, a T, a block).
+    """
+    from medc_training.envs.tl_sensing import wall_rectangles
+
+    rects = wall_rectangles(walls.unsqueeze(0), walls.numel())[0]
+    rects = rects[rects[:, 2] > rects[:, 0]]
+    if len(rects) > most:
+        raise ValueError(f"map has {len(rects)} wall segments; this agent's grid takes at most {most}")
+    h, w = walls.shape
+    rows = torch.arange(h, dtype=torch.float32).view(1, h, 1)
+    cols = torch.arange(w, dtype=torch.float32).view(1, 1, w)
+    r = rects.view(-1, 4, 1, 1)
+    covered = ((rows > r[:, 0]) & (rows < r[:, 2]) & (cols > r[:, 1]) & (cols < r[:, 3])).sum(0)
+    if bool((covered != walls.to(covered.dtype)).any()):
+        raise ValueError("map walls must be straight segments one cell thick that do not touch each other "
+                         "(an L, a T or a block is not): the realistic sensing model's line of sight "
+                         "takes each as one rectangle")
+
+
 def faint_cells(msg) -> int:
     """How many cells of an OccupancyGrid hold 1..49: free by the contract's threshold, but maybe
     walls a driver meant (e.g. published as 1)."""
@@ -135,10 +161,18 @@ class TeamObserver:
     """Collects the team's poses, readings and map, and builds this agent's observation."""
 
     def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
-                 observation: str = "maps") -> None:
-        """``resolution``: metres per cell the maps must have; 0 = whatever the map says."""
+                 observation: str = "maps", sensing: str = "paper-simple") -> None:
+        """``resolution``: metres per cell the maps must have; 0 = whatever the map says.
+        ``sensing``: the team's sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``),
+        which the readings follow; the memory normalises them and weighs the source posterior by it.
+
+        Raises:
+            ValueError: an unknown sensing preset.
+        """
         from medc_training.envs.grid import action_deltas
+        from medc_training.envs.target_localization import max_walls
         from medc_training.envs.tl_observation import ObservationSpec, TeamMemory, parse_observation
+        from medc_training.envs.tl_sensing import parse_sensing
 
         self.agent_id = agent_id
         self.num_agents = num_agents
@@ -166,7 +200,12 @@ class TeamObserver:
         self.notes: list[str] = []
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
         self.observation = parse_observation(observation)
-        self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu")
+        self.sensing = parse_sensing(sensing)
+        #: Most wall segments a map may hold (the exact line-of-sight rule keeps one rectangle
+        #: each): as many as the environment places on this grid.
+        self.max_walls = max(1, max_walls(grid))
+        self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu", sensing=self.sensing,
+                                 max_walls=self.max_walls)
         self._memory_started = False
 
     def use_observation(self, observation: str | None) -> None:
@@ -186,6 +225,8 @@ class TeamObserver:
 
     def add_map(self, msg) -> None:
         walls = walls_from_grid(msg, self.height, self.width)
+        if self.sensing.line == "exact":
+            check_wall_segments(walls, self.max_walls)
         geometry = geometry_of(msg)
         if self.resolution > 0 and abs(geometry.resolution - self.resolution) > 1e-9 * self.resolution:
             raise ValueError(f"map resolution is {geometry.resolution:g} m, this agent's 'resolution' "

@@ -8,6 +8,7 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch                               # the shipped trained team, until Ctrl-C
     medc-launch --episodes 20                 # 20 episodes, one line each, then one JSON line
     medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
+    medc-launch --sensing realistic --policy path/to/realistic_bundle.safetensors
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ class LaunchConfig:
     max_steps: int | None = None
     seed: int = 0
     noise: bool = False
+    # The sensing preset of the simulator and every agent; None = the policy bundle's manifest's
+    # (environment.sensing; a manifest without it: paper-simple).
+    sensing: str | None = None
     mode: str = "stepped"
     rate_hz: float = 0.0
     resolution: float = 1.0
@@ -93,6 +97,12 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
             )
     if cfg.mode not in ("stepped", "realtime"):
         raise ValueError(f"mode must be 'stepped' or 'realtime', got {cfg.mode!r}")
+    if cfg.sensing is not None:
+        from medc_training.envs.tl_sensing import SENSING_PRESETS
+
+        if not isinstance(cfg.sensing, str) or cfg.sensing not in SENSING_PRESETS:
+            raise ValueError(f"sensing in {path} must be one of {sorted(SENSING_PRESETS)} or null "
+                             f"(the policy bundle's), got {cfg.sensing!r}")
     cfg.rate_hz, cfg.resolution = float(cfg.rate_hz), float(cfg.resolution)
     return cfg
 
@@ -103,19 +113,27 @@ def _absolute(path: str, root: Path) -> Path:
 
 
 def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
-    """Fill the scenario keys left unset from the manifest of the bundle at ``base`` (file or folder)."""
-    from medc_training.bundle import BundleError, read_manifest
+    """Fill the scenario keys left unset (and ``sensing``) from the manifest of the bundle at
+    ``base`` (file or folder)."""
+    from medc_training.bundle import BundleError, manifest_sensing, read_manifest
 
     missing = [k for k in SCENARIO_DEFAULTS if getattr(cfg, k) is None]
-    if not missing:
+    if not missing and cfg.sensing is not None:
         return
     sample = base if base.is_file() else next(iter(sorted(base.glob("*.safetensors"))), None)
     env: dict[str, Any] = {}
     if sample is not None:
         try:
-            env = read_manifest(sample).get("environment") or {}
+            manifest = read_manifest(sample)
+            env = manifest.get("environment") or {}
+            if cfg.sensing is None:
+                cfg.sensing = manifest_sensing(manifest)
         except BundleError as exc:
             raise ValueError(f"policy {sample} is not a valid bundle: {exc}") from exc
+    if cfg.sensing is None:
+        from medc_training.envs.tl_sensing import DEFAULT_SENSING
+
+        cfg.sensing = DEFAULT_SENSING
     for key in missing:
         value = env.get(key)
         setattr(
@@ -127,8 +145,8 @@ def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
 
 def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
-    grid), or its agent would refuse it."""
-    from medc_training.bundle import BundleError, manifest_observation, read_manifest
+    grid) and have been trained under its sensing preset, or its agent would refuse it."""
+    from medc_training.bundle import BundleError, check_sensing, manifest_observation, read_manifest
     from medc_training.envs.tl_observation import parse_observation
 
     for path in sorted(set(paths)):
@@ -146,6 +164,10 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
                 f"{expected} for its observation {name}; set grid: "
                 f"{obs.get('height')} or use a bundle trained on this grid"
             )
+        try:
+            check_sensing(manifest, cfg.sensing, f"policy {path}")
+        except BundleError as exc:  # its message names both presets and what to change
+            raise ValueError(f"{exc} (launch config key sensing)") from exc
 
 
 def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
@@ -153,11 +175,12 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
 
     ``policy`` names one bundle for every agent, or a folder holding ``*agent_<i>*.safetensors``
     files (one per agent) or a single bundle; ``policies`` overrides single agents. Scenario keys
-    left unset in ``cfg`` (agents, walls, grid, max_steps) are filled in from the bundle's manifest.
+    left unset in ``cfg`` (agents, walls, grid, max_steps, sensing) are filled in from the bundle's
+    manifest. Every bundle must have been trained under ``cfg.sensing``.
 
     Raises:
         ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
-        fit the scenario's observation shape.
+        fit the scenario's observation shape or sensing preset.
     """
     from medc_common.contract import agent_index
 
@@ -203,6 +226,8 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
         "max_steps": cfg.max_steps,
         "seed": cfg.seed,
         "noise": cfg.noise,
+        # None (resolve_policies not called): the node's default.
+        **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "mode": cfg.mode,
         "rate_hz": cfg.rate_hz,
         "resolution": cfg.resolution,
@@ -218,6 +243,7 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "agents": cfg.agents,
         "grid": cfg.grid,
         "resolution": cfg.resolution,
+        **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "policy": policy,
     }
 
@@ -407,13 +433,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, help="override the config's seed")
     parser.add_argument("--policy", help="override the config's policy (bundle file or folder)")
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
+    parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
     parser.add_argument("--quiet", action="store_true", help="no per-episode lines")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
     try:
-        cfg = load_config(args.config, seed=args.seed, policy=args.policy, agents=args.agents)
+        cfg = load_config(args.config, seed=args.seed, policy=args.policy, agents=args.agents,
+                          sensing=args.sensing)
         policies = resolve_policies(cfg)
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)

@@ -44,7 +44,15 @@ class SimNode(Node):
             grid=p("grid", 30, "Grid side in cells", True),
             max_steps=p("max_steps", 100, "Steps before an episode is truncated", True),
             seed=p("seed", 0, "Seed of the environment: same seed = same episodes as training", True),
-            noise=p("noise", False, "Poisson noise on readings", True),
+            noise=p("noise", False, "Poisson noise on readings (paper-simple; realistic always counts it)",
+                    True),
+            sensing=p(
+                "sensing",
+                "paper-simple",
+                "Sensing model, a preset (paper-simple, realistic; docs/ros.md, 'Sensor model'): how "
+                "readings are made and how near an agent must come to the source",
+                True,
+            ),
         )
         self.mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
         if self.mode not in ("stepped", "realtime"):
@@ -79,7 +87,7 @@ class SimNode(Node):
 
         # The environment's tensors are tiny; threads only add contention with the agent nodes.
         torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
-        self.core = SimCore(cfg)
+        self.core = SimCore(cfg)  # an unknown sensing preset: ValueError naming the presets
         self.ids = contract.agent_ids(self.core.num_agents)
         self.book = MoveBook(self.core.num_agents, self.core.num_actions)
         #: The grid in the map frame (REP 103): at the origin, identity orientation.
@@ -139,7 +147,7 @@ class SimNode(Node):
                 self.create_timer(1.0 / self.rate_hz, self._rate_tick)
         self.get_logger().info(
             f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
-            f"seed {cfg.seed}, "
+            f"seed {cfg.seed}, sensing {cfg.sensing}{' (Poisson counts)' if self.core.noise else ''}, "
             f"{self.mode} mode on {ns}"
         )
 
@@ -170,7 +178,7 @@ class SimNode(Node):
 
     def _send_state(self) -> None:
         stamp = self._step_stamp
-        noise = self.core.config.noise
+        noise = self.core.noise
         for i, (cell, value) in enumerate(zip(self.core.positions(), self.core.readings())):
             self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.geometry))
             # Poisson counts: the variance is the mean.

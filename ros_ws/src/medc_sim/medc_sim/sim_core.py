@@ -23,7 +23,12 @@ class SimConfig:
     grid: int = 30
     max_steps: int = 100
     seed: int = 0
+    #: Poisson counts on the paper-simple preset's readings; a preset that always counts them
+    #: (realistic) does so whatever this says.
     noise: bool = False
+    #: The sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``): how readings are made
+    #: and when an agent has found the source (docs/ros.md, "Sensor model").
+    sensing: str = "paper-simple"
 
 
 @dataclass
@@ -59,8 +64,10 @@ class SimCore:
 
     def __post_init__(self) -> None:
         from medc_training.envs import make_batched
+        from medc_training.envs.tl_sensing import parse_sensing
 
         c = self.config
+        model = parse_sensing(c.sensing)
         self.env = make_batched(
             "target_localization",
             num_envs=1,
@@ -71,7 +78,9 @@ class SimCore:
             grid=c.grid,
             max_steps=c.max_steps,
             reward_shaping=False,
-            noise=c.noise,
+            # None: the preset's (realistic always counts Poisson noise and refuses False).
+            noise=None if model.noise else c.noise,
+            sensing=model.name,
             # The agents build their own observations from the messages; the simulator needs none,
             # and the paper's maps are the cheapest to keep.
             observation="maps",
@@ -87,6 +96,16 @@ class SimCore:
         return self.env.num_actions
 
     @property
+    def noise(self) -> bool:
+        """Whether readings are Poisson counts (the ``noise`` option, or the preset's)."""
+        return bool(self.env.noise)
+
+    @property
+    def sensing(self):
+        """The sensing model (``medc_training.envs.tl_sensing.SensingModel``) the readings follow."""
+        return self.env.sensing
+
+    @property
     def step(self) -> int:
         """Steps taken in the current episode (0 right after reset)."""
         return self.env.state(0).step
@@ -96,8 +115,9 @@ class SimCore:
         return list(self.env.state(0).positions)
 
     def readings(self) -> list[float]:
-        """Each agent's raw reading (counts/s) at its current cell, noise included: exactly what the
-        core recorded in its memory, so the agents rebuild the core's observation."""
+        """Each agent's raw reading (counts/s) at its current cell, noise included (under the
+        realistic preset: Poisson counts of the episode's unknown strength and background): exactly
+        what the core recorded in its memory, so the agents rebuild the core's observation."""
         return list(self.env.state(0).readings)
 
     def walls(self) -> torch.Tensor:
