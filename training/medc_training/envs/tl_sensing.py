@@ -427,6 +427,11 @@ def _pair_tables(h: int, w: int, device: torch.device) -> tuple[torch.Tensor, to
     return _PAIR_TABLES[key]
 
 
+#: Shortest part of a segment (as a fraction of its length) inside a wall's rectangle that counts as
+#: running through it (below: it only grazes a corner, as exact arithmetic would find).
+_GRAZE = 1e-5
+
+
 def _blocked(positions: torch.Tensor, inv: torch.Tensor, rects: torch.Tensor, count: bool) -> torch.Tensor:
     """[B,N,M]: how many wall rectangles (``count``) or whether any (not ``count``) the segment
     from each sensor cell to each candidate source cell passes through: the open segment against
@@ -447,7 +452,11 @@ def _blocked(positions: torch.Tensor, inv: torch.Tensor, rects: torch.Tensor, co
     a_c, b_c = lo[..., 1, :] * inv_c, hi[..., 1, :] * inv_c
     enter = torch.maximum(torch.minimum(a_r, b_r), torch.minimum(a_c, b_c)).clamp_(min=0.0)
     leave = torch.minimum(torch.maximum(a_r, b_r), torch.maximum(a_c, b_c)).clamp_(max=1.0)
-    hit = enter < leave  # [B,N,Z,M]
+    # A segment that only touches a corner has enter == leave exactly; float32 rounding (about
+    # 1e-7 here) must not make it a crossing, while a real crossing of a rectangle with half-integer
+    # sides by a segment between integer points lasts far longer than _GRAZE (about 1e-4 of the
+    # segment at G = 48).
+    hit = enter + _GRAZE < leave  # [B,N,Z,M]
     return hit.sum(2, dtype=torch.float32) if count else hit.any(2)
 
 

@@ -48,13 +48,16 @@ class Scenario:
     def name(self) -> str:
         return f"g{self.grid}w{self.walls}"
 
-    def make_env(self, posterior: bool):
-        """The 512 environments the fixed episodes are played in (one round)."""
+    def make_env(self, policy: str):
+        """The 512 environments the fixed episodes are played in (one round). The episodes do not
+        depend on the observation (it draws nothing), so a policy that reads no observation gets
+        the cheap 'maps' one; the controllers get the team's posterior kept."""
         from ..envs import make_batched
 
+        options = {} if policy.startswith("learned") else {"observation": "maps"}
         return make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
                             walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
-                            posterior=posterior, copy_obs=False)
+                            posterior=policy in CLASSICAL, copy_obs=False, **options)
 
 
 SCENARIOS = tuple(Scenario(g, w) for g in GRIDS for w in WALLS)
@@ -93,7 +96,7 @@ def evaluate(out: Path, policies: list[str] | None = None, scenarios: list[str] 
             path = out / "eval" / sc.name / f"{name}.json"
             if path.exists():
                 continue
-            env = sc.make_env(posterior=name in CLASSICAL)
+            env = sc.make_env(name)
             policy, greedy = _policy(name, env, out, sc)
             print(f"[search-study] {sc.name} {name} ...", file=sys.stderr, flush=True)
             result = play_episodes(env, policy, episodes=EPISODES, seed=EVAL_SEED, greedy=greedy)
