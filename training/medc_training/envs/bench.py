@@ -176,7 +176,8 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         verdict = "met" if result["meets_target"] else f"NOT met ({rate / target:.1%} of it)"
         line += f", target >= {target:,}: {verdict}"
     print(line)
-    print(f"  {BASELINE_OBSERVATION:<16} {baseline:12,.0f} agent-steps/s ({result['baseline_ms_per_step']:.1f} ms/step)")
+    print(f"  {BASELINE_OBSERVATION:<16} {baseline:12,.0f} agent-steps/s "
+          f"({result['baseline_ms_per_step']:.1f} ms/step)")
     print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
     if one is not None:
         one_rate, ratio_one = median("one"), median("ratio_one")
@@ -223,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
         standard = (grid == target_grid and args.walls == 2 and args.agents == 3
                     and args.observation == DEFAULT_OBSERVATION and args.num_envs == 256)
         scenarios = [(sensing, grid, target if standard else None)]
-    else:
-        scenarios = list(SCENARIOS)
+    else:  # the targets are stated for B = 256
+        scenarios = [(s, g, t if args.num_envs == 256 else None) for s, g, t in SCENARIOS]
     load = " ".join(f"{x:.2f}" for x in _loadavg())
     print(f"medc-bench env: target localization, B={args.num_envs}, device={args.device}, "
           f"torch threads={args.threads}, load average {load}")
