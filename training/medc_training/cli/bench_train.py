@@ -1,14 +1,18 @@
-"""`medc-bench train`: training throughput, against the old learner, and the RS / sparse ratio.
+"""`medc-bench train`: the default learner's training throughput on both sensing presets; RS / sparse.
 
 Prints training steps per second (environment steps of the whole team, rollout and PPO update
-together) and PPO updates per second at the CPU scale on A3W2 for:
+together) and PPO updates per second of the CPU-scale learner (``config.CPU_SCALE``) on A3W2 for:
 
 - ``sparse``: the default learner (the CPU scale's architecture on the default observation, the
-  source estimate included), MDRL-sparse;
+  source estimate included), MDRL-sparse, paper-simple sensing on the CPU scale's 13×13 grid;
 - ``rs``: the same with BFS reward shaping (the RS/sparse wall-time ratio);
 - ``baseline_maps_mlp``: the learner before observation variants (the paper's 5 absolute maps,
   MLP), measured in the same run: ``speedup_over_baseline`` is sparse / baseline;
-- ``lenet5``: the paper's LeNet-5 on the default observation.
+- ``lenet5``: the paper's LeNet-5 on the default observation;
+- ``realistic_sparse``: the default learner on the realistic sensing preset (unknown strength and
+  background, Poisson counts, walls block the line of sight) on 20×20 with 100-step episodes, and
+  ``realistic_baseline_maps_mlp`` the maps/MLP baseline there: ``realistic_speedup_over_baseline``
+  is their ratio, ``realistic_over_simple`` realistic_sparse / sparse (``--no-realistic`` skips them).
 
 Rounds are interleaved, one update of each learner per round, so that a shared machine's load
 hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
@@ -18,6 +22,7 @@ also measured on CUDA at the paper scale (G = 30). The last line is one JSON obj
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import statistics
 import time
@@ -25,7 +30,11 @@ import time
 import torch
 
 from ..config import scaled_config
+from ..envs.tl_sensing import DEFAULT_SENSING
 from ..ppo import Trainer
+
+#: The realistic preset's scenario: RAD-A2C's 20 m x 20 m area, 1 m cells, 100-step episodes.
+REALISTIC = {"grid": 20, "max_steps": 100, "env_options": {"sensing": "realistic"}}
 
 
 def _timed_update(trainer: Trainer, cuda: bool) -> tuple[float, float, int]:
@@ -63,7 +72,8 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
         collect = statistics.median(c for c, _, _ in rows)
         steps = rows[0][2]
         results[m] = {
-            "scale": scale, "method": cfg.method, "device": device, "grid": cfg.grid, "agents": cfg.agents,
+            "scale": scale, "method": cfg.method, "sensing": cfg.env_options.get("sensing", DEFAULT_SENSING),
+            "max_steps": cfg.max_steps, "device": device, "grid": cfg.grid, "agents": cfg.agents,
             "walls": cfg.walls, "observation": cfg.observation, "num_envs": cfg.num_envs,
             "horizon": cfg.steps_per_update,
             "epochs": cfg.epochs, "arch": cfg.arch, "rounds": rounds,
@@ -78,16 +88,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--updates", type=int, default=5, help="timed rounds (one update per method each)")
     p.add_argument("--cuda-updates", type=int, default=2, help="timed updates at paper scale on CUDA")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    p.add_argument("--no-realistic", action="store_true", help="skip the realistic-preset learners")
+    p.add_argument("--horizon", type=int, default=0,
+                   help="training steps per CPU update (0: the CPU scale's; small for quick checks)")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     result: dict = {"torch_threads": torch.get_num_threads()}
     learners = {"sparse": {}, "rs": {"method": "rs"},
                 "baseline_maps_mlp": {"observation": "maps", "arch": "mlp"}, "lenet5": {"arch": "lenet5"}}
-    cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2)
+    if not args.no_realistic:
+        maps = {**copy.deepcopy(REALISTIC), "observation": "maps", "arch": "mlp"}
+        learners.update(realistic_sparse=copy.deepcopy(REALISTIC), realistic_baseline_maps_mlp=maps)
+    cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2,
+                  **({"horizon": args.horizon} if args.horizon else {}))
     for m, r in cpu.items():
         print(f"cpu_{m}: {r['env_steps_per_s']:.0f} training steps/s, {r['updates_per_s']:.3f} updates/s "
-              f"(grid {r['grid']}, A{r['agents']}W{r['walls']}, {r['method']}, "
+              f"({r['sensing']}, grid {r['grid']}, {r['max_steps']} steps, A{r['agents']}W{r['walls']}, "
+              f"{r['method']}, "
               f"observation {r['observation']}, "
               f"{r['arch']}, {r['num_envs']} envs, horizon {r['horizon']}, {r['epochs']} epochs; "
               f"rollout alone {r['collect_steps_per_s']:.0f} steps/s)")
@@ -95,6 +113,15 @@ def main(argv: list[str] | None = None) -> int:
     result["speedup_over_baseline"] = (cpu["sparse"]["env_steps_per_s"]
                                        / cpu["baseline_maps_mlp"]["env_steps_per_s"])
     print(f"default learner / baseline (maps, mlp) training steps/s: {result['speedup_over_baseline']:.2f}")
+    if not args.no_realistic:
+        result["realistic_speedup_over_baseline"] = (cpu["realistic_sparse"]["env_steps_per_s"]
+                                                     / cpu["realistic_baseline_maps_mlp"]["env_steps_per_s"])
+        result["realistic_over_simple"] = (cpu["realistic_sparse"]["env_steps_per_s"]
+                                           / cpu["sparse"]["env_steps_per_s"])
+        print(f"realistic: default learner / baseline (maps, mlp) training steps/s: "
+              f"{result['realistic_speedup_over_baseline']:.2f}")
+        print(f"default learner, realistic 20x20 / paper-simple 13x13 training steps/s: "
+              f"{result['realistic_over_simple']:.2f}")
     result["rs_over_sparse_wall_time"] = cpu["rs"]["median_update_s"] / cpu["sparse"]["median_update_s"]
     print(f"RS / sparse wall time per update (median of {args.updates} interleaved rounds): "
           f"{result['rs_over_sparse_wall_time']:.3f} (the paper reports 2x)")
