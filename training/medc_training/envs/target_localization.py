@@ -350,6 +350,8 @@ class TargetLocalization(BatchedEnv):
                 (s_lo, s_hi), (b_lo, b_hi) = self.sensing.strength, self.sensing.background
                 fresh["strength"] = s_lo + (s_hi - s_lo) * u[0]
                 fresh["background"] = b_lo + (b_hi - b_lo) * u[1]
+            if self.sensing.line == "exact":  # each wall segment's rectangle, for the line of sight
+                fresh["rects"] = wall_rectangles(fresh["walls"], max(1, self.num_walls))
             if self._pool is not None and self._pool_next < len(self._pool["target"]):
                 fresh = {key: torch.cat((self._pool[key][self._pool_next :], v)) for key, v in fresh.items()}
             self._pool, self._pool_next = fresh, 0
@@ -363,9 +365,8 @@ class TargetLocalization(BatchedEnv):
         lay = self._take_layouts(k)
         blocked = pad_blocked(lay["walls"])
         dist_pad = torch.nn.functional.pad(lay["distance"], (1, 1, 1, 1), value=float("inf"))
-        readings = self._read(lay["positions"], lay["target"], lay["walls"], lay.get("strength"),
-                              lay.get("background"))
-        self.memory.start(lay["walls"], lay["positions"], readings, rows)
+        readings = self._read(lay)
+        self.memory.start(lay["walls"], lay["positions"], readings, rows, lay.get("rects"))
         team_dist = gather_cells(lay["distance"], lay["positions"]).mean(1)
         if rows is None:
             self.walls, self.blocked_pad, self.dist_pad = lay["walls"].clone(), blocked, dist_pad
@@ -375,6 +376,7 @@ class TargetLocalization(BatchedEnv):
             self.team_dist = team_dist
             self.readings = readings
             self.strength, self.background = lay.get("strength"), lay.get("background")
+            self.rects = lay.get("rects")
             self.t = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         else:
             self.walls[rows], self.blocked_pad[rows], self.dist_pad[rows] = lay["walls"], blocked, dist_pad
@@ -385,20 +387,33 @@ class TargetLocalization(BatchedEnv):
             self.readings[rows] = readings
             if self.strength is not None:
                 self.strength[rows], self.background[rows] = lay["strength"], lay["background"]
+            if self.rects is not None:
+                self.rects[rows] = lay["rects"]
             self.t[rows] = 0
 
     def _reseeded(self) -> None:
         self._pool, self._pool_next = None, 0
 
     # -- the transition and the observation (the episode loop is BatchedEnv's) -------------
-    def _read(self, positions: torch.Tensor, target: torch.Tensor, walls: torch.Tensor,
-              strength: torch.Tensor | None, background: torch.Tensor | None) -> torch.Tensor:
-        """The sensors' readings (counts/s) under the sensing model."""
-        if strength is None:  # paper-simple: the sampled line, known strength and background
-            return sensor_reading(positions, target, walls, noise=self.noise, generator=self.generator)
-        rate = realistic_rates(self.sensing, positions, target, walls, strength, background,
-                               wall_rectangles(walls, max(1, self.num_walls)))
+    def _read(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The sensors' readings (counts/s) under the sensing model, for ``lay``'s positions,
+        target, walls and (when the team does not know them) strength, background and wall
+        rectangles."""
+        if "strength" not in lay:  # paper-simple: the sampled line, known strength and background
+            return sensor_reading(lay["positions"], lay["target"], lay["walls"], noise=self.noise,
+                                  generator=self.generator)
+        rate = realistic_rates(self.sensing, lay["positions"], lay["target"], lay["walls"], lay["strength"],
+                               lay["background"], lay.get("rects"))
         return torch.poisson(rate, generator=self.generator) if self.noise else rate
+
+    def _episode_state(self) -> dict[str, torch.Tensor]:
+        """The current episodes' layout, as :meth:`_read` takes it."""
+        state = {"positions": self.positions, "target": self.target, "walls": self.walls}
+        if self.strength is not None:
+            state.update(strength=self.strength, background=self.background)
+        if self.rects is not None:
+            state["rects"] = self.rects
+        return state
 
     def found(self) -> torch.Tensor:
         """bool [B]: an agent is within the success radius of the source."""
@@ -410,7 +425,7 @@ class TargetLocalization(BatchedEnv):
 
     def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         found = self.found()
-        readings = self._read(self.positions, self.target, self.walls, self.strength, self.background)
+        readings = self._read(self._episode_state())
         self.memory.record(self.walls, self.positions, readings)
         self.readings = readings
         reward = found.float() * SUCCESS_REWARD

@@ -238,13 +238,17 @@ class TeamMemory:
                                      self.max_walls)
 
     def start(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor,
-              rows: torch.Tensor | None = None) -> None:
-        """Forget ``rows`` (all when None) and record the first readings of their new episodes."""
+              rows: torch.Tensor | None = None, rects: torch.Tensor | None = None) -> None:
+        """Forget ``rows`` (all when None) and record the first readings of their new episodes
+        (``rects``: their wall rectangles when the caller has them, else made from ``walls``)."""
         reading_map = torch.zeros((positions.shape[0], self.grid, self.grid), device=self.device)
         visit_map = torch.zeros_like(reading_map)
         scale = self.sensing.max_rate
         update_memory(reading_map, visit_map, positions, readings, scale)
-        rects = wall_rectangles(walls, self.max_walls) if self.sensing.line == "exact" else None
+        if self.sensing.line != "exact":
+            rects = None
+        elif rects is None:
+            rects = wall_rectangles(walls, self.max_walls)
         log_post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
