@@ -1,6 +1,7 @@
 // SPDX-License-Identifier: Apache-2.0
 pragma solidity 0.8.28;
 
+import {Fixed, ReviewOutOfRange, UnregisteredUser} from "./MedcShared.sol";
 import {UsersManager} from "./UsersManager.sol";
 
 /// @title Models Manager Contract (MMC)
@@ -11,10 +12,6 @@ import {UsersManager} from "./UsersManager.sol";
 /// @dev Payments are pull-based: allocations credit the owners (and refunds credit the requester),
 ///      and `withdraw` pays out, so the contract balance always equals the sum of what is owed.
 contract ModelsManager {
-    /// @notice Fixed-point one (1.0).
-    uint256 internal constant ONE = 1e18;
-    /// @notice Reputation of a model that has not been reviewed yet (0.5).
-    uint256 internal constant INITIAL_REPUTATION = 5e17;
     /// @notice Upper bound on the number of environment features of an application.
     /// @dev The features of a model are packed into one storage word, 32 bits each.
     uint256 internal constant MAX_FEATURES = 8;
@@ -66,10 +63,10 @@ contract ModelsManager {
     mapping(uint32 => uint8) private _featureCount; // appId -> number of environment features
     mapping(uint32 => uint32[]) private _modelsList; // appId -> model ids (paper: Models List)
     mapping(address => uint256) private _owed;
-    /// @dev keccak(requester, requestId) -> firstAllocationId + 1 (0 = not paid yet).
+    /// @dev keccak(requester, requestId) -> (block number << 128) | (firstAllocationId + 1),
+    ///      0 = not paid yet: where a paid request's allocations are, in one slot.
     mapping(bytes32 => uint256) private _requests;
 
-    error UnregisteredUser(address user);
     error UnknownModel(uint256 modelId);
     /// @dev No argument: eth-tester reads ABI-encoded string payloads as revert reasons.
     error UnknownApplication();
@@ -88,7 +85,6 @@ contract ModelsManager {
     error InvalidCandidate(uint256 position);
     error NotAllocatedRequester(uint256 allocationId, address caller);
     error AlreadyReviewed(uint256 allocationId);
-    error ReviewOutOfRange(uint256 review);
     error NothingToWithdraw(address account);
     error TransferFailed(address account, uint256 amount);
 
@@ -129,7 +125,7 @@ contract ModelsManager {
         uint32[] calldata envDetails,
         uint256 price
     ) external returns (uint256 modelId) {
-        if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
+        _requireRegistered();
         uint256 cidLength = bytes(cid).length;
         if (cidLength == 0 || cidLength > MAX_CID_LENGTH) revert InvalidCid(cidLength);
         if (price > type(uint128).max) revert PriceTooLarge(price);
@@ -138,7 +134,7 @@ contract ModelsManager {
         modelId = _models.length;
         Model storage m = _models.push();
         m.owner = msg.sender;
-        m.reputation = uint64(INITIAL_REPUTATION);
+        m.reputation = uint64(Fixed.INITIAL_REPUTATION);
         m.price = uint128(price);
         m.appId = appId;
         m.cid = cid;
@@ -183,9 +179,9 @@ contract ModelsManager {
         uint256 minOwnerRep,
         uint256[] calldata candidates
     ) external payable returns (uint256[] memory modelIds, uint256 firstAllocationId) {
-        bytes32 requestKey = keccak256(abi.encode(msg.sender, requestId));
+        bytes32 requestKey = _requestKey(msg.sender, requestId);
         uint256 record = _requests[requestKey];
-        if (record != 0) revert RequestAlreadyPaid(record - 1);
+        if (record != 0) revert RequestAlreadyPaid(uint128(record) - 1);
         uint32 appId = _checkRequest(application, requirements, weights, count);
 
         Ranking memory r = _rank(
@@ -218,7 +214,7 @@ contract ModelsManager {
             if (price != 0) _credit(owner, price);
         }
         if (msg.value > total) _credit(msg.sender, msg.value - total);
-        _requests[requestKey] = firstAllocationId + 1;
+        _requests[requestKey] = (block.number << 128) | (firstAllocationId + 1);
         for (uint256 j; j < found; ++j) {
             users.updateInfo(_models[r.ids[j]].owner, 1);
         }
@@ -233,7 +229,7 @@ contract ModelsManager {
         Allocation storage a = _allocations[allocationId];
         if (a.requester != msg.sender) revert NotAllocatedRequester(allocationId, msg.sender);
         if (a.reviewed) revert AlreadyReviewed(allocationId);
-        if (review > ONE) revert ReviewOutOfRange(review);
+        if (review > Fixed.ONE) revert ReviewOutOfRange(review);
         a.reviewed = true;
         uint256 modelId = a.modelId;
         Model storage m = _models[modelId];
@@ -332,6 +328,22 @@ contract ModelsManager {
         return (a.requester, a.modelId, a.reviewed);
     }
 
+    /// @notice Whether `requester` paid request `requestId` (see `allocateModels`), and where.
+    /// @param requester Who sent the request.
+    /// @param requestId The request's idempotency key.
+    /// @return paid Whether the request was paid and allocated.
+    /// @return firstAllocationId Allocation id of its first model; the others follow (0 if unpaid).
+    /// @return blockNumber Block of the transaction that paid it (0 if unpaid).
+    function paidRequest(address requester, bytes32 requestId)
+        external
+        view
+        returns (bool paid, uint256 firstAllocationId, uint256 blockNumber)
+    {
+        uint256 record = _requests[_requestKey(requester, requestId)];
+        if (record == 0) return (false, 0, 0);
+        return (true, uint128(record) - 1, record >> 128);
+    }
+
     function _appIdOrCreate(string calldata application, uint256 features) private returns (uint32 appId) {
         if (bytes(application).length == 0) revert EmptyApplication();
         if (features > MAX_FEATURES) revert TooManyFeatures(features, MAX_FEATURES);
@@ -346,6 +358,17 @@ contract ModelsManager {
         } else if (_featureCount[appId] != features) {
             revert FeatureCountMismatch(_featureCount[appId], features);
         }
+    }
+
+    /// @dev Reverts UnregisteredUser unless the caller is a registered user (one call site of the
+    ///      Users Manager for both addModel and allocateModels).
+    function _requireRegistered() private view {
+        if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
+    }
+
+    /// @dev Where the record of `requester`'s request `requestId` is kept in `_requests`.
+    function _requestKey(address requester, bytes32 requestId) private pure returns (bytes32) {
+        return keccak256(abi.encode(requester, requestId));
     }
 
     function _model(uint256 modelId) private view returns (Model storage) {
@@ -366,7 +389,7 @@ contract ModelsManager {
         uint256[] calldata weights,
         uint256 count
     ) private view returns (uint32 appId) {
-        if (!users.isRegistered(msg.sender)) revert UnregisteredUser(msg.sender);
+        _requireRegistered();
         appId = _appIdOf[keccak256(bytes(application))];
         if (appId == 0) revert UnknownApplication();
         if (count == 0) revert InvalidCount();
@@ -381,7 +404,7 @@ contract ModelsManager {
         for (uint256 i; i < weights.length; ++i) {
             sum += weights[i];
         }
-        if (weights.length != p || sum != ONE) revert InvalidWeights(weights.length, sum);
+        if (weights.length != p || sum != Fixed.ONE) revert InvalidWeights(weights.length, sum);
     }
 
     function _pack(uint32[] calldata values) private pure returns (uint256 word) {
@@ -410,7 +433,7 @@ contract ModelsManager {
                 (uint256 a, uint256 b) = (uint32(env >> (32 * i)), req[i]);
                 sum += a > b ? a - b : b - a;
             }
-            return p == 0 ? 0 : (sum * ONE) / p;
+            return p == 0 ? 0 : (sum * Fixed.ONE) / p;
         }
         for (uint256 i; i < p; ++i) {
             (uint256 a, uint256 b) = (uint32(env >> (32 * i)), req[i]);
@@ -447,9 +470,9 @@ contract ModelsManager {
             uint256 oRep = users.reputationOf(owner);
             if (oRep < minOwnerRep) continue;
             uint256 dist = _distance(m.env, requirements, weights);
-            uint256 repProduct = (oRep * mRep) / ONE;
+            uint256 repProduct = (oRep * mRep) / Fixed.ONE;
             // D_m = 0 ranks above every finite QoS; among exact matches the reputations decide.
-            _insert(r, id, dist == 0 ? (1 << 255) | repProduct : (repProduct * ONE) / dist);
+            _insert(r, id, dist == 0 ? (1 << 255) | repProduct : (repProduct * Fixed.ONE) / dist);
         }
     }
 

@@ -1,16 +1,18 @@
 // SPDX-License-Identifier: Apache-2.0
 pragma solidity 0.8.28;
 
+import {Fixed, ReviewOutOfRange, UnregisteredUser} from "./MedcShared.sol";
+
 /// @title Users Manager Contract (UMC)
 /// @notice Registers MEDC users and keeps their reputation (paper Table I):
 ///         Rep_i = Total Review / Models Alloc. Count, fixed point with 1e18 = 1.0, initial 0.5.
 /// @dev Allocation counts and reviews are written only by the bound manager (the Models Manager
 ///      Contract), which enforces who may review what; this contract enforces the arithmetic.
 contract UsersManager {
-    /// @notice Fixed-point one (1.0).
-    uint256 public constant ONE = 1e18;
-    /// @notice Reputation of a user whose models have not been reviewed yet (0.5).
-    uint256 public constant INITIAL_REPUTATION = 5e17;
+    /// @notice Fixed-point one (1.0), kept as a getter of this contract's interface.
+    uint256 public constant ONE = Fixed.ONE;
+    /// @notice Reputation of a user whose models have not been reviewed yet (0.5), kept as a getter.
+    uint256 public constant INITIAL_REPUTATION = Fixed.INITIAL_REPUTATION;
 
     /// @dev One storage slot per user: 1 + 8 + 8 + 12 bytes.
     struct User {
@@ -28,13 +30,11 @@ contract UsersManager {
     mapping(address => User) private _users;
 
     error AlreadyRegistered(address user);
-    error UnregisteredUser(address user);
     error NotAdmin(address caller);
     error NotManager(address caller);
     error ManagerAlreadySet(address manager);
     error ZeroAddress();
     error ZeroCount();
-    error ReviewOutOfRange(uint256 review);
     error ReviewsExceedAllocations(address user);
 
     event UserAdded(address indexed user, uint256 reputation);
@@ -67,8 +67,8 @@ contract UsersManager {
         User storage u = _users[msg.sender];
         if (u.registered) revert AlreadyRegistered(msg.sender);
         u.registered = true;
-        u.reputation = uint64(INITIAL_REPUTATION);
-        emit UserAdded(msg.sender, INITIAL_REPUTATION);
+        u.reputation = uint64(Fixed.INITIAL_REPUTATION);
+        emit UserAdded(msg.sender, Fixed.INITIAL_REPUTATION);
     }
 
     /// @notice Record that `numModels` of `user`'s models were allocated (paper: updateInfo()).
@@ -87,11 +87,11 @@ contract UsersManager {
     /// @param review Review value, fixed point in [0, 1e18].
     function updateReputation(address user, uint256 review) external onlyManager {
         User storage u = _registered(user);
-        if (review > ONE) revert ReviewOutOfRange(review);
+        if (review > Fixed.ONE) revert ReviewOutOfRange(review);
         uint256 total = uint256(u.totalReview) + review;
         uint256 count = u.allocCount;
         // Each allocation is reviewed at most once, so the total never exceeds count * 1.0.
-        if (total > count * ONE) revert ReviewsExceedAllocations(user);
+        if (total > count * Fixed.ONE) revert ReviewsExceedAllocations(user);
         uint256 rep = total / count;
         u.totalReview = uint96(total);
         u.reputation = uint64(rep);

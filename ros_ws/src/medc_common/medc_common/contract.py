@@ -263,12 +263,6 @@ def occupancy_to_walls(data, height: int, width: int):
     return np.ascontiguousarray(cells[::-1] >= OCCUPIED_THRESHOLD)
 
 
-def cell_to_xy(row: int, col: int, resolution: float, height: int) -> tuple[float, float]:
-    """Map-frame centre of environment cell (row, col) of a ``height``-row grid at the map's origin
-    (identity orientation): ``((col + 0.5) r, (height - 1 - row + 0.5) r)``."""
-    return GridGeometry(height, height, resolution).cell_to_xy(row, col)
-
-
 def xy_to_cell(x: float, y: float, resolution: float, height: int, width: int) -> tuple[int, int]:
     """The environment cell (row, col) holding map-frame point (x, y), grid at the origin.
 

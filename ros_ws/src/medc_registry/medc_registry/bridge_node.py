@@ -177,10 +177,32 @@ def connect_registry(
         raise BridgeError(str(exc)) from None
 
 
+def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
+    """Declare the bridge node's parameters: (namespace, :func:`connect_registry` keyword
+    arguments, cache folder or "")."""
+    from medc_common.contract import DEFAULT_NAMESPACE
+    from medc_common.params import declare
+
+    p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
+    namespace = p("namespace", DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+    connection = {
+        "chain": p(
+            "chain", "embedded", "'embedded' (in-process test chain) or a JSON-RPC URL on loopback", True
+        ),
+        "content": p("content", "", "Content store: a local folder, or an IPFS API URL on loopback", True),
+        "users_manager": p("users_manager", "", "UsersManager contract address (JSON-RPC chain)", True),
+        "models_manager": p("models_manager", "", "ModelsManager contract address (JSON-RPC chain)", True),
+        "private_key_file": p("private_key_file", "", "File holding the bridge account's private key", True),
+        "account": p("account", 0, "Signing account index: of the embedded chain's funded accounts, "
+                     "or of the keys in private_key_file", True),
+    }
+    cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
+    return namespace, connection, cache
+
+
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
     from medc_common import contract
-    from medc_common.params import declare
     from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
     from rclpy.node import Node
     from std_msgs.msg import String
@@ -190,20 +212,9 @@ def bridge_node_class():
 
         def __init__(self, registry: Any = None, node_name: str = "medc_bridge", **kwargs: Any) -> None:
             super().__init__(node_name, **kwargs)
-            p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-            self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
-            chain = p(
-                "chain", "embedded", "'embedded' (in-process test chain) or a JSON-RPC URL on loopback", True
-            )
-            content = p("content", "", "Content store: a local folder, or an IPFS API URL on loopback", True)
-            users = p("users_manager", "", "UsersManager contract address (JSON-RPC chain)", True)
-            models = p("models_manager", "", "ModelsManager contract address (JSON-RPC chain)", True)
-            key_file = p("private_key_file", "", "File holding the bridge account's private key", True)
-            account = p("account", 0, "Signing account index: of the embedded chain's funded accounts, "
-                        "or of the keys in private_key_file", True)
-            cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
+            self.namespace_, connection, cache = _declare_parameters(self)
             if registry is None:
-                registry = connect_registry(chain, content, users, models, key_file, account)
+                registry = connect_registry(**connection)
             self.bridge = RegistryBridge(registry, cache or tempfile.mkdtemp(prefix="medc-bundles-"))
             ns = self.namespace_.rstrip("/")
             self.create_service(RequestExperts, f"{ns}/registry/request_experts", self._on_request)

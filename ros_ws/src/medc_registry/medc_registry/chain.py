@@ -207,7 +207,7 @@ class SignedTx:
 class _Deadline:
     """The time left of the current chain call (nested operations share the outermost one)."""
 
-    def __init__(self, client: ChainClient) -> None:
+    def __init__(self, client: RetryPolicy) -> None:
         self.client = client
         self.outer = False
 
@@ -236,7 +236,53 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
     return DeadlineHTTPProvider(url, request_kwargs={"timeout": timeout}, exception_retry_configuration=None)
 
 
-class ChainClient:
+class RetryPolicy:
+    """One total deadline per chain call, retries and backoff included (the base of ChainClient).
+
+    ``deadline``: seconds one call may take in all; ``retries``: most extra attempts within it;
+    ``backoff``: the first pause between attempts, doubled after each.
+    """
+
+    def __init__(self, *, retries: int, backoff: float, deadline: float) -> None:
+        if not (isinstance(deadline, int | float) and 0 < deadline < float("inf")):
+            raise ValueError(f"deadline must be a positive number of seconds, got {deadline!r}")
+        self.retries = retries
+        self.backoff = backoff
+        self.deadline = float(deadline)
+        self._until: float | None = None
+
+    def time_left(self) -> float | None:
+        """Seconds left of the current call's deadline (None outside a call)."""
+        return None if self._until is None else self._until - time.monotonic()
+
+    def _expired(self) -> bool:
+        left = self.time_left()
+        return left is not None and left <= 0
+
+    def _pause(self, attempt: int) -> None:
+        """Back off before the next attempt, never past the deadline."""
+        left = self.time_left()
+        delay = self.backoff * 2**attempt
+        time.sleep(max(0.0, delay if left is None else min(delay, left)))
+
+    def _retry(self, op: Callable[[], Any], what: str) -> Any:
+        last: BaseException | None = None
+        with _Deadline(self):
+            for attempt in range(self.retries + 1):
+                try:
+                    return op()
+                except Exception as exc:
+                    if not _is_transient(exc):
+                        raise
+                    last = exc
+                if self._expired():
+                    raise ChainError(f"could not {what} within the {self.deadline:g} s deadline: {last}")
+                if attempt < self.retries:
+                    self._pause(attempt)
+        raise ChainError(f"could not {what} after {self.retries + 1} attempts: {last}")
+
+
+class ChainClient(RetryPolicy):
     """Signs and sends transactions to the MEDC contracts; reads their state.
 
     Use :meth:`embedded` or :meth:`connect` rather than the constructor. ``deadline`` is the total
@@ -256,22 +302,13 @@ class ChainClient:
     ) -> None:
         if not private_keys:
             raise ValueError("at least one private key is needed to sign transactions")
-        if not (isinstance(deadline, int | float) and 0 < deadline < float("inf")):
-            raise ValueError(f"deadline must be a positive number of seconds, got {deadline!r}")
+        super().__init__(retries=retries, backoff=backoff, deadline=deadline)
         self.w3 = w3
         self.accounts = [Account.from_key(k) for k in private_keys]
         self.description = description
-        self.retries = retries
         self.receipt_timeout = receipt_timeout
-        self.backoff = backoff
-        self.deadline = float(deadline)
-        self._until: float | None = None
         #: When set, transactions use this gas limit after a revert check by eth_call.
         self.fixed_gas: int | None = None
-
-    def time_left(self) -> float | None:
-        """Seconds left of the current call's deadline (None outside a call)."""
-        return None if self._until is None else self._until - time.monotonic()
 
     # ------------------------------------------------------------ construction
     @classmethod
@@ -327,13 +364,6 @@ class ChainClient:
             if acct.address == addr:
                 return acct
         raise ValueError(f"no private key for {addr}")
-
-    def add_key(self, private_key: str) -> str:
-        """Add a signing key; returns its address."""
-        acct = Account.from_key(private_key)
-        if acct.address not in self.addresses:
-            self.accounts.append(acct)
-        return acct.address
 
     def balance(self, address: str) -> int:
         """Balance in wei."""
@@ -492,6 +522,29 @@ class ChainClient:
 
             return "pending" if self._retry(pending, "look up a transaction") else "unknown"
 
+    def chain_id(self) -> int:
+        """The chain's id."""
+        return self._retry(lambda: self.w3.eth.chain_id, "read the chain id")
+
+    def block_number(self) -> int:
+        """The latest block's number."""
+        return self._retry(lambda: self.w3.eth.block_number, "read the block number")
+
+    def receipt(self, tx_hash: str | bytes) -> Any:
+        """The receipt of mined transaction ``tx_hash`` (ChainError when there is none)."""
+        receipt = self._retry(lambda: self._receipt_or_none(tx_hash, quiet=False), "read a receipt")
+        if receipt is None:
+            raise ChainError(f"no receipt for transaction {tx_hash!r}")
+        return receipt
+
+    def logs(self, event: Any, from_block: int, to_block: int | str = "latest", **filters: Any) -> list[Any]:
+        """The logs of contract event ``event`` (e.g. ``contract.events.Withdrawn``) mined in the
+        blocks ``from_block`` to ``to_block``, whose indexed arguments equal ``filters``."""
+        return self._retry(
+            lambda: event().get_logs(argument_filters=filters, from_block=from_block, to_block=to_block),
+            "read the contract's logs",
+        )
+
     def pending_nonce(self, address: str) -> int:
         """The next nonce the node would accept from ``address``."""
         return self._retry(
@@ -510,16 +563,6 @@ class ChainClient:
                 return None
             raise
 
-    def _expired(self) -> bool:
-        left = self.time_left()
-        return left is not None and left <= 0
-
-    def _pause(self, attempt: int) -> None:
-        """Back off before the next attempt, never past the deadline."""
-        left = self.time_left()
-        delay = self.backoff * 2**attempt
-        time.sleep(max(0.0, delay if left is None else min(delay, left)))
-
     def _failure(self, receipt: Any, fn: Any, sender: str | None, value: int) -> ChainError:
         if fn is not None and sender is not None and hasattr(fn, "call"):
             try:
@@ -530,18 +573,3 @@ class ChainClient:
                     return revert
         return ChainError(f"transaction {receipt['transactionHash'].hex()} reverted (out of gas or revert)")
 
-    def _retry(self, op: Callable[[], Any], what: str) -> Any:
-        last: BaseException | None = None
-        with _Deadline(self):
-            for attempt in range(self.retries + 1):
-                try:
-                    return op()
-                except Exception as exc:
-                    if not _is_transient(exc):
-                        raise
-                    last = exc
-                if self._expired():
-                    raise ChainError(f"could not {what} within the {self.deadline:g} s deadline: {last}")
-                if attempt < self.retries:
-                    self._pause(attempt)
-        raise ChainError(f"could not {what} after {self.retries + 1} attempts: {last}")

@@ -159,7 +159,7 @@ def record_deployment(home: Path, state: dict[str, Any], chain, dep, ipfs_api: s
     local = {"kind": "local", "root": str(home / "content")}
     content = {"kind": "kubo", "url": ipfs_api} if ipfs_api else local
     state.update(
-        users_manager=dep.users, models_manager=dep.models, chain_id=chain.w3.eth.chain_id, content=content
+        users_manager=dep.users, models_manager=dep.models, chain_id=chain.chain_id(), content=content
     )
     save_state(home, state)
 

@@ -23,8 +23,10 @@ SOLC_VERSION = "0.8.28"
 EVM_VERSION = "cancun"
 OPTIMIZER_RUNS = 50
 
-#: Contracts written to the artifacts directory: source file -> contract names.
+#: Sources and the contracts of each written to the artifacts directory (source file -> contract
+#: names); ``MedcShared.sol`` holds what both contracts share (constants, errors) and writes none.
 SOURCES = {
+    "src/MedcShared.sol": [],
     "src/UsersManager.sol": ["UsersManager"],
     "src/ModelsManager.sol": ["ModelsManager"],
     "test/ReentrantWithdrawer.sol": ["ReentrantWithdrawer"],

@@ -20,18 +20,13 @@ or as a sequence in the application's order.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import math
 import os
-import time
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 from eth_utils import to_checksum_address
-from medc_training.qos import fixed_weights, from_fixed, is_exact, to_fixed
+from medc_training.qos import from_fixed, to_fixed
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
@@ -45,181 +40,38 @@ from .home import (
     home_settings,
     spec_settings,
 )
+from .journal import PaidRequests, PendingRequests
+from .ranker import Ranker, models_list
+from .records import Allocation, Deployment, SharedModel, UserInfo, description_features, format_eth
+from .request import (
+    MAX_CANDIDATES,
+    MAX_COUNT,
+    MAX_FEATURES,
+    Features,
+    ModelRequest,
+    check_application,
+    parse_features,
+    request_id_from,
+    takes_request,
+)
 
-MAX_FEATURES = 8
-#: Most candidate models one allocateModels call examines (the contract's MAX_CANDIDATES).
-MAX_CANDIDATES = 256
-#: Most models one request may ask for (so a ranking page always has room for new candidates).
-MAX_COUNT = MAX_CANDIDATES // 2
-_UINT32 = 2**32 - 1
-
-Features = Mapping[str, int] | Sequence[int]
-
-
-def format_eth(wei: int) -> str:
-    """Wei in human units (ETH with up to 6 decimals)."""
-    return f"{wei / 10**18:.6f}".rstrip("0").rstrip(".") + " ETH"
-
-
-@dataclass(frozen=True)
-class UserInfo:
-    """A user's record in the Users Manager."""
-
-    address: str
-    registered: bool
-    reputation: float
-    alloc_count: int
-    total_review: float
-
-
-@dataclass(frozen=True)
-class SharedModel:
-    """A model as recorded in the Models Manager."""
-
-    model_id: int
-    owner: str
-    application: str
-    cid: str
-    description: str
-    features: tuple[str, ...]
-    env: tuple[int, ...]
-    price_wei: int
-    reputation: float
-    alloc_count: int
-    total_review: float
-
-    @property
-    def env_features(self) -> dict[str, int] | tuple[int, ...]:
-        """The environment as a name -> value dict when names are known."""
-        if self.features and len(self.features) == len(self.env):
-            return dict(zip(self.features, self.env))
-        return self.env
-
-
-@dataclass(frozen=True)
-class Allocation:
-    """One model allocated to a requester (``allocation_id`` is what to review)."""
-
-    allocation_id: int
-    model: SharedModel
-    qos: float  # math.inf for an exact environment match (D_m = 0)
-    distance: float  # D_m in feature units
-    price_wei: int
-    requester: str
-    #: The request's idempotency key (0x + 64 hex digits).
-    request_id: str = ""
-    #: True when the request had been paid by an earlier attempt and this is its allocation.
-    replayed: bool = False
-
-    @property
-    def model_id(self) -> int:
-        return self.model.model_id
-
-    @property
-    def cid(self) -> str:
-        return self.model.cid
-
-    @property
-    def owner(self) -> str:
-        return self.model.owner
-
-
-class PendingRequests:
-    """Paid requests sent but not yet confirmed: one JSON file (``path``), or memory (``None``).
-
-    A record is written (and fsynced) *before* its transaction is sent, with the request id, the
-    signed transaction and its hash, so a run that lost the node's answer can be resolved by the
-    next one instead of paying again.
-    """
-
-    def __init__(self, path: str | os.PathLike[str] | None = None) -> None:
-        self.path = Path(path) if path is not None else None
-        self._memory: dict[str, dict[str, Any]] = {}
-
-    def __repr__(self) -> str:
-        return f"PendingRequests({str(self.path) if self.path else 'in memory'})"
-
-    def load(self) -> dict[str, dict[str, Any]]:
-        """All records, keyed ``account:request_id``."""
-        if self.path is None:
-            return dict(self._memory)
-        if not self.path.is_file():
-            return {}
-        return json.loads(self.path.read_text())
-
-    def _save(self, records: dict[str, dict[str, Any]]) -> None:
-        if self.path is None:
-            self._memory = records
-            return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "w") as fh:
-            fh.write(json.dumps(records, indent=1, sort_keys=True) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.path)
-
-    @staticmethod
-    def _key(record: dict[str, Any]) -> str:
-        return f"{record['account']}:{record['request_id']}"
-
-    def put(self, record: dict[str, Any]) -> None:
-        """Add or replace ``record`` (durably: written and fsynced before its transaction is sent)."""
-        records = self.load()
-        records[self._key(record)] = record
-        self._save(records)
-
-    def drop(self, record: dict[str, Any]) -> None:
-        """Forget a resolved request."""
-        records = self.load()
-        if records.pop(self._key(record), None) is not None:
-            self._save(records)
-
-    def find(
-        self, account: str, fingerprint: str | None = None, request_id: str | None = None
-    ) -> dict[str, Any] | None:
-        """``account``'s pending record with that request id, or else for the same request, if any."""
-        for record in self.load().values():
-            if record["account"] != account:
-                continue
-            if request_id is not None and record["request_id"] == request_id:
-                return record
-            if request_id is None and record["fingerprint"] == fingerprint:
-                return record
-        return None
-
-
-def request_id_from(value: str | bytes | None) -> bytes:
-    """A 32-byte request id: ``0x`` + 64 hex digits as is, other text hashed, None a random one."""
-    if value is None:
-        return os.urandom(32)
-    if isinstance(value, bytes | bytearray):
-        if len(value) != 32:
-            raise ValueError(f"a request id given as bytes must be 32 bytes, got {len(value)}")
-        rid = bytes(value)
-    elif isinstance(value, str) and value.strip():
-        text = value.strip()
-        if text.lower().startswith("0x") and len(text) == 66:
-            try:
-                rid = bytes.fromhex(text[2:])
-            except ValueError:
-                raise ValueError(f"request id {value!r} is not 0x + 64 hex digits") from None
-        else:
-            rid = hashlib.sha256(text.encode()).digest()
-    else:
-        raise ValueError(f"a request id must be a non-empty string or 32 bytes, got {value!r}")
-    if rid == bytes(32):
-        raise ValueError("the request id must not be zero")
-    return rid
-
-
-@dataclass
-class Deployment:
-    """Where the two contracts live."""
-
-    users: str
-    models: str
-    gas: dict[str, int] = field(default_factory=dict)
+__all__ = [
+    "MAX_CANDIDATES",
+    "MAX_COUNT",
+    "MAX_FEATURES",
+    "Allocation",
+    "Deployment",
+    "Features",
+    "ModelRequest",
+    "PendingRequests",
+    "Registry",
+    "SharedModel",
+    "UserInfo",
+    "bundle_summary",
+    "deploy_contracts",
+    "format_eth",
+    "request_id_from",
+]
 
 
 def deploy_contracts(chain: ChainClient, sender: int | str = 0) -> Deployment:
@@ -238,7 +90,12 @@ def deploy_contracts(chain: ChainClient, sender: int | str = 0) -> Deployment:
 
 
 class Registry:
-    """The MEDC registry for one signing account (see the module docstring)."""
+    """The MEDC registry for one signing account (see the module docstring).
+
+    A facade: requests are typed (:class:`~medc_registry.request.ModelRequest`), ranked by
+    :class:`~medc_registry.ranker.Ranker` and paid exactly once by
+    :class:`~medc_registry.journal.PaidRequests`, all over the chain client's public API.
+    """
 
     def __init__(
         self, chain: ChainClient, store: ContentStore, deployment: Deployment, account: int | str = 0
@@ -359,24 +216,16 @@ class Registry:
         """
         if not isinstance(bundle, bytes | bytearray) or not bundle:
             raise ValueError("bundle must be non-empty bytes (the model file's content)")
-        _check_app(application)
+        check_application(application)
         if not isinstance(price, int) or price < 0 or price >= 2**128:
             raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
-        names, values = _features(env_features)
-        existing = self._feature_names(application)
+        names, values = parse_features(env_features)
+        existing = self.feature_names(application)
         if existing is not None and names and existing and names != existing:
             raise ValueError(f"{application!r} models use features {list(existing)}, got {list(names)}")
-        desc: dict[str, Any] = {}
-        if names:
-            desc["features"] = list(names)
-        desc.update(bundle_summary(bytes(bundle)))
-        if isinstance(description, Mapping):
-            desc.update(description)
-        elif description:
-            desc["text"] = str(description)
+        text = model_description(names, bytes(bundle), description)
         cid = self.store.add(bytes(bundle), cid_version)
         self.store.pin(cid)
-        text = json.dumps(desc, separators=(",", ":"), sort_keys=True) if desc else ""
         result = self._tx(self.models.functions.addModel(application, cid, text, list(values), price))
         event = self.models.events.ModelAdded().process_receipt(result.receipt, errors=DISCARD)[0]
         return self.model(event["args"]["modelId"])
@@ -388,19 +237,13 @@ class Registry:
         )
         cid, description = self.chain.call(self.models.functions.getModelText(model_id))
         application = self.chain.call(self.models.functions.applicationName(app_id))
-        names: tuple[str, ...] = ()
-        if description:
-            try:
-                names = tuple(json.loads(description).get("features", ()))
-            except (ValueError, AttributeError):
-                names = ()
         return SharedModel(
             model_id,
             owner,
             application,
             cid,
             description,
-            names,
+            description_features(description),
             tuple(env),
             price,
             from_fixed(rep),
@@ -417,145 +260,41 @@ class Registry:
         out = [self.model(i) for i in range(self.model_count())]
         return [m for m in out if application is None or m.application == application]
 
-    def _feature_names(self, application: str) -> tuple[str, ...] | None:
-        """Feature names of ``application`` (fixed by its first model), None if it has none."""
+    def feature_names(self, application: str) -> tuple[str, ...] | None:
+        """Feature names of ``application`` (fixed by its first model; () when it named none),
+        None when no model of it was shared."""
         if application in self._feature_cache:
             return self._feature_cache[application]
-        for i in range(self.model_count()):
-            m = self.model(i)
-            if m.application == application:
-                self._feature_cache[application] = m.features
-                return m.features
-        return None
+        try:
+            first = models_list(self.chain, self.models, application)[0]
+        except ContractRevert as exc:
+            if exc.error != "UnknownApplication":
+                raise
+            return None
+        _cid, description = self.chain.call(self.models.functions.getModelText(first))
+        self._feature_cache[application] = description_features(description)
+        return self._feature_cache[application]
 
     # ------------------------------------------------------------ allocation
-    def _allocate_args(
-        self,
-        application: str,
-        requirements: Features,
-        weights: Features | None,
-        count: int,
-        min_model_rep: float,
-        min_owner_rep: float,
-    ) -> tuple:
-        _check_app(application)
-        if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COUNT:
-            raise ValueError(f"count must be an integer from 1 to {MAX_COUNT}, got {count!r}")
-        req_names, req = _features(requirements)
-        expected = self._feature_names(application)
-        if expected is None:
-            raise ContractRevert("UnknownApplication", {"application": application})
-        if req_names and expected and req_names != expected:
-            raise ValueError(f"{application!r} models use features {list(expected)}, got {list(req_names)}")
-        w: list[int] = []
-        if weights is not None:
-            w_names, w_raw = _weights(weights)
-            if w_names and req_names and w_names != req_names:
-                raise ValueError(f"weights name {list(w_names)}, requirements name {list(req_names)}")
-            if len(w_raw) != len(req):
-                raise ValueError(f"give one weight per feature ({len(req)}), got {len(w_raw)}")
-            w = w_raw
-        return (
-            application,
-            list(req),
-            w,
-            count,
-            to_fixed(min_model_rep, "min_model_rep"),
-            to_fixed(min_owner_rep, "min_owner_rep"),
-        )
-
-    def rank(
-        self,
-        application: str,
-        requirements: Features,
-        weights: Features | None = None,
-        count: int = 1,
-        min_model_rep: float = 0.0,
-        min_owner_rep: float = 0.0,
-    ) -> list[int]:
+    @takes_request
+    def rank(self, request: ModelRequest) -> list[int]:
         """The ids of the best ``count`` eligible models for this account, best first (no transaction).
 
         The contract ranks: ``allocateModels`` is simulated (eth_call, free) on pages of the
         application's models, each page joined by the best ids so far, so the result is the
         contract's own greedy top ``count`` over all of them, however many there are.
         """
-        args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        return self._rank(args)[0]
+        return Ranker(self.chain, self.models, self.address).rank(request).model_ids
 
-    def _app_model_ids(self, application: str) -> list[int]:
-        """The application's Models List (model ids in the order shared), from the contract's events."""
-        added = self.chain._retry(
-            lambda: self.models.events.ApplicationAdded().get_logs(from_block=0), "read the applications"
-        )
-        app_ids = [log["args"]["appId"] for log in added if log["args"]["application"] == application]
-        if not app_ids:
-            raise ContractRevert("UnknownApplication", {"application": application})
-        logs = self.chain._retry(
-            lambda: self.models.events.ModelAdded().get_logs(
-                argument_filters={"appId": app_ids[0]}, from_block=0
-            ),
-            "read the application's models",
-        )
-        return sorted(log["args"]["modelId"] for log in logs)
-
-    def _simulate(self, args: tuple, positions: list[int]) -> tuple[list[int], int]:
-        """Model ids ``allocateModels`` would allocate from these positions of the application's
-        Models List now, best first, and their price (an eth_call: nothing is sent)."""
-        fn = self.models.functions.allocateModels(request_id_from(None), *args, sorted(positions))
-        try:
-            ids, _ = self.chain.call(fn, sender=self.address, value=0)
-            return list(ids), 0
-        except ContractRevert as exc:
-            if exc.error != "InsufficientPayment":
-                raise
-            # The revert names the exact price of what would be allocated.
-            required = exc.values["required"]
-        ids, _ = self.chain.call(fn, sender=self.address, value=required)
-        return list(ids), required
-
-    def _rank(self, args: tuple) -> tuple[list[int], list[int], int]:
-        """(best model ids, best first; their positions in the Models List; their total price)."""
-        ids = self._app_model_ids(args[0])
-        position = {model_id: pos for pos, model_id in enumerate(ids)}
-        page = MAX_CANDIDATES - args[3]
-        best: list[int] = []
-        price = 0
-        for start in range(0, len(ids), page):
-            try:
-                best, price = self._simulate(
-                    args, [position[i] for i in best] + list(range(start, min(start + page, len(ids))))
-                )
-            except ContractRevert as exc:
-                if exc.error != "NoEligibleModels":
-                    raise
-        if not best:
-            raise ContractRevert("NoEligibleModels")
-        return best, sorted(position[i] for i in best), price
-
-    def quote(
-        self,
-        application: str,
-        requirements: Features,
-        weights: Features | None = None,
-        count: int = 1,
-        min_model_rep: float = 0.0,
-        min_owner_rep: float = 0.0,
-    ) -> tuple[list[int], int]:
+    @takes_request
+    def quote(self, request: ModelRequest) -> tuple[list[int], int]:
         """Which models a request would get now and their total price in wei (no transaction)."""
-        args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        best, _positions, price = self._rank(args)
-        return best, price
+        ranking = Ranker(self.chain, self.models, self.address).rank(request)
+        return ranking.model_ids, ranking.price_wei
 
+    @takes_request
     def request_models(
-        self,
-        application: str,
-        requirements: Features,
-        weights: Features | None = None,
-        count: int = 1,
-        min_model_rep: float = 0.0,
-        min_owner_rep: float = 0.0,
-        payment: int | None = None,
-        request_id: str | bytes | None = None,
+        self, request: ModelRequest, payment: int | None = None, request_id: str | bytes | None = None
     ) -> list[Allocation]:
         """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once.
 
@@ -569,145 +308,15 @@ class Registry:
         resolves that record: the original allocation if it was mined (``replayed=True``), else
         the same request is sent again, which the contract can only pay once.
         """
-        args = self._allocate_args(application, requirements, weights, count, min_model_rep, min_owner_rep)
-        if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
-            raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
-        fingerprint = hashlib.sha256(
-            json.dumps([self.address, list(args), payment], sort_keys=True).encode()
-        ).hexdigest()
-        rid = request_id_from(request_id) if request_id is not None else None
-        record = self.pending.find(self.address, fingerprint, "0x" + rid.hex() if rid else None)
-        if record is not None:
-            return self._resolve(record)
-        rid = rid or request_id_from(None)
-        paid = self._paid(rid)
-        if paid is not None:
-            return paid
-        _best, candidates, price = self._rank(args)
-        if payment is None:
-            payment = price
-        fn = self.models.functions.allocateModels(rid, *args, candidates)
-        signed = self.chain.sign(fn, self.address, payment)
-        record = {
-            "request_id": "0x" + rid.hex(),
-            "account": self.address,
-            "fingerprint": fingerprint,
-            "args": [*args, candidates],
-            "value": payment,
-            "tx_hash": signed.tx_hash,
-            "raw": "0x" + signed.raw.hex(),
-            "nonce": signed.nonce,
-            "created": time.time(),
-        }
-        self.pending.put(record)  # before sending: a lost answer is resolved by the next call
-        return self._send(record, fn, signed.raw)
+        payer = PaidRequests(self.chain, self.models, self.address, self.pending, self.model)
+        allocations = payer.pay(request, payment, request_id)
+        if payer.last_tx is not None:
+            self.last_tx = payer.last_tx
+        return allocations
 
     def pending_requests(self) -> list[dict[str, Any]]:
         """This account's paid requests not confirmed yet (resolve one by requesting it again)."""
         return [r for r in self.pending.load().values() if r["account"] == self.address]
-
-    def _send(self, record: dict[str, Any], fn: Any, raw: bytes) -> list[Allocation]:
-        try:
-            result = self.chain.send_raw(raw, fn=fn, sender=self.address, value=record["value"])
-        except ContractRevert as exc:
-            return self._settled(record, exc)
-        except ChainError as exc:
-            where = self.pending.path or "this Registry's pending requests (memory)"
-            raise ChainError(
-                f"{exc}. Request {record['request_id']} (transaction {record['tx_hash']}) is recorded "
-                f"in {where}: run the same request again to resolve it; the contract pays a request id "
-                "at most once, so re-running cannot pay twice"
-            ) from None
-        self.last_tx = result
-        self.pending.drop(record)
-        return self._allocations(result.receipt, record["request_id"], replayed=False)
-
-    def _settled(self, record: dict[str, Any], exc: ContractRevert) -> list[Allocation]:
-        """A request's transaction reverted: the earlier payment if that was why, else the revert."""
-        self.pending.drop(record)
-        if exc.error == "RequestAlreadyPaid":
-            paid = self._paid(bytes.fromhex(record["request_id"][2:]))
-            if paid is not None:
-                return paid
-        raise exc
-
-    def _resolve(self, record: dict[str, Any]) -> list[Allocation]:
-        """Finish a request recorded by an earlier call whose outcome was not seen."""
-        rid = bytes.fromhex(record["request_id"][2:])
-        fn = self.models.functions.allocateModels(rid, *record["args"])
-        try:
-            state = self.chain.lookup(record["tx_hash"], fn, self.address, record["value"])
-        except ContractRevert as exc:
-            return self._settled(record, exc)
-        if isinstance(state, TxResult):
-            self.pending.drop(record)
-            return self._allocations(state.receipt, record["request_id"], replayed=True)
-        paid = self._paid(rid)
-        if paid is not None:
-            self.pending.drop(record)
-            return paid
-        raw = bytes.fromhex(record["raw"][2:])
-        if state == "unknown" and record["nonce"] < self.chain.pending_nonce(self.address):
-            # The nonce went to another transaction, so the recorded one can never be mined:
-            # sign the same request (same id) again; the contract still pays it at most once.
-            signed = self.chain.sign(fn, self.address, record["value"])
-            record = {
-                **record,
-                "tx_hash": signed.tx_hash,
-                "raw": "0x" + signed.raw.hex(),
-                "nonce": signed.nonce,
-            }
-            self.pending.put(record)
-            raw = signed.raw
-        return self._send(record, fn, raw)
-
-    def _paid(self, rid: bytes) -> list[Allocation] | None:
-        """The allocations of request ``rid`` if this account already paid it, else None.
-
-        The contract checks a request id before anything else, so a simulated call with the id
-        answers RequestAlreadyPaid(firstAllocationId) exactly when it was paid.
-        """
-        fn = self.models.functions.allocateModels(rid, "", [], [], 0, 0, 0, [])
-        try:
-            self.chain.call(fn, sender=self.address)
-        except ContractRevert as exc:
-            if exc.error != "RequestAlreadyPaid":
-                return None
-            first = exc.values["firstAllocationId"]
-        else:  # pragma: no cover - the empty request always reverts
-            return None
-        logs = self.chain._retry(
-            lambda: self.models.events.ModelAllocated().get_logs(
-                argument_filters={"allocationId": first}, from_block=0
-            ),
-            "read the request's allocation",
-        )
-        if not logs:
-            raise ChainError(f"request 0x{rid.hex()} is paid on chain but its logs are not available")
-        tx_hash = logs[0]["transactionHash"]
-        receipt = self.chain._retry(
-            lambda: self.chain.w3.eth.get_transaction_receipt(tx_hash), "read a receipt"
-        )
-        return self._allocations(receipt, "0x" + rid.hex(), replayed=True)
-
-    def _allocations(self, receipt: Any, request_id: str, replayed: bool) -> list[Allocation]:
-        out = []
-        for ev in self.models.events.ModelAllocated().process_receipt(receipt, errors=DISCARD):
-            a = ev["args"]
-            qos = math.inf if is_exact(a["qos"]) else from_fixed(a["qos"])
-            out.append(
-                Allocation(
-                    a["allocationId"],
-                    self.model(a["modelId"]),
-                    qos,
-                    from_fixed(a["distance"]),
-                    a["price"],
-                    a["requester"],
-                    request_id,
-                    replayed,
-                )
-            )
-        return out
 
     def allocation(self, allocation_id: int) -> tuple[str, int, bool]:
         """(requester, model id, reviewed) of an allocation."""
@@ -754,8 +363,8 @@ class Registry:
             raise ChainError(f"cannot read the registry: {exc}") from exc
         return {
             "chain": self.chain.description,
-            "chain_id": self.chain.w3.eth.chain_id,
-            "block": self.chain.w3.eth.block_number,
+            "chain_id": self.chain.chain_id(),
+            "block": self.chain.block_number(),
             "users_manager": self.deployment.users,
             "models_manager": self.deployment.models,
             "content_store": repr(self.store),
@@ -786,31 +395,17 @@ def bundle_summary(data: bytes) -> dict[str, Any]:
     return out
 
 
-def _check_app(application: str) -> None:
-    if not isinstance(application, str) or not application.strip():
-        raise ValueError("application must be a non-empty string, e.g. 'target_localization'")
-
-
-def _features(features: Features) -> tuple[tuple[str, ...], list[int]]:
-    if isinstance(features, Mapping):
-        names = tuple(sorted(features))
-        values = [features[n] for n in names]
-    elif isinstance(features, Sequence) and not isinstance(features, str | bytes):
-        names, values = (), list(features)
-    else:
-        raise ValueError("environment features must be a mapping name -> int or a sequence of ints")
-    if len(values) > MAX_FEATURES:
-        raise ValueError(f"at most {MAX_FEATURES} environment features, got {len(values)}")
-    for v in values:
-        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= _UINT32:
-            raise ValueError(f"environment feature values must be integers in [0, {_UINT32}], got {v!r}")
-    return names, [int(v) for v in values]
-
-
-def _weights(weights: Features) -> tuple[tuple[str, ...], list[int]]:
-    if isinstance(weights, Mapping):
-        names = tuple(sorted(weights))
-        raw = [weights[n] for n in names]
-    else:
-        names, raw = (), list(weights)
-    return names, fixed_weights(raw)
+def model_description(
+    names: tuple[str, ...], bundle: bytes, description: str | Mapping[str, Any] | None
+) -> str:
+    """The description a shared model is recorded with: compact JSON of its feature names, the
+    bundle's summary (:func:`bundle_summary`) and the sharer's ``description`` ("" if empty)."""
+    desc: dict[str, Any] = {}
+    if names:
+        desc["features"] = list(names)
+    desc.update(bundle_summary(bundle))
+    if isinstance(description, Mapping):
+        desc.update(description)
+    elif description:
+        desc["text"] = str(description)
+    return json.dumps(desc, separators=(",", ":"), sort_keys=True) if desc else ""

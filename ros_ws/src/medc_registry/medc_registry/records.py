@@ -1,0 +1,93 @@
+"""What the registry reads from the chain, as records: users, models, allocations, deployments."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+
+def format_eth(wei: int) -> str:
+    """Wei in human units (ETH with up to 6 decimals)."""
+    return f"{wei / 10**18:.6f}".rstrip("0").rstrip(".") + " ETH"
+
+
+@dataclass(frozen=True)
+class UserInfo:
+    """A user's record in the Users Manager."""
+
+    address: str
+    registered: bool
+    reputation: float
+    alloc_count: int
+    total_review: float
+
+
+@dataclass(frozen=True)
+class SharedModel:
+    """A model as recorded in the Models Manager."""
+
+    model_id: int
+    owner: str
+    application: str
+    cid: str
+    description: str
+    features: tuple[str, ...]
+    env: tuple[int, ...]
+    price_wei: int
+    reputation: float
+    alloc_count: int
+    total_review: float
+
+    @property
+    def env_features(self) -> dict[str, int] | tuple[int, ...]:
+        """The environment as a name -> value dict when names are known."""
+        if self.features and len(self.features) == len(self.env):
+            return dict(zip(self.features, self.env))
+        return self.env
+
+
+@dataclass(frozen=True)
+class Allocation:
+    """One model allocated to a requester (``allocation_id`` is what to review)."""
+
+    allocation_id: int
+    model: SharedModel
+    qos: float  # math.inf for an exact environment match (D_m = 0)
+    distance: float  # D_m in feature units
+    price_wei: int
+    requester: str
+    #: The request's idempotency key (0x + 64 hex digits).
+    request_id: str = ""
+    #: True when the request had been paid by an earlier attempt and this is its allocation.
+    replayed: bool = False
+
+    @property
+    def model_id(self) -> int:
+        return self.model.model_id
+
+    @property
+    def cid(self) -> str:
+        return self.model.cid
+
+    @property
+    def owner(self) -> str:
+        return self.model.owner
+
+
+@dataclass
+class Deployment:
+    """Where the two contracts live."""
+
+    users: str
+    models: str
+    gas: dict[str, int] = field(default_factory=dict)
+
+
+def description_features(description: str) -> tuple[str, ...]:
+    """The feature names recorded in a model's description (JSON ``{"features": [...]}``), if any."""
+    if not description:
+        return ()
+    try:
+        return tuple(json.loads(description).get("features", ()))
+    except (ValueError, AttributeError):
+        return ()
