@@ -5,9 +5,9 @@ Two play loops share one move chooser:
 - :func:`play_episodes` plays a *fixed* set of seeded episodes, each to its end (success or the
   step limit), and returns them in episode order: episode ``i`` is the same for every policy
   played from the same seed, and no episode is left out for being long. Every evaluation in the
-  project plays through it: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`,
-  unless a config asks for the legacy window), DAgger's evaluations, the reproduction's random
-  baseline, the demo's expert reviews and random floor, and this module's command line, which
+  project plays through it: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`)
+  and the reproduction's random baseline (unless a config asks for the legacy window), DAgger's
+  evaluations, the demo's expert reviews and random floor, and this module's command line, which
   checks shipped bundles against a random team, e.g.::
 
       python -m medc_training.evaluate models/team/A3W2.safetensors --episodes 512
