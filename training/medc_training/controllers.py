@@ -250,7 +250,7 @@ def gradient_scores(reading_map: torch.Tensor, visit_map: torch.Tensor, position
         wald = (gr * (srr * gr + src * gc) + gc * (src * gr + scc * gc)) / my.clamp(min=1.0)
         determined &= wald >= WALD_FLAT
     else:
-        determined &= (gr.abs() + gc.abs()) > 1e-6 * my.clamp(min=1.0)
+        determined &= (gr.abs() + gc.abs()) > 1e-4 * my.clamp(min=1.0)
     # The level at the agent's cell (the plane at offset 0), without the background.
     level = my - gr * mr - gc * mc - bg.unsqueeze(1)
     scale = 1.0 / level.clamp(min=1.0)
@@ -330,7 +330,9 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
         post = torch.exp(joint - log_pr)
         h = -(post * (joint - log_pr).clamp(min=-1e30)).nan_to_num(0.0).sum(-1)  # [R,M,K]
         wk = torch.softmax(log_pr.squeeze(-1), -1)
-        out[sl] = (1.0 - p_found).clamp(min=0.0) * (wk * h).sum(-1)
+        # Where the move finds the source for certain, nothing is left to learn (no NaN from 0/0).
+        rest = (wk * h).sum(-1).nan_to_num(0.0, posinf=0.0, neginf=0.0)
+        out[sl] = (1.0 - p_found).clamp(min=0.0) * rest
     expected_h = out.view(b, n, 8)
     e = _at(expected_chebyshev(posterior, g), cells_nb)
     visits = torch.zeros_like(e) if visit_map is None else _at(visit_map, cells_nb)
