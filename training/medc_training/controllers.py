@@ -352,6 +352,8 @@ def controller_scores(name: str, env, mask: torch.Tensor | None = None, **option
     _check(name, env)
     mem = env.memory
     mask = env.mask if mask is None else mask
+    if name == "greedy":
+        return greedy_scores(mem.posterior(), env.positions, mask, mem.visit_map, **options)
     if mem.log_post is not None:
         strength, background = posterior_mean_levels(mem.log_post, mem.sensing)
     else:
@@ -361,8 +363,6 @@ def controller_scores(name: str, env, mask: torch.Tensor | None = None, **option
         return gradient_scores(mem.reading_map, mem.visit_map, env.positions, mask, mem.sensing,
                                background=background, **options)
     posterior = mem.posterior()
-    if name == "greedy":
-        return greedy_scores(posterior, env.positions, mask, mem.visit_map, **options)
     rects = mem.rects if mem.sensing.line == "exact" else None
     return infotaxis_scores(posterior, env.positions, mask, env.walls, mem.sensing, strength=strength,
                             background=background, visit_map=mem.visit_map, rects=rects, **options)
