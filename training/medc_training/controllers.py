@@ -1,0 +1,487 @@
+"""Classical search controllers for target localization: what a radiation-search user would field
+instead of a learned team, as first-class policies.
+
+Each controller is a pure batched function of the team's state (the maps a
+:class:`~medc_training.envs.tl_observation.TeamMemory` keeps, the team's positions and move mask,
+the walls, the :class:`~medc_training.envs.tl_sensing.SensingModel`) that returns move scores
+float32 [B,N,8] (actions in :data:`~medc_training.envs.grid.ACTIONS` order, -inf where the move is
+invalid); the highest score is the controller's move. The functions take tensors only, so the
+batched core, the PettingZoo env and a ROS agent node can call them on their own copy of the team
+memory. :func:`controller_policy` wraps one as an evaluator :data:`~medc_training.evaluate.Policy`
+on a batched core, so a controller plays through :func:`~medc_training.evaluate.play` wherever a
+trained bundle does; ``medc-controllers`` evaluates them from the command line.
+
+Every controller breaks ties deterministically (the same state always gives the same move): among
+the moves whose main criterion is within a small tolerance of the best, the one onto the cell the
+team visited least, then the lowest action index. The chosen move's score is raised just above the
+rest so that an argmax (the evaluator's greedy play) picks it. The agents of a team decide
+independently, each from the same team state (no agent conditions on another's move this step).
+
+``gradient`` (:func:`gradient_scores`) -- gradient search on the counts
+    Each agent fits a least-squares plane ``I(x) ~ a + g . (x - x0)`` through the team's latest
+    reading in every visited cell of the (2R+1)x(2R+1) window around it (default R = 2), normalises
+    the slope by the background-free part of the fitted level, ``g / max(a - B, 1)`` (the relative
+    gradient, about grad log(I - B), which points at the source whatever its strength; B = the
+    background, known or the team's posterior-mean estimate), and takes the move whose direction
+    has the largest component along it. When the fit is undetermined (fewer than 3 readings in the
+    window, or all on one line) or flat (with Poisson counts: the slope's Wald statistic
+    ``g' S g / a`` is below 5.99, chi-squared with 2 degrees of freedom at 95%, i.e. not
+    distinguishable from counting noise), it explores: the least-visited neighbour. The yardstick
+    is the gradient-search baseline of RAD-A2C (Proctor et al., "Proximal Policy Optimization for
+    Radiation Source Search", J. Nucl. Eng. 2(4), 2021), which follows a gradient estimated from
+    recent measurements; this is our own formulation for a team on a grid. It needs no posterior.
+
+``greedy`` (:func:`greedy_scores`) -- follow the team's estimate
+    Moves to the valid neighbour with the smallest posterior-expected Chebyshev distance to the
+    source, ``E(c) = sum_s p(s) max(|dr|, |dc|)`` (the moves an 8-connected agent needs, walls
+    ignored: the same quantity the ``+estimate`` observations show); ties within 1e-4 cells by
+    lowest visit count, then action index. Score = -E. The certainty-equivalent "go where the
+    source most likely is" controller; needs the posterior.
+
+``infotaxis`` (:func:`infotaxis_scores`) -- Vergassola, Villermaux & Shraiman, "'Infotaxis' as a
+strategy for searching without gradients", Nature 445, 406-409 (2007)
+    Moves to the neighbour c that minimises the expected entropy of the source posterior after the
+    move and its reading::
+
+        E[H'] = P(found at c) * 0 + (1 - P(found at c)) * E_r[ H(p(. | not found at c, r)) ]
+
+    P(found at c) = the posterior mass within the success radius of c (those cells are ruled out
+    when the episode goes on, exactly as the team's estimator rules them out). The reading's
+    predictive is Poisson with rate ``S * f(c, s) + B`` (f from
+    :func:`~medc_training.envs.tl_sensing.geometric_factor`, the team's own sensor model) under the
+    not-found posterior over s. Approximations, to make it affordable (O(K G^2) per candidate move):
+    S and B are plugged in at their posterior means (the levels the estimator marginalises over are
+    not marginalised again here; exact for the paper-simple model, whose S and B are known); the
+    expectation over r is a quadrature over K = 5 count values, the rounded weighted quantiles
+    (probabilities (k + 1/2)/K) of the predictive's rate under the not-found posterior, each weighed
+    by the exact predictive probability of that count (the Poisson mixture over s), renormalised.
+    Score = -E[H'] (nats); ties within 1e-4 nats (e.g. when the posterior is already certain and no
+    move can teach anything) by the greedy criterion E(c), then visits, then action index. Needs
+    the posterior.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable
+
+import torch
+
+from medc_training.envs.grid import action_deltas
+from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
+
+__all__ = [
+    "CONTROLLERS",
+    "controller_policy",
+    "controller_scores",
+    "expected_chebyshev",
+    "first_episodes",
+    "gradient_scores",
+    "greedy_scores",
+    "infotaxis_scores",
+    "main",
+    "posterior_mean_levels",
+]
+
+#: The controllers' names, as :func:`controller_policy` and ``medc-controllers`` take them.
+CONTROLLERS: tuple[str, ...] = ("gradient", "greedy", "infotaxis")
+#: The controllers that read the team's source posterior.
+NEEDS_POSTERIOR: frozenset[str] = frozenset({"greedy", "infotaxis"})
+#: chi-squared(2 dof) 95% point: a window's slope below it is not told apart from counting noise.
+WALD_FLAT = 5.99
+#: Elements per chunk of the infotaxis tensors (candidate moves x cells x count values).
+_CHUNK_ELEMENTS = 1 << 22
+
+
+# ------------------------------------------------------------------------------------------
+# shared pieces
+# ------------------------------------------------------------------------------------------
+
+
+def _neighbours(positions: torch.Tensor, grid: int) -> torch.Tensor:
+    """int64 [B,N,8,2]: the cell after each move, clamped into the grid (invalid moves are masked
+    by the caller)."""
+    cells = positions.unsqueeze(2) + action_deltas(positions.device)
+    return cells.clamp(0, grid - 1)
+
+
+def _at(maps: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """maps [B,G,G] (or [B,G²]) at cells int64 [B,...,2] -> [B,...]."""
+    b = cells.shape[0]
+    g = math.isqrt(maps[0].numel())
+    flat = (cells[..., 0] * g + cells[..., 1]).reshape(b, -1)
+    return maps.reshape(b, -1).gather(1, flat).view(cells.shape[:-1])
+
+
+def _choose(score: torch.Tensor, mask: torch.Tensor,
+            keys: list[tuple[torch.Tensor, float | torch.Tensor]]) -> torch.Tensor:
+    """``score`` [B,N,A] (-inf where ``mask`` is False) with the chosen move raised just above every
+    other: the chosen move is the first, by action index, of those left after filtering the valid
+    moves by each (key, tolerance) in turn (smaller key is better; a move stays while its key is
+    within the tolerance of the best one left; a tolerance is a number or a tensor [B,N,1])."""
+    tied = mask.clone()
+    for key, tol in keys:
+        k = key.masked_fill(~tied, float("inf"))
+        tied &= k <= k.amin(-1, keepdim=True) + tol
+    first = tied.to(torch.int8).argmax(-1, keepdim=True)  # the first True (argmax returns the first max)
+    score = score.masked_fill(~mask, float("-inf"))
+    best = score.amax(-1, keepdim=True)
+    finite = torch.isfinite(best)
+    best = torch.where(finite, best, torch.zeros_like(best))
+    lifted = best + 1e-3 * best.abs().clamp(min=1.0)
+    any_valid = mask.any(-1, keepdim=True)
+    return score.scatter(-1, first, torch.where(any_valid, lifted, score.gather(-1, first)))
+
+
+def expected_chebyshev(posterior: torch.Tensor, grid: int) -> torch.Tensor:
+    """float32 [B,G²]: E(c) = sum_s p(s) max(|c_row - s_row|, |c_col - s_col|) for every cell c, from
+    a posterior float32 [B,G²] (rows summing to 1). O(G²) per map by diagonal marginals (as
+    :meth:`~medc_training.envs.tl_observation.SourceEstimator.expected_moves`): with u = row + col
+    and v = row - col, max(|dr|, |dc|) = (|du| + |dv|) / 2."""
+    b, g, dev = posterior.shape[0], int(grid), posterior.device
+    idx = torch.arange(g * g, device=dev)
+    r, c = idx // g, idx % g
+    u, v = r + c, r - c + (g - 1)
+    lines = torch.arange(2 * g - 1, device=dev, dtype=torch.float32)
+    gap = (lines.unsqueeze(1) - lines.unsqueeze(0)).abs()
+    mu = torch.zeros((b, 2 * g - 1), device=dev).index_add_(1, u, posterior)
+    mv = torch.zeros((b, 2 * g - 1), device=dev).index_add_(1, v, posterior)
+    return 0.5 * ((mu.unsqueeze(1) * gap).sum(-1)[:, u] + (mv.unsqueeze(1) * gap).sum(-1)[:, v])
+
+
+def posterior_mean_levels(log_post: torch.Tensor,
+                          sensing: SensingModel | str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(strength, background) float32 [B]: their posterior means under the team's joint log
+    posterior (float32 [B,L,G²] levels-first, or [B,G²] when both are known), as
+    :class:`~medc_training.envs.tl_observation.SourceEstimator` keeps it."""
+    sensing = parse_sensing(sensing)
+    b, dev = log_post.shape[0], log_post.device
+    s_lv = sensing.strength_levels(dev)
+    b_lv = sensing.background_levels(dev)
+    if log_post.dim() == 2:
+        return s_lv[0].expand(b).clone(), b_lv[0].expand(b).clone()
+    w = torch.logsumexp(log_post, dim=2)  # [B,L]
+    w = torch.softmax(w, dim=1)
+    level_s = s_lv.repeat_interleave(len(b_lv))
+    level_b = b_lv.repeat(len(s_lv))
+    return w @ level_s, w @ level_b
+
+
+def _as_batch(value: torch.Tensor | float | None, b: int, device: torch.device,
+              default: float) -> torch.Tensor:
+    if value is None:
+        value = default
+    return torch.as_tensor(value, dtype=torch.float32, device=device).expand(b).clone()
+
+
+# ------------------------------------------------------------------------------------------
+# the three controllers
+# ------------------------------------------------------------------------------------------
+
+
+def greedy_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: torch.Tensor,
+                  visit_map: torch.Tensor | None = None) -> torch.Tensor:
+    """Move scores float32 [B,N,8]: minus the posterior-expected Chebyshev distance to the source
+    from each neighbour (module docstring); -inf where ``mask`` is False.
+
+    posterior float32 [B,G²] (the team's source posterior, rows summing to 1); positions int64
+    [B,N,2]; mask bool [B,N,8]; visit_map float32 [B,G,G] (tie-break; none: ties by action index).
+    """
+    g = math.isqrt(posterior.shape[1])
+    cells = _neighbours(positions, g)
+    e = _at(expected_chebyshev(posterior, g), cells)  # [B,N,8]
+    visits = torch.zeros_like(e) if visit_map is None else _at(visit_map, cells)
+    return _choose(-e, mask, [(e, 1e-4), (visits, 0.0)])
+
+
+def gradient_scores(reading_map: torch.Tensor, visit_map: torch.Tensor, positions: torch.Tensor,
+                    mask: torch.Tensor, sensing: SensingModel | str, *,
+                    background: torch.Tensor | float | None = None, radius: int = 2,
+                    noise: bool | None = None) -> torch.Tensor:
+    """Move scores float32 [B,N,8] of gradient search (module docstring); -inf where invalid.
+
+    reading_map float32 [B,G,G] (the team's latest normalised reading per cell, as
+    :func:`~medc_training.envs.tl_sensing.update_memory` writes it); visit_map float32 [B,G,G] (raw
+    visit counts; 0 = no reading); positions int64 [B,N,2]; mask bool [B,N,8]; ``sensing`` the
+    model the readings were made under (their scale); ``background`` float32 [B] or a number
+    (counts/s; default: the middle of the model's range); ``radius`` of the fitting window;
+    ``noise`` whether readings are Poisson counts (default: the model's ``noise``): with noise-free
+    readings any determined slope counts. Where the slope is determined, the score of a move is the
+    component of the normalised gradient along it (per cell); where flat, minus the neighbour's
+    visit count.
+    """
+    sensing = parse_sensing(sensing)
+    noise = sensing.noise if noise is None else bool(noise)
+    b, n = positions.shape[:2]
+    g = reading_map.shape[-1]
+    dev = reading_map.device
+    bg = _as_batch(background, b, dev, 0.5 * sum(sensing.background))
+    visited = (visit_map > 0).to(torch.float32)
+    counts = torch.expm1(reading_map * math.log1p(sensing.max_rate)) * visited
+    r = int(radius)
+    side = 2 * r + 1
+    maps = torch.stack((counts, visited), dim=1)  # [B,2,G,G]
+    padded = torch.nn.functional.pad(maps, (r, r, r, r))
+    gp = g + 2 * r
+    offs = torch.arange(side, device=dev)
+    rows = positions[..., 0:1] + offs
+    cols = positions[..., 1:2] + offs
+    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b, 1, n * side * side).expand(b, 2, -1)
+    win = padded.view(b, 2, gp * gp).gather(2, idx).view(b, 2, n, side * side)
+    y, w = win[:, 0], win[:, 1]  # [B,N,K]
+    d = (offs - r).to(torch.float32)
+    dr = d.repeat_interleave(side)  # row offset of each window cell
+    dc = d.repeat(side)
+    cnt = w.sum(-1)
+    safe = cnt.clamp(min=1.0)
+    mr, mc, my = (w * dr).sum(-1) / safe, (w * dc).sum(-1) / safe, (w * y).sum(-1) / safe
+    xr, xc, yy = (dr - mr.unsqueeze(-1)) * w, (dc - mc.unsqueeze(-1)) * w, (y - my.unsqueeze(-1)) * w
+    srr, scc, src = (xr * xr).sum(-1), (xc * xc).sum(-1), (xr * xc).sum(-1)
+    sry, scy = (xr * yy).sum(-1), (xc * yy).sum(-1)
+    det = srr * scc - src * src
+    determined = (cnt >= 3) & (det > 1e-6 * (srr + scc).clamp(min=1.0) ** 2)
+    safe_det = torch.where(determined, det, torch.ones_like(det))
+    gr = (scc * sry - src * scy) / safe_det
+    gc = (srr * scy - src * sry) / safe_det
+    if noise:  # Wald statistic of the slope against Poisson noise of the window's level
+        wald = (gr * (srr * gr + src * gc) + gc * (src * gr + scc * gc)) / my.clamp(min=1.0)
+        determined &= wald >= WALD_FLAT
+    else:
+        determined &= (gr.abs() + gc.abs()) > 1e-4 * my.clamp(min=1.0)
+    # The level at the agent's cell (the plane at offset 0), without the background.
+    level = my - gr * mr - gc * mc - bg.unsqueeze(1)
+    scale = 1.0 / level.clamp(min=1.0)
+    deltas = action_deltas(dev).to(torch.float32)
+    unit = deltas / deltas.norm(dim=-1, keepdim=True)  # [8,2]
+    along = (gr * scale).unsqueeze(-1) * unit[:, 0] + (gc * scale).unsqueeze(-1) * unit[:, 1]  # [B,N,8]
+    visits = _at(visit_map, _neighbours(positions, g))
+    det_ = determined.unsqueeze(-1)
+    score = torch.where(det_, along, -visits)
+    key = torch.where(det_, -along, visits)
+    tol = torch.where(det_, 1e-4 * along.abs().amax(-1, keepdim=True).clamp(min=1e-6), 0.0)
+    # The visit tie-break applies in both cases (after the slope where it is determined).
+    return _choose(score, mask, [(key, tol), (visits, 0.0)])
+
+
+def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: torch.Tensor,
+                     walls: torch.Tensor, sensing: SensingModel | str, *,
+                     strength: torch.Tensor | float | None = None,
+                     background: torch.Tensor | float | None = None, visit_map: torch.Tensor | None = None,
+                     rects: torch.Tensor | None = None, quantiles: int = 5) -> torch.Tensor:
+    """Move scores float32 [B,N,8]: minus the expected posterior entropy (nats) after each move and
+    its reading (module docstring); -inf where invalid.
+
+    posterior float32 [B,G²]; positions int64 [B,N,2]; mask bool [B,N,8]; walls bool [B,G,G];
+    ``sensing`` the team's sensor model; ``strength``/``background`` float32 [B] or numbers
+    (counts/s; default: the middle of the model's ranges; :func:`posterior_mean_levels` gives the
+    team's estimates); visit_map float32 [B,G,G] (tie-break); rects the episode's wall rectangles
+    (:func:`~medc_training.envs.tl_sensing.wall_rectangles`, for the exact line rule; made from
+    ``walls`` when None); ``quantiles`` K, the count values per move.
+    """
+    sensing = parse_sensing(sensing)
+    b, g2 = posterior.shape
+    n = positions.shape[1]
+    g = math.isqrt(g2)
+    dev = posterior.device
+    s_est = _as_batch(strength, b, dev, 0.5 * sum(sensing.strength))
+    b_est = _as_batch(background, b, dev, 0.5 * sum(sensing.background))
+    cells_nb = _neighbours(positions, g)  # [B,N,8,2]
+    m = n * 8
+    cand = cells_nb.view(b, m, 2)
+    idx = torch.arange(g2, device=dev)
+    grid_cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2]
+    radius = sensing.success_radius
+    k = int(quantiles)
+    probs = (torch.arange(k, device=dev, dtype=torch.float32) + 0.5) / k
+    out = torch.empty((b, m), device=dev)
+    # Chunk over episodes so that the [rows, M, G², K] temporaries stay small.
+    # The sampled line rule takes 2G samples per (candidate, cell) pair.
+    per_row = m * g2 * max(k, 2 * g if sensing.line == "sampled" else 1)
+    rows_per = max(1, _CHUNK_ELEMENTS // max(1, per_row))
+    for lo in range(0, b, rows_per):
+        sl = slice(lo, min(b, lo + rows_per))
+        p = posterior[sl]
+        f = geometric_factor(sensing, cand[sl], grid_cells, walls[sl], None if rects is None else rects[sl])
+        lam = s_est[sl].view(-1, 1, 1) * f + b_est[sl].view(-1, 1, 1)  # [R,M,G²]
+        delta = cand[sl].unsqueeze(2) - grid_cells  # [R,M,G²,2]
+        if radius < 1.0:
+            near = (delta == 0).all(-1)
+        else:
+            near = (delta * delta).sum(-1) <= radius * radius
+        pm = p.unsqueeze(1).expand_as(lam)
+        p_found = (pm * near).sum(-1)  # [R,M]
+        q = pm.masked_fill(near, 0.0)
+        q = q / q.sum(-1, keepdim=True).clamp(min=1e-30)
+        # Weighted quantiles of the rate under the not-found posterior -> the count values.
+        lam_sorted, order = lam.sort(-1)
+        cum = q.gather(-1, order).cumsum(-1)
+        pos = torch.searchsorted(cum.contiguous(), probs.expand(*cum.shape[:-1], k).contiguous())
+        counts = lam_sorted.gather(-1, pos.clamp(max=g2 - 1)).round()  # [R,M,K]
+        # log Poisson(r; lam_s) for every count value and source cell: [R,M,K,G²]
+        log_lam = lam.log()
+        ll = counts.unsqueeze(-1) * log_lam.unsqueeze(2) - lam.unsqueeze(2)
+        ll = ll - torch.lgamma(counts + 1).unsqueeze(-1)
+        log_q = torch.log(q.clamp(min=1e-38)).masked_fill(q <= 0, float("-inf")).unsqueeze(2)
+        joint = ll + log_q  # log q(s) P(r | s)
+        log_pr = torch.logsumexp(joint, -1, keepdim=True)  # log predictive P(r_k)
+        post = torch.exp(joint - log_pr)
+        h = -(post * (joint - log_pr).clamp(min=-1e30)).nan_to_num(0.0).sum(-1)  # [R,M,K]
+        wk = torch.softmax(log_pr.squeeze(-1), -1)
+        # Where the move finds the source for certain, nothing is left to learn (no NaN from 0/0).
+        rest = (wk * h).sum(-1).nan_to_num(0.0, posinf=0.0, neginf=0.0)
+        out[sl] = (1.0 - p_found).clamp(min=0.0) * rest
+    expected_h = out.view(b, n, 8)
+    e = _at(expected_chebyshev(posterior, g), cells_nb)
+    visits = torch.zeros_like(e) if visit_map is None else _at(visit_map, cells_nb)
+    return _choose(-expected_h, mask, [(expected_h, 1e-4), (e, 1e-4), (visits, 0.0)])
+
+
+# ------------------------------------------------------------------------------------------
+# as policies of a batched core, and their evaluation
+# ------------------------------------------------------------------------------------------
+
+
+def controller_scores(name: str, env, mask: torch.Tensor | None = None, **options) -> torch.Tensor:
+    """float32 [B,N,8]: controller ``name``'s move scores for the current state of the batched
+    target-localization core ``env`` (it reads the core's team memory, positions, walls and mask;
+    ``options`` go to the controller's function). Raises ValueError for an unknown name, a core of
+    another application, or a posterior-reading controller on a core that keeps no posterior."""
+    _check(name, env)
+    mem = env.memory
+    mask = env.mask if mask is None else mask
+    if name == "greedy":
+        return greedy_scores(mem.posterior(), env.positions, mask, mem.visit_map, **options)
+    if mem.log_post is not None:
+        strength, background = posterior_mean_levels(mem.log_post, mem.sensing)
+    else:
+        strength, background = None, _background_floor(env)
+    if name == "gradient":
+        options.setdefault("noise", env.noise)
+        return gradient_scores(mem.reading_map, mem.visit_map, env.positions, mask, mem.sensing,
+                               background=background, **options)
+    posterior = mem.posterior()
+    rects = mem.rects if mem.sensing.line == "exact" else None
+    return infotaxis_scores(posterior, env.positions, mask, env.walls, mem.sensing, strength=strength,
+                            background=background, visit_map=mem.visit_map, rects=rects, **options)
+
+
+def _background_floor(env) -> torch.Tensor:
+    """float32 [B]: without a posterior, the background as the team's lowest reading so far, within
+    the model's background range (the known background when the model has one)."""
+    mem = env.memory
+    lo, hi = mem.sensing.background
+    counts = torch.expm1(mem.reading_map * math.log1p(mem.sensing.max_rate))
+    lowest = counts.masked_fill(mem.visit_map <= 0, float("inf")).flatten(1).amin(1)
+    return lowest.clamp(min=lo, max=hi)
+
+
+def _check(name: str, env) -> None:
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {str(name)[:40]!r}; choose one of {', '.join(CONTROLLERS)}")
+    if getattr(env, "name", None) != "target_localization" or not hasattr(env, "memory"):
+        raise ValueError(f"the {name} controller plays target localization (a batched core made with "
+                         f"make_batched('target_localization', ...)), not {getattr(env, 'name', env)!r}")
+    if name in NEEDS_POSTERIOR and env.memory.log_post is None:
+        raise ValueError(f"the {name} controller reads the team's source posterior, but this core keeps "
+                         f"none (observation {env.observation_name!r} shows no estimate); make the core "
+                         "with posterior=True, e.g. make_batched('target_localization', ..., posterior=True)")
+
+
+def controller_policy(name: str, env, **options) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """Controller ``name`` as an evaluator :data:`~medc_training.evaluate.Policy` on the batched core
+    ``env``: logits [B*N, 8] (the controller's scores; argmax = its move) for the core's current
+    state, whatever observation it is handed. Play it greedily (``play(env, policy)``, the default).
+    Raises ValueError as :func:`controller_scores` does, at once."""
+    _check(name, env)
+
+    def policy(obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        b, n, a = env.num_envs, env.num_agents, env.num_actions
+        scores = controller_scores(name, env, mask.view(b, n, a).to(env.device), **options)
+        return scores.reshape(b * n, a)
+
+    policy.controller = name  # type: ignore[attr-defined]
+    return policy
+
+
+def first_episodes(env, policy=None, seed: int = 12345) -> dict:
+    """Play the first episode of every environment of ``env`` to its end (reset from ``seed``; later
+    episodes are ignored) through :func:`~medc_training.evaluate.play`: ``episodes`` (= num_envs),
+    ``success_rate``, mean ``episode_length``, ``seconds`` (wall) and, for a policy, ``decisions_per_s``
+    (agent moves decided per second of the policy's own time). ``policy`` None = uniformly random
+    valid moves."""
+    from medc_training.evaluate import play
+
+    b = env.num_envs
+    length = torch.zeros(b, dtype=torch.long)
+    success = torch.zeros(b, dtype=torch.bool)
+    finished = torch.zeros(b, dtype=torch.bool)
+    spent = [0.0, 0]
+
+    def record(actions, out):
+        done = (out.terminated | out.truncated).cpu() & ~finished
+        length[done] = out.episode_length.cpu()[done]
+        success[done] = out.success.cpu()[done]
+        finished[done] = True
+
+    timed = None
+    if policy is not None:
+        def timed(obs, mask):
+            start = time.perf_counter()
+            logits = policy(obs, mask)
+            if logits.is_cuda:
+                torch.cuda.synchronize(logits.device)
+            spent[0] += time.perf_counter() - start
+            spent[1] += mask.shape[0]
+            return logits
+
+    start = time.perf_counter()
+    play(env, timed, steps=env.max_steps, seed=seed, on_step=record)
+    result = {
+        "episodes": b,
+        "success_rate": float(success.float().mean()),
+        "episode_length": float(length.float().mean()),
+        "seconds": time.perf_counter() - start,
+    }
+    if policy is not None:
+        result["decisions_per_s"] = spent[1] / max(spent[0], 1e-9)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``medc-controllers``: evaluate classical controllers (and random moves) on a target
+    localization scenario; one JSON line per controller."""
+    from medc_training.envs import make_batched
+
+    p = argparse.ArgumentParser(
+        description="Evaluate classical search controllers on target localization: the first episode "
+                    "of every environment, played to its end; one JSON line each.")
+    p.add_argument("controllers", nargs="*", default=list(CONTROLLERS),
+                   help=f"any of {', '.join(CONTROLLERS)}, random (default: every controller)")
+    p.add_argument("--agents", type=int, default=3)
+    p.add_argument("--walls", type=int, default=2)
+    p.add_argument("--grid", type=int, default=20)
+    p.add_argument("--max-steps", type=int, default=100)
+    p.add_argument("--sensing", default="realistic")
+    p.add_argument("--num-envs", type=int, default=256)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--device", default="cpu")
+    args = p.parse_args(argv)
+    for name in args.controllers:
+        if name != "random" and name not in CONTROLLERS:
+            p.error(f"unknown controller {name!r}; choose from {', '.join(CONTROLLERS)}, random")
+    for name in args.controllers:
+        env = make_batched("target_localization", num_envs=args.num_envs, device=args.device, seed=args.seed,
+                           agents=args.agents, walls=args.walls, grid=args.grid, max_steps=args.max_steps,
+                           sensing=args.sensing, posterior=True)
+        policy = None if name == "random" else controller_policy(name, env)
+        result = first_episodes(env, policy, seed=args.seed)
+        print(json.dumps({"controller": name, **env.attributes, "sensing": env.sensing.name,
+                          "num_envs": args.num_envs, "seed": args.seed, **result}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
