@@ -138,18 +138,11 @@ def _choose(score: torch.Tensor, mask: torch.Tensor,
 
 def expected_chebyshev(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     """float32 [B,G²]: E(c) = sum_s p(s) max(|c_row - s_row|, |c_col - s_col|) for every cell c, from
-    a posterior float32 [B,G²] (rows summing to 1). O(G²) per map by diagonal marginals (as
-    :meth:`~medc_training.envs.tl_observation.SourceEstimator.expected_moves`): with u = row + col
-    and v = row - col, max(|dr|, |dc|) = (|du| + |dv|) / 2."""
-    b, g, dev = posterior.shape[0], int(grid), posterior.device
-    idx = torch.arange(g * g, device=dev)
-    r, c = idx // g, idx % g
-    u, v = r + c, r - c + (g - 1)
-    lines = torch.arange(2 * g - 1, device=dev, dtype=torch.float32)
-    gap = (lines.unsqueeze(1) - lines.unsqueeze(0)).abs()
-    mu = torch.zeros((b, 2 * g - 1), device=dev).index_add_(1, u, posterior)
-    mv = torch.zeros((b, 2 * g - 1), device=dev).index_add_(1, v, posterior)
-    return 0.5 * ((mu.unsqueeze(1) * gap).sum(-1)[:, u] + (mv.unsqueeze(1) * gap).sum(-1)[:, v])
+    a posterior float32 [B,G²] (rows summing to 1): the team's estimate map before scaling
+    (:meth:`~medc_training.envs.tl_observation.SourceEstimator.expected_from_posterior`)."""
+    from medc_training.envs.tl_observation import SourceEstimator
+
+    return SourceEstimator(grid, posterior.device).expected_from_posterior(posterior)
 
 
 def posterior_mean_levels(log_post: torch.Tensor,
@@ -407,25 +400,13 @@ def controller_policy(name: str, env, **options) -> Callable[[torch.Tensor, torc
 
 
 def first_episodes(env, policy=None, seed: int = 12345) -> dict:
-    """Play the first episode of every environment of ``env`` to its end (reset from ``seed``; later
-    episodes are ignored) through :func:`~medc_training.evaluate.play`: ``episodes`` (= num_envs),
-    ``success_rate``, mean ``episode_length``, ``seconds`` (wall) and, for a policy, ``decisions_per_s``
-    (agent moves decided per second of the policy's own time). ``policy`` None = uniformly random
-    valid moves."""
-    from medc_training.evaluate import play
+    """Play the first episode of every environment of ``env`` to its end (reset from ``seed``) through
+    :func:`~medc_training.evaluate.play_episodes`: ``episodes`` (= num_envs), ``success_rate``, mean
+    ``episode_length``, ``seconds`` (wall) and, for a policy, ``decisions_per_s`` (agent moves decided
+    per second of the policy's own time). ``policy`` None = uniformly random valid moves."""
+    from medc_training.evaluate import play_episodes
 
-    b = env.num_envs
-    length = torch.zeros(b, dtype=torch.long)
-    success = torch.zeros(b, dtype=torch.bool)
-    finished = torch.zeros(b, dtype=torch.bool)
     spent = [0.0, 0]
-
-    def record(actions, out):
-        done = (out.terminated | out.truncated).cpu() & ~finished
-        length[done] = out.episode_length.cpu()[done]
-        success[done] = out.success.cpu()[done]
-        finished[done] = True
-
     timed = None
     if policy is not None:
         def timed(obs, mask):
@@ -438,11 +419,11 @@ def first_episodes(env, policy=None, seed: int = 12345) -> dict:
             return logits
 
     start = time.perf_counter()
-    play(env, timed, steps=env.max_steps, seed=seed, on_step=record)
+    played = play_episodes(env, timed, episodes=env.num_envs, seed=seed)
     result = {
-        "episodes": b,
-        "success_rate": float(success.float().mean()),
-        "episode_length": float(length.float().mean()),
+        "episodes": env.num_envs,
+        "success_rate": sum(played.successes) / env.num_envs,
+        "episode_length": sum(played.lengths) / env.num_envs,
         "seconds": time.perf_counter() - start,
     }
     if policy is not None:

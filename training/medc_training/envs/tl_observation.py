@@ -193,7 +193,10 @@ class SourceEstimator:
         episode's arithmetic is its own (a broadcast product, not a matrix product that BLAS would
         block by batch size), so one episode's estimate never depends on how many share its batch.
         """
-        p = self.posterior(log_post)
+        return self.expected_from_posterior(self.posterior(log_post))
+
+    def expected_from_posterior(self, p: torch.Tensor) -> torch.Tensor:
+        """float32 [K, G²]: :meth:`expected_moves` of a posterior float32 [K, G²] (rows summing to 1)."""
         k, g = p.shape[0], self.grid
         diagonals = 2 * g - 1
         marginal_u = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._u, p)
