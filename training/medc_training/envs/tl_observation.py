@@ -61,6 +61,7 @@ from medc_training.envs.tl_sensing import (
     geometric_factor,
     parse_sensing,
     rates_from_every_cell,
+    sight_lines,
     update_memory,
     visit_norm,
     wall_rectangles,
@@ -119,6 +120,8 @@ class SourceEstimator:
         #: [K] strength and background of each level, strength-major.
         self.level_strength = s_lv.repeat_interleave(len(b_lv))
         self.level_background = b_lv.repeat(len(s_lv))
+        #: (log rate [L, Q], factor [Q]) for Q = (d², walls crossed) pairs, made on first use.
+        self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -143,6 +146,8 @@ class SourceEstimator:
         if self.sensing.line == "sampled" and self.levels == 1:
             rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
+        elif (lines := self._sight_lines(positions, walls, rects)) is not None:
+            loglik = self._loglik_from_tables(*lines, readings)
         else:
             f = geometric_factor(self.sensing, positions, self.cells, walls, rects)  # [K,N,G²]
             n = f.shape[1]
@@ -161,6 +166,38 @@ class SourceEstimator:
         flat.masked_fill_(out.unsqueeze(1), LOG_FLOOR)
         top = flat.amax((1, 2), keepdim=True)
         flat.sub_(top).clamp_(min=LOG_FLOOR)
+
+    def _sight_lines(self, positions: torch.Tensor, walls: torch.Tensor,
+                     rects: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor] | None:
+        if self.sensing.line != "exact":
+            return None
+        if rects is None:
+            # at most one segment per wall cell
+            most = int(walls.flatten(1).sum(1).max()) if len(walls) else 1
+            rects = wall_rectangles(walls, max(1, most))
+        return sight_lines(self.sensing, positions, walls, rects)
+
+    def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,
+                            readings: torch.Tensor) -> torch.Tensor:
+        """float32 [K,L,G²] (or [K,G²] with one level): sum over the readings of r log(rate) - rate,
+        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading)."""
+        k, n = readings.shape
+        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
+        most = int(crossed.max()) if crossed.numel() else 0
+        if self._tables is None or self._tables[0].shape[1] < span * (most + 1):
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            self._tables = (rate.log(), factor)
+        log_rate, factor = self._tables
+        index = (d2 + span * crossed).view(-1)
+        logs = log_rate.index_select(1, index).view(self.levels, k, n, -1)  # [L,K,N,G²]
+        loglik = (logs * readings.view(1, k, n, 1)).sum(2).transpose(0, 1)  # [K,L,G²]
+        fsum = factor.index_select(0, index).view(k, n, -1).sum(1)  # [K,G²]
+        loglik = loglik - fsum.unsqueeze(1) * self.level_strength.view(1, -1, 1)
+        loglik = loglik - n * self.level_background.view(1, -1, 1)
+        return loglik if self.levels > 1 else loglik.squeeze(1)
 
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would

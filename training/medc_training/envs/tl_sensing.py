@@ -410,21 +410,42 @@ def _run_length(walls: torch.Tensor) -> torch.Tensor:
 
 #: Largest grid (cells per side) whose pair tables (:func:`_pair_tables`) are kept: 48 -> 64 MiB.
 _PAIR_TABLE_GRID = 48
-_PAIR_TABLES: dict[tuple[int, int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+_PAIR_TABLES: dict[tuple[int, int, torch.device], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
 
-def _pair_tables(h: int, w: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+def _pair_tables(h: int, w: int,
+                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """(1 / (s - p) per axis float32 [H·W, H·W, 2] (inf where equal), 1 / (1 + d²) float32
-    [H·W, H·W]) for sensor cell p (first index) and source cell s; None above _PAIR_TABLE_GRID."""
+    [H·W, H·W], d² int64 [H·W, H·W]) for sensor cell p (first index) and source cell s; None above
+    _PAIR_TABLE_GRID."""
     if max(h, w) > _PAIR_TABLE_GRID:
         return None
     key = (h, w, device)
     if key not in _PAIR_TABLES:
         idx = torch.arange(h * w, device=device)
-        cells = torch.stack((idx // w, idx % w), dim=-1).to(torch.float32)
-        delta = cells.unsqueeze(0) - cells.unsqueeze(1)  # [P,S,2]: s - p
-        _PAIR_TABLES[key] = (1.0 / delta, 1.0 / (1.0 + (delta * delta).sum(-1)))
+        cells = torch.stack((idx // w, idx % w), dim=-1)
+        delta = (cells.unsqueeze(0) - cells.unsqueeze(1)).to(torch.float32)  # [P,S,2]: s - p
+        d2 = ((cells.unsqueeze(0) - cells.unsqueeze(1)) ** 2).sum(-1)
+        _PAIR_TABLES[key] = (1.0 / delta, 1.0 / (1.0 + d2.to(torch.float32)), d2)
     return _PAIR_TABLES[key]
+
+
+def sight_lines(model: SensingModel, positions: torch.Tensor, walls: torch.Tensor,
+                rects: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """For every sensor at ``positions`` (int64 [B,N,2]) and every cell of the grid as a candidate
+    source, under the ``exact`` line rule: (d² int64 [B,N,H·W], walls crossed int64 [B,N,H·W];
+    with attenuation 0 only whether any is, 0 or 1), so that the factor is A**k / (1 + d²). None
+    where the per-grid tables are not kept (grids above _PAIR_TABLE_GRID)."""
+    h, w = walls.shape[-2:]
+    tables = _pair_tables(h, w, positions.device)
+    if tables is None:
+        return None
+    cell = positions[..., 0] * w + positions[..., 1]
+    d2 = tables[2][cell]
+    if not bool((rects[..., 2] > rects[..., 0]).any()):
+        return d2, torch.zeros_like(d2)
+    crossed = _blocked(positions, tables[0][cell], rects, count=model.attenuation > 0.0)
+    return d2, crossed.long()
 
 
 #: Shortest part of a segment (as a fraction of its length) inside a wall's rectangle that counts as
