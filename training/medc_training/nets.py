@@ -69,6 +69,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from medc_training.untrusted import printable
+
 LAYER_TYPES = ("conv2d", "maxpool2d", "relu", "tanh", "flatten", "linear", "heads")
 
 # Keys each layer type accepts: required keys map to None, optional ones to their default.
@@ -115,10 +117,7 @@ def safe_repr(value: Any, limit: int = 40) -> str:
     log reader would interpret.
     """
     if isinstance(value, str):
-        clean = "".join(ch if " " <= ch <= "~" and ch not in "'\\\"" else "?" for ch in value[:limit + 1])
-        if len(clean) > limit:
-            clean = clean[:limit] + "..."
-        return f"'{clean}'"
+        return "'" + printable(value, limit, drop="'\\\"") + "'"
     if value is None or isinstance(value, bool):
         return repr(value)
     if isinstance(value, int | float):
