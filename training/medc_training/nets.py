@@ -60,7 +60,6 @@ the policy head (near-uniform initial policy) and 1 for the value head; zero bia
 from __future__ import annotations
 
 import copy
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -554,8 +553,3 @@ def masked_logits(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         raise TypeError(f"mask must be a bool tensor (True = allowed), got {mask.dtype}")
     fill = max(_MASK_LOGIT, torch.finfo(logits.dtype).min / 2)
     return logits.masked_fill(~mask, fill)
-
-
-def spec_to_json(spec: Mapping[str, Any]) -> str:
-    """Canonical JSON text of a spec (sorted keys, no whitespace): equal specs give equal text."""
-    return json.dumps(spec, sort_keys=True, separators=(",", ":"))
