@@ -34,6 +34,7 @@ from medc_common.contract import (
     MAP_FRAME,
     OCCUPIED_THRESHOLD,
     GridGeometry,
+    agent_ids,
     agent_index,
     geometry_of,
     occupancy_to_walls,
@@ -168,7 +169,7 @@ class TeamObserver:
         self.agent_id = agent_id
         self.num_agents = num_agents
         self.index = agent_index(agent_id, num_agents)
-        self.ids = [f"agent_{i}" for i in range(num_agents)]
+        self.ids = agent_ids(num_agents)
         self.height = self.width = grid
         self.resolution = float(resolution)
         self._deltas = action_deltas("cpu")
