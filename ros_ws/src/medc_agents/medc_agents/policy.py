@@ -143,6 +143,7 @@ def read_policy_manifest(source) -> dict:
 def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
                  sensing=None) -> LoadedPolicy:
     from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, check_sensing, load_untrusted
+    from medc_training.envs import core_options
     from medc_training.experts import BundleExpert, ExpertError
 
     path = _bundle_path(source)
@@ -156,7 +157,7 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
                                               application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
-    if sensing is not None and bundle.manifest.get("application") == "target_localization":
+    if sensing is not None and "sensing" in core_options(bundle.manifest.get("application")):
         try:
             check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
         except BundleError as exc:
