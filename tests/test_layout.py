@@ -258,3 +258,88 @@ def test_every_entry_point_names_a_function_of_its_own_package() -> None:
     assert {"medc-launch", "medc-demo", "medc-gas-report", "medc-sim", "medc-agent", "medc-bridge",
             "medc-registry"} <= scripts
     assert seen[("medc_bench", "ros")] == BRINGUP
+
+
+# ---------------------------------------------------------------- one definition of each name
+#: Source trees whose modules the checks below read (tests may compare names freely).
+SOURCE_ROOTS = (TRAINING / "medc_training", ROS_SRC, REPO_ROOT / "scripts")
+ENVS = TRAINING / "medc_training" / "envs"
+TL = "target_localization"
+#: Comparisons with the application's name that are about its identity, not a capability of its
+#: environment core: (file, enclosing function) -> why it may name the application.
+TL_IDENTITY = {
+    ("training/medc_training/experiments/plan.py", "Plan.jobs"): "the primary application is always planned",
+    ("training/medc_training/experiments/plan.py", "Plan.run_config"):
+        "the primary application's own config; the others take their catalogue presets",
+    ("scripts/observation_probe.py", "main"): "CLI: the other applications' presets and run-name prefix",
+    ("training/medc_training/controllers.py", "_check"): "the scripted controllers play target localization",
+}
+
+
+def _source_files() -> Iterator[Path]:
+    for root in SOURCE_ROOTS:
+        yield from sorted(root.rglob("*.py"))
+
+
+def _scoped_nodes(tree: ast.AST) -> Iterator[tuple[str, ast.AST]]:
+    """Every node of ``tree`` with the qualified name of the function or class around it."""
+    def walk(node: ast.AST, scope: str) -> Iterator[tuple[str, ast.AST]]:
+        for child in ast.iter_child_nodes(node):
+            inner = scope
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                inner = f"{scope}.{child.name}" if scope else child.name
+            yield inner, child
+            yield from walk(child, inner)
+    yield from walk(tree, "")
+
+
+def _names_tl(node: ast.AST) -> bool:
+    return isinstance(node, ast.Constant) and node.value == TL
+
+
+def test_no_application_name_check_outside_the_environments() -> None:
+    """What an application can do is asked of its core (``core_has_estimate``, ``core_options``,
+    ``attributes``); only the identity cases of TL_IDENTITY compare against its name."""
+    found = set()
+    for path in _source_files():
+        if ENVS in path.parents:
+            continue
+        rel = path.relative_to(REPO_ROOT).as_posix()
+        for scope, node in _scoped_nodes(ast.parse(path.read_text())):
+            if not isinstance(node, ast.Compare):
+                continue
+            operands = [node.left, *node.comparators]
+            if any(isinstance(op, ast.Eq | ast.NotEq) for op in node.ops) and any(map(_names_tl, operands)):
+                key = (rel, scope.split(".<")[0])
+                assert key in TL_IDENTITY, f"{rel}:{node.lineno} ({scope}) compares with {TL!r}: ask the core"
+                found.add(key)
+    assert found == set(TL_IDENTITY), f"allowed but gone (drop from TL_IDENTITY): {set(TL_IDENTITY) - found}"
+
+
+def _assignments(name: str) -> list[tuple[str, ast.AST]]:
+    out = []
+    for path in [*_source_files(), *sorted((REPO_ROOT / "tests").rglob("*.py"))]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            targets = (node.targets if isinstance(node, ast.Assign)
+                       else [node.target] if isinstance(node, ast.AnnAssign) else [])
+            if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+                out.append((path.relative_to(REPO_ROOT).as_posix(), node.value))
+    return out
+
+
+def test_one_bundle_size_limit() -> None:
+    """The loader, the agents and the registry share one ceiling: a bundle the bridge fetches and
+    caches is one every agent accepts."""
+    defined = _assignments("MAX_BUNDLE_BYTES")
+    assert [where for where, _ in defined] == ["training/medc_training/untrusted.py"], defined
+    content = _assignments("MAX_CONTENT_BYTES")
+    assert [(where, ast.unparse(value)) for where, value in content] == [
+        ("ros_ws/src/medc_registry/medc_registry/cid.py", "MAX_BUNDLE_BYTES")
+    ]
+
+
+def test_one_printable_text_filter() -> None:
+    """Text from strangers is made printable by ``medc_training.untrusted.printable`` alone."""
+    filters = sorted(path.relative_to(REPO_ROOT).as_posix() for path in _source_files()
+                     if '<= "~"' in path.read_text() or "<= '~'" in path.read_text())
+    assert filters == ["training/medc_training/untrusted.py"]

@@ -16,7 +16,6 @@ from pathlib import Path
 import pytest
 import torch
 from bundle_forge import bomb_spec, conv, forge, nested, raw_header, spec_parts, valid_parts, with_raw_section
-from medc_training import bundle as bundle_mod
 from medc_training.bundle import (
     MAX_FORWARD_SECONDS,
     MAX_JSON_DEPTH,
@@ -28,6 +27,7 @@ from medc_training.bundle import (
     load_untrusted,
     read_manifest,
 )
+from medc_training.bundle import policy as bundle_mod
 from medc_training.cli.inspect import main as inspect_main
 from medc_training.nets import (
     MAX_ACTIVATION_BYTES,
@@ -323,9 +323,9 @@ def test_the_header_is_checked_before_the_rest_is_read(tmp_path, parts, monkeypa
     good = forge(tensors, manifest)
     reads: list[int] = []
     real_pread = os.pread
-    monkeypatch.setattr(bundle_mod.os, "pread", lambda fd, n, off: reads.append(n) or real_pread(fd, n, off))
-    big = 400 << 20
-    claim = tmp_path / "claim.safetensors"  # a header length over the limit, then 400 MiB (sparse)
+    monkeypatch.setattr(os, "pread", lambda fd, n, off: reads.append(n) or real_pread(fd, n, off))
+    big = 200 << 20  # under MAX_BUNDLE_BYTES: only the header decides
+    claim = tmp_path / "claim.safetensors"  # a header length over the limit, then 200 MiB (sparse)
     with claim.open("wb") as fh:
         fh.write(struct.pack("<Q", 2**40))
         fh.truncate(big)
@@ -333,7 +333,7 @@ def test_the_header_is_checked_before_the_rest_is_read(tmp_path, parts, monkeypa
         load_bundle(claim)
     assert sum(reads) == 8
     reads.clear()
-    trailing = tmp_path / "trailing.safetensors"  # a valid bundle followed by 400 MiB of zeros
+    trailing = tmp_path / "trailing.safetensors"  # a valid bundle followed by 200 MiB of zeros
     with trailing.open("wb") as fh:
         fh.write(good)
         fh.truncate(big)

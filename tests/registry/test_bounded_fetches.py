@@ -96,11 +96,11 @@ def _blocks(data: bytes, version: int = 0) -> dict[str, bytes]:
 
 
 # ----------------------------------------------------------------------------- limits are consistent
-def test_content_limit_is_the_bundle_loaders_ceiling():
+def test_content_limit_is_the_bundle_loaders_ceiling(tmp_path):
     from medc_training.bundle import MAX_BUNDLE_BYTES
 
     assert MAX_CONTENT_BYTES == MAX_BUNDLE_BYTES
-    assert LocalContentStore.__init__.__defaults__[-1] == MAX_CONTENT_BYTES
+    assert LocalContentStore(tmp_path).max_size == MAX_CONTENT_BYTES
     assert KuboContentStore("http://127.0.0.1:1").max_size == MAX_CONTENT_BYTES
 
 

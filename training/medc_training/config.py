@@ -79,8 +79,10 @@ class EnvironmentConfig:
 
     def env_attributes(self) -> dict:
         """The environment's descriptive features as stored in bundle manifests."""
+        from .envs import core_options
+
         attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
-        if self.env == "target_localization":
+        if "walls" in core_options(self.env):
             attrs["walls"] = self.walls
         attrs.update(self.env_options)
         return attrs

@@ -129,7 +129,6 @@ class OracleExpert(Expert):
 
     def __init__(self, env=None) -> None:
         self.env = env
-        self._cache_step: int | None = None
 
     def bind(self, env) -> OracleExpert:
         """Attach the batched environment whose agents this oracle advises; returns self."""

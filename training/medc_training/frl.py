@@ -112,9 +112,11 @@ class FederatedGroup:
         return self.focal.global_step
 
     def user_name(self, i: int) -> str:
-        """AyWz for target localization users, ``user<i>`` otherwise."""
+        """AyWz for users of an application with walls (target localization), ``user<i>`` otherwise."""
+        from .envs import core_options
+
         c = self.trainers[i].cfg
-        return f"A{c.agents}W{c.walls}" if c.env == "target_localization" else f"user{i}"
+        return f"A{c.agents}W{c.walls}" if "walls" in core_options(c.env) else f"user{i}"
 
     def evaluate(self) -> dict:
         """The focal user's evaluation (see Trainer.evaluate)."""

@@ -60,7 +60,6 @@ the policy head (near-uniform initial policy) and 1 for the value head; zero bia
 from __future__ import annotations
 
 import copy
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -68,6 +67,8 @@ from typing import Any
 
 import torch
 from torch import nn
+
+from medc_training.untrusted import printable
 
 LAYER_TYPES = ("conv2d", "maxpool2d", "relu", "tanh", "flatten", "linear", "heads")
 
@@ -115,10 +116,7 @@ def safe_repr(value: Any, limit: int = 40) -> str:
     log reader would interpret.
     """
     if isinstance(value, str):
-        clean = "".join(ch if " " <= ch <= "~" and ch not in "'\\\"" else "?" for ch in value[:limit + 1])
-        if len(clean) > limit:
-            clean = clean[:limit] + "..."
-        return f"'{clean}'"
+        return "'" + printable(value, limit, drop="'\\\"") + "'"
     if value is None or isinstance(value, bool):
         return repr(value)
     if isinstance(value, int | float):
@@ -555,8 +553,3 @@ def masked_logits(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         raise TypeError(f"mask must be a bool tensor (True = allowed), got {mask.dtype}")
     fill = max(_MASK_LOGIT, torch.finfo(logits.dtype).min / 2)
     return logits.masked_fill(~mask, fill)
-
-
-def spec_to_json(spec: Mapping[str, Any]) -> str:
-    """Canonical JSON text of a spec (sorted keys, no whitespace): equal specs give equal text."""
-    return json.dumps(spec, sort_keys=True, separators=(",", ":"))

@@ -19,7 +19,6 @@ it, :meth:`Trainer.evaluate` plays ``eval_episodes`` fixed episodes to their end
 from __future__ import annotations
 
 import random
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -351,10 +350,3 @@ class Trainer:
         self.follow_counts.zero_()
         self.expert_steps = 0
         return s
-
-
-def timed(fn, *args, **kwargs) -> tuple:
-    """(result, seconds) of one call."""
-    start = time.perf_counter()
-    result = fn(*args, **kwargs)
-    return result, time.perf_counter() - start

@@ -147,10 +147,11 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
 
 
 def observation_section(env) -> dict:
-    """``{"observation": {"name": ...}}`` for a bundle's manifest: always for target localization,
-    for the other applications only when they do not take the default 'maps'."""
+    """``{"observation": {"name": ...}}`` for a bundle's manifest: always for an application with
+    estimate views (target localization), for the others only when they do not take the default
+    'maps'."""
     name = getattr(env, "observation_name", "maps")
-    keep = name != "maps" or getattr(env, "name", None) == "target_localization"
+    keep = name != "maps" or getattr(env, "HAS_ESTIMATE", False)
     return {"observation": {"name": name}} if keep else {}
 
 

@@ -143,13 +143,14 @@ class Plan:
         marks a clone job done: a planned one always runs, and replaces its old training folder."""
         from ..bundle import BundleError, manifest_observation, read_manifest
         from ..dagger import CloneConfig
+        from ..envs import core_has_estimate
 
         target = self.models / folder / f"{name}.safetensors"
         grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                if env == "target_localization":
+                if core_has_estimate(env):  # the observation is the config's own field
                     wanted = self.base["observation"]
                 else:  # the observation is an env option of fleet coordination / maze cleaning
                     wanted = (env_options or {}).get("observation", "maps")

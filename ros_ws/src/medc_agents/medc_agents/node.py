@@ -28,6 +28,7 @@ from medc_interfaces.srv import FetchBundle
 from medc_training.bundle import MAX_FORWARD_SECONDS
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
+from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
@@ -54,8 +55,7 @@ def _reason(exc: BaseException) -> str:
     """What a refusal says: the PolicyRejected text, or just the type of an unexpected error;
     printable ASCII only and bounded, as it goes to the log, /rosout and the caller."""
     text = str(exc) if isinstance(exc, PolicyRejected) else f"could not be loaded ({type(exc).__name__})"
-    clean = "".join(ch if " " <= ch <= "~" else "?" for ch in text[:2001])
-    return clean if len(clean) <= 2000 else clean[:2000] + "..."
+    return printable(text, 2000)
 
 
 def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) -> tuple[int, int, str]:

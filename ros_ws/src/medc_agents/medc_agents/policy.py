@@ -15,9 +15,7 @@ from pathlib import Path
 
 import torch
 from medc_training.envs.tl_sensing import DEFAULT_SENSING
-
-#: A bundle is a few MB at most; refuse anything far larger before reading it.
-MAX_BUNDLE_BYTES = 256 * 1024 * 1024
+from medc_training.untrusted import MAX_BUNDLE_BYTES, printable
 
 _CID = re.compile(r"^(ipfs://|cid:)?(Qm[1-9A-HJ-NP-Za-km-z]{44}|b[a-z2-7]{20,})$")
 
@@ -35,8 +33,7 @@ def shown(source: object) -> str:
     """A policy source as messages and logs show it: printable ASCII only, quoted, at most 200
     characters (a topic message or a parameter is anyone's text)."""
     text = source if isinstance(source, str) else repr(source)
-    clean = "".join(ch if " " <= ch <= "~" and ch not in "'\\" else "?" for ch in text[:201])
-    return f"'{clean[:200]}...'" if len(clean) > 200 else f"'{clean}'"
+    return "'" + printable(text, 200, drop="'\\") + "'"
 
 
 def strip_cid(source: str) -> str:
@@ -146,6 +143,7 @@ def read_policy_manifest(source) -> dict:
 def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
                  sensing=None) -> LoadedPolicy:
     from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, check_sensing, load_untrusted
+    from medc_training.envs import core_options
     from medc_training.experts import BundleExpert, ExpertError
 
     path = _bundle_path(source)
@@ -159,7 +157,7 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
                                               application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
-    if sensing is not None and bundle.manifest.get("application") == "target_localization":
+    if sensing is not None and "sensing" in core_options(bundle.manifest.get("application")):
         try:
             check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
         except BundleError as exc:

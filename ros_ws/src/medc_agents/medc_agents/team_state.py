@@ -34,6 +34,7 @@ from medc_common.contract import (
     MAP_FRAME,
     OCCUPIED_THRESHOLD,
     GridGeometry,
+    agent_ids,
     agent_index,
     geometry_of,
     occupancy_to_walls,
@@ -117,15 +118,6 @@ def xy_from_pose(msg) -> tuple[float, float]:
     return x, y
 
 
-def cell_from_pose(msg, geometry: GridGeometry) -> tuple[int, int]:
-    """Environment cell (row, col) of a geometry_msgs/PoseStamped in the map frame.
-
-    Raises:
-        ValueError: wrong frame, non-finite or off-grid position.
-    """
-    return geometry.xy_to_cell(*xy_from_pose(msg))
-
-
 def show_stamp(key: int) -> str:
     """A stamp key (integer ns) as ``sec.nanosec`` seconds."""
     return f"{key // 1_000_000_000}.{key % 1_000_000_000:09d}"
@@ -177,7 +169,7 @@ class TeamObserver:
         self.agent_id = agent_id
         self.num_agents = num_agents
         self.index = agent_index(agent_id, num_agents)
-        self.ids = [f"agent_{i}" for i in range(num_agents)]
+        self.ids = agent_ids(num_agents)
         self.height = self.width = grid
         self.resolution = float(resolution)
         self._deltas = action_deltas("cpu")
@@ -274,7 +266,7 @@ class TeamObserver:
     def add_status(self, msg) -> Tick | None:
         """Take an EpisodeStatus; returns the tick to answer, or None (episode end).
 
-        The returned tick may be one already answered (:meth:`answered`): a re-sent step.
+        The returned tick may be one already answered (:meth:`answered_tick`): a re-sent step.
 
         Raises:
             ValueError: the status lists another team, or is for an older step of the episode
@@ -301,10 +293,6 @@ class TeamObserver:
         for step 0, the same stamp: a step 0 with a new stamp is a new start)."""
         same = (t.episode, t.map_stamp, t.step) == (self.mem_episode, self.mem_map, self.mem_step)
         return same and (t.step != 0 or t.stamp == self.mem_stamp)
-
-    def answered(self, episode: int, step: int) -> bool:
-        """This agent already observed (and so decided) (episode, step) of the episode in memory."""
-        return (episode, step) == (self.mem_episode, self.mem_step)
 
     def _cells(self, t: Tick) -> list[tuple[int, int]] | None:
         xys = self._positions.get(t.stamp)

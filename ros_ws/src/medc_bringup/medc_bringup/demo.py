@@ -29,17 +29,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from medc_common.ros_env import repo_root
+
 ETHER = 10**18
 PRICE_WEI = ETHER // 100  # 0.01 ETH per allocated model
 APPLICATION = "target_localization"
-
-
-def _repo_root() -> Path:
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        if (parent / "models").is_dir() and (parent / "training").is_dir():
-            return parent
-    raise RuntimeError("cannot find the MEDC repository root (models/ and training/) above " + str(here))
 
 
 class Narrator:
@@ -214,7 +208,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from medc_training.qos import selection_weights
     from medc_training.runner import run_training
 
-    root = _repo_root()
+    root = repo_root()
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, args.threads))

@@ -182,6 +182,7 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
         ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
         fit the scenario's observation shape or sensing preset.
     """
+    from medc_common import contract
     from medc_common.contract import agent_index
 
     root = repo_root() if root is None else root
@@ -201,7 +202,7 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
                 "(see models/README.md) or pass --policy PATH"
             )
         for i in range(cfg.agents):
-            own = [b for b in bundles if f"agent_{i}" in b.stem or f"agent{i}" in b.stem]
+            own = [b for b in bundles if contract.agent_id(i) in b.stem or f"agent{i}" in b.stem]
             paths.append(str(own[0] if own else bundles[0]))
     else:
         paths = [str(base)] * cfg.agents
@@ -237,9 +238,11 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
 
 def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, Any]:
     """Parameters of agent node ``index`` for ``cfg``."""
+    from medc_common.contract import agent_id
+
     return {
         "namespace": cfg.namespace,
-        "agent_id": f"agent_{index}",
+        "agent_id": agent_id(index),
         "agents": cfg.agents,
         "grid": cfg.grid,
         "resolution": cfg.resolution,

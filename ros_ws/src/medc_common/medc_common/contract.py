@@ -50,11 +50,16 @@ RESULTS_QOS = QoSProfile(
 AGENT_ID_PATTERN = re.compile(r"^agent_(\d+)$")
 
 
+def agent_id(index: int) -> str:
+    """The id of the agent at env index ``index``: ``agent_<index>``."""
+    return f"agent_{index}"
+
+
 def agent_ids(num_agents: int) -> list[str]:
     """The ids of a team of ``num_agents``: ``agent_0`` .. ``agent_{n-1}`` (env agent order)."""
     if num_agents < 1:
         raise ValueError(f"num_agents must be >= 1, got {num_agents}")
-    return [f"agent_{i}" for i in range(num_agents)]
+    return [agent_id(i) for i in range(num_agents)]
 
 
 def agent_index(agent_id: str, num_agents: int) -> int:

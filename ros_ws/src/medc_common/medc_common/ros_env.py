@@ -27,11 +27,21 @@ class RosEnvironmentError(RuntimeError):
 
 
 def repo_root() -> Path:
-    """The repository root: ``$MEDC_ROOT`` or the checkout this package is installed from."""
+    """The repository root: ``$MEDC_ROOT`` when set, else the checkout this package runs from (the
+    first folder above this file holding ``training/`` and ``ros_ws/``). The one finder the
+    launcher, the demo and the contract compiler share.
+
+    Raises:
+        RuntimeError: MEDC_ROOT is not set and this file is not inside a checkout.
+    """
     env = os.environ.get("MEDC_ROOT")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[4]
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "training").is_dir() and (parent / "ros_ws").is_dir():
+            return parent
+    raise RuntimeError(f"cannot find the MEDC repository above {here}; set MEDC_ROOT to the checkout")
 
 
 def interfaces_prefix() -> Path:

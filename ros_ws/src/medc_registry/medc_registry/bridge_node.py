@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from medc_common.ros_env import require_interfaces
+from medc_training.untrusted import printable
 
 
 class BridgeError(ValueError):
@@ -267,7 +268,7 @@ def bridge_node_class():
             except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
                 reason = (str(exc) if isinstance(exc, BridgeError)
                           else f"internal error ({type(exc).__name__})")
-                reason = "".join(ch if " " <= ch <= "~" else "?" for ch in reason[:2000])
+                reason = printable(reason, 2000)
                 res.ok, res.message = False, reason
                 self.get_logger().warning(f"fetch_bundle refused: {reason}")
                 return res

@@ -19,14 +19,17 @@ import hashlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+from medc_training.untrusted import MAX_BUNDLE_BYTES
+
 CHUNK_SIZE = 262_144
 MAX_LINKS = 174
 #: Longest CID text accepted (a sha2-256 CID is 46-62 characters; the contract stores at most
 #: 128). Checked before any decoding, so parsing is linear and instant on any input.
 MAX_CID_LENGTH = 128
-#: Largest content fetched or assembled: the policy bundle loader's file-size ceiling
-#: (``medc_training.bundle.MAX_BUNDLE_BYTES``, 512 MiB; a test keeps the two equal).
-MAX_CONTENT_BYTES = 512 << 20
+#: Largest content fetched or assembled: the policy bundles' ceiling
+#: (:data:`medc_training.untrusted.MAX_BUNDLE_BYTES`), so nothing is fetched and cached that the
+#: agents would then refuse.
+MAX_CONTENT_BYTES = MAX_BUNDLE_BYTES
 #: Largest single block read from a node (Kubo's bitswap limit is 2 MiB).
 MAX_BLOCK_BYTES = 2 << 20
 

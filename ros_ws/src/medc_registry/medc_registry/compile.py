@@ -13,11 +13,12 @@ bytecode depends only on the code, not on comments or file paths.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from medc_common.ros_env import repo_root
 
 SOLC_VERSION = "0.8.28"
 EVM_VERSION = "cancun"
@@ -35,17 +36,6 @@ SOURCES = {
 
 class CompileError(RuntimeError):
     """The Solidity compiler is missing or reported errors."""
-
-
-def repo_root() -> Path:
-    """The MEDC repository root (``$MEDC_ROOT`` or found from this file's location)."""
-    env = os.environ.get("MEDC_ROOT")
-    if env and (Path(env) / "contracts").is_dir():
-        return Path(env)
-    for parent in Path(__file__).resolve().parents:
-        if (parent / "contracts" / "src").is_dir():
-            return parent
-    raise CompileError("cannot find the MEDC repository (set MEDC_ROOT to the checkout)")
 
 
 def contracts_dir() -> Path:

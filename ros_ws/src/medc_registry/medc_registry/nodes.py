@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+from medc_common.ros_env import repo_root
 
-from .compile import EVM_VERSION, repo_root
+from .compile import EVM_VERSION
 
 
 class NodeError(RuntimeError):

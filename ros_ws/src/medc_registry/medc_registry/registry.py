@@ -384,13 +384,14 @@ def bundle_summary(data: bytes) -> dict[str, Any]:
     manifest (the weights are never decoded): the observation variant it takes and its
     architecture. {} for bytes that are not a policy bundle (the registry stores any file)."""
     from medc_training.bundle import BundleError, manifest_observation, read_manifest
+    from medc_training.envs import core_has_estimate
 
     try:
         manifest = read_manifest(data)
     except BundleError:
         return {}
     out: dict[str, Any] = {"architecture": manifest["architecture"].get("name", "?")}
-    if manifest["application"] == "target_localization":
+    if core_has_estimate(manifest["application"]):
         out["observation"] = manifest_observation(manifest)
     return out
 

@@ -101,7 +101,6 @@ class SimNode(Node):
         self._step_t0: float | None = None
         #: Seconds from publishing a step to receiving the team's last move, per step (latest 100k).
         self.latencies: deque[float] = deque(maxlen=100_000)
-        self._last_step_at = 0.0
 
         ns = self.namespace_
         self.pose_pubs = [
@@ -240,7 +239,6 @@ class SimNode(Node):
         if self.finished:
             return
         result = self.core.advance(self.book.actions())
-        self._last_step_at = time.monotonic()
         if result.finished is not None:
             self._publish_done(result.finished)
             for listener in self.episode_listeners:

@@ -1,0 +1,320 @@
+"""The bundle manifest: its schema, how a saved bundle's manifest is completed, and how a stored
+one is validated (every claim cross-checked against the others and against the architecture).
+
+What an application's observations are is asked of its environment core
+(:func:`medc_training.envs.core_has_estimate`), never decided by its name.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import subprocess
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import medc_training
+from medc_training.bundle.fileformat import BundleError
+from medc_training.envs import ENV_NAMES, core_has_estimate
+from medc_training.nets import ActorCritic, SpecError, safe_names, safe_repr, validate_spec
+
+FORMAT = "medc-policy-bundle"
+FORMAT_VERSION = 1
+
+# A bundle for an application this code does not know cannot be run by it, so it is rejected
+# rather than guessed at.
+KNOWN_APPLICATIONS: tuple[str, ...] = tuple(ENV_NAMES)
+_MANIFEST_KEYS = {
+    "format", "format_version", "application", "description", "environment", "observation",
+    "actions", "architecture", "training", "metrics",
+}
+
+
+def _has_estimate(app: Any) -> bool:
+    """Whether ``app`` is a known application whose observation views include the team's source
+    estimate: its bundles always name their view (those made before view names took 'maps'), and
+    the view fixes the channels (``medc_training.envs.tl_observation``)."""
+    return app in KNOWN_APPLICATIONS and core_has_estimate(app)
+
+
+def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """``manifest`` with the format, architecture, observation, actions and provenance filled in."""
+    if not isinstance(manifest, Mapping):
+        raise BundleError(f"manifest must be a dict, got {type(manifest).__name__}")
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS, key=str)
+    if unknown:
+        raise BundleError(f"manifest: unknown keys {safe_names(unknown)}; allowed: {sorted(_MANIFEST_KEYS)}")
+    try:
+        full: dict[str, Any] = json.loads(json.dumps(dict(manifest)))  # deep copy; proves JSON-able
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"manifest must hold JSON values only (str, int, float, bool, None, lists, "
+                          f"dicts): {exc}") from None
+    app = full.get("application")
+    c, h, w = net.obs_shape
+    default_channels, default_actions = _env_names(app)
+    full["format"] = FORMAT
+    full["format_version"] = FORMAT_VERSION
+    full["architecture"] = net.spec
+    obs = dict(full.get("observation") or {})
+    if _has_estimate(app):
+        spec = _observation_spec(obs.get("name", "maps"))
+        obs["name"] = spec.name
+        obs.setdefault("channel_names", list(spec.channels))
+    elif obs.get("name", "maps") != "maps" and default_channels is not None:
+        # An agent-centred window (fleet, maze): channel 0 marks the cells off the grid.
+        default_channels = ["off_grid", *default_channels[1:]]
+    obs.setdefault("channels", c)
+    obs.setdefault("height", h)
+    obs.setdefault("width", w)
+    if default_channels is None or len(default_channels) != c:
+        default_channels = [f"channel_{i}" for i in range(c)]
+    obs.setdefault("channel_names", default_channels)
+    full["observation"] = obs
+    if default_actions is None or len(default_actions) != net.num_actions:
+        default_actions = [f"action_{i}" for i in range(net.num_actions)]
+    full.setdefault("actions", default_actions)
+    full.setdefault("environment", {})
+    # A metric that was not measured (NaN) is stored as null: strict JSON has no NaN.
+    metrics = full.setdefault("metrics", {})
+    if isinstance(metrics, dict):
+        full["metrics"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                           for k, v in metrics.items()}
+    training = dict(full.get("training") or {})
+    training.setdefault("code_version", medc_training.__version__)
+    if "git_commit" not in training:
+        training["git_commit"] = _git_commit()
+    full["training"] = training
+    return validate_manifest(full)
+
+
+def manifest_observation(manifest: Mapping[str, Any]) -> str | None:
+    """The observation variant a validated manifest's model takes: its ``observation.name``; for
+    an application with estimate views (target localization) 'maps' when the manifest predates
+    variants; None for another application's manifest without a name (its absolute maps)."""
+    name = manifest["observation"].get("name")
+    if name is None and _has_estimate(manifest.get("application")):
+        return "maps"
+    return None if name is None else str(name)
+
+
+def manifest_sensing(manifest: Mapping[str, Any]) -> str:
+    """The sensing preset a validated target-localization manifest's model was trained under: its
+    ``environment.sensing`` (the core records it when it is not the default), 'paper-simple' when
+    the manifest names none (every bundle made before the presets).
+
+    Raises:
+        BundleError: ``environment.sensing`` is not the name of a preset
+        (:data:`medc_training.envs.tl_sensing.SENSING_PRESETS`).
+    """
+    from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
+
+    name = (manifest.get("environment") or {}).get("sensing", DEFAULT_SENSING)
+    if not isinstance(name, str) or name not in SENSING_PRESETS:
+        raise BundleError(f"manifest: environment.sensing is {safe_repr(name)}, not one of "
+                          f"{', '.join(sorted(SENSING_PRESETS))}")
+    return name
+
+
+def check_sensing(manifest: Mapping[str, Any], sensing: str, what: str = "this bundle") -> None:
+    """Refuse a target-localization bundle trained under another sensing preset than ``sensing``
+    (the team's). Raises BundleError naming both presets; ``what`` names the bundle in it."""
+    from medc_training.envs.tl_sensing import parse_sensing
+
+    mine = manifest_sensing(manifest)
+    team = parse_sensing(sensing).name
+    if mine != team:
+        raise BundleError(
+            f"{what} was trained under the sensing model {mine!r}, but this team senses with {team!r}; "
+            f"use a bundle trained with sensing {team!r} (environment.sensing in its manifest; none "
+            f"means 'paper-simple'), or run the team with sensing {mine!r}"
+        )
+
+
+def _grid_task_side(name: Any, grid: int) -> int:
+    """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
+    from medc_training.envs.observation import parse_observation
+
+    try:
+        spec = parse_observation(name)
+    except ValueError:  # its message holds the name: do not echo it
+        spec = None
+    if spec is None or spec.estimate:
+        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application")
+    return spec.side(grid)
+
+
+def _observation_spec(name: Any):
+    from medc_training.envs.observation import parse_observation
+
+    try:
+        return parse_observation(name)
+    except ValueError:
+        raise BundleError("manifest: observation.name is not an observation variant this code knows "
+                          "(maps, maps+estimate, egoR, egoR+estimate)") from None
+
+
+def _env_names(app: Any) -> tuple[list[str] | None, list[str] | None]:
+    """The application's observation channel and action names, from its environment module.
+
+    Each environment module ``medc_training.envs.<application>`` may define ``CHANNELS`` and
+    ``ACTION_NAMES``; the environment is the single source of truth for what its indices mean.
+    """
+    if app not in KNOWN_APPLICATIONS:
+        return None, None  # validate_manifest reports the unknown application
+    try:
+        module = importlib.import_module(f"medc_training.envs.{app}")
+    except ModuleNotFoundError:
+        return None, None
+    channels = getattr(module, "CHANNELS", None)
+    actions = getattr(module, "ACTION_NAMES", None)
+    return (list(channels) if channels else None), (list(actions) if actions else None)
+
+
+def _git_commit() -> str | None:
+    """HEAD of the repository this code runs from, or None when it is not a git checkout."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+            capture_output=True, text=True, timeout=5, check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = out.stdout.strip()
+    return commit if out.returncode == 0 and len(commit) == 40 else None
+
+
+def _is_scalar(value: Any) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return value is None or isinstance(value, str | int | bool)
+
+
+def _check_int(value: Any, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise BundleError(f"manifest: {what} must be a positive integer, got {safe_repr(value)}")
+    return value
+
+
+def _check_names(value: Any, count: int, what: str) -> None:
+    if not isinstance(value, list) or not all(isinstance(n, str) and n for n in value):
+        raise BundleError(f"manifest: {what} must be a list of non-empty strings")
+    if len(value) != count:
+        raise BundleError(f"manifest: {what} lists {len(value)} names but the network has {count}")
+    if len(set(value)) != len(value):
+        raise BundleError(f"manifest: {what} has duplicate names")
+
+
+def validate_manifest(manifest: Any) -> dict[str, Any]:
+    """Check a complete manifest (as stored in a bundle); return it with a normalised architecture.
+
+    Cross-checks the claims against each other: the observation shape and the action count must
+    be the architecture's, a ``grid`` environment attribute must match the observation's size, and
+    the application must be one this code knows.
+    """
+    _check_keys(manifest)
+    _check_format(manifest)
+    app = _check_application(manifest)
+    _check_sections(manifest)
+    try:
+        spec = validate_spec(manifest["architecture"])
+    except SpecError as exc:
+        raise BundleError(f"manifest: invalid architecture: {exc}") from None
+    shape = _check_shapes(manifest, spec)
+    _check_view(app, manifest["observation"], shape, manifest["environment"].get("grid"))
+    out = dict(manifest)
+    out["architecture"] = spec
+    return out
+
+
+def _check_keys(manifest: Any) -> None:
+    if not isinstance(manifest, dict):
+        raise BundleError(f"manifest must be a JSON object, got {type(manifest).__name__}")
+    unknown = sorted(set(manifest) - _MANIFEST_KEYS, key=str)
+    if unknown:
+        raise BundleError(f"manifest: unknown keys {safe_names(unknown)}; allowed: {sorted(_MANIFEST_KEYS)}")
+    missing = sorted(_MANIFEST_KEYS - {"description"} - set(manifest))
+    if missing:
+        raise BundleError(f"manifest: missing keys {missing}")
+
+
+def _check_format(manifest: dict[str, Any]) -> None:
+    if manifest["format"] != FORMAT:
+        raise BundleError(f"manifest: format is {safe_repr(manifest['format'])}, expected {FORMAT!r}")
+    version = manifest["format_version"]
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise BundleError(f"manifest: format_version must be an integer, got {safe_repr(version)}")
+    if version != FORMAT_VERSION:
+        newer = " (written by a newer medc_training; upgrade to load it)" if version > FORMAT_VERSION else ""
+        raise BundleError(f"manifest: format_version {version} is not supported, expected "
+                          f"{FORMAT_VERSION}{newer}")
+
+
+def _check_application(manifest: dict[str, Any]) -> str:
+    app = manifest["application"]
+    if app not in KNOWN_APPLICATIONS:
+        raise BundleError(f"manifest: unknown application {safe_repr(app)}; known: "
+                          f"{', '.join(KNOWN_APPLICATIONS)}")
+    if "description" in manifest and not isinstance(manifest["description"], str):
+        raise BundleError("manifest: description must be a string")
+    return app
+
+
+def _check_sections(manifest: dict[str, Any]) -> None:
+    """environment, training and metrics are objects; environment attributes (they feed the
+    registry's distance D_m) and metrics are flat scalars."""
+    for section in ("environment", "training", "metrics"):
+        value = manifest[section]
+        if not isinstance(value, dict):
+            raise BundleError(f"manifest: {section} must be an object, got {type(value).__name__}")
+        if section == "training":
+            continue
+        for key, item in value.items():
+            if _is_scalar(item):
+                continue
+            if section == "environment":
+                raise BundleError(f"manifest: environment.{safe_repr(key)[1:-1]} must be a finite number, "
+                                  f"bool or string, got {safe_repr(item)}")
+            raise BundleError(f"manifest: metrics.{safe_repr(key)[1:-1]} must be a finite number, bool, "
+                              "string or null")
+
+
+def _check_shapes(manifest: dict[str, Any], spec: dict[str, Any]) -> tuple[int, int, int]:
+    """The observation's (channels, height, width): the architecture's input; channel and action
+    names as many as the network has."""
+    obs = manifest["observation"]
+    keys = {"channels", "height", "width", "channel_names"}
+    if not isinstance(obs, dict) or not keys <= set(obs) <= keys | {"name"}:
+        raise BundleError("manifest: observation must be {channels, height, width, channel_names[, name]}")
+    shape = tuple(_check_int(obs[k], f"observation.{k}") for k in ("channels", "height", "width"))
+    net_shape = (spec["input"]["channels"], spec["input"]["height"], spec["input"]["width"])
+    if shape != net_shape:
+        raise BundleError(f"manifest: observation shape {list(shape)} does not match the architecture's "
+                          f"input {list(net_shape)}")
+    _check_names(obs["channel_names"], shape[0], "observation.channel_names")
+    _check_names(manifest["actions"], spec["layers"][-1]["num_actions"], "actions")
+    return shape
+
+
+def _check_view(app: str, obs: dict[str, Any], shape: tuple[int, int, int], grid: Any) -> None:
+    """The observation's name (its view), channels and size agree with the environment's grid."""
+    name = obs.get("name")
+    has_grid = isinstance(grid, int) and not isinstance(grid, bool)
+    if name is not None and _has_estimate(app):
+        ospec = _observation_spec(name)
+        if list(obs["channel_names"]) != list(ospec.channels):
+            raise BundleError(f"manifest: observation {ospec.name} has channels {list(ospec.channels)}, "
+                              "but channel_names differ")
+        if has_grid and ospec.shape(grid) != shape:
+            raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
+                              f"{shape[1]}x{shape[2]} with {shape[0]} channels; "
+                              f"{ospec.name} on that grid is {list(ospec.shape(grid))}")
+    elif name is not None:
+        side = _grid_task_side(name, grid if has_grid else shape[1])
+        if (shape[1], shape[2]) != (side, side):
+            raise BundleError(f"manifest: observation {safe_repr(name)} is {side}x{side} here, but the "
+                              f"bundle declares {shape[1]}x{shape[2]}")
+    elif grid is not None and (grid != shape[1] or grid != shape[2]):
+        raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
+                          f"{shape[1]}x{shape[2]}")
