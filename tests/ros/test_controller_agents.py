@@ -31,8 +31,10 @@ IDS = ["agent_0", "agent_1", "agent_2"]
 GEO10 = GridGeometry(10, 10, 1.0)
 
 
-@pytest.mark.parametrize(("name", "sensing", "noise"),
-                         [(name, "realistic", None) for name in CONTROLLERS] + [("gradient", "paper-simple", True)])
+@pytest.mark.parametrize(
+    ("name", "sensing", "noise"),
+    [(name, "realistic", None) for name in CONTROLLERS] + [("gradient", "paper-simple", True)],
+)
 def test_agent_controller_move_equals_the_batched_core(name, sensing, noise):
     """Play episodes with the controller in a SimCore and in the batched core (posterior kept), feeding
     the simulator's messages to one TeamObserver per agent: at every step each agent's controller
@@ -185,7 +187,8 @@ def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
             names[0] = "infotaxis" if i > infotaxis_at else None if i == infotaxis_at else "greedy"
             for j, name in enumerate(names):
                 if name is not None:
-                    assert actions[j] == int(controller_scores(name, ref)[0, j].argmax()), f"step {i} agent {j}"
+                    want = int(controller_scores(name, ref)[0, j].argmax())
+                    assert actions[j] == want, f"step {i} agent {j}"
             checked += 1
         ref.step(torch.tensor([actions]))
     assert checked >= 20

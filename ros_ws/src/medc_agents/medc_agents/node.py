@@ -8,8 +8,9 @@ The policy is a bundle path or a classical controller's name (``gradient``, ``gr
 ``infotaxis``: the node then decides its move with the controller's function on its team state,
 medc_agents.controller; start it with the ``agents`` and ``grid`` parameters, as there is no
 manifest). It is swapped at runtime by setting the ``policy`` parameter or by publishing a bundle
-path or a controller's name on the policy topics. A content id on the policy topic is passed to the registry bridge's
-``fetch_bundle`` service, which verifies the bundle and sends back its local path. A bundle that
+path or a controller's name on the policy topics. A content id on the policy topic is passed to
+the registry bridge's ``fetch_bundle`` service, which verifies the bundle and sends back its local
+path. A bundle that
 fails validation is refused (the parameter set fails with the reason) and the old one keeps
 running. No file and no message can take the node down: every exception of a swap (a
 RecursionError or MemoryError from a hostile file included) ends as a logged refusal.
