@@ -192,3 +192,23 @@ def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
             checked += 1
         ref.step(torch.tensor([actions]))
     assert checked >= 20
+
+
+@pytest.mark.ros
+def test_medc_launch_runs_a_controller_team_by_name(tmp_path):
+    """`medc-launch --policy greedy`: a team of controller agents plays the evaluator's episodes."""
+    import json
+
+    episodes = 5
+    lengths, successes, _ = controller_reference_episodes("greedy", episodes, **SCENARIO)
+    config = tmp_path / "launch.yaml"
+    config.write_text(json.dumps(SCENARIO))  # JSON is YAML
+    launcher = Path(sys.executable).parent / "medc-launch"
+    out = subprocess.run([str(launcher), "--config", str(config), "--policy", "greedy", "--episodes",
+                          str(episodes), "--in-process", "--timeout", "100"],
+                         capture_output=True, text=True, timeout=150)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["config"]["policies"] == ["greedy"] * 3
+    assert result["episode_lengths"] == lengths and result["successes"] == successes
+    assert sum(successes) > 0
