@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 from builtin_interfaces.msg import Time
-from medc_agents.controller import controller_move, controller_name, team_scores
+from medc_agents.controller import controller_move, controller_name, own_scores, team_scores
 from medc_agents.node import scenario_from_bundle
 from medc_agents.policy import PolicyRejected, PolicySlot
 from medc_agents.team_state import TeamObserver
@@ -64,6 +64,8 @@ def test_agent_controller_move_equals_the_batched_core(name, sensing, noise):
             ours = team_scores(name, o, noise=bool(noise))
             valid = ref.mask
             assert torch.equal(ours[valid], expected[valid])
+            # The agent's own row, computed alone, is the team's row i.
+            assert torch.equal(own_scores(name, o, noise=bool(noise))[mask], expected[0, i][mask])
             actions.append(controller_move(name, o, mask, noise=bool(noise)))
         assert actions == want, f"step {steps}: agents chose {actions}, the core {want}"
         kinds.update(want)

@@ -60,17 +60,20 @@ class TeamView:
     observation_name: str = "maps+estimate"
 
 
-def team_view(observer, noise: bool = False) -> TeamView:
+def team_view(observer, noise: bool = False, agents: slice | None = None) -> TeamView:
     """The :class:`TeamView` of ``observer``'s last observed step (after
     :meth:`~medc_agents.team_state.TeamObserver.observe`). ``noise``: the readings are Poisson counts
-    (the simulator's ``noise``; always so under a sensing preset that counts them).
+    (the simulator's ``noise``; always so under a sensing preset that counts them). ``agents``: only
+    these agents' positions and masks (the team memory, which holds every agent's readings, stays
+    whole).
 
     Raises:
         RuntimeError: the observer has observed no step yet.
     """
     if observer.positions is None:
         raise RuntimeError("no team step observed yet")
-    return TeamView(observer.memory, observer.positions, observer.walls, observer.team_mask,
+    rows = slice(None) if agents is None else agents
+    return TeamView(observer.memory, observer.positions[:, rows], observer.walls, observer.team_mask[:, rows],
                     bool(noise) or observer.sensing.noise)
 
 
@@ -81,15 +84,24 @@ def team_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
         return controller_scores(name, team_view(observer, noise))
 
 
+def own_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
+    """float32 [8]: this agent's row (``observer.index``) of :func:`team_scores`. The controllers
+    decide each agent's move independently, from the same team state, so the row is computed alone
+    (the team's other N - 1 rows, which this agent does not use, are not)."""
+    i = observer.index
+    with torch.no_grad():
+        return controller_scores(name, team_view(observer, noise, slice(i, i + 1)))[0, 0]
+
+
 def controller_move(name: str, observer, mask: torch.Tensor | None = None, noise: bool = False) -> int:
     """This agent's move (an action index) under controller ``name``: the argmax of its own row
-    (``observer.index``) of :func:`team_scores`, masked by ``mask`` bool [8] (default: the
-    observer's own move mask) as a bundle's move is.
+    (``observer.index``) of the team's scores (:func:`own_scores`), masked by ``mask`` bool [8]
+    (default: the observer's own move mask) as a bundle's move is.
 
     Raises:
         ValueError: an unknown controller name. RuntimeError: no step observed yet.
     """
-    scores = team_scores(name, observer, noise)[0, observer.index]
+    scores = own_scores(name, observer, noise)
     if mask is None:
         mask = observer.team_mask[0, observer.index]
     return int(scores.masked_fill(~mask.to(torch.bool), float("-inf")).argmax())
