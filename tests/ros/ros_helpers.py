@@ -6,15 +6,56 @@ from pathlib import Path
 
 
 def training_env(*, seed: int, agents: int, walls: int, grid: int, max_steps: int, observation: str = "maps",
-                 sensing: str | None = None):
+                 sensing: str | None = None, posterior: bool = False):
     """The target-localization core (B = 1) that the simulator node runs, producing the observation a
-    policy takes: noise-free, or under ``sensing`` (a preset name) with that preset's noise."""
+    policy takes: noise-free, or under ``sensing`` (a preset name) with that preset's noise.
+    ``posterior``: its team memory keeps the source posterior (what a classical controller reads)."""
     from medc_training.envs import make_batched
 
     extra = {"noise": False} if sensing is None else {"sensing": sensing, "noise": None}
     return make_batched("target_localization", num_envs=1, device="cpu", seed=seed, agents=agents,
                         walls=walls, grid=grid, max_steps=max_steps, reward_shaping=False,
-                        observation=observation, **extra)
+                        observation=observation, posterior=posterior, **extra)
+
+
+def controller_reference_episodes(name: str, episodes: int, *, seed: int, agents: int, walls: int, grid: int,
+                                  max_steps: int, sensing: str | None = None):
+    """Play ``episodes`` with the training environment and classical controller ``name`` (greedy),
+    through the evaluator's play loop: returns (lengths, successes, trace) as
+    :func:`reference_episodes` does."""
+    from medc_training.controllers import controller_policy
+
+    env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps, sensing=sensing,
+                       posterior=True)
+    return _play_traced(env, controller_policy(name, env), episodes, seed)
+
+
+def _play_traced(env, policy, episodes: int, seed: int):
+    from medc_training.evaluate import play
+
+    trace: list[tuple[int, int, list[int]]] = []
+    clock = {"episode": 0, "step": 0}
+
+    def record(actions, out) -> None:
+        trace.append((clock["episode"], clock["step"], [int(a) for a in actions[0]]))
+        clock["step"] += 1
+        if bool(out.done[0]):
+            clock["episode"], clock["step"] = clock["episode"] + 1, 0
+
+    played = play(env, policy, episodes=episodes, greedy=True, seed=seed, on_step=record)
+    return list(played.lengths), list(played.successes), trace
+
+
+def feed_step(observers, core, stamp, map_stamp, ids, geometry) -> None:
+    """Hand every observer the poses, readings and status of ``core``'s current step, as the
+    simulator node's messages (agent ids ``ids``, map geometry ``geometry``)."""
+    from medc_sim import messages
+
+    for o in observers:
+        for j, (cell, value) in enumerate(zip(core.positions(), core.readings())):
+            o.add_pose(ids[j], messages.pose_msg(cell, stamp, geometry))
+            o.add_reading(ids[j], messages.reading_msg(ids[j], value, 0.0, stamp))
+        o.add_status(messages.status_msg(ids, core.episode, core.step, stamp, map_stamp))
 
 
 def reference_episodes(
@@ -27,23 +68,12 @@ def reference_episodes(
     Returns (lengths, successes, trace) with trace = [(episode, step, actions)] like SimCore.trace.
     """
     from medc_training.bundle import load_bundle
-    from medc_training.evaluate import net_policy, play
+    from medc_training.evaluate import net_policy
 
     policy = load_bundle(bundle)
     env = training_env(seed=seed, agents=agents, walls=walls, grid=grid, max_steps=max_steps,
                        observation=policy.observation, sensing=sensing)
-    trace: list[tuple[int, int, list[int]]] = []
-    clock = {"episode": 0, "step": 0}
-
-    def record(actions, out) -> None:
-        trace.append((clock["episode"], clock["step"], [int(a) for a in actions[0]]))
-        clock["step"] += 1
-        if bool(out.done[0]):
-            clock["episode"], clock["step"] = clock["episode"] + 1, 0
-
-    played = play(env, net_policy(policy.net, policy.device), episodes=episodes, greedy=True, seed=seed,
-                  on_step=record)
-    return list(played.lengths), list(played.successes), trace
+    return _play_traced(env, net_policy(policy.net, policy.device), episodes, seed)
 
 
 def spin_until(executor, condition, timeout_s: float) -> bool:

@@ -4,9 +4,13 @@ Subscribes (names and QoS: medc_common.contract, docs/ros.md): every team member
 radiation reading, the walls map, the episode status, and its own and the team's policy topics.
 Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``.
 
-The policy is swapped at runtime by setting the ``policy`` parameter or by publishing a bundle
-path on the policy topics. A content id on the policy topic is passed to the registry bridge's
-``fetch_bundle`` service, which verifies the bundle and sends back its local path. A bundle that
+The policy is a bundle path or a classical controller's name (``gradient``, ``greedy``,
+``infotaxis``: the node then decides its move with the controller's function on its team state,
+medc_agents.controller; start it with the ``agents`` and ``grid`` parameters, as there is no
+manifest). It is swapped at runtime by setting the ``policy`` parameter or by publishing a bundle
+path or a controller's name on the policy topics. A content id on the policy topic is passed to
+the registry bridge's ``fetch_bundle`` service, which verifies the bundle and sends back its local
+path. A bundle that
 fails validation is refused (the parameter set fails with the reason) and the old one keeps
 running. No file and no message can take the node down: every exception of a swap (a
 RecursionError or MemoryError from a hostile file included) ends as a logged refusal.
@@ -34,6 +38,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from medc_agents.controller import controller_move, controller_name, controller_scenario
 from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
@@ -58,11 +63,14 @@ def _reason(exc: BaseException) -> str:
     return printable(text, 2000)
 
 
-def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) -> tuple[int, int, str]:
+def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
+                         application: str | None = None) -> tuple[int, int, str]:
     """(agents, grid, observation) an agent runs with: each value given (> 0, non-empty) wins,
     the others come from the manifest of the bundle at ``policy`` (``environment.agents``,
     ``environment.grid``, ``observation.name``; a bundle without an observation name takes
-    'maps').
+    'maps'). A controller's name as ``policy`` has no manifest: ``agents`` and ``grid`` must be
+    given (an empty observation stays empty: the default variant); ``application``, when given,
+    must be target localization for a controller.
 
     Raises:
         PolicyRejected: no policy, an unreadable or invalid bundle, or a value neither given nor
@@ -70,7 +78,15 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str) 
     """
     if not policy:
         raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
-                             "(its manifest gives the team size, grid and observation)")
+                             "(its manifest gives the team size, grid and observation) or with a "
+                             "controller, e.g. -p policy:=greedy -p agents:=3 -p grid:=30")
+    name = controller_name(policy)
+    if name is not None:
+        try:
+            controller_scenario(name, agents, grid, application)
+        except ValueError as exc:
+            raise PolicyRejected(str(exc)) from None
+        return agents, grid, observation
     if agents > 0 and grid > 0 and observation:
         return agents, grid, observation
     from medc_training.bundle import manifest_observation
@@ -166,10 +182,21 @@ class AgentNode(Node):
             "waits for, and published as a diagnostic",
             True,
         ))
-        initial = p("policy", "", "Path of the policy bundle (.safetensors) to run; set it to swap policies")
+        #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
+        self.noise = bool(p(
+            "noise",
+            False,
+            "Whether the team's readings are Poisson counts (the simulator's 'noise'; the realistic "
+            "preset always counts them): the gradient controller's flatness test",
+            True,
+        ))
+        initial = p(
+            "policy", "",
+            "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
+            "(gradient, greedy, infotaxis; needs agents and grid); set it to swap policies")
         explicit_observation = observation
         num_agents, grid, observation = scenario_from_bundle(
-            str(initial), int(num_agents), int(grid), str(observation))
+            str(initial), int(num_agents), int(grid), str(observation), application or None)
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
@@ -198,7 +225,7 @@ class AgentNode(Node):
         self.observer.use_observation(self.slot.observation)
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
-                               f"{self.slot.observation}, sensing {sensing})")
+                               f"{self.observer.observation.name}, sensing {sensing})")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         ns = self.namespace_
@@ -347,7 +374,10 @@ class AgentNode(Node):
 
     def _decide(self, obs, mask, tick) -> None:
         try:
-            action = self.slot.act(obs, mask)
+            if self.slot.controller is not None:
+                action = controller_move(self.slot.controller, self.observer, mask, self.noise)
+            else:
+                action = self.slot.act(obs, mask)
         except Exception as exc:
             # A policy failing on one observation must not take the node down; the observation
             # is kept and retried when the simulator re-sends the step.
@@ -387,7 +417,7 @@ class AgentNode(Node):
         loaded = self.slot.swap(source)
         self.observer.use_observation(self.slot.observation)
         self.get_logger().info(f"now running policy {loaded.description} "
-                               f"(observation {self.slot.observation})")
+                               f"(observation {self.observer.observation.name})")
         for listener in self.swap_listeners:
             listener(source, None)
         return loaded.description
@@ -472,12 +502,17 @@ def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[Age
 
 def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
     """Hand ``msg`` to every agent; those ready to decide and running the same bundle object
-    decide in one batched forward pass (the same greedy choice as one by one)."""
+    decide in one batched forward pass (the same greedy choice as one by one); an agent running a
+    controller decides on its own."""
     groups: dict[int, list] = {}
     for agent in agents:
         prepared = agent.on_status(msg, defer=True)
-        if prepared is not None:
-            groups.setdefault(id(agent.slot.current.bundle), []).append((agent, *prepared))
+        if prepared is None:
+            continue
+        if agent.slot.controller is not None:  # no network to batch: it decides from its team state
+            agent._decide(*prepared)
+            continue
+        groups.setdefault(id(agent.slot.current.bundle), []).append((agent, *prepared))
     for members in groups.values():
         bundle = members[0][0].slot.current.bundle
         obs = torch.stack([m[1] for m in members])

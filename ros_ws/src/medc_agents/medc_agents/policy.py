@@ -4,7 +4,8 @@ A bundle file is data from a stranger: it is loaded only by ``medc_training.bund
 (safetensors + a validated JSON manifest, never pickle; compute and memory caps; a timed dry run)
 and must fit this agent's observation and action space before it replaces the running policy.
 Anything else is refused with a :class:`PolicyRejected` that says why (never echoing the file),
-and the old policy keeps running.
+and the old policy keeps running. A classical controller's name (``gradient``, ``greedy``,
+``infotaxis``: :mod:`medc_agents.controller`) is a policy too: it needs no file.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from pathlib import Path
 import torch
 from medc_training.envs.tl_sensing import DEFAULT_SENSING
 from medc_training.untrusted import MAX_BUNDLE_BYTES, printable
+
+from medc_agents.controller import ControllerPolicy, controller_name, controller_scenario
 
 _CID = re.compile(r"^(ipfs://|cid:)?(Qm[1-9A-HJ-NP-Za-km-z]{44}|b[a-z2-7]{20,})$")
 
@@ -225,14 +228,27 @@ class PolicySlot:
         self.follow_bundle = observation is None and grid is not None
         self.grid = grid
         self.sensing = sensing
-        self.current: LoadedPolicy | None = None
+        self.current: LoadedPolicy | ControllerPolicy | None = None
 
-    def swap(self, source: str) -> LoadedPolicy:
-        """Validate ``source`` and make it the running policy.
+    @property
+    def controller(self) -> str | None:
+        """The name of the running classical controller, or None (a bundle, or nothing yet)."""
+        return self.current.controller if isinstance(self.current, ControllerPolicy) else None
+
+    def swap(self, source: str) -> LoadedPolicy | ControllerPolicy:
+        """Validate ``source`` (a bundle path, or a controller's name) and make it the running policy.
 
         Raises:
             PolicyRejected: the bundle was refused; the previous policy is still running.
         """
+        name = controller_name(source)
+        if name is not None:
+            try:
+                controller_scenario(name, 1, 1, self.application)
+            except ValueError as exc:
+                raise PolicyRejected(str(exc)) from None
+            self.current = ControllerPolicy(name)
+            return self.current
         obs_shape, observation = self.obs_shape, self.observation
         if self.follow_bundle:
             obs_shape, observation = self._bundle_observation(source)
@@ -263,5 +279,8 @@ class PolicySlot:
         """
         if self.current is None:
             raise RuntimeError("no policy loaded: set the agent's 'policy' parameter to a bundle path")
+        if self.controller is not None:
+            raise RuntimeError(f"controller {self.controller} decides from the team's state, not an "
+                               "observation: medc_agents.controller.controller_move")
         action = self.current.bundle.act(obs.unsqueeze(0), mask.unsqueeze(0), greedy=True)
         return int(action[0])

@@ -199,6 +199,11 @@ class TeamObserver:
         self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu", sensing=self.sensing,
                                  max_walls=self.max_walls)
         self._memory_started = False
+        #: The last observed step (:meth:`observe`): every agent's cell int64 [1,N,2], the walls
+        #: bool [1,G,G] and every agent's move mask bool [1,N,A]; what a controller decides from.
+        self.positions: torch.Tensor | None = None
+        self.walls: torch.Tensor | None = None
+        self.team_mask: torch.Tensor | None = None
 
     def use_observation(self, observation: str | None) -> None:
         """Build ``observation`` from now on (the memory keeps what every variant needs)."""
@@ -401,7 +406,9 @@ class TeamObserver:
         estimate = m.estimate_map() if self.observation.estimate else None
         obs = observe(self.observation, positions, m.reading_map, m.visit_map, walls.float(), estimate)
         obs = obs[0, self.index]
-        mask = move_mask(positions, pad_blocked(walls), self._deltas)[0, self.index]
+        team_mask = move_mask(positions, pad_blocked(walls), self._deltas)
+        mask = team_mask[0, self.index]
+        self.positions, self.walls, self.team_mask = positions, walls, team_mask
         # Free what this step used; older stamps can never be answered again.
         for store in (self._positions, self._readings):
             for key in [k for k in store if k <= t.stamp]:

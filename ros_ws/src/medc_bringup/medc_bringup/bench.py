@@ -49,7 +49,7 @@ def _bench_bundle(grid: int, folder: Path) -> Path:
 
 def run_graph(
     agents: int,
-    bundle: Path,
+    bundle: Path | str,
     *,
     in_process: bool = False,
     steps: int = 0,
@@ -59,9 +59,10 @@ def run_graph(
     walls: int = 2,
     seed: int = 0,
 ) -> dict:
-    """Run the simulator here and ``agents`` agent nodes (own processes, or with ``in_process``
-    on the simulator's executor); stop after ``steps`` measured steps or ``duration`` seconds
-    (after ``warmup`` steps). Returns latencies and throughput."""
+    """Run the simulator here and ``agents`` agent nodes running ``bundle`` (a bundle path or a
+    classical controller's name; own processes, or with ``in_process`` on the simulator's
+    executor); stop after ``steps`` measured steps or ``duration`` seconds (after ``warmup``
+    steps). Returns latencies and throughput."""
     import subprocess
 
     from medc_common.executors import make_executor
@@ -143,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0])
     parser.add_argument("--steps", type=int, default=500, help="measured steps per latency run")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of the sustained-rate run")
-    parser.add_argument("--policy", help="bundle to run, on its grid (default: a lenet5 for the 30x30 grid)")
+    parser.add_argument("--policy", help="bundle to run, on its grid, or a classical controller (gradient, "
+                        "greedy, infotaxis) on the 30x30 grid (default: a lenet5 for the 30x30 grid)")
     parser.add_argument("--quick", action="store_true", help="100 steps and 10 s (a smoke run)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.quick:
@@ -157,6 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     # A domain of its own, unless the caller chose one: no cross-talk with a running graph.
     os.environ.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
     import torch
+    from medc_training.controllers import CONTROLLERS
 
     torch.set_num_threads(1)
     rclpy.init(args=["medc-bench-ros"])
@@ -168,7 +171,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            if args.policy:
+            if args.policy and args.policy.strip() in CONTROLLERS:
+                grid, bundle = 30, args.policy.strip()
+            elif args.policy:
                 from medc_training.bundle import read_manifest
 
                 bundle = Path(args.policy)

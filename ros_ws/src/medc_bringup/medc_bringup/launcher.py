@@ -9,6 +9,7 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --episodes 20                 # 20 episodes, one line each, then one JSON line
     medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
     medc-launch --sensing realistic --policy path/to/realistic_bundle.safetensors
+    medc-launch --policy greedy --episodes 20  # a team of classical controllers (also gradient, infotaxis)
 """
 
 from __future__ import annotations
@@ -112,15 +113,25 @@ def _absolute(path: str, root: Path) -> Path:
     return q if q.is_absolute() else root / q
 
 
-def _complete_scenario(cfg: LaunchConfig, base: Path) -> None:
+def _controller(policy: object) -> str | None:
+    """The classical controller ``policy`` names (medc_training.controllers.CONTROLLERS), or None."""
+    from medc_training.controllers import CONTROLLERS
+
+    return policy.strip() if isinstance(policy, str) and policy.strip() in CONTROLLERS else None
+
+
+def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
     """Fill the scenario keys left unset (and ``sensing``) from the manifest of the bundle at
-    ``base`` (file or folder)."""
+    ``base`` (file or folder); None (a controller): the defaults."""
     from medc_training.bundle import BundleError, manifest_sensing, read_manifest
 
     missing = [k for k in SCENARIO_DEFAULTS if getattr(cfg, k) is None]
     if not missing and cfg.sensing is not None:
         return
-    sample = base if base.is_file() else next(iter(sorted(base.glob("*.safetensors"))), None)
+    if base is None:
+        sample = None
+    else:
+        sample = base if base.is_file() else next(iter(sorted(base.glob("*.safetensors"))), None)
     env: dict[str, Any] = {}
     if sample is not None:
         try:
@@ -149,7 +160,7 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     from medc_training.bundle import BundleError, check_sensing, manifest_observation, read_manifest
     from medc_training.envs.tl_observation import parse_observation
 
-    for path in sorted(set(paths)):
+    for path in sorted({p for p in paths if _controller(p) is None}):
         try:
             manifest = read_manifest(path)
             obs = manifest["observation"]
@@ -174,9 +185,12 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     """The bundle path each agent starts with (relative paths are taken from the repository root).
 
     ``policy`` names one bundle for every agent, or a folder holding ``*agent_<i>*.safetensors``
-    files (one per agent) or a single bundle; ``policies`` overrides single agents. Scenario keys
-    left unset in ``cfg`` (agents, walls, grid, max_steps, sensing) are filled in from the bundle's
-    manifest. Every bundle must have been trained under ``cfg.sensing``.
+    files (one per agent) or a single bundle, or a classical controller (``gradient``, ``greedy``,
+    ``infotaxis``: medc_training.controllers) every agent runs by name; ``policies`` overrides
+    single agents (a bundle path or a controller's name). Scenario keys left unset in ``cfg``
+    (agents, walls, grid, max_steps, sensing) are filled in from the bundle's manifest (a
+    controller has none: SCENARIO_DEFAULTS and the default sensing preset). Every bundle must have
+    been trained under ``cfg.sensing``.
 
     Raises:
         ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
@@ -186,15 +200,18 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     from medc_common.contract import agent_index
 
     root = repo_root() if root is None else root
-    base = _absolute(cfg.policy, root)
-    if not base.exists():
+    controller = _controller(cfg.policy)
+    base = None if controller else _absolute(cfg.policy, root)
+    if base is not None and not base.exists():
         raise ValueError(
             f"policy {cfg.policy!r} ({base}) does not exist; train the team (models/README.md) "
             "or pass --policy PATH to a bundle"
         )
     _complete_scenario(cfg, base)
     paths: list[str] = []
-    if base.is_dir():
+    if base is None:
+        paths = [controller] * cfg.agents
+    elif base.is_dir():
         bundles = sorted(base.glob("*.safetensors"))
         if not bundles:
             raise ValueError(
@@ -208,6 +225,9 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
         paths = [str(base)] * cfg.agents
     for agent_id, p in cfg.policies.items():
         i = agent_index(agent_id, cfg.agents)
+        if _controller(p):
+            paths[i] = _controller(p)
+            continue
         if not _absolute(p, root).is_file():
             raise ValueError(f"policy for {agent_id}: {_absolute(p, root)} does not exist")
         paths[i] = str(_absolute(p, root))
@@ -247,6 +267,7 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "grid": cfg.grid,
         "resolution": cfg.resolution,
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
+        "noise": cfg.noise,
         "policy": policy,
     }
 
@@ -434,7 +455,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--in-process", action="store_true", help="all nodes in this process, one executor")
     parser.add_argument("--seed", type=int, help="override the config's seed")
-    parser.add_argument("--policy", help="override the config's policy (bundle file or folder)")
+    parser.add_argument("--policy", help="override the config's policy (bundle file or folder, or a "
+                        "classical controller: gradient, greedy, infotaxis)")
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
