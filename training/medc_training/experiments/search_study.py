@@ -48,58 +48,67 @@ class Scenario:
     def name(self) -> str:
         return f"g{self.grid}w{self.walls}"
 
-    def make_env(self, policy: str):
+    def make_env(self, policy: str, observation: str = "maps"):
         """The 512 environments the fixed episodes are played in (one round). The episodes do not
         depend on the observation (it draws nothing), so a policy that reads no observation gets
-        the cheap 'maps' one; the controllers get the team's posterior kept."""
+        the cheap 'maps' one and a bundle its own; the controllers get the team's posterior kept."""
         from ..envs import make_batched
 
-        options = {} if policy.startswith("learned") else {"observation": "maps"}
         return make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
                             walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
-                            posterior=policy in CLASSICAL, copy_obs=False, **options)
+                            posterior=policy in CLASSICAL, copy_obs=False, observation=observation)
 
 
 SCENARIOS = tuple(Scenario(g, w) for g in GRIDS for w in WALLS)
 
 
-def _policy(name: str, env, out: Path, scenario: Scenario):
-    """(policy, greedy) for a policy name: 'random', a controller, or 'learned-seed{k}'."""
-    from ..evaluate import net_policy
-
-    if name == "random":
-        return None, False
-    if name in CLASSICAL:
-        from ..controllers import controller_policy
-
-        return controller_policy(name, env), True
-    from ..bundle import load_bundle
-
-    seed = name.removeprefix("learned-seed")
-    bundle = load_bundle(out / "runs" / scenario.name / f"seed{seed}" / "policy.safetensors")
-    return net_policy(bundle.net), True
+def _bundle_path(name: str, out: Path, scenario: Scenario) -> Path:
+    """'learned-seed{k}': the study's run; 'probe-{name}': ``<out>/probes/{name}/seed0``."""
+    if name.startswith("probe-"):
+        return out / "probes" / name.removeprefix("probe-") / "seed0" / "policy.safetensors"
+    return out / "runs" / scenario.name / f"seed{name.removeprefix('learned-seed')}" / "policy.safetensors"
 
 
-def evaluate(out: Path, policies: list[str] | None = None, scenarios: list[str] | None = None) -> list[Path]:
-    """Play every missing (scenario, policy) evaluation; returns the files written."""
-    from ..evaluate import play_episodes
+def _play(name: str, out: Path, scenario: Scenario):
+    """Play policy ``name`` ('random', a controller, 'learned-seed{k}' or 'probe-{name}') on the
+    scenario's fixed episodes."""
+    from ..evaluate import net_policy, play_episodes
 
+    if name == "random" or name in CLASSICAL:
+        env = scenario.make_env(name)
+        if name == "random":
+            policy, greedy = None, False
+        else:
+            from ..controllers import controller_policy
+
+            policy, greedy = controller_policy(name, env), True
+    else:
+        from ..bundle import load_bundle, manifest_observation
+
+        bundle = load_bundle(_bundle_path(name, out, scenario))
+        env = scenario.make_env(name, manifest_observation(bundle.manifest))
+        policy, greedy = net_policy(bundle.net), True
+    return play_episodes(env, policy, episodes=EPISODES, seed=EVAL_SEED, greedy=greedy)
+
+
+def evaluate(out: Path, policies: list[str] | None = None, scenarios: list[str] | None = None,
+             probes: list[str] | None = None) -> list[Path]:
+    """Play every missing (scenario, policy) evaluation, and each named probe on the scenarios
+    given; returns the files written."""
     written = []
     for sc in SCENARIOS:
         if scenarios and sc.name not in scenarios:
             continue
         names = list(BASELINES) + [f"learned-seed{k}" for k in SEEDS
                                    if (out / "runs" / sc.name / f"seed{k}" / "summary.json").exists()]
+        names = [n for n in names if not policies or n in policies or n.split("-")[0] in policies]
+        names += [f"probe-{p}" for p in probes or () if scenarios]
         for name in names:
-            if policies and name not in policies and name.split("-")[0] not in policies:
-                continue
             path = out / "eval" / sc.name / f"{name}.json"
             if path.exists():
                 continue
-            env = sc.make_env(name)
-            policy, greedy = _policy(name, env, out, sc)
             print(f"[search-study] {sc.name} {name} ...", file=sys.stderr, flush=True)
-            result = play_episodes(env, policy, episodes=EPISODES, seed=EVAL_SEED, greedy=greedy)
+            result = _play(name, out, sc)
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps({"scenario": sc.name, "policy": name, "episodes": EPISODES,
                                         "seed": EVAL_SEED, "lengths": list(result.lengths),
@@ -246,11 +255,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--policy", action="append", help="only these policies (random, gradient, greedy, "
                    "infotaxis, learned, learned-seed0, ...)")
     p.add_argument("--scenario", action="append", help="only these scenarios (g20w0, g30w5, ...)")
+    p.add_argument("--probe", action="append", help="also play the probe <out>/probes/NAME/seed0 on "
+                   "the --scenario given (its file: eval/<scenario>/probe-NAME.json)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     if args.command == "evaluate":
-        written = evaluate(args.out, args.policy, args.scenario)
+        written = evaluate(args.out, args.policy, args.scenario, args.probe)
         print(json.dumps({"written": [str(w) for w in written]}))
     else:
         print(json.dumps(report(args.out)))
