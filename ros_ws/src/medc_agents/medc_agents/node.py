@@ -225,7 +225,7 @@ class AgentNode(Node):
         self.observer.use_observation(self.slot.observation)
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
-                               f"{self.observer.observation.name}, sensing {sensing})")
+                               f"{self.observer.observation.name}), sensing {sensing}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         ns = self.namespace_
