@@ -184,3 +184,17 @@ def test_same_policy_and_manifest_give_the_same_bytes() -> None:
     reloaded = load_bundle(first)
     assert bundle_bytes(reloaded.net, {k: v for k, v in reloaded.manifest.items()
                                        if k not in ("format", "format_version", "architecture")}) == first
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o077, 0o600)])
+def test_saved_bundle_has_the_mode_open_would_give_it(tmp_path, umask: int, mode: int) -> None:
+    import os
+    import stat
+
+    net = make_actor_critic("mlp", (5, 10, 10), 8)
+    old = os.umask(umask)
+    try:
+        path = save_bundle(tmp_path / "shared.safetensors", net, MANIFEST)
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == mode  # not mkstemp's 0600 whatever the umask

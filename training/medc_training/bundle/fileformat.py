@@ -40,11 +40,20 @@ class BundleError(ValueError):
     """The file or bytes are not a valid MEDC policy bundle; the message says what is wrong."""
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_write(target: Path, data: bytes) -> None:
     # A killed writer must never leave a half-written model where a reader (or resume) looks.
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        # mkstemp makes the file 0600; a bundle is a file to share: the mode open() would give it
+        # (0666 less the umask, 0644 usually).
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()

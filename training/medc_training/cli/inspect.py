@@ -1,5 +1,8 @@
 """``medc-inspect BUNDLE``: verify a policy bundle and print its manifest.
 
+``medc-inspect --export onnx|torchscript BUNDLE OUT``: verify it, write its network to OUT and its
+observation/action contract to ``OUT.json`` (medc_training.bundle.export), for onboard computers.
+
 Exit status: 0 for a valid bundle, 1 for a file that is not a valid bundle (the reason goes to
 stderr), 2 for bad command-line usage. Whatever the file holds, it never ends in a traceback, and
 every string from the manifest is printed sanitised: control characters (ANSI escapes included),
@@ -88,6 +91,24 @@ def format_manifest(manifest: dict[str, Any], sha256: str | None = None, paramet
     return "\n".join(lines)
 
 
+def _export(bundle: str, out: str, fmt: str) -> int:
+    from medc_training.bundle.export import export_bundle
+
+    try:
+        model, side = export_bundle(bundle, out, fmt)
+    except ImportError as exc:
+        print(f"medc-inspect: --export {fmt} needs {exc.name or exc}: pip install -r requirements.txt",
+              file=sys.stderr)
+        return 1
+    except Exception as exc:  # BundleError, or anything at all: a reason, never a traceback
+        reason = str(exc) if isinstance(exc, BundleError) else (
+            f"{clean(str(bundle))}: cannot be exported ({type(exc).__name__}: {exc})")
+        print(f"medc-inspect: {clean(reason)}", file=sys.stderr)
+        return 1
+    print(f"wrote {clean(str(model))} ({fmt}) and {clean(str(side))} (observation/action contract)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``medc-inspect`` console script."""
     parser = argparse.ArgumentParser(
@@ -96,13 +117,23 @@ def main(argv: list[str] | None = None) -> int:
                     "reason when the file is not a valid bundle.",
     )
     parser.add_argument("bundle", help="path to the bundle file")
+    parser.add_argument("out", nargs="?",
+                        help="with --export: the model file to write (OUT.json: its contract)")
+    parser.add_argument("--export", choices=["onnx", "torchscript"],
+                        help="write the network as ONNX or TorchScript to OUT, its contract to OUT.json")
     parser.add_argument("--json", action="store_true", help="print the raw manifest as JSON")
     parser.add_argument("--manifest-only", action="store_true",
                         help="check the header and manifest only, without decoding the weights")
     args = parser.parse_args(argv)
+    if args.export and not args.out:
+        parser.error("--export needs OUT, the model file to write")
+    if args.out and not args.export:
+        parser.error("OUT is only used with --export onnx|torchscript")
     for stream in (sys.stdout, sys.stderr):  # a terminal that is not UTF-8 gets escapes, not a crash
         if hasattr(stream, "reconfigure"):
             stream.reconfigure(errors="backslashreplace")
+    if args.export:
+        return _export(args.bundle, args.out, args.export)
     try:
         if args.manifest_only:
             manifest = read_manifest(args.bundle)

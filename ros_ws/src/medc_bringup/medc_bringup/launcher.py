@@ -10,6 +10,9 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
     medc-launch --sensing realistic --policy path/to/realistic_bundle.safetensors
     medc-launch --policy greedy --episodes 20  # a team of classical controllers (also gradient, infotaxis)
+
+A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
+file (e.g. the default ``models/team``) from the repository root.
 """
 
 from __future__ import annotations
@@ -27,8 +30,10 @@ from typing import Any
 
 import yaml
 from medc_common.ros_env import interfaces_env, repo_root, require_interfaces
+from medc_common.share import config_file
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "launch.yaml"
+#: The installed share/medc_bringup/config/launch.yaml (ament index), else the source tree's.
+DEFAULT_CONFIG = config_file("medc_bringup", "launch.yaml")
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
 SCENARIO_DEFAULTS = {"agents": 3, "walls": 2, "grid": 30, "max_steps": 100}
 
@@ -182,7 +187,9 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
 
 
 def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
-    """The bundle path each agent starts with (relative paths are taken from the repository root).
+    """The bundle path each agent starts with (relative paths in ``cfg`` are taken from ``root``,
+    default the repository root; main() makes a relative ``--policy`` absolute from the current
+    directory first).
 
     ``policy`` names one bundle for every agent, or a folder holding ``*agent_<i>*.safetensors``
     files (one per agent) or a single bundle, or a classical controller (``gradient``, ``greedy``,
@@ -204,8 +211,9 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     base = None if controller else _absolute(cfg.policy, root)
     if base is not None and not base.exists():
         raise ValueError(
-            f"policy {cfg.policy!r} ({base}) does not exist; train the team (models/README.md) "
-            "or pass --policy PATH to a bundle"
+            f"policy {cfg.policy!r} ({base}) does not exist (a relative policy in the config is taken "
+            f"from {root}); train the team (models/README.md) or pass --policy PATH to a bundle "
+            "(a relative --policy is taken from the current directory)"
         )
     _complete_scenario(cfg, base)
     paths: list[str] = []
@@ -446,6 +454,29 @@ def run_processes(
         monitor.destroy_node()
 
 
+def policy_from_cwd(policy: str | None, cwd: Path | None = None) -> str | None:
+    """``--policy`` as given on the command line: a classical controller's name unchanged, a path
+    made absolute from the current directory (not the repository root, as config-file paths are).
+
+    Raises:
+        ValueError: the path does not exist; the message says where a relative one was looked for.
+    """
+    if policy is None or _controller(policy):
+        return policy
+    cwd = Path.cwd() if cwd is None else cwd
+    path = Path(policy).expanduser()
+    absolute = path if path.is_absolute() else cwd / path
+    if not absolute.exists():
+        where = (
+            "" if path.is_absolute() else f" (a relative --policy is taken from the current directory, {cwd})"
+        )
+        raise ValueError(
+            f"--policy {policy!r}: {absolute} does not exist{where}; pass a bundle file or folder, "
+            "or a classical controller: gradient, greedy, infotaxis"
+        )
+    return str(absolute)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-launch`` (see the module docstring)."""
     parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0])
@@ -455,8 +486,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--in-process", action="store_true", help="all nodes in this process, one executor")
     parser.add_argument("--seed", type=int, help="override the config's seed")
-    parser.add_argument("--policy", help="override the config's policy (bundle file or folder, or a "
-                        "classical controller: gradient, greedy, infotaxis)")
+    parser.add_argument("--policy", help="override the config's policy (bundle file or folder, relative to "
+                        "the current directory, or a classical controller: gradient, greedy, infotaxis)")
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
@@ -465,8 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
     try:
-        cfg = load_config(args.config, seed=args.seed, policy=args.policy, agents=args.agents,
-                          sensing=args.sensing)
+        cfg = load_config(args.config, seed=args.seed, policy=policy_from_cwd(args.policy),
+                          agents=args.agents, sensing=args.sensing)
         policies = resolve_policies(cfg)
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -216,7 +217,14 @@ def bridge_node_class():
             self.namespace_, connection, cache = _declare_parameters(self)
             if registry is None:
                 registry = connect_registry(**connection)
-            self.bridge = RegistryBridge(registry, cache or tempfile.mkdtemp(prefix="medc-bundles-"))
+            # No cache_dir: a temporary folder of this node's own, removed again by destroy_node.
+            self._own_cache = None if cache else tempfile.mkdtemp(prefix="medc-bundles-")
+            try:
+                self.bridge = RegistryBridge(registry, cache or self._own_cache)
+            except BaseException:
+                if self._own_cache is not None:
+                    shutil.rmtree(self._own_cache, ignore_errors=True)
+                raise
             ns = self.namespace_.rstrip("/")
             self.create_service(RequestExperts, f"{ns}/registry/request_experts", self._on_request)
             self.create_service(FetchBundle, f"{ns}/registry/fetch_bundle", self._on_fetch)
@@ -226,6 +234,12 @@ def bridge_node_class():
             self.get_logger().info(
                 f"registry bridge on {ns}/registry/*, caching bundles in {self.bridge.cache_dir}"
             )
+
+        def destroy_node(self) -> None:
+            super().destroy_node()
+            if self._own_cache is not None:
+                shutil.rmtree(self._own_cache, ignore_errors=True)
+                self._own_cache = None
 
         def _policy_pub(self, agent_id: str):
             if agent_id not in self._policy_pubs:

@@ -17,18 +17,18 @@ RESULTS_READER_WAIT_S = 15.0
 def spin_episodes(node, executor) -> None:
     """Spin until the requested episodes are done (or shutdown), then let readers collect the
     results before the process exits."""
-    import rclpy
+    from medc_common.executors import running
 
-    while rclpy.ok() and not node.finished:
+    while running() and not node.finished:
         executor.spin_once(timeout_sec=0.1)
     # The episode results are latched, but only while this process lives: a reader that is
     # still being discovered (a loaded machine can take seconds) would miss them all. Wait
     # (bounded) for at least one results reader, then linger so reliable resends complete.
     deadline = time.monotonic() + RESULTS_READER_WAIT_S
-    while rclpy.ok() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    while running() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
     linger = time.monotonic() + 1.0
-    while rclpy.ok() and time.monotonic() < linger:
+    while running() and time.monotonic() < linger:
         executor.spin_once(timeout_sec=0.1)
 
 
