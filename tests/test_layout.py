@@ -124,7 +124,8 @@ def _top_level_imports(pkg: str) -> dict[str, str]:
 
 
 def _is_ros_package(name: str) -> bool:
-    return name == "rclpy" or name.endswith(("_msgs", "_interfaces")) or name.startswith("medc_")
+    return (name in ("rclpy", "ament_index_python") or name.endswith(("_msgs", "_interfaces"))
+            or name.startswith("medc_"))
 
 
 def _exec_depends(pkg: str) -> list[str]:
