@@ -229,7 +229,7 @@ def figure(out: Path, rows: list[dict], png: Path) -> None:
                 ax.axhline(p["length"][0], color=colour, linestyle="--", label=name)
         ax.set_title(f"{row['grid']}×{row['grid']}, {row['walls']} walls")
         ax.set_xlabel("training steps")
-        ax.set_ylabel("mean episode length (512 fixed episodes)")
+        ax.set_ylabel("mean episode length (fixed episodes)")
         ax.set_ylim(0, MAX_STEPS + 2)
     axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
