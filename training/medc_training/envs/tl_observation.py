@@ -172,9 +172,7 @@ class SourceEstimator:
         if self.sensing.line != "exact":
             return None
         if rects is None:
-            # at most one segment per wall cell
-            most = int(walls.flatten(1).sum(1).max()) if len(walls) else 1
-            rects = wall_rectangles(walls, max(1, most))
+            rects = wall_rectangles(walls)
         return sight_lines(self.sensing, positions, walls, rects)
 
     def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,

@@ -169,8 +169,6 @@ def update_memory(
     b = positions.shape[0]
     w = reading_map.shape[-1]
     idx = positions[..., 0] * w + positions[..., 1]
-    if max_rate == SOURCE_STRENGTH + BACKGROUND:
-        max_rate = None  # the paper-simple scale, bit for bit
     reading_map.view(b, -1).scatter_(1, idx, normalise_reading(readings, max_rate))
     visit_map.view(b, -1).scatter_add_(1, idx, torch.ones_like(readings))
 
@@ -365,10 +363,11 @@ def parse_sensing(value: Any) -> SensingModel:
     raise ValueError(f"sensing must be a preset name ({', '.join(sorted(SENSING_PRESETS))}) or a dict")
 
 
-def wall_rectangles(walls: torch.Tensor, most: int) -> torch.Tensor:
+def wall_rectangles(walls: torch.Tensor, most: int | None = None) -> torch.Tensor:
     """float32 [B,most,4]: each wall segment of ``walls`` (bool [B,H,W]) as the rectangle
     (top, left, bottom, right) its cells cover, in cell-centre coordinates (row - 0.5 .. row + 0.5);
-    unused slots are an empty rectangle far off the grid.
+    unused slots are an empty rectangle far off the grid. ``most`` None: as many slots as the
+    fullest map has wall cells (a segment has at least one), at least 1.
 
     Walls never touch (not even diagonally), so every 8-connected group of wall cells is one
     axis-aligned segment: its top-left cell has no wall above or to the left, and the segment runs
@@ -376,6 +375,8 @@ def wall_rectangles(walls: torch.Tensor, most: int) -> torch.Tensor:
     """
     b, _h, w = walls.shape
     walls = walls.bool()
+    if most is None:
+        most = max(1, int(walls.flatten(1).sum(1).max()) if b else 1)
     up = torch.nn.functional.pad(walls, (0, 0, 1, 0))[:, :-1]
     left = torch.nn.functional.pad(walls, (1, 0, 0, 0))[:, :, :-1]
     corner = walls & ~up & ~left  # [B,H,W]
@@ -503,8 +504,8 @@ def geometric_factor(model: SensingModel, positions: torch.Tensor, sources: torc
             sources = sources.unsqueeze(0).expand(b, -1, -1)
         delta = sources.to(torch.float32).unsqueeze(1) - positions.to(torch.float32).unsqueeze(2)
         inv, near = 1.0 / delta, 1.0 / (1.0 + (delta * delta).sum(-1))
-    if rects is None:  # at most one segment per wall cell
-        rects = wall_rectangles(walls, max(1, int(walls.flatten(1).sum(1).max()) if b else 1))
+    if rects is None:
+        rects = wall_rectangles(walls)
     if not bool((rects[..., 2] > rects[..., 0]).any()):  # no walls anywhere: nothing in the way
         return near
     if model.attenuation == 0.0:
