@@ -20,17 +20,10 @@ from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
 from medc_training.envs.grid import ACTIONS
+from ros_helpers import feed_step
 
 IDS = ["agent_0", "agent_1", "agent_2"]
 GEO10 = GridGeometry(10, 10, 1.0)
-
-
-def feed_step(observers, core: SimCore, stamp: Time, map_stamp: Time) -> None:
-    for o in observers:
-        for j, (cell, value) in enumerate(zip(core.positions(), core.readings())):
-            o.add_pose(IDS[j], messages.pose_msg(cell, stamp, GEO10))
-            o.add_reading(IDS[j], messages.reading_msg(IDS[j], value, 0.0, stamp))
-        o.add_status(messages.status_msg(IDS, core.episode, core.step, stamp, map_stamp))
 
 
 @pytest.mark.parametrize(("noise", "observation"),
@@ -74,7 +67,7 @@ def _play_observation_parity(noise, observation, walls, sensing=None):
             episode, map_stamp = core.episode, Time(sec=sec, nanosec=1)
             for o in observers:
                 o.add_map(messages.grid_msg(core.walls(), map_stamp, 1.0))
-        feed_step(observers, core, Time(sec=sec), map_stamp)
+        feed_step(observers, core, Time(sec=sec), map_stamp, IDS, GEO10)
         actions = []
         for i, o in enumerate(observers):
             assert o.ready()
