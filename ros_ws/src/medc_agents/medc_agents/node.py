@@ -23,9 +23,10 @@ from collections import Counter
 from collections.abc import Callable
 
 import torch
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
+from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
@@ -38,6 +39,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from medc_agents import guard
 from medc_agents.controller import controller_move, controller_name, controller_scenario
 from medc_agents.policy import (
     PolicyRejected,
@@ -47,7 +49,7 @@ from medc_agents.policy import (
     shown,
     strip_cid,
 )
-from medc_agents.team_state import TeamObserver, Tick, show_stamp
+from medc_agents.team_state import EDGE_TOLERANCE_CELLS, TeamObserver, Tick, show_stamp, stamp_key
 
 #: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
 NUM_ACTIONS = len(ACTIONS)
@@ -182,6 +184,25 @@ class AgentNode(Node):
             "waits for, and published as a diagnostic",
             True,
         ))
+        lost_timeout_s = float(p(
+            "lost_timeout_s", guard.LOST_TIMEOUT_S,
+            "A teammate whose pose or reading has not come for this long (seconds) while a step waits "
+            "for it is taken out of the team until it is heard again (docs/ros.md, 'A lost UAV'); 0: never",
+            True))
+        session_hold_s = float(p(
+            "session_hold_s", guard.SESSION_HOLD_S,
+            "Statuses of another driver session are held while the followed one published within this "
+            "many seconds (a second graph); after that the new session is followed (a restarted driver)",
+            True))
+        recover_s = float(p(
+            "recover_s", guard.RECOVER_S,
+            "A status that jumps ahead is answered once confirmed or re-sent after this many seconds; "
+            "statuses below the answered step for this long are followed again",
+            True))
+        edge_tolerance = float(p(
+            "edge_tolerance", EDGE_TOLERANCE_CELLS,
+            "Cells: a pose at most this far outside the map's grid is taken as the nearest edge cell",
+            True))
         #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
         self.noise = bool(p(
             "noise",
@@ -200,7 +221,13 @@ class AgentNode(Node):
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
-                                     observation or DEFAULT_OBSERVATION, sensing)
+                                     observation or DEFAULT_OBSERVATION, sensing, edge_tolerance)
+        #: Per-run id of this node, sent with every move (AgentMove.sender).
+        self.sender = run_id()
+        self.lost_watch = guard.LostWatch(num_agents, self.observer.index, lost_timeout_s)
+        self.gate = guard.StatusGate(session_hold_s, recover_s)
+        self.reading_check = guard.ReadingCheck(self.observer.sensing, num_agents)
+        self._pending_since = (None, 0.0)  # (tick, since when it waits)
         spec = self.observer.observation
         self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
                                observation=explicit_observation or None,
@@ -232,9 +259,7 @@ class AgentNode(Node):
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
-        self.diag_pub = self.create_publisher(
-            DiagnosticArray, contract.DIAGNOSTICS_TOPIC, contract.DIAGNOSTICS_QOS
-        )
+        self.health = Health(self, self.agent_id, self._summary)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
@@ -250,27 +275,37 @@ class AgentNode(Node):
             self.create_timer(min(0.25, self.stall_timeout_s / 4), self._watch)
 
     # -- stalls and diagnostics ----------------------------------------------------------------
-    def _diagnose(self, level: bytes, message: str, values: dict[str, str]) -> None:
-        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: team step", message=message,
-                                  hardware_id=self.agent_id)
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(array)
+    def _summary(self) -> dict[str, str]:
+        o = self.observer
+        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.mem_episode),
+                "step": str(o.mem_step), "decisions": str(self.decisions), "dropped": str(self.dropped),
+                "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
+                "policy": self.slot.current.description if self.slot.current is not None else "none"}
 
     def _flush_notes(self) -> None:
-        """Log each new note of the observer once (a restarted driver, a map with faint cells)."""
+        """Log each new note of the observer once (a restarted driver, a map with faint cells), at
+        level WARN on /diagnostics as in the log."""
         notes, self.observer.notes[:] = list(self.observer.notes), []
         for note in notes:
             if note in self._noted:
                 continue
             self._noted.add(note)
-            self.get_logger().warning(note)
-            self._diagnose(DiagnosticStatus.OK if "restarted" in note else DiagnosticStatus.WARN, note, {})
+            self.health.event("team step", DiagnosticStatus.WARN, note)
 
     def _watch(self) -> None:
-        """Report, once, a team step this agent has not been able to decide for stall_timeout_s."""
+        """Take silent teammates out; report, once, a team step this agent has not been able to
+        decide for stall_timeout_s."""
         self._flush_notes()
+        self._check_lost()
+        foreign = self.gate.foreign_now()
+        if foreign:
+            topic = contract.status_topic(self.namespace_)
+            self.health.set("driver", DiagnosticStatus.WARN, (
+                f"statuses from {len(foreign) + 1} driver sessions on {topic} (following "
+                f"{self.gate.session or '(none)'!r}, held: {', '.join(foreign)}): a second graph shares this "
+                "ROS_DOMAIN_ID and namespace; give each graph its own ROS_DOMAIN_ID"))
+        elif self.health.level("driver") != DiagnosticStatus.OK:
+            self.health.set("driver", DiagnosticStatus.OK, "one driver session")
         o = self.observer
         t = o.pending
         what: object = None
@@ -304,29 +339,104 @@ class AgentNode(Node):
                   f"have: {'; '.join(have) or 'nothing else'}")
         self._stall_report = (what, report)
         self.stalls_reported += 1
-        self.get_logger().warning(report)
-        self._diagnose(DiagnosticStatus.WARN, report, {
+        self.health.set("team step", DiagnosticStatus.WARN, report, {
             "waiting_for": "; ".join(need), "have": "; ".join(have), "waited_s": f"{waited:.1f}"})
+
+    def _check_lost(self) -> None:
+        o = self.observer
+        t = o.pending
+        if t is None or o.answered_tick(t):
+            return
+        if self._pending_since[0] != t:
+            self._pending_since = (t, time.monotonic())
+        newly = self.lost_watch.check(o.missing(), self._pending_since[1])
+        for idx, _why in newly:
+            o.absent.add(idx)
+        if newly:
+            self._report_team()
+            self._maybe_decide()
+
+    def _report_team(self) -> None:
+        o, lost = self.observer, self.lost_watch.lost
+        if lost:
+            text = "; ".join(f"{o.ids[j]} lost ({why})" for j, why in sorted(lost.items()))
+            self.health.set("team", DiagnosticStatus.WARN,
+                            f"{text}: deciding with the {o.num_agents - len(lost)} agents heard; taken back "
+                            "when its pose and reading come again",
+                            {"lost": ", ".join(o.ids[j] for j in sorted(lost))})
+        else:
+            self.health.set("team", DiagnosticStatus.OK, f"all {o.num_agents} agents heard")
+
+    def _heard(self, kind: str, agent_id: str) -> None:
+        o = self.observer
+        idx = contract.agent_index(agent_id, o.num_agents)
+        self.lost_watch.seen(kind, idx)
+        if idx in o.absent and o.latest.get(("pose", idx)) == o.latest.get(("reading", idx)):
+            o.absent.discard(idx)
+            if self.lost_watch.back(idx):
+                self.get_logger().info(f"{agent_id} is heard again: back in the team")
+                self._report_team()
 
     def _stall_over(self, tick) -> None:
         if self._stall_report is not None and self._stall_report[0] == tick:
             message = f"deciding again: episode {tick.episode} step {tick.step} decided"
-            self.get_logger().info(message)
-            self._diagnose(DiagnosticStatus.OK, message, {})
+            self.health.set("team step", DiagnosticStatus.OK, message)
         self._stall_report = None if self._stall_report is None or self._stall_report[0] == tick \
             else self._stall_report
         self._stall_since = None
 
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
-        self._guard("pose", self.observer.add_pose, agent_id, msg)
+        try:
+            self.observer.add_pose(agent_id, msg)
+        except ValueError as exc:
+            self._drop("pose", exc)
+            return
+        self._heard("pose", agent_id)
+        self._maybe_decide()
 
     def on_reading(self, agent_id: str, msg: RadiationReading) -> None:
-        self._guard("radiation", self.observer.add_reading, agent_id, msg)
+        try:
+            self.observer.add_reading(agent_id, msg)
+        except ValueError as exc:
+            self._drop("radiation", exc)
+            return
+        self._heard("reading", agent_id)
+        warning = self.reading_check.check(self.observer.index_of(agent_id), agent_id, float(msg.value))
+        if warning:
+            self.health.set("readings", DiagnosticStatus.WARN, warning)
+        self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
         self._guard("map", self.observer.add_map, msg)
         self._flush_notes()
+        try:
+            self._check_map(msg)
+        except Exception as exc:  # a report must never take the node down
+            self.get_logger().error(f"map check failed: {type(exc).__name__}")
+
+    def _check_map(self, msg: OccupancyGrid) -> None:
+        """Report a map none of the team's latest poses lie on (a map from elsewhere): it is kept
+        aside and used only when an episode status names it (issue 20)."""
+        o = self.observer
+        key = stamp_key(msg.info.map_load_time)
+        entry = o._maps.get(key)
+        xys = o.latest_xy()
+        if entry is None or not xys or key in (o.mem_map, o.pending.map_stamp if o.pending else None):
+            return
+        geometry = entry[1]
+        on = 0
+        for xy in xys:
+            try:
+                geometry.xy_to_cell(*xy, o.tolerance_m(geometry))
+                on += 1
+            except ValueError:
+                pass
+        if on == 0:
+            self.health.set("map", DiagnosticStatus.WARN, (
+                f"map with map_load_time {show_stamp(key)} (origin ({geometry.origin_x:g}, "
+                f"{geometry.origin_y:g}) m) holds none of the team's {len(xys)} latest poses: held; the "
+                "team keeps the map its episode status names and uses this one only when a status names it"))
 
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
@@ -346,6 +456,25 @@ class AgentNode(Node):
         ``defer``: instead of deciding, return ``(obs, mask, tick)`` for the caller to decide
         (a TeamFeed batches the team's forward passes) and to finish with :meth:`publish_move`.
         """
+        o = self.observer
+        if list(msg.agent_ids) != o.ids:
+            listed = list(msg.agent_ids)[:8]
+            self._drop("status", ValueError(f"status lists agents {listed}, this team is {o.ids}"))
+            return None
+        verdict, why = self.gate.admit(msg, o.mem_episode, o.mem_map, o.mem_step, stamp_key(msg.map_stamp))
+        if verdict == "hold":
+            self.dropped_by["held status"] += 1
+            if why:
+                self.health.set("status", DiagnosticStatus.WARN, why)
+            return None
+        if verdict == "drop":
+            self._drop("status", ValueError(why))
+            return None
+        if verdict == "restart":
+            self.health.event("status", DiagnosticStatus.WARN, why)
+            o.restart()
+        elif self.health.level("status") != DiagnosticStatus.OK:
+            self.health.set("status", DiagnosticStatus.OK, "following the driver's statuses")
         try:
             tick = self.observer.add_status(msg)
         except ValueError as exc:
@@ -397,6 +526,7 @@ class AgentNode(Node):
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME
         move.agent_id = self.agent_id
+        move.sender = self.sender
         move.episode, move.step, move.action = tick.episode, tick.step, int(action)
         self._last_move = move
         self.decisions += 1

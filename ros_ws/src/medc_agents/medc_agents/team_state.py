@@ -42,6 +42,8 @@ from medc_common.contract import (
 
 #: How many distinct stamps of poses/readings to keep while waiting for a status.
 STAMP_HISTORY = 16
+#: Default edge tolerance (cells): a pose at most this far outside the grid snaps to the edge cell.
+EDGE_TOLERANCE_CELLS = 0.5
 
 
 def stamp_key(stamp) -> int:
@@ -153,8 +155,11 @@ class TeamObserver:
     """Collects the team's poses, readings and map, and builds this agent's observation."""
 
     def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
-                 observation: str = "maps", sensing: str = "paper-simple") -> None:
+                 observation: str = "maps", sensing: str = "paper-simple",
+                 edge_tolerance: float = EDGE_TOLERANCE_CELLS) -> None:
         """``resolution``: metres per cell the maps must have; 0 = whatever the map says.
+        ``edge_tolerance``: cells; a pose at most this far outside the grid's edge is taken as the
+        nearest edge cell (GNSS noise on the edge row), one farther out is dropped with the distance.
         ``sensing``: the team's sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``),
         which the readings follow; the memory normalises them and weighs the source posterior by it.
 
@@ -180,6 +185,12 @@ class TeamObserver:
         self._maps: OrderedDict[int, tuple[torch.Tensor, GridGeometry, int]] = OrderedDict()
         self._geometry: GridGeometry | None = None  # of the latest map
         self.pending: Tick | None = None
+        self.edge_tolerance = max(0.0, float(edge_tolerance))
+        #: Teammates taken out of the team (docs/ros.md, "A lost UAV"): steps are decided without
+        #: their pose and reading; their last cell stays in the observation.
+        self.absent: set[int] = set()
+        self._last_cells: list[tuple[int, int] | None] = [None] * num_agents
+        self._force_start = False
         # Memory of the episode being played, as in the environment.
         self.mem_episode = -1
         self.mem_step = -1
@@ -188,6 +199,8 @@ class TeamObserver:
         #: For the stall report: latest stamp received and latest drop reason, per (kind, agent).
         self.latest: dict[tuple[str, int], int] = {}
         self.last_drop: dict[tuple[str, int], str] = {}
+        #: Why the last map was dropped (for the stall report), if one was.
+        self.last_map_drop = ""
         #: Things worth one log line each (a restarted driver, a suspicious map); the node drains it.
         self.notes: list[str] = []
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
@@ -221,13 +234,18 @@ class TeamObserver:
         return store[key]
 
     def add_map(self, msg) -> None:
-        walls = walls_from_grid(msg, self.height, self.width)
-        if self.sensing.line == "exact":
-            check_wall_segments(walls, self.max_walls)
-        geometry = geometry_of(msg)
-        if self.resolution > 0 and abs(geometry.resolution - self.resolution) > 1e-9 * self.resolution:
-            raise ValueError(f"map resolution is {geometry.resolution:g} m, this agent's 'resolution' "
-                             f"parameter is {self.resolution:g} m")
+        try:
+            walls = walls_from_grid(msg, self.height, self.width)
+            if self.sensing.line == "exact":
+                check_wall_segments(walls, self.max_walls)
+            geometry = geometry_of(msg)
+            if self.resolution > 0 and abs(geometry.resolution - self.resolution) > 1e-9 * self.resolution:
+                raise ValueError(f"map resolution is {geometry.resolution:g} m, this agent's 'resolution' "
+                                 f"parameter is {self.resolution:g} m")
+        except ValueError as exc:
+            load = show_stamp(stamp_key(msg.info.map_load_time))
+            self.last_map_drop = f"map with map_load_time {load}: {exc}"
+            raise
         faint = faint_cells(msg)
         if faint:
             self.notes.append(
@@ -238,21 +256,55 @@ class TeamObserver:
         self._maps[key] = (walls, geometry, stamp_key(msg.header.stamp))
         self._maps.move_to_end(key)
         self._geometry = geometry
-        while len(self._maps) > 4:
-            self._maps.popitem(last=False)
+        # Keep the last 4 maps, but never the one the episode in play or the pending step uses: a
+        # burst of other maps cannot take the team's map away (issue 20).
+        keep = {self.mem_map, self.pending.map_stamp if self.pending is not None else None}
+        for old in [k for k in self._maps if k not in keep][:max(0, len(self._maps) - 4)]:
+            del self._maps[old]
+
+    def episode_geometry(self) -> GridGeometry | None:
+        """The grid of the map the pending step (else the episode in memory) names, if received;
+        before any status, the latest map's."""
+        for key in (self.pending.map_stamp if self.pending is not None else None, self.mem_map):
+            if key in self._maps:
+                return self._maps[key][1]
+        return self._geometry if self.pending is None and self.mem_step < 0 else None
+
+    def tolerance_m(self, geometry: GridGeometry) -> float:
+        """The edge tolerance in metres on ``geometry``'s grid."""
+        return self.edge_tolerance * geometry.resolution
+
+    def latest_xy(self) -> list[tuple[float, float]]:
+        """The latest round of team poses received (raw map-frame x, y), possibly partial."""
+        for xys in reversed(self._positions.values()):
+            got = [xy for xy in xys if xy is not None]
+            if got:
+                return got
+        return []
+
+    def restart(self) -> None:
+        """Take the next step as the start of an episode in memory (the agent follows the driver
+        again after answering a step that was not the driver's)."""
+        self.mem_step = -1
+        self._force_start = True
 
     def _record_drop(self, kind: str, idx: int, exc: ValueError) -> None:
         self.last_drop[(kind, idx)] = str(exc)
+
+    def index_of(self, agent_id: str) -> int:
+        """The team index of ``agent_id``."""
+        return agent_index(agent_id, self.num_agents)
 
     def add_pose(self, agent_id: str, msg) -> None:
         idx = agent_index(agent_id, self.num_agents)
         try:
             xy = xy_from_pose(msg)
-            if self._geometry is not None:
-                self._geometry.xy_to_cell(*xy)  # off the grid of the latest map: drop it now
+            geometry = self.episode_geometry()
+            if geometry is not None:  # off the grid of the episode's map: drop it now
+                geometry.xy_to_cell(*xy, self.tolerance_m(geometry))
         except ValueError as exc:
             self._record_drop("pose", idx, exc)
-            raise
+            raise ValueError(f"pose of {agent_id}: {exc}") from None
         key = stamp_key(msg.header.stamp)
         self._slot(self._positions, key)[idx] = xy
         self.latest[("pose", idx)] = key
@@ -263,7 +315,7 @@ class TeamObserver:
             value = value_from_reading(msg, agent_id)
         except ValueError as exc:
             self._record_drop("reading", idx, exc)
-            raise
+            raise ValueError(f"reading on {agent_id}'s topic: {exc}") from None
         key = stamp_key(msg.header.stamp)
         self._slot(self._readings, key)[idx] = value
         self.latest[("reading", idx)] = key
@@ -300,14 +352,42 @@ class TeamObserver:
         return same and (t.step != 0 or t.stamp == self.mem_stamp)
 
     def _cells(self, t: Tick) -> list[tuple[int, int]] | None:
+        """Every agent's cell at ``t``; an absent teammate without a pose at ``t`` keeps its last
+        cell (this agent's own when it has none)."""
         xys = self._positions.get(t.stamp)
         entry = self._maps.get(t.map_stamp)
-        if xys is None or entry is None or None in xys:
+        if xys is None or entry is None or xys[self.index] is None:
             return None
+        geometry = entry[1]
+        cells = []
         try:
-            return [entry[1].xy_to_cell(*xy) for xy in xys]
+            for j, xy in enumerate(xys):
+                if xy is None and j not in self.absent:
+                    return None
+                cells.append(None if xy is None else geometry.xy_to_cell(*xy, self.tolerance_m(geometry)))
         except ValueError:
             return None
+        own = cells[self.index]
+        return [c if c is not None else (self._last_cells[j] or own) for j, c in enumerate(cells)]
+
+    def present(self, t: Tick) -> list[int]:
+        """The agents whose pose and reading at ``t`` are both here."""
+        xys = self._positions.get(t.stamp) or [None] * self.num_agents
+        rd = self._readings.get(t.stamp) or [None] * self.num_agents
+        return [j for j in range(self.num_agents) if xys[j] is not None and rd[j] is not None]
+
+    def missing(self) -> dict[int, list[str]]:
+        """For the pending tick: agent index -> kinds ('pose', 'reading') still missing."""
+        t = self.pending
+        if t is None or self.answered_tick(t):
+            return {}
+        out: dict[int, list[str]] = {}
+        for kind, store in (("pose", self._positions), ("reading", self._readings)):
+            got = store.get(t.stamp) or [None] * self.num_agents
+            for j, value in enumerate(got):
+                if value is None:
+                    out.setdefault(j, []).append(kind)
+        return out
 
     def ready(self) -> bool:
         """The pending tick has everything it needs and has not been applied yet."""
@@ -315,7 +395,9 @@ class TeamObserver:
         if t is None or self.answered_tick(t):
             return False
         rd = self._readings.get(t.stamp)
-        return rd is not None and None not in rd and self._cells(t) is not None
+        if rd is None or any(v is None and j not in self.absent for j, v in enumerate(rd)):
+            return False
+        return self._cells(t) is not None
 
     def waiting_for(self) -> tuple[list[str], list[str]]:
         """(what the pending tick still lacks, what the agent has instead), as sentences."""
@@ -334,12 +416,14 @@ class TeamObserver:
                         have.append(f"the map whose header.stamp is {show_stamp(header)} has "
                                     f"info.map_load_time {show_stamp(load)}: map_stamp must equal "
                                     "info.map_load_time")
+            elif self.last_map_drop:
+                have.append(f"no usable map: the last one was dropped ({self.last_map_drop})")
             else:
                 have.append("no map on the map topic")
         for kind, store in (("pose", self._positions), ("reading", self._readings)):
             got = store.get(t.stamp) or [None] * self.num_agents
             for j, value in enumerate(got):
-                if value is not None:
+                if value is not None or j in self.absent:
                     continue
                 need.append(f"the {kind} of {self.ids[j]} stamped {show_stamp(t.stamp)}")
                 latest = self.latest.get((kind, j))
@@ -358,7 +442,7 @@ class TeamObserver:
                 if xy is None:
                     continue
                 try:
-                    entry[1].xy_to_cell(*xy)
+                    entry[1].xy_to_cell(*xy, self.tolerance_m(entry[1]))
                 except ValueError as exc:
                     need.append(f"a pose of {self.ids[j]} on the map")
                     have.append(f"{self.ids[j]}: {exc}")
@@ -386,20 +470,32 @@ class TeamObserver:
 
         t = self.pending
         assert t is not None and self.ready()
-        positions = torch.tensor([self._cells(t)], dtype=torch.long)  # [1,N,2]
-        readings = torch.tensor([self._readings[t.stamp]], dtype=torch.float32)  # [1,N]
+        cells = self._cells(t)
+        positions = torch.tensor([cells], dtype=torch.long)  # [1,N,2]
+        readings = torch.tensor([[0.0 if v is None else v for v in self._readings[t.stamp]]],
+                                dtype=torch.float32)  # [1,N]
         walls = self._maps[t.map_stamp][0].unsqueeze(0)
+        here = self.present(t)
+        for j in here:
+            self._last_cells[j] = cells[j]
+        if len(here) < self.num_agents:  # a teammate taken out: record only the readings that came
+            sensed_pos, sensed = positions[:, here], readings[:, here]
+        else:
+            sensed_pos, sensed = positions, readings
         new_episode = (t.episode, t.map_stamp) != (self.mem_episode, self.mem_map) or t.step == 0
+        if self._force_start:
+            new_episode, self._force_start = True, False
+            self._memory_started = False
         if new_episode or not self._memory_started:
             if self._memory_started and (t.episode, t.step) <= (self.mem_episode, self.mem_step):
                 self.notes.append(
                     f"episode status went back from episode {self.mem_episode} step {self.mem_step} to "
                     f"episode {t.episode} step {t.step} (map_load_time {show_stamp(self.mem_map)} -> "
                     f"{show_stamp(t.map_stamp)}): the driver restarted; memory reset, following it")
-            self.memory.start(walls, positions, readings)
+            self.memory.start(walls, sensed_pos, sensed)
             self._memory_started = True
         else:
-            self.memory.record(walls, positions, readings)
+            self.memory.record(walls, sensed_pos, sensed)
         self.mem_episode, self.mem_step = t.episode, t.step
         self.mem_stamp, self.mem_map = t.stamp, t.map_stamp
         m = self.memory

@@ -190,12 +190,15 @@ class GridGeometry:
         c, s = math.cos(self.origin_yaw), math.sin(self.origin_yaw)
         return self.origin_x + c * gx - s * gy, self.origin_y + s * gx + c * gy
 
-    def xy_to_cell(self, x: float, y: float) -> tuple[int, int]:
+    def xy_to_cell(self, x: float, y: float, tolerance: float = 0.0) -> tuple[int, int]:
         """The environment cell (row, col) whose square holds map-frame point (x, y) (z, yaw and
         the offset from the cell centre are ignored: a point anywhere in a cell snaps to it).
+        ``tolerance`` (metres): a point at most this far outside the grid's edge (GNSS noise on the
+        edge row) snaps to the nearest edge cell.
 
         Raises:
-            ValueError: a coordinate is not finite or the point lies outside the grid.
+            ValueError: a coordinate is not finite or the point lies outside the grid (by more than
+            ``tolerance``).
         """
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"position ({x}, {y}) is not finite")
@@ -204,10 +207,18 @@ class GridGeometry:
         gx, gy = c * dx + s * dy, -s * dx + c * dy
         i, j = math.floor(gx / self.resolution), math.floor(gy / self.resolution)
         if not (0 <= i < self.width and 0 <= j < self.height):
+            # How far outside the grid's edge the point is (metres, in the grid frame).
+            out_x = max(0.0, -gx, gx - self.width * self.resolution)
+            out_y = max(0.0, -gy, gy - self.height * self.resolution)
+            outside = math.hypot(out_x, out_y)
+            if outside <= tolerance:
+                return ij_to_cell(min(max(i, 0), self.width - 1), min(max(j, 0), self.height - 1),
+                                  self.height)
             raise ValueError(
                 f"position ({x:.3f}, {y:.3f}) m is outside the {self.height}x{self.width} grid of the map "
                 f"(origin ({self.origin_x:g}, {self.origin_y:g}) m, yaw {self.origin_yaw:g} rad, "
-                f"resolution {self.resolution:g} m)"
+                f"resolution {self.resolution:g} m) by {outside:.3f} m"
+                + (f", more than the edge tolerance of {tolerance:g} m" if tolerance > 0 else "")
             )
         return ij_to_cell(i, j, self.height)
 
