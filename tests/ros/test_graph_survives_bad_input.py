@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
@@ -87,7 +88,12 @@ def test_bad_messages_on_every_topic_are_dropped(graph, bundles, tmp_path):
     # Reliable topics: every bad message is counted. Sensor data is best effort: at least one per kind.
     assert sim.dropped == 4 * injected  # four bad moves per round
     for agent in agents:
-        assert agent.dropped_by["map"] == injected and agent.dropped_by["status"] == injected
+        # The simulator re-publishes its own map when another one comes (the map topic keeps one
+        # message), so a bad map may be superseded before an agent reads it: at least one per agent.
+        assert 1 <= agent.dropped_by["map"] <= injected and agent.dropped_by["status"] == injected
         assert agent.dropped_by["pose"] >= 1 and agent.dropped_by["radiation"] >= 1
     assert agents[1].dropped_by["policy"] >= injected  # latched topic, depth 1: the last one of a burst
     assert agents[1].slot.current.source == str(bundles["a"])  # bad policies refused, old one runs
+    # The foreign map and the status of another session are reported by the simulator.
+    assert sim.health.level("map") == sim.health.level("graph") == DiagnosticStatus.WARN
+    assert sim.watch.foreign_maps >= 1 and "" in sim.watch.foreign_sessions

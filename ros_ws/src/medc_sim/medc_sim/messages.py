@@ -53,10 +53,13 @@ def reading_msg(agent_id: str, value: float, variance: float, stamp: Time) -> Ra
 
 
 def status_msg(
-    ids: list[str], episode: int, step: int, stamp: Time, map_stamp: Time, result: EpisodeResult | None = None
+    ids: list[str], episode: int, step: int, stamp: Time, map_stamp: Time,
+    result: EpisodeResult | None = None, session: str = "",
 ) -> EpisodeStatus:
-    """medc_interfaces/EpisodeStatus: a step to answer, or (``result`` given) an episode's end."""
+    """medc_interfaces/EpisodeStatus: a step to answer, or (``result`` given) an episode's end;
+    ``session``: the driver's per-run id."""
     status = EpisodeStatus()
+    status.session = session
     status.header.stamp = stamp
     status.header.frame_id = contract.MAP_FRAME
     status.episode, status.step = int(episode), int(step)

@@ -8,7 +8,10 @@ agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and
 Modes:
   stepped   waits for every agent's move, then steps (at most ``rate_hz`` steps/s; 0 = no limit).
             While waiting it re-publishes the step every ``resend_s`` so lost sensor-data
-            messages or late-starting agents cannot stall the team.
+            messages or late-starting agents cannot stall the team. An agent with no move after
+            ``move_timeout_s`` stays in place and is taken out: later steps do not wait for it
+            until it moves again (docs/ros.md, "A lost UAV"; the simulator's move rules:
+            medc_sim.moves, watch: medc_sim.watch).
   realtime  steps every 1/``rate_hz`` s with the moves received; an agent without a move stays.
 """
 
@@ -19,16 +22,19 @@ from collections import deque
 from collections.abc import Callable
 
 import torch
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
+from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
 from medc_sim import messages
-from medc_sim.moves import MoveBook, MoveRejected
+from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
+from medc_sim.watch import GraphWatch
 
 
 class SimNode(Node):
@@ -84,6 +90,14 @@ class SimNode(Node):
             True,
         ))
         self._stall_logged: tuple[int, int] | None = None
+        self.move_timeout_s = float(p(
+            "move_timeout_s", 3.0,
+            "Stepped mode: an agent with no move for this long stays in place and is taken out of the "
+            "team (later steps do not wait for it) until it moves again; 0: wait for ever",
+            True,
+        ))
+        #: Per-run id of this driver, sent with every status (EpisodeStatus.session).
+        self.session = run_id()
 
         # The environment's tensors are tiny; threads only add contention with the agent nodes.
         torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
@@ -125,6 +139,11 @@ class SimNode(Node):
                 lambda m, a=a: self._on_move(a, m),
                 contract.RELIABLE_QOS,
             )
+        self.health = Health(self, "driver", self._summary)
+        #: Other drivers' statuses and maps on this namespace (a second graph, a hostile map).
+        self.watch = GraphWatch(self)
+        if self.mode == "stepped" and self.move_timeout_s > 0:
+            self.create_timer(min(0.1, self.move_timeout_s / 4), self._move_timeout_tick)
 
         self.wait_for = int(
             p(
@@ -165,8 +184,19 @@ class SimNode(Node):
 
     def _begin_episode(self) -> None:
         self._map_stamp = self.get_clock().now().to_msg()
-        self.map_pub.publish(messages.grid_msg(self.core.walls(), self._map_stamp, self.resolution))
+        self.map_pub.publish(self.map_msg())
         self._publish_step()
+
+    def map_msg(self) -> OccupancyGrid:
+        """The walls map of the episode in play."""
+        self.watch.own_map(self._map_stamp)
+        return messages.grid_msg(self.core.walls(), self._map_stamp, self.resolution)
+
+    def _summary(self) -> dict[str, str]:
+        return {"session": self.session, "episode": str(self.core.episode), "step": str(self.core.step),
+                "episodes_done": str(len(self.core.results)), "resends": str(self.resends),
+                "dropped_moves": str(self.dropped), "resent_moves_ignored": str(self.book.resent),
+                "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none"}
 
     def _publish_step(self) -> None:
         """Publish the current state as a new step and wait for its moves."""
@@ -185,13 +215,15 @@ class SimNode(Node):
             self.reading_pubs[i].publish(messages.reading_msg(self.ids[i], value, variance, stamp))
         core = self.core
         self.status_pub.publish(
-            messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp)
+            messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp,
+                                session=self.session)
         )
         self._published_at = time.monotonic()
 
     def _publish_done(self, result: EpisodeResult) -> None:
         stamp = self.get_clock().now().to_msg()
-        msg = messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result)
+        msg = messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result,
+                                  self.session)
         self.status_pub.publish(msg)
         self.results_pub.publish(msg)
 
@@ -200,11 +232,20 @@ class SimNode(Node):
         try:
             if msg.agent_id != topic_agent:
                 raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")
-            if self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action)) is None:
-                return  # a re-sent move for the step just applied: harmless
+            taken = self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action),
+                                    str(msg.sender))
+            self._report_returned()
+            if taken is None:
+                return  # a re-sent move, or one for the step just applied: executed once already
+        except DuplicateAgent as exc:
+            self.dropped += 1
+            self.health.set("moves", DiagnosticStatus.WARN, f"duplicate agent id: {exc}")
+            return
         except MoveRejected as exc:
             self.dropped += 1
             self.get_logger().warning(f"dropped move: {exc}")
+            if "another graph" in str(exc):
+                self.health.set("moves", DiagnosticStatus.WARN, f"foreign move: {exc}", log=False)
             return
         if self.book.complete and self._step_t0 is not None:
             # Team decision latency: this step's state published -> the last move received.
@@ -230,6 +271,38 @@ class SimNode(Node):
                     f"re-sending the step every {self.resend_s:g} s (the agents' logs and /diagnostics "
                     "say what they wait for)")
             self._send_state()
+
+    def _report_returned(self) -> None:
+        for idx in self.book.returned:
+            self.get_logger().info(f"{self.ids[idx]} moved again: back in the team")
+        if self.book.returned:
+            self.book.returned.clear()
+            self._report_lost()
+
+    def _report_lost(self) -> None:
+        lost = sorted(self.book.lost)
+        if lost:
+            names = ", ".join(self.ids[i] for i in lost)
+            self.health.set("team", DiagnosticStatus.WARN, (
+                f"{names} lost: no move within move_timeout_s ({self.move_timeout_s:g} s); staying in place, "
+                "the team steps without waiting for it until it moves again"), {"lost": names})
+        else:
+            self.health.set("team", DiagnosticStatus.OK, f"all {len(self.ids)} agents moving")
+
+    def _move_timeout_tick(self) -> None:
+        """Stepped mode: agents with no move after move_timeout_s are taken out, and the step goes on
+        (only while some agent answers: a team with no answer at all is a stall, re-sent and
+        reported, not stepped)."""
+        if not self.started or self.finished or self._step_t0 is None or self.book.complete:
+            return
+        if time.perf_counter() - self._step_t0 < self.move_timeout_s or self.book.answered == 0:
+            return
+        newly = [i for i in self.book.missing if i not in self.book.lost]
+        self.book.take_out(newly)
+        self._report_lost()
+        if self.book.complete and self.rate_hz <= 0:
+            self._step_t0 = None
+            self._advance()
 
     def _realtime_tick(self) -> None:
         if self.started:
