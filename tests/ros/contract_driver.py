@@ -2,12 +2,18 @@
 medc_training): its own world, walls and sensor model, in ENU coordinates (REP 103).
 
 It plays the part a real team's drivers (with a small coordinator) play: publishes the walls map,
-every UAV's pose and radiation reading and one EpisodeStatus per team step; waits for every
-agent's AgentMove, applies the moves and goes on. Used by tests/ros/test_contract_driver.py:
+every UAV's pose and radiation reading and one EpisodeStatus per team step (with its own session
+id); waits for every agent's AgentMove, executes each (agent, episode, step) once (a re-sent move
+from the same sender is ignored, the same agent from another sender is a duplicate, logged) and
+goes on; an agent with no move ``--move-timeout-s`` after the step's first move stays and is not
+waited for until it moves again (docs/ros.md, "A lost UAV", "Moves are executed once"). Used by
+tests/ros/test_contract_driver.py and tests/ros/test_team_liveness.py:
 
     python contract_driver.py --out steps.jsonl --steps 12 --seed 1 [--misstamp-step 4]
+        [--resend-always] [--lose-agent 2 --lose-at-step 3] [--episodes 1] [--summary s.json]
 
-writes one JSON line per applied team step and exits 0 after ``--steps`` steps.
+writes one JSON line per applied team step and exits 0 after ``--steps`` steps (or ``--episodes``
+episodes); ``--summary`` writes what it received (moves, re-sends, duplicates, episodes).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import secrets
 import sys
 import time
 
@@ -111,6 +118,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--misstamp-step", type=int, default=-1, help="this team step's first reading of "
                     "agent_1 is stamped 1 us after its pose")
     ap.add_argument("--namespace", default="/medc")
+    ap.add_argument("--move-timeout-s", type=float, default=2.5,
+                    help="an agent with no move this long after the step's first move stays and is not "
+                    "waited for until it moves again")
+    ap.add_argument("--resend-always", action="store_true",
+                    help="publish every step twice (a re-send: same stamp), as a driver on a lossy link may")
+    ap.add_argument("--lose-agent", type=int, default=-1, help="this UAV is lost from --lose-at-step on: "
+                    "its pose and reading stop")
+    ap.add_argument("--lose-at-step", type=int, default=0)
+    ap.add_argument("--episodes", type=int, default=0, help="stop after this many episodes (0: --steps only)")
+    ap.add_argument("--summary", default="")
     args = ap.parse_args(argv)
 
     import rclpy
@@ -143,11 +160,32 @@ def main(argv: list[str] | None = None) -> int:
     result_pub = node.create_publisher(EpisodeStatus, f"{ns}/episode_result", qos(1000, True))
     moves: dict[int, int] = {}
     state = {"episode": 0, "step": 0}
+    session = secrets.token_hex(8)  # this run's id, on every status
+    # Moves are executed once per (agent, episode, step): the first one received; the sender of each.
+    executed: dict[tuple[int, int, int], str] = {}
+    received: dict[int, int] = {}  # this step's move messages per agent, re-sends included
+    summary = {"moves_received": 0, "resends_ignored": 0, "duplicates": [], "episodes": [], "lost": []}
+    silent: set[int] = set()  # agents not waited for (no move within --move-timeout-s)
 
     def on_move(k: int, msg) -> None:
-        if msg.agent_id == ids[k] and (msg.episode, msg.step) == (state["episode"], state["step"]) \
-                and 0 <= msg.action < 8:
-            moves[k] = int(msg.action)
+        if msg.agent_id != ids[k] or not 0 <= msg.action < 8:
+            return
+        summary["moves_received"] += 1
+        key = (k, int(msg.episode), int(msg.step))
+        if key in executed:
+            if executed[key] == msg.sender:
+                summary["resends_ignored"] += 1  # a re-send: already executed (or collected)
+            else:
+                summary["duplicates"].append([ids[k], key[1], key[2], executed[key], msg.sender])
+                print(f"duplicate agent id: {ids[k]} answered episode {key[1]} step {key[2]} from senders "
+                      f"{executed[key]} and {msg.sender}", flush=True)
+            return
+        if (msg.episode, msg.step) != (state["episode"], state["step"]):
+            return
+        executed[key] = msg.sender
+        received[k] = received.get(k, 0) + 1
+        moves[k] = int(msg.action)
+        silent.discard(k)
 
     for k, a in enumerate(ids):
         node.create_subscription(AgentMove, f"{ns}/{a}/move", lambda m, k=k: on_move(k, m), qos(20, False))
@@ -189,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     def publish_state(stamp, map_stamp, misstamp: bool):
         values = rate(walls, source, np.array(cells))
         for k in range(n):
+            if k == args.lose_agent and done_steps >= args.lose_at_step:
+                continue  # the lost UAV: nothing comes from it any more
             pose = PoseStamped()
             pose.header.stamp, pose.header.frame_id = stamp, "map"
             i, j = cells[k]
@@ -212,26 +252,45 @@ def main(argv: list[str] | None = None) -> int:
         status.header.stamp, status.header.frame_id = stamp, "map"
         status.episode, status.step, status.map_stamp = state["episode"], state["step"], map_stamp
         status.agent_ids = ids
+        status.session = session
         status_pub.publish(status)
         return values
 
     map_stamp = publish_map()
     episode_walls = walls
     try:
-        while done_steps < args.steps:
+        while done_steps < args.steps and not (args.episodes and len(summary["episodes"]) >= args.episodes):
             stamp = now()
             moves.clear()
+            received.clear()
+            if args.lose_agent >= 0 and done_steps == args.lose_at_step:
+                silent.add(args.lose_agent)  # the driver knows its UAV is down: no move expected
             values = publish_state(stamp, map_stamp, done_steps == args.misstamp_step)
+            if args.resend_always:
+                values = publish_state(stamp, map_stamp, False)
             sent = time.monotonic()
+            first = None  # when the step's first move came
             while len(moves) < n:
                 rclpy.spin_once(node, timeout_sec=0.02)
+                waiting = [k for k in range(n) if k not in moves]
+                if moves and all(k in silent for k in waiting):
+                    break  # every agent still in the team has moved
+                if moves and first is None:
+                    first = time.monotonic()
+                if first is not None and time.monotonic() - first > args.move_timeout_s:
+                    silent.update(waiting)  # they stay; not waited for until they move again
+                    summary["lost"].append([state["episode"], state["step"], [ids[k] for k in waiting]])
+                    break
                 if time.monotonic() - sent > args.resend_s:  # re-send the step, same stamp
                     values = publish_state(stamp, map_stamp, False)
                     sent = time.monotonic()
-            actions = [moves[k] for k in range(n)]
+            actions = [moves.get(k) for k in range(n)]
             before = list(cells)
             valid = []
             for k, a in enumerate(actions):
+                if a is None:  # no move: the UAV stays
+                    valid.append(True)
+                    continue
                 i, j = cells[k][0] + MOVES[a][0], cells[k][1] + MOVES[a][1]
                 ok = 0 <= i < size and 0 <= j < size and not walls[i, j]
                 valid.append(ok)
@@ -240,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
             log.write(json.dumps({
                 "episode": state["episode"], "step": state["step"], "actions": actions, "valid": valid,
                 "readings": [float(v) for v in values], "walls": episode_walls.astype(int).tolist(),
-                "source": source, "cells": before,
+                "source": source, "cells": before, "received": [received.get(k, 0) for k in range(n)],
             }) + "\n")
             log.flush()
             done_steps += 1
@@ -253,7 +312,10 @@ def main(argv: list[str] | None = None) -> int:
                 status.agent_ids = ids
                 status.done, status.success, status.truncated = True, found, not found
                 status.episode_length = state["step"]
+                status.session = session
                 status_pub.publish(status)
+                summary["episodes"].append({"episode": state["episode"], "success": found,
+                                            "length": state["step"]})
                 result_pub.publish(status)
                 state["episode"] += 1
                 state["step"] = 0
@@ -267,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
             rclpy.spin_once(node, timeout_sec=0.05)
     finally:
         log.close()
+        if args.summary:
+            with open(args.summary, "w") as f:
+                json.dump(summary, f)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -55,15 +55,18 @@ class LostWatch:
         """A valid pose or reading of agent ``idx`` arrived."""
         self.arrived[(kind, idx)] = self.clock()
 
-    def check(self, missing: dict[int, list[str]], waiting_since: float) -> list[tuple[int, str]]:
+    def check(self, missing: dict[int, list[str]], waiting_since: float,
+              fresh: set[int] | frozenset = frozenset()) -> list[tuple[int, str]]:
         """Teammates newly lost: ``missing`` maps an agent index to the kinds ('pose', 'reading')
-        the step being waited on (since ``waiting_since``, clock time) still lacks from it."""
+        the step being waited on (since ``waiting_since``, clock time) still lacks from it;
+        ``fresh``: agents that sent something newer than the last step answered (alive, if
+        mis-stamped: a stall to report, not a lost UAV)."""
         if self.timeout_s <= 0:
             return []
         now = self.clock()
         newly = []
         for idx, kinds in missing.items():
-            if idx == self.own or idx in self.lost:
+            if idx == self.own or idx in self.lost or idx in fresh:
                 continue
             for kind in kinds:
                 last = max(self.arrived.get((kind, idx), waiting_since), waiting_since)

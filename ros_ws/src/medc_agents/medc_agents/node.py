@@ -349,7 +349,9 @@ class AgentNode(Node):
             return
         if self._pending_since[0] != t:
             self._pending_since = (t, time.monotonic())
-        newly = self.lost_watch.check(o.missing(), self._pending_since[1])
+        fresh = {j for j in range(o.num_agents)
+                 if any(o.latest.get((kind, j), -1) > o.mem_stamp for kind in ("pose", "reading"))}
+        newly = self.lost_watch.check(o.missing(), self._pending_since[1], fresh)
         for idx, _why in newly:
             o.absent.add(idx)
         if newly:

@@ -62,8 +62,14 @@ class Health:
         return status
 
     def _log(self, level: bytes, message: str) -> None:
+        # rclpy wants one severity per call site: one call per level.
         log = self.node.get_logger()
-        (log.error if level == ERROR else log.warning if level == WARN else log.info)(message)
+        if level == ERROR:
+            log.error(message)
+        elif level == WARN:
+            log.warning(message)
+        else:
+            log.info(message)
 
     def _publish(self, statuses: list[DiagnosticStatus]) -> None:
         array = DiagnosticArray(status=statuses)

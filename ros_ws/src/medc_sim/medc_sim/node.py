@@ -8,10 +8,10 @@ agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and
 Modes:
   stepped   waits for every agent's move, then steps (at most ``rate_hz`` steps/s; 0 = no limit).
             While waiting it re-publishes the step every ``resend_s`` so lost sensor-data
-            messages or late-starting agents cannot stall the team. An agent with no move after
-            ``move_timeout_s`` stays in place and is taken out: later steps do not wait for it
-            until it moves again (docs/ros.md, "A lost UAV"; the simulator's move rules:
-            medc_sim.moves, watch: medc_sim.watch).
+            messages or late-starting agents cannot stall the team. An agent with no move
+            ``move_timeout_s`` after the step's first move stays in place and is taken out: later
+            steps do not wait for it until it moves again (docs/ros.md, "A lost UAV"; the move
+            rules: medc_sim.moves; other drivers on the topics: medc_sim.watch).
   realtime  steps every 1/``rate_hz`` s with the moves received; an agent without a move stays.
 """
 
@@ -92,8 +92,9 @@ class SimNode(Node):
         self._stall_logged: tuple[int, int] | None = None
         self.move_timeout_s = float(p(
             "move_timeout_s", 3.0,
-            "Stepped mode: an agent with no move for this long stays in place and is taken out of the "
-            "team (later steps do not wait for it) until it moves again; 0: wait for ever",
+            "Stepped mode: an agent with no move this long (seconds) after the step's first move stays "
+            "in place and is taken out of the team (later steps do not wait for it) until it moves "
+            "again; 0: wait for ever",
             True,
         ))
         #: Per-run id of this driver, sent with every status (EpisodeStatus.session).
@@ -113,6 +114,7 @@ class SimNode(Node):
         self._step_stamp = None
         self._published_at = 0.0
         self._step_t0: float | None = None
+        self._first_move_at: float | None = None  # when the step's first move came
         #: Seconds from publishing a step to receiving the team's last move, per step (latest 100k).
         self.latencies: deque[float] = deque(maxlen=100_000)
 
@@ -203,6 +205,7 @@ class SimNode(Node):
         self._step_stamp = self.get_clock().now().to_msg()
         self.book.open(self.core.episode, self.core.step)
         self._step_t0 = time.perf_counter()
+        self._first_move_at = None
         self._send_state()
 
     def _send_state(self) -> None:
@@ -234,6 +237,8 @@ class SimNode(Node):
                 raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")
             taken = self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action),
                                     str(msg.sender))
+            if taken is not None and self._first_move_at is None:
+                self._first_move_at = time.perf_counter()
             self._report_returned()
             if taken is None:
                 return  # a re-sent move, or one for the step just applied: executed once already
@@ -290,12 +295,13 @@ class SimNode(Node):
             self.health.set("team", DiagnosticStatus.OK, f"all {len(self.ids)} agents moving")
 
     def _move_timeout_tick(self) -> None:
-        """Stepped mode: agents with no move after move_timeout_s are taken out, and the step goes on
-        (only while some agent answers: a team with no answer at all is a stall, re-sent and
-        reported, not stepped)."""
-        if not self.started or self.finished or self._step_t0 is None or self.book.complete:
+        """Stepped mode: agents with no move move_timeout_s after the step's first move are taken
+        out, and the step goes on (a team with no answer at all is a stall, re-sent and reported,
+        not stepped)."""
+        first = self._first_move_at
+        if not self.started or self.finished or first is None or self.book.complete:
             return
-        if time.perf_counter() - self._step_t0 < self.move_timeout_s or self.book.answered == 0:
+        if time.perf_counter() - first < self.move_timeout_s:
             return
         newly = [i for i in self.book.missing if i not in self.book.lost]
         self.book.take_out(newly)
