@@ -190,6 +190,7 @@ class TeamObserver:
         #: their pose and reading; their last cell stays in the observation.
         self.absent: set[int] = set()
         self._last_cells: list[tuple[int, int] | None] = [None] * num_agents
+        self._last_xy: list[tuple[float, float] | None] = [None] * num_agents
         self._force_start = False
         # Memory of the episode being played, as in the environment.
         self.mem_episode = -1
@@ -275,12 +276,8 @@ class TeamObserver:
         return self.edge_tolerance * geometry.resolution
 
     def latest_xy(self) -> list[tuple[float, float]]:
-        """The latest round of team poses received (raw map-frame x, y), possibly partial."""
-        for xys in reversed(self._positions.values()):
-            got = [xy for xy in xys if xy is not None]
-            if got:
-                return got
-        return []
+        """Each agent's latest pose received (raw map-frame x, y), for those heard from."""
+        return [xy for xy in self._last_xy if xy is not None]
 
     def restart(self) -> None:
         """Take the next step as the start of an episode in memory (the agent follows the driver
@@ -307,6 +304,7 @@ class TeamObserver:
             raise ValueError(f"pose of {agent_id}: {exc}") from None
         key = stamp_key(msg.header.stamp)
         self._slot(self._positions, key)[idx] = xy
+        self._last_xy[idx] = xy
         self.latest[("pose", idx)] = key
 
     def add_reading(self, agent_id: str, msg) -> None:

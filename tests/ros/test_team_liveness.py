@@ -1,0 +1,289 @@
+"""Issue 21 (a lost UAV, idempotent moves, diagnostics a monitor can use) and issue 20 items 1-2
+(one map or one status must not freeze a team), with agent processes.
+
+- The simulator and three ``medc-agent`` processes: every node's heartbeat comes at ~1 Hz; a hostile
+  map (far-away origin, new map_load_time), a hostile status (step 10^9 with future-stamped poses
+  and readings, the driver's own session) and a second driver's status are held and reported while
+  the team keeps stepping; a move from another sender for agent_1 is reported as a duplicate agent
+  id; a killed agent leaves a team that goes on finishing episodes.
+- The documented driver (tests/ros/contract_driver.py, no simulator code) and the shipped team as
+  three processes: a re-sent status yields a re-sent move that the driver executes once; a second
+  process claiming agent_1 is detected; a UAV that is lost mid-episode (its pose and reading stop,
+  its agent process is killed) leaves a team that finishes the episode.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+TEAM = HERE.parents[1] / "models" / "team" / "A3W2.safetensors"
+BIN = Path(sys.executable).parent
+DRIVER = HERE / "contract_driver.py"
+
+
+def _start(cmd: list[str], log: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env)
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def _agent(i: int, policy: Path, log: Path, *extra: str) -> subprocess.Popen:
+    return _start([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
+                   "-p", f"policy:={policy}", *extra], log)
+
+
+class Listener:
+    """A test node that records /diagnostics and the team's statuses and publishes hostile messages."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from medc_common import contract
+        from medc_interfaces.msg import EpisodeStatus
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.node = rclpy.create_node("liveness_listener")
+        self.diagnostics: list[tuple[float, object]] = []
+        self.statuses: list = []
+        self.node.create_subscription(
+            DiagnosticArray, "/diagnostics",
+            lambda m: self.diagnostics.extend((time.monotonic(), s) for s in m.status),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.node.create_subscription(EpisodeStatus, contract.status_topic("/medc"), self.statuses.append,
+                                      contract.RELIABLE_QOS)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+
+    def spin(self, seconds: float, until=None, procs=()) -> bool:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+            assert all(p.poll() is None for p in procs), "a node died"
+            if until is not None and until():
+                return True
+        return until is None
+
+    def warnings(self, since: float, text: str, name_part: str = "") -> list:
+        from diagnostic_msgs.msg import DiagnosticStatus
+
+        return [s for t, s in self.diagnostics if t >= since and s.level == DiagnosticStatus.WARN
+                and text in s.message and name_part in s.name]
+
+    def own(self, session: str) -> list:
+        return [s for s in self.statuses if s.session == session]
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+@pytest.mark.ros
+def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bundles, tmp_path):
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PoseStamped
+    from medc_common import contract
+    from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+    from nav_msgs.msg import OccupancyGrid
+
+    listen = Listener()
+    node = listen.node
+    ns = "/medc"
+    procs: list[subprocess.Popen] = []
+    logs = {name: tmp_path / f"{name}.log" for name in ("sim", "agent_0", "agent_1", "agent_2")}
+    try:
+        procs.append(_start([str(BIN / "medc-sim"), "--ros-args", "-p", "agents:=3", "-p", "walls:=1",
+                             "-p", "grid:=10", "-p", "max_steps:=20", "-p", "seed:=3", "-p", "rate_hz:=10.0",
+                             "-p", "wait_for_subscribers:=3"], logs["sim"]))
+        for i in range(3):
+            procs.append(_agent(i, bundles["a"], logs[f"agent_{i}"], "-p", "agents:=3"))
+        assert listen.spin(60, lambda: len(listen.statuses) >= 5, procs), "the team did not start"
+        session = listen.statuses[-1].session
+        assert session
+
+        # A heartbeat per node at ~1 Hz: the summary status named after the node.
+        t0 = time.monotonic()
+        listen.spin(4.0, procs=procs)
+        for name in ("medc_sim", "medc_agent_0", "medc_agent_1", "medc_agent_2"):
+            beats = [t for t, s in listen.diagnostics if t >= t0 and s.name == name]
+            assert 3 <= len(beats) <= 6, (name, len(beats))
+
+        def steps_after(since_count: int) -> int:
+            return len([s for s in listen.own(session)[since_count:] if not s.done])
+
+        # Issue 20 item 1: one valid map far away with a new map_load_time.
+        map_pub = node.create_publisher(OccupancyGrid, contract.map_topic(ns), contract.LATCHED_QOS)
+        hostile = OccupancyGrid()
+        hostile.header.frame_id = "map"
+        hostile.header.stamp = hostile.info.map_load_time = Time(sec=int(time.time()) + 5)
+        hostile.info.resolution, hostile.info.width, hostile.info.height = 1.0, 10, 10
+        hostile.info.origin.position.x = hostile.info.origin.position.y = 1000.0
+        hostile.info.origin.orientation.w = 1.0
+        hostile.data = [0] * 100
+        listen.spin(1.0)
+        t_map, count = time.monotonic(), len(listen.own(session))
+        map_pub.publish(hostile)
+        assert listen.spin(10, lambda: steps_after(count) >= 20, procs), "the team froze after one map"
+        assert listen.spin(3, lambda: len(listen.warnings(t_map, "holds none of the team's")) >= 3, procs)
+        assert listen.warnings(t_map, "did not publish", "medc_sim: map")
+
+        # Issue 20 item 2: future-stamped poses and readings and one status with step 10^9, in the
+        # driver's own session, episode and map.
+        pose_pubs = [node.create_publisher(PoseStamped, contract.pose_topic(ns, a), contract.SENSOR_QOS)
+                     for a in contract.agent_ids(3)]
+        read_pubs = [node.create_publisher(RadiationReading, contract.radiation_topic(ns, a),
+                                           contract.SENSOR_QOS) for a in contract.agent_ids(3)]
+        status_pub = node.create_publisher(EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS)
+        listen.spin(1.0)
+        current = listen.own(session)[-1]
+        future = Time(sec=int(time.time()) + 3600)
+        for k, a in enumerate(contract.agent_ids(3)):
+            pose = PoseStamped()
+            pose.header.frame_id, pose.header.stamp = "map", future
+            pose.pose.position.x, pose.pose.position.y = 0.5 + k, 0.5
+            pose.pose.orientation.w = 1.0
+            pose_pubs[k].publish(pose)
+            read_pubs[k].publish(RadiationReading(header=pose.header, agent_id=a, value=5.0))
+        bogus = EpisodeStatus(episode=current.episode, step=10**9, map_stamp=current.map_stamp,
+                              agent_ids=list(current.agent_ids), session=session)
+        bogus.header.frame_id, bogus.header.stamp = "map", future
+        t_status, count = time.monotonic(), len(listen.own(session))
+        status_pub.publish(bogus)
+        assert listen.spin(10, lambda: steps_after(count) >= 20, procs), "the team froze after one status"
+        held = listen.warnings(t_status, "jumps ahead")
+        assert held, "the hostile status was not reported"
+        assert all("1000000000" in s.message for s in held)
+
+        # A second graph: a status of another session on the same namespace.
+        other = EpisodeStatus(episode=0, step=0, map_stamp=current.map_stamp,
+                              agent_ids=list(current.agent_ids), session="f00dfeedf00dfeed")
+        other.header.frame_id, other.header.stamp = "map", Time(sec=int(time.time()))
+        t_other, count = time.monotonic(), len(listen.own(session))
+        status_pub.publish(other)
+        assert listen.spin(10, lambda: steps_after(count) >= 10, procs)
+        assert listen.warnings(t_other, "second graph", "medc_sim: graph")
+        assert listen.spin(3, lambda: len({s.hardware_id for s in listen.warnings(t_other, "second")
+                                           if s.hardware_id.startswith("agent_")}) == 3, procs)
+
+        # A second process claiming agent_1: a move from another sender for the step in play.
+        move_pub = node.create_publisher(AgentMove, contract.move_topic(ns, "agent_1"), contract.RELIABLE_QOS)
+        listen.spin(1.0)
+        t_dup = time.monotonic()
+        for _ in range(3):
+            now = listen.own(session)[-1]
+            move_pub.publish(AgentMove(agent_id="agent_1", episode=now.episode, step=now.step, action=0,
+                                       sender="0123456789abcdef"))
+            listen.spin(0.3)
+        assert listen.spin(3, lambda: listen.warnings(t_dup, "agent_1", "medc_sim: moves"), procs)
+
+        # Kill agent_2 mid-episode: the simulator takes it out after move_timeout_s (3 s) and the
+        # two others go on finishing episodes.
+        episodes_before = len([s for s in listen.own(session) if s.done])
+        t_kill = time.monotonic()
+        procs[3].send_signal(signal.SIGKILL)
+        procs[3].wait(10)
+        alive = procs[:3]
+        assert listen.spin(30, lambda: len([s for s in listen.own(session) if s.done]) >= episodes_before + 2,
+                           alive), "the team stopped after losing agent_2"
+        lost = listen.warnings(t_kill, "agent_2 lost", "medc_sim: team")
+        assert lost
+    finally:
+        _stop(procs)
+        listen.close()
+    texts = {k: p.read_text() for k, p in logs.items()}
+    assert not any("Traceback" in t for t in texts.values()), {k: t[-2000:] for k, t in texts.items()}
+    assert texts["sim"].count("agent_2 lost") == 1, texts["sim"][-3000:]
+    assert "duplicate agent id" in texts["sim"] and "two processes claim agent_1" in texts["sim"]
+
+
+def _run_driver(listen: Listener, agents, name: str, tmp_path: Path, *extra: str, on_step=None):
+    out, summary = tmp_path / f"{name}.jsonl", tmp_path / f"{name}.summary.json"
+    cmd = [sys.executable, str(DRIVER), "--out", str(out), "--summary", str(summary), *extra]
+    proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    start = time.monotonic()
+    while proc.poll() is None:
+        listen.executor.spin_once(timeout_sec=0.05)
+        assert time.monotonic() - start < 90, "the team stopped stepping"
+        if on_step is not None and out.exists():
+            on_step(len(out.read_text().splitlines()))
+    text = proc.stdout.read()
+    assert proc.returncode == 0, text[-3000:]
+    steps = [json.loads(line) for line in out.read_text().splitlines()]
+    return steps, json.loads(summary.read_text()), text
+
+
+@pytest.mark.ros
+def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rclpy_context, tmp_path):
+    listen = Listener()
+    logs = [tmp_path / f"agent_{i}.log" for i in range(3)]
+    agents = [_agent(i, TEAM, logs[i]) for i in range(3)]
+    duplicate = None
+    try:
+        # Every status is re-sent: every agent re-sends its move; the driver executes each once.
+        steps, summary, _ = _run_driver(listen, agents, "resend", tmp_path, "--steps", "8", "--seed", "3",
+                                        "--resend-always")
+        assert len(steps) == 8
+        assert all(s["received"] == [1, 1, 1] for s in steps), [s["received"] for s in steps]
+        assert all(a is not None for s in steps for a in s["actions"])
+        assert summary["resends_ignored"] >= 8, summary  # re-sent moves came and were recognised
+        assert summary["moves_received"] == 24 + summary["resends_ignored"]
+        assert summary["duplicates"] == []
+
+        # A second process claims agent_1: the driver sees agent_1 answer from two senders.
+        duplicate = _agent(1, TEAM, tmp_path / "duplicate.log", "-r", "__node:=medc_agent_1_again")
+        listen.spin(8.0)  # it starts, loads the bundle and joins
+        steps, summary, text = _run_driver(listen, agents, "duplicate", tmp_path, "--steps", "4",
+                                           "--seed", "4")
+        assert len(steps) == 4 and all(s["received"] == [1, 1, 1] for s in steps)
+        assert summary["duplicates"] and {d[0] for d in summary["duplicates"]} == {"agent_1"}, summary
+        assert "duplicate agent id: agent_1" in text
+        _stop([duplicate])
+
+        # agent_2's UAV is lost at step 2 (its pose and reading stop) and its process is killed:
+        # the two others take it out after lost_timeout_s and finish the episode.
+        killed = {"done": False}
+
+        def kill_at(n: int) -> None:
+            if n >= 2 and not killed["done"]:  # step 2 is published: agent_2's UAV is silent
+                agents[2].send_signal(signal.SIGKILL)
+                killed["done"] = True
+
+        t_lost = time.monotonic()
+        steps, summary, _ = _run_driver(listen, agents, "lost", tmp_path, "--steps", "40", "--seed", "5",
+                                        "--max-steps", "15", "--episodes", "2", "--lose-agent", "2",
+                                        "--lose-at-step", "2", on_step=kill_at)
+        assert killed["done"]
+        # Both episodes finished, at least one of them entirely without agent_2.
+        assert len(summary["episodes"]) == 2 and len(steps) > 2, summary
+        assert all(s["actions"][0] is not None and s["actions"][1] is not None for s in steps)
+        assert all(s["actions"][2] is None for s in steps[2:])
+        listen.spin(1.5)
+        lost = listen.warnings(t_lost, "agent_2 lost")
+        assert {s.hardware_id for s in lost} == {"agent_0", "agent_1"}, [s.message for s in lost]
+    finally:
+        _stop(agents + ([duplicate] if duplicate is not None else []))
+        listen.close()
+    for i in (0, 1):
+        text = logs[i].read_text()
+        assert "Traceback" not in text
+        assert text.count("agent_2 lost") == 1, text[-3000:]
