@@ -192,8 +192,8 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
         assert text.count("the driver restarted") == 1, text[-3000:]
     # The stall is published (and re-published by the 1 Hz heartbeat while it lasts) at level WARN,
     # under one name per agent; the restart is a WARN event, as in the log.
-    warn = [d for d in diagnostics
-            if d.level == DiagnosticStatus.WARN and "stalled:" in d.message and d.name.endswith(": team step")]
+    warn = [d for d in diagnostics if d.level == DiagnosticStatus.WARN and "stalled:" in d.message
+            and d.name.endswith(": team step")]
     assert sorted({d.name for d in warn}) == [f"medc_agent_{i}: team step" for i in range(3)]  # unique names
     assert all("reading of agent_1" in d.message for d in warn)
     assert len({(d.name, d.message) for d in warn}) == 3  # one stall per agent, re-published
