@@ -202,6 +202,8 @@ class SimNode(Node):
 
     def _publish_step(self) -> None:
         """Publish the current state as a new step and wait for its moves."""
+        if self._stall_logged is not None and self.health.level("team step") != DiagnosticStatus.OK:
+            self.health.set("team step", DiagnosticStatus.OK, "stepping again")
         self._step_stamp = self.get_clock().now().to_msg()
         self.book.open(self.core.episode, self.core.step)
         self._step_t0 = time.perf_counter()
@@ -271,10 +273,10 @@ class SimNode(Node):
             if 0 < self.stall_timeout_s <= waited and self._stall_logged != step and not self.book.complete:
                 self._stall_logged = step
                 missing = ", ".join(self.ids[i] for i in self.book.missing)
-                self.get_logger().warning(
+                self.health.set("team step", DiagnosticStatus.WARN, (
                     f"episode {step[0]} step {step[1]}: no move from {missing} after {waited:.1f} s; "
                     f"re-sending the step every {self.resend_s:g} s (the agents' logs and /diagnostics "
-                    "say what they wait for)")
+                    "say what they wait for)"), {"missing": missing, "waited_s": f"{waited:.1f}"})
             self._send_state()
 
     def _report_returned(self) -> None:
