@@ -157,3 +157,21 @@ def test_readings_in_the_wrong_units_are_warned_once():
     assert check.check(0, "agent_0", 1e6) is None  # once per agent and kind
     fine = ReadingCheck(SENSING_PRESETS["realistic"], 1)
     assert all(fine.check(0, "agent_0", v) is None for v in [12, 30, 25, 400, 2100, 18, 33, 41, 27])
+
+
+def test_a_stall_says_whether_no_map_came_or_why_it_was_dropped():
+    geo = GridGeometry(10, 10)
+    o = TeamObserver("agent_0", 3, 10)
+    stamp = Time(sec=10)
+    for j in range(3):
+        o.add_pose(IDS[j], messages.pose_msg((j, 0), stamp, geo))
+        o.add_reading(IDS[j], messages.reading_msg(IDS[j], 5.0, 0.0, stamp))
+    o.add_status(messages.status_msg(IDS, 0, 0, stamp, Time(sec=1)))
+    need, have = o.waiting_for()
+    assert any("the map with info.map_load_time 1.000000000" in n for n in need)
+    assert "no map on the map topic" in have
+    with pytest.raises(ValueError):
+        o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), Time(sec=1), 1.0))
+    need, have = o.waiting_for()
+    assert any("no usable map: the last one was dropped (map with map_load_time 1.000000000: map is 8x8, "
+               "this agent works on a 10x10 grid)" in h for h in have), have
