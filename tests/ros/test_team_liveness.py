@@ -256,12 +256,18 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
         # A second process claims agent_1: the driver sees agent_1 answer from two senders.
         duplicate = _agent(1, TEAM, tmp_path / "duplicate.log", "-r", "__node:=medc_agent_1_again")
         assert listen.spin(40, lambda: node_publishers(listen, "/medc/agent_1/move") >= 2, agents)
-        listen.spin(1.0)  # discovery settles
-        steps, summary, text = _run_driver(listen, agents, "duplicate", tmp_path, "--steps", "4",
+        listen.spin(3.0)  # its subscriptions are set up and discovery settles
+        steps, summary, text = _run_driver(listen, agents, "duplicate", tmp_path, "--steps", "8",
                                            "--seed", "4")
-        assert len(steps) == 4 and all(s["received"] == [1, 1, 1] for s in steps)
-        assert summary["duplicates"] and {d[0] for d in summary["duplicates"]} == {"agent_1"}, summary
+        assert len(steps) == 8 and all(s["received"] == [1, 1, 1] for s in steps)
+        beats = [{kv.key: kv.value for kv in st.values} for _, st in listen.diagnostics
+                 if st.name == "medc_agent_1_again"][-2:]
+        assert summary["duplicates"], (summary, beats)
+        assert {d[0] for d in summary["duplicates"]} == {"agent_1"}, summary
         assert "duplicate agent id: agent_1" in text
+        # Each of the two processes sees the other's moves on its own topic and says so.
+        claims = lambda: {s.name for s in listen.warnings(0, "two processes claim agent_1", ": moves")}  # noqa: E731
+        assert listen.spin(3, lambda: len(claims()) == 2), claims()
         _stop([duplicate])
 
         # agent_2's UAV is lost at step 2 (its pose and reading stop) and its process is killed:

@@ -260,6 +260,9 @@ class AgentNode(Node):
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
         self.health = Health(self, self.agent_id, self._summary)
+        # Another process publishing moves as this agent (a duplicate id) is reported here too.
+        self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self._on_own_move,
+                                 contract.RELIABLE_QOS)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
@@ -275,6 +278,13 @@ class AgentNode(Node):
             self.create_timer(min(0.25, self.stall_timeout_s / 4), self._watch)
 
     # -- stalls and diagnostics ----------------------------------------------------------------
+    def _on_own_move(self, msg: AgentMove) -> None:
+        if msg.sender == self.sender:
+            return
+        self.health.set("moves", DiagnosticStatus.WARN, (
+            f"another process publishes moves as {self.agent_id} (sender {printable(str(msg.sender), 40)!r}; "
+            f"this node is {self.sender}): two processes claim {self.agent_id}; stop one of them"))
+
     def _summary(self) -> dict[str, str]:
         o = self.observer
         return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.mem_episode),
@@ -422,7 +432,7 @@ class AgentNode(Node):
         aside and used only when an episode status names it (issue 20)."""
         o = self.observer
         key = stamp_key(msg.info.map_load_time)
-        entry = o._maps.get(key)
+        entry = o.map_entry(key)
         xys = o.latest_xy()
         if entry is None or not xys or key in (o.mem_map, o.pending.map_stamp if o.pending else None):
             return

@@ -263,6 +263,10 @@ class TeamObserver:
         for old in [k for k in self._maps if k not in keep][:max(0, len(self._maps) - 4)]:
             del self._maps[old]
 
+    def map_entry(self, key: int) -> tuple[torch.Tensor, GridGeometry, int] | None:
+        """(walls, geometry, header stamp) of the map with ``info.map_load_time`` ``key``, if held."""
+        return self._maps.get(key)
+
     def episode_geometry(self) -> GridGeometry | None:
         """The grid of the map the pending step (else the episode in memory) names, if received;
         before any status, the latest map's."""
