@@ -128,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lose-at-step", type=int, default=0)
     ap.add_argument("--episodes", type=int, default=0, help="stop after this many episodes (0: --steps only)")
     ap.add_argument("--summary", default="")
+    ap.add_argument("--settle-s", type=float, default=1.0, help="discovery settling, s")
     args = ap.parse_args(argv)
 
     import rclpy
@@ -198,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             or any(node.count_publishers(f"{ns}/{a}/move") < 1 for a in ids)):
         rclpy.spin_once(node, timeout_sec=0.05)
     # A best-effort reader may match a moment after the writer sees it: let discovery settle.
-    settle = time.monotonic() + 1.0
+    settle = time.monotonic() + args.settle_s
     while time.monotonic() < settle:
         rclpy.spin_once(node, timeout_sec=0.05)
 

@@ -255,10 +255,12 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
 
         # A second process claims agent_1: the driver sees agent_1 answer from two senders.
         duplicate = _agent(1, TEAM, tmp_path / "duplicate.log", "-r", "__node:=medc_agent_1_again")
-        assert listen.spin(40, lambda: node_publishers(listen, "/medc/agent_1/move") >= 2, agents)
-        listen.spin(3.0)  # its subscriptions are set up and discovery settles
+        team_topics = [f"/medc/agent_{k}/{kind}" for k in range(3) for kind in ("pose", "radiation")]
+        assert listen.spin(40, lambda: node_publishers(listen, "/medc/agent_1/move") >= 2 and all(
+            listen.node.count_subscribers(t) >= 4 for t in team_topics), agents)  # it listens to the team
+        listen.spin(2.0)  # discovery settles
         steps, summary, text = _run_driver(listen, agents, "duplicate", tmp_path, "--steps", "8",
-                                           "--seed", "4")
+                                           "--seed", "4", "--settle-s", "3")
         assert len(steps) == 8 and all(s["received"] == [1, 1, 1] for s in steps)
         beats = [{kv.key: kv.value for kv in st.values} for _, st in listen.diagnostics
                  if st.name == "medc_agent_1_again"][-2:]

@@ -3,8 +3,9 @@
 A second graph on the same ROS_DOMAIN_ID and namespace publishes statuses with another
 ``EpisodeStatus.session``; a map on the map topic that the simulator did not publish replaces the
 latched map that late-joining agents get. The simulator reports both on ``/diagnostics`` (and in
-the log) and re-publishes its own map, at most once per ``REPUBLISH_S``, so the team's map is the
-latched one again.
+the log) and re-publishes its own map ``REPUBLISH_DELAY_S`` later (at most once per
+``REPUBLISH_S``), so the team's map is the latched one again; the delay lets the agents see the
+foreign map and report it before it is superseded (the map topic keeps one message).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from nav_msgs.msg import OccupancyGrid
 
 #: Seconds between two re-publications of the simulator's own map.
 REPUBLISH_S = 2.0
+#: Seconds from a foreign map to the re-publication of the simulator's own.
+REPUBLISH_DELAY_S = 0.5
 #: Seconds after the last foreign status or map before the report goes back to OK.
 CLEAR_S = 10.0
 
@@ -37,11 +40,13 @@ class GraphWatch:
         self.foreign_maps = 0
         self._own_maps: deque[int] = deque(maxlen=16)
         self._republished = 0.0
+        self._republish_at: float | None = None
         self._last_foreign = 0.0
         sim.create_subscription(EpisodeStatus, contract.status_topic(ns), self.on_status,
                                 contract.RELIABLE_QOS)
         sim.create_subscription(OccupancyGrid, contract.map_topic(ns), self.on_map, contract.LATCHED_QOS)
         sim.create_timer(1.0, self._clear)
+        sim.create_timer(0.1, self._republish)
 
     def own_map(self, stamp) -> None:
         """The simulator published a map with ``info.map_load_time`` ``stamp``."""
@@ -71,8 +76,15 @@ class GraphWatch:
             f"(map_load_time {msg.info.map_load_time.sec}.{msg.info.map_load_time.nanosec:09d}, origin "
             f"({msg.info.origin.position.x:g}, {msg.info.origin.position.y:g})); re-publishing the "
             "episode's map"))
-        if now - self._republished >= REPUBLISH_S and not self.sim.finished:
-            self._republished = now
+        if self._republish_at is None:
+            self._republish_at = max(now + REPUBLISH_DELAY_S, self._republished + REPUBLISH_S)
+
+    def _republish(self) -> None:
+        if self._republish_at is None or time.monotonic() < self._republish_at:
+            return
+        self._republish_at = None
+        self._republished = time.monotonic()
+        if not self.sim.finished:
             self.sim.map_pub.publish(self.sim.map_msg())
 
     def _clear(self) -> None:
