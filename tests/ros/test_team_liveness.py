@@ -211,7 +211,9 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
         listen.close()
     texts = {k: p.read_text() for k, p in logs.items()}
     assert not any("Traceback" in t for t in texts.values()), {k: t[-2000:] for k, t in texts.items()}
-    assert texts["sim"].count("agent_2 lost") == 1, texts["sim"][-3000:]
+    # Each loss is logged once, each return once (a slow start may count as one loss and return).
+    sim_log = texts["sim"]
+    assert sim_log.count("agent_2 lost") == sim_log.count("agent_2 moved again") + 1, sim_log[-3000:]
     assert "duplicate agent id" in texts["sim"] and "two processes claim agent_1" in texts["sim"]
 
 
