@@ -36,6 +36,9 @@ from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.watch import GraphWatch
 
+#: An agent that has never moved is taken out only after this many times move_timeout_s.
+STARTUP_FACTOR = 5.0
+
 
 class SimNode(Node):
     """The simulator node (see the module docstring)."""
@@ -303,9 +306,14 @@ class SimNode(Node):
         first = self._first_move_at
         if not self.started or self.finished or first is None or self.book.complete:
             return
-        if time.perf_counter() - first < self.move_timeout_s:
+        waited = time.perf_counter() - first
+        if waited < self.move_timeout_s:
             return
-        newly = [i for i in self.book.missing if i not in self.book.lost]
+        # An agent that has never moved may still be starting: it is given STARTUP_FACTOR times as long.
+        newly = [i for i in self.book.missing if i not in self.book.lost
+                 and (self.book.known[i] or waited >= STARTUP_FACTOR * self.move_timeout_s)]
+        if not newly:
+            return
         self.book.take_out(newly)
         self._report_lost()
         if self.book.complete and self.rate_hz <= 0:
