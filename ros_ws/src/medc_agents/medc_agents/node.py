@@ -632,7 +632,7 @@ def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[Age
         OccupancyGrid,
         contract.map_topic(namespace),
         lambda m: [agent.on_map(m) for agent in agents],
-        contract.LATCHED_QOS,
+        contract.MAP_READER_QOS,
     )
     node.create_subscription(
         EpisodeStatus,

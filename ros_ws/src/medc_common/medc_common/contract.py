@@ -38,6 +38,15 @@ LATCHED_QOS = QoSProfile(
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 
+#: Readers of the map topic: latched like the publisher, but a queue of 8, so that a map arriving
+#: just before another (a foreign one, then the driver's next) is still seen and checked.
+MAP_READER_QOS = QoSProfile(
+    depth=8,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
 #: Episode results: every one kept (up to 1000) for readers that join late or fall behind.
 RESULTS_QOS = QoSProfile(
     depth=1000,

@@ -44,7 +44,7 @@ class GraphWatch:
         self._last_foreign = 0.0
         sim.create_subscription(EpisodeStatus, contract.status_topic(ns), self.on_status,
                                 contract.RELIABLE_QOS)
-        sim.create_subscription(OccupancyGrid, contract.map_topic(ns), self.on_map, contract.LATCHED_QOS)
+        sim.create_subscription(OccupancyGrid, contract.map_topic(ns), self.on_map, contract.MAP_READER_QOS)
         sim.create_timer(1.0, self._clear)
         sim.create_timer(0.1, self._republish)
 
