@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import torch
 
-from medc_training.envs.grid import agent_windows
+from medc_training.envs.grid import team_windows
 from medc_training.envs.observation import (
     EGO_CHANNELS,
     MAP_CHANNELS,
@@ -61,10 +61,13 @@ from medc_training.envs.tl_sensing import (
     geometric_factor,
     parse_sensing,
     rates_from_every_cell,
+    sampled_rate_table,
+    segment_crossings,
     sight_lines,
     update_memory,
     visit_norm,
     wall_rectangles,
+    wall_segments,
 )
 
 __all__ = [
@@ -122,6 +125,11 @@ class SourceEstimator:
         self.level_background = b_lv.repeat(len(s_lv))
         #: (log rate [L, Q], factor [Q]) for Q = (d², walls crossed) pairs, made on first use.
         self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
+        #: The paper-simple model's (rate, log rate) by (walls crossed, d²), made on first use.
+        self._sampled: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._span = 2 * (g - 1) ** 2 + 1
+        delta = self.cells.unsqueeze(1) - self.cells.unsqueeze(0)
+        self._dist2 = (delta * delta).sum(-1)  # int64 [G², G²]: d² between sensor and source cells
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -131,19 +139,37 @@ class SourceEstimator:
         return prior if self.levels > 1 else prior.squeeze(1)
 
     def update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
-               readings: torch.Tensor, rects: torch.Tensor | None = None) -> None:
+               readings: torch.Tensor, rects: torch.Tensor | None = None,
+               segments: torch.Tensor | None = None) -> None:
         """Fold the team's readings at ``positions`` (int64 [K,N,2]) into ``log_post`` in place.
 
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as the sensor returns them); ``rects``
         the episode's wall rectangles (:func:`~medc_training.envs.tl_sensing.wall_rectangles`; made
-        from ``walls`` when not given) for the exact line-of-sight rule. Cost: O(G² · levels) per
-        reading (plus O(G² · walls) for the line of sight).
+        from ``walls`` when not given) for the exact line-of-sight rule; ``segments`` the walls as
+        :func:`~medc_training.envs.tl_sensing.wall_segments` gives them, when every map is made of
+        segments, for the sampled rule's crossing tables. Cost: O(G² · levels) per reading (plus
+        O(G² · walls) for the line of sight; O(G³) per reading for the sampled rule without
+        ``segments``).
         """
         k = positions.shape[0]
         # No sensor of this model reads more than MAX_READING; a larger (or infinite) value from a
         # mismatched or faulty sensor is taken as MAX_READING, so the float32 sums below stay finite.
         readings = torch.nan_to_num(readings, nan=0.0, posinf=MAX_READING).clamp(0.0, MAX_READING)
-        if self.sensing.line == "sampled" and self.levels == 1:
+        crossed = None
+        if self.sensing.line == "sampled" and segments is not None:
+            crossed = segment_crossings(positions, segments, self.grid)  # [K,N,G²] or None
+        if crossed is not None and self.levels == 1:
+            # The sensor model's rate and its log, looked up by (walls crossed, d²).
+            most = max(1, segments.shape[1])
+            if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
+                self._sampled = sampled_rate_table(self.grid, most, self.device)
+            cell = positions[..., 0] * self.grid + positions[..., 1]
+            index = crossed.mul_(self._span).add_(self._dist2.index_select(0, cell.view(-1)).view_as(crossed))
+            flat = index.view(-1)
+            rate = self._sampled[0].index_select(0, flat).view_as(index)
+            logs = self._sampled[1].index_select(0, flat).view_as(index)
+            loglik = logs.mul_(readings.unsqueeze(-1)).sub_(rate).sum(1)  # [K,G²]
+        elif self.sensing.line == "sampled" and self.levels == 1:
             rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         elif (lines := self._sight_lines(positions, walls, rects)) is not None:
@@ -272,8 +298,11 @@ class TeamMemory:
         self.estimator = SourceEstimator(g, self.device, self.sensing) if keep else None
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
         self.log_post = self.estimator.prior(blank) if keep else None
-        self.rects = wall_rectangles(torch.zeros((batch, g, g), dtype=torch.bool, device=self.device),
-                                     self.max_walls)
+        blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
+        self.rects = wall_rectangles(blank, self.max_walls)
+        #: The sampled rule's walls as segments (:func:`~medc_training.envs.tl_sensing.wall_segments`),
+        #: and which episodes' maps are made of them (else every line is sampled).
+        self.segments, self.segments_ok = wall_segments(blank, self.max_walls)
 
     def start(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor,
               rows: torch.Tensor | None = None, rects: torch.Tensor | None = None) -> None:
@@ -283,33 +312,45 @@ class TeamMemory:
         visit_map = torch.zeros_like(reading_map)
         scale = self.sensing.max_rate
         update_memory(reading_map, visit_map, positions, readings, scale)
+        segments = segments_ok = None
         if self.sensing.line != "exact":
             rects = None
+            if self.estimator is not None:
+                segments, segments_ok = wall_segments(walls, self.max_walls)
         elif rects is None:
             rects = wall_rectangles(walls, self.max_walls)
         log_post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
-            self.estimator.update(log_post, walls, positions, readings, rects)
+            self.estimator.update(log_post, walls, positions, readings, rects,
+                                  segments if segments_ok is not None and bool(segments_ok.all()) else None)
         if rows is None:
             self.reading_map, self.visit_map = reading_map, visit_map
             if log_post is not None:
                 self.log_post = log_post
             if rects is not None:
                 self.rects = rects
+            if segments is not None:
+                self.segments, self.segments_ok = segments, segments_ok
         else:
             self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
             if log_post is not None:
                 self.log_post[rows] = log_post
             if rects is not None:
                 self.rects[rows] = rects
+            if segments is not None:
+                self.segments[rows], self.segments_ok[rows] = segments, segments_ok
 
     def record(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor) -> None:
         """Record one team step's readings (every episode of the batch)."""
         update_memory(self.reading_map, self.visit_map, positions, readings, self.sensing.max_rate)
-        if self.estimator is not None:
-            self.estimator.update(self.log_post, walls, positions, readings,
-                                  self.rects if self.sensing.line == "exact" else None)
+        if self.estimator is None:
+            return
+        if self.sensing.line == "exact":
+            self.estimator.update(self.log_post, walls, positions, readings, self.rects)
+        else:
+            segments = self.segments if bool(self.segments_ok.all()) else None
+            self.estimator.update(self.log_post, walls, positions, readings, segments=segments)
 
     def posterior(self) -> torch.Tensor | None:
         """float32 [B,G²] the source posterior, or None when this memory keeps none."""
@@ -363,7 +404,7 @@ def observe(
     r = spec.radius
     side = 2 * r + 1
     # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate; each agent
-    # sees them in a window centred on itself (grid.agent_windows, shared with fleet and maze).
+    # sees them in a window centred on itself (grid.team_windows).
     layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map)]
     if spec.estimate:
         layers.append(estimate)
@@ -375,7 +416,7 @@ def observe(
     c = stack.shape[1]
     outside = torch.zeros(c, device=positions.device)
     outside[0] = 1.0
-    win = agent_windows(stack.unsqueeze(1).expand(b, n, c, g, g), positions, r, outside)
+    win = team_windows(stack, positions, r, outside)
     if out is None:
         out = torch.empty((b, n, c, side, side), dtype=torch.float32, device=positions.device)
     out.copy_(win)
