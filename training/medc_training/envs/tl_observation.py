@@ -204,23 +204,30 @@ class SourceEstimator:
     def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,
                             readings: torch.Tensor) -> torch.Tensor:
         """float32 [K,L,G²] (or [K,G²] with one level): sum over the readings of r log(rate) - rate,
-        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading)."""
+        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading).
+        The log rates of one (d², k) pair are one contiguous row of L, so the lookup copies rows;
+        the sum runs reading by reading, element by element (no BLAS, whose blocking would make an
+        episode's sum depend on the batch size). Returned as a [K,L,G²] view of [K,G²,L] memory."""
         k, n = readings.shape
         span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
         most = int(crossed.max()) if crossed.numel() else 0
-        if self._tables is None or self._tables[0].shape[1] < span * (most + 1):
+        if self._tables is None or self._tables[0].shape[0] < span * (most + 1):
             q = torch.arange(span * (max(most, 1) + 1), device=self.device)
             crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
             factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
             rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            self._tables = (rate.log(), factor)
+            self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
         log_rate, factor = self._tables
         index = (d2 + span * crossed).view(-1)
-        logs = log_rate.index_select(1, index).view(self.levels, k, n, -1)  # [L,K,N,G²]
-        loglik = (logs * readings.view(1, k, n, 1)).sum(2).transpose(0, 1)  # [K,L,G²]
+        cells = d2.shape[-1]
+        logs = log_rate.index_select(0, index).view(k, n, cells, self.levels)  # [K,N,G²,L]
+        r = readings.view(k, n, 1, 1)
+        loglik = logs[:, 0] * r[:, 0]
+        for i in range(1, n):
+            loglik.addcmul_(logs[:, i], r[:, i])
         fsum = factor.index_select(0, index).view(k, n, -1).sum(1)  # [K,G²]
-        loglik = loglik - fsum.unsqueeze(1) * self.level_strength.view(1, -1, 1)
-        loglik = loglik - n * self.level_background.view(1, -1, 1)
+        loglik.sub_(fsum.unsqueeze(-1) * self.level_strength).sub_(n * self.level_background)
+        loglik = loglik.transpose(1, 2)
         return loglik if self.levels > 1 else loglik.squeeze(1)
 
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
