@@ -417,11 +417,8 @@ class TargetLocalization(BatchedEnv):
 
     def found(self) -> torch.Tensor:
         """bool [B]: an agent is within the success radius of the source."""
-        if self.sensing.success_radius < 1.0:
-            return (self.positions == self.target.unsqueeze(1)).all(-1).any(-1)
-        delta = (self.positions - self.target.unsqueeze(1)).float()
-        radius = self.sensing.success_radius
-        return ((delta * delta).sum(-1) <= radius * radius).any(-1)
+        delta = self.positions - self.target.unsqueeze(1)
+        return self.sensing.within_reach((delta * delta).sum(-1)).any(-1)
 
     def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         found = self.found()

@@ -128,8 +128,8 @@ class SourceEstimator:
         #: The paper-simple model's (rate, log rate) by (walls crossed, d²), made on first use.
         self._sampled: tuple[torch.Tensor, torch.Tensor] | None = None
         self._span = 2 * (g - 1) ** 2 + 1
-        delta = self.cells.unsqueeze(1) - self.cells.unsqueeze(0)
-        self._dist2 = (delta * delta).sum(-1)  # int64 [G², G²]: d² between sensor and source cells
+        lines = torch.arange(g, device=self.device)
+        self._square = (lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2  # int64 [G, G]: (i - j)²
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -163,8 +163,7 @@ class SourceEstimator:
             most = max(1, segments.shape[1])
             if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
                 self._sampled = sampled_rate_table(self.grid, most, self.device)
-            cell = positions[..., 0] * self.grid + positions[..., 1]
-            index = crossed.mul_(self._span).add_(self._dist2.index_select(0, cell.view(-1)).view_as(crossed))
+            index = crossed.mul_(self._span).add_(self.dist2(positions))
             flat = index.view(-1)
             rate = self._sampled[0].index_select(0, flat).view_as(index)
             logs = self._sampled[1].index_select(0, flat).view_as(index)
@@ -233,14 +232,15 @@ class SourceEstimator:
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would
         have ended the episode there)."""
-        k = positions.shape[0]
-        g = self.grid
-        radius = self.sensing.success_radius
-        if radius < 1.0:
-            out = torch.zeros((k, g * g), dtype=torch.bool, device=self.device)
-            return out.scatter_(1, positions[..., 0] * g + positions[..., 1], True)
-        delta = positions.unsqueeze(2) - self.cells  # [K,N,G²,2]
-        return ((delta * delta).sum(-1) <= radius * radius).any(1)
+        return self.sensing.within_reach(self.dist2(positions)).any(1)
+
+    def dist2(self, positions: torch.Tensor) -> torch.Tensor:
+        """int64 [K,N,G²]: d² (cells²) from each of ``positions`` (int64 [K,N,2]) to every cell, from
+        two O(G²) tables of squared row and column gaps."""
+        k, n = positions.shape[:2]
+        rows = self._square.index_select(0, positions[..., 0].reshape(-1)).view(k, n, self.grid, 1)
+        cols = self._square.index_select(0, positions[..., 1].reshape(-1)).view(k, n, 1, self.grid)
+        return (rows + cols).view(k, n, -1)
 
     def posterior(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] posterior probabilities of the source cell (strength and background

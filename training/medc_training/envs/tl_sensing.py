@@ -381,6 +381,12 @@ class SensingModel:
             raise ValueError("sensing levels: a known (fixed) strength or background takes exactly 1 level, "
                              "an unknown one at least 2")
 
+    def within_reach(self, dist2: torch.Tensor) -> torch.Tensor:
+        """bool, same shape: whether an agent at squared distance ``dist2`` (cells², integers) from
+        the source has found it: d <= ``success_radius`` (radius 0: only on the source's cell). The
+        one success rule of the environment, the team's estimator and the controllers."""
+        return dist2 <= self.success_radius * self.success_radius
+
     @property
     def known(self) -> bool:
         """Whether the team knows the source's strength and the background (one level each)."""
