@@ -80,6 +80,7 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
                              "(its manifest gives the team size, grid and observation) or with a "
                              "controller, e.g. -p policy:=greedy -p agents:=3 -p grid:=30")
+    check_scenario_size(agents, grid)
     name = controller_name(policy)
     if name is not None:
         try:
@@ -104,7 +105,20 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         return value
 
     agents, grid = from_manifest("agents", agents), from_manifest("grid", grid)
+    check_scenario_size(agents, grid)  # the manifest's are bounded already; this says so again
     return agents, grid, observation or manifest_observation(manifest)
+
+
+def check_scenario_size(agents: int, grid: int) -> None:
+    """Refuse a team or grid larger than any bundle may name (``MAX_BUNDLE_AGENTS``,
+    ``MAX_BUNDLE_GRID``), before anything is allocated for it: the agent's memory grows faster
+    than the grid's area. Raises PolicyRejected saying the bound."""
+    from medc_training.bundle import MAX_BUNDLE_AGENTS, MAX_BUNDLE_GRID
+
+    for key, value, most in (("agents", agents, MAX_BUNDLE_AGENTS), ("grid", grid, MAX_BUNDLE_GRID)):
+        if value > most:
+            raise PolicyRejected(f"{key} {value} is over the {most} an agent runs with "
+                                 f"(MAX_BUNDLE_{key.upper()}); pass -p {key}:=<n> with n <= {most}")
 
 
 def default_node_name(agent_id: str | None) -> str:
