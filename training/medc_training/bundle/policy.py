@@ -251,11 +251,11 @@ def _dry_run(bundle: PolicyBundle, where: str, max_forward_s: float) -> None:
             timed_forward(bundle.net, obs.to(bundle.device), allowed, max_forward_s)
         except TooSlow as slow:
             about = "about " if slow.estimated else ""
-            how = f", estimated from a part of layer {slow.layer}" if slow.estimated else ""
-            raise BundleError(f"one observation takes {about}{slow.seconds:.2f} s to evaluate, over the "
-                              f"{max_forward_s:g} s limit (too slow to act with: {name}{how})") from slow
+            how = f"{name}, estimated from a part of layer {slow.layer}" if slow.estimated else name
+            raise BundleError(f"{where}: one observation takes {about}{slow.seconds:.2f} s to evaluate, "
+                              f"over the {max_forward_s:g} s limit (too slow to act with: {how})") from slow
         except Exception as exc:
-            raise BundleError(f"fails on {name} ({type(exc).__name__})") from exc
+            raise BundleError(f"{where}: fails on {name} ({type(exc).__name__})") from exc
 
 
 def _remembered_refusal(key: tuple[str, float, str]) -> str | None:

@@ -29,7 +29,7 @@ from medc_common import contract
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
-from medc_training.bundle import MAX_FORWARD_SECONDS
+from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
@@ -186,7 +186,8 @@ class AgentNode(Node):
         max_forward_s = p(
             "policy_max_forward_s",
             MAX_FORWARD_SECONDS,
-            "A bundle whose dry run on one blank observation takes longer (seconds) is refused",
+            "A bundle whose dry run on any of its observations (blank, environment-made, random) takes "
+            "longer (seconds) is refused",
             True,
         )
         self.stall_timeout_s = float(p(
@@ -532,7 +533,7 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
         obs = torch.stack([m[1] for m in members])
         mask = torch.stack([m[2] for m in members])
         try:
-            with torch.no_grad():
+            with torch.no_grad(), flush_denormals():
                 actions = bundle.act(obs, mask, greedy=True).tolist()
         except Exception:
             # Fall back to one by one: each agent logs and keeps its own failure.
