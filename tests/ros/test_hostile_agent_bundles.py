@@ -112,3 +112,46 @@ def test_a_denormal_bundle_runs_at_the_agent_with_zero_weights_and_flushed_arith
     assert all((p == 0).all() for p in loaded.bundle.net.parameters() if p.dim() == 4)
     action = slot.act(torch.rand(5, 10, 10), torch.ones(8, dtype=torch.bool))
     assert 0 <= action < 8
+
+
+class _Store:
+    """Serves fixed bytes for any CID (the content hash is the content store's business)."""
+
+    def __init__(self, files: dict[str, bytes]) -> None:
+        self.files = files
+
+    def fetch(self, cid: str) -> bytes:
+        return self.files[cid]
+
+
+@pytest.mark.ros
+def test_the_bridge_refuses_a_huge_grid_and_remembers_a_refused_content(tmp_path) -> None:
+    """Items 4 and 6 at the registry bridge (load_untrusted, as the agent): the grid bound, and a
+    refusal after the header checks remembered by content, so the same bytes under another CID
+    are refused without loading them again (the slow-bundle case: tests/bundle)."""
+    import time
+
+    from medc_registry.bridge_node import BridgeError, RegistryBridge
+    from medc_training.bundle import MANIFEST_KEY
+    from safetensors.torch import load_file
+    from safetensors.torch import save as st_save
+
+    good = make_bundle(tmp_path / "good.safetensors", 9, grid=30)
+    data = good.read_bytes()
+    meta = json.loads(data[8:8 + int.from_bytes(data[:8], "little")])["__metadata__"]
+    tensors = load_file(str(good))
+    tensors["policy.bias"][0] = float("nan")
+    broken = st_save(tensors, metadata={MANIFEST_KEY: meta[MANIFEST_KEY]})
+    files = {"huge": _ego_bundle(tmp_path / "huge.safetensors", 10**6).read_bytes(),
+             "nan": broken, "nan-again": broken}
+    bridge = RegistryBridge(_Store(files), tmp_path / "cache")
+    with pytest.raises(BridgeError, match=r"environment.grid is 1000000.*from 1 to 64"):
+        bridge.fetch("huge")
+    with pytest.raises(BridgeError, match="NaN or infinite") as first:
+        bridge.fetch("nan")
+    assert "refused before" not in str(first.value)
+    start = time.perf_counter()
+    with pytest.raises(BridgeError, match=r"NaN or infinite .*refused before; not checked again"):
+        bridge.fetch("nan-again")
+    assert time.perf_counter() - start < 0.05
+    assert list((tmp_path / "cache").iterdir()) == []

@@ -236,7 +236,8 @@ def load_untrusted(source: str | os.PathLike[str] | bytes | bytearray | memoryvi
     except BundleError as exc:
         text = str(exc)
         reason = text[len(where) + 2:] if text.startswith(f"{where}: ") else text
-        _remember_refusal(key, reason, slow=isinstance(exc.__cause__, TooSlow))
+        if not isinstance(exc.__cause__, MemoryError):  # the machine's state, not the content's
+            _remember_refusal(key, reason, slow=isinstance(exc.__cause__, TooSlow))
         raise
     return bundle
 
