@@ -33,7 +33,8 @@ def _progress(total: int, initial: int, enabled: bool):
 
 
 def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,
-                 tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None) -> dict:
+                 tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None,
+                 inputs: dict | None = None, overwrite: bool = False) -> dict:
     """Train ``learner`` (a :class:`medc_training.learner.Learner`) to ``cfg.total_steps`` training
     steps, writing everything to ``out_dir``.
 
@@ -41,26 +42,40 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     (TensorBoard events), ``checkpoint.safetensors`` (after every update), and at the end
     ``policy.safetensors`` (the focal learner's bundle), ``learning_curve.png`` and
     ``summary.json``. ``max_updates`` stops early (used to simulate a killed run).
-    Returns the summary dict.
+    ``inputs`` (:func:`medc_training.runs.run_inputs`: expert specs and weights, FRL side users)
+    is recorded with the config in the checkpoint and the summary.
+
+    A folder holds one run (:mod:`medc_training.runs`): ``resume`` refuses a checkpoint of another
+    configuration (every field but ``total_steps`` and ``torch_threads``, and the inputs), naming
+    each differing field; without ``resume`` a folder that already holds a run (a summary or a
+    checkpoint) is refused unless ``overwrite``. Returns the summary dict.
     """
+    from .runs import RESUME_FREE, RunMismatch, differences
+
     check_learner(learner)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT
+    if not resume and not overwrite and ((out / "summary.json").exists() or ckpt.exists()):
+        if _finished(out / "summary.json"):
+            raise RunMismatch(f"{out} already holds a finished run (summary.json); give --overwrite to "
+                              "replace it, or use another --out")
+        raise RunMismatch(f"{out} holds an unfinished run ({CHECKPOINT}); give --resume to carry it on, "
+                          "or --overwrite to start afresh")
+    out.mkdir(parents=True, exist_ok=True)
     next_eval = 0
     train_seconds = 0.0
     if resume:
         if not ckpt.exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
         state = load_state(ckpt, device=cfg.device)
-        # A checkpoint from before eval_episodes existed was evaluated with the legacy window.
-        saved_cfg = {**LEGACY_EVAL, **state["config"]}
-        # The evaluator too: one run's learning curve never mixes two evaluators.
-        for key in ("env", "method", "agents", "walls", "grid", "seed", "arch", "num_envs", "horizon",
-                    "eval_episodes", "eval_steps", "eval_envs", "eval_greedy"):
-            if saved_cfg.get(key) != getattr(cfg, key):
-                raise ValueError(f"--resume: checkpoint was made with {key}={saved_cfg.get(key)!r}, "
-                                 f"this run has {key}={getattr(cfg, key)!r}")
+        # A checkpoint from before eval_episodes existed was evaluated with the legacy window
+        # (TrainConfig.from_dict reads it so); one run's curve never mixes two evaluators.
+        diffs = differences({**LEGACY_EVAL, **state["config"]}, state.get("inputs"), cfg.to_dict(), inputs,
+                            ignore=RESUME_FREE)
+        if diffs:
+            raise RunMismatch(f"--resume: the checkpoint in {out} was made with another configuration: "
+                              f"{'; '.join(diffs)}; resume with its options, or give --overwrite to start "
+                              "afresh")
         learner.load_state_dict(state["learner"])
         next_eval = int(state["next_eval"])
         train_seconds = float(state["train_seconds"])
@@ -110,6 +125,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             sps = (learner.global_step - before) / elapsed if elapsed > 0 else math.nan
             updates_done += 1
             save_state(ckpt, {"learner": learner.state_dict(), "config": cfg.to_dict(),
+                              **({"inputs": inputs} if inputs is not None else {}),
                               "next_eval": next_eval, "train_seconds": train_seconds})
             if bar is not None:
                 bar.update(learner.global_step - before)
@@ -122,6 +138,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
 
     summary = {
         "config": cfg.to_dict(),
+        **({"inputs": inputs} if inputs is not None else {}),
         "steps": learner.global_step,
         "updates": focal.updates,
         "train_seconds": train_seconds,
@@ -144,6 +161,15 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             summary["learning_curve_error"] = str(exc)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def _finished(summary: Path) -> bool:
+    """Whether ``summary`` is the summary of a run that reached its total_steps."""
+    try:
+        data = json.loads(summary.read_text())
+        return int(data["steps"]) >= int(data["config"]["total_steps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
 
 
 def observation_section(env) -> dict:

@@ -15,7 +15,9 @@ Examples::
 
 A sweep (``--seeds``) runs through the same engines as ``medc-reproduce``: a local process pool
 (``--jobs``) or Ray (``--ray``, docs/training.md). Each seed's folder appears only when its run
-has finished; rerunning the sweep skips finished seeds and resumes unfinished ones.
+has finished; rerunning the sweep skips finished seeds and resumes unfinished ones. A folder
+holds one run: ``--resume`` and a rerun sweep refuse a run of another configuration (naming every
+differing field), and a finished run is replaced only with ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -95,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.safetensors")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a run already in OUT (refused without it; a sweep: seeds of another config)")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu",
                    help="base hyperparameters (default cpu)")
     p.add_argument("--arch", help="network architecture (lenet5, convnet-small, mlp)")
@@ -166,7 +170,8 @@ def sweep_jobs(args: argparse.Namespace) -> list[dict]:
         check_experts(cfg.method, args.expert, args.expert_weight)
         jobs.append({"name": f"seed-{seed}", "config": cfg.to_dict(), "experts": list(args.expert),
                      "expert_weights": args.expert_weight, "out": str(Path(args.out) / f"seed-{seed}"),
-                     "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True})
+                     "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True,
+                     "overwrite": args.overwrite})
     return jobs
 
 
@@ -181,10 +186,12 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(args)
         from ..experiments.jobs import make_learner
         from ..runner import run_training
+        from ..runs import run_inputs
 
         learner = make_learner(cfg, args.expert, args.expert_weight)
         summary = run_training(learner, cfg, args.out, resume=args.resume, progress=not args.quiet,
-                               tensorboard=not args.no_tensorboard)
+                               tensorboard=not args.no_tensorboard, overwrite=args.overwrite,
+                               inputs=run_inputs(args.expert, args.expert_weight))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"medc-train: error: {exc}", file=sys.stderr)
         return 2

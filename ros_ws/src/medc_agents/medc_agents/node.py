@@ -29,7 +29,7 @@ from medc_common import contract
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
-from medc_training.bundle import MAX_FORWARD_SECONDS
+from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
@@ -80,6 +80,7 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
                              "(its manifest gives the team size, grid and observation) or with a "
                              "controller, e.g. -p policy:=greedy -p agents:=3 -p grid:=30")
+    check_scenario_size(agents, grid)
     name = controller_name(policy)
     if name is not None:
         try:
@@ -104,7 +105,20 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         return value
 
     agents, grid = from_manifest("agents", agents), from_manifest("grid", grid)
+    check_scenario_size(agents, grid)  # the manifest's are bounded already; this says so again
     return agents, grid, observation or manifest_observation(manifest)
+
+
+def check_scenario_size(agents: int, grid: int) -> None:
+    """Refuse a team or grid larger than any bundle may name (``MAX_BUNDLE_AGENTS``,
+    ``MAX_BUNDLE_GRID``), before anything is allocated for it: the agent's memory grows faster
+    than the grid's area. Raises PolicyRejected saying the bound."""
+    from medc_training.bundle import MAX_BUNDLE_AGENTS, MAX_BUNDLE_GRID
+
+    for key, value, most in (("agents", agents, MAX_BUNDLE_AGENTS), ("grid", grid, MAX_BUNDLE_GRID)):
+        if value > most:
+            raise PolicyRejected(f"{key} {value} is over the {most} an agent runs with "
+                                 f"(MAX_BUNDLE_{key.upper()}); pass -p {key}:=<n> with n <= {most}")
 
 
 def default_node_name(agent_id: str | None) -> str:
@@ -172,7 +186,8 @@ class AgentNode(Node):
         max_forward_s = p(
             "policy_max_forward_s",
             MAX_FORWARD_SECONDS,
-            "A bundle whose dry run on one blank observation takes longer (seconds) is refused",
+            "A bundle whose dry run on any of its observations (blank, environment-made, random) takes "
+            "longer (seconds) is refused",
             True,
         )
         self.stall_timeout_s = float(p(
@@ -518,7 +533,7 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
         obs = torch.stack([m[1] for m in members])
         mask = torch.stack([m[2] for m in members])
         try:
-            with torch.no_grad():
+            with torch.no_grad(), flush_denormals():
                 actions = bundle.act(obs, mask, greedy=True).tolist()
         except Exception:
             # Fall back to one by one: each agent logs and keeps its own failure.

@@ -311,11 +311,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                         total_steps=steps, seed=args.seed, torch_threads=1)
     sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--agents", str(target["agents"]),
                   "--walls", str(target["walls"]), "--method", "sparse", "--steps", str(steps),
-                  "--seed", str(args.seed), "--threads", "1", "--quiet", "--out", str(out / "sparse")]
+                  "--seed", str(args.seed), "--threads", "1", "--quiet", "--overwrite",
+                  "--out", str(out / "sparse")]
     t = time.monotonic()
     with subprocess.Popen(sparse_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sparse:
         trainer = Trainer(cfg, experts, expert_weights=r_s)
-        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress)
+        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress,
+                                       overwrite=True)
         results["medc"]["wall_s"] = round(time.monotonic() - t, 1)
         sparse_out, sparse_err = sparse.communicate()
     if sparse.returncode != 0:
