@@ -194,7 +194,7 @@ class LiveView:
 
         self._foxglove = foxglove
         self.server = foxglove.start_server(name="medc", host=host, port=int(port))
-        self.port = int(self.server.port())
+        self.port = int(self.server.port)
         self.state = SceneState(namespace)
         self.scene_topic = f"{self.state.ns}/scene"
         self.scene = SceneUpdateChannel(self.scene_topic)
