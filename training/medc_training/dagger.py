@@ -192,11 +192,9 @@ def clone_oracle(
         csv.DictWriter(f, fieldnames=CSV_COLUMNS).writeheader()
     bar = None
     if progress:
-        from tqdm import tqdm
+        from .console import progress_bar
 
-        bar = tqdm(
-            total=cfg.iterations * B * cfg.rollout_len, unit="step", dynamic_ncols=True, mininterval=1.0
-        )
+        bar = progress_bar(cfg.iterations * B * cfg.rollout_len, unit="step")
     obs, mask = env.reset(seed=cfg.seed)
     start = time.perf_counter()
     steps = 0

@@ -27,9 +27,9 @@ BUNDLE = "policy.safetensors"
 def _progress(total: int, initial: int, enabled: bool):
     if not enabled:
         return None
-    from tqdm import tqdm
+    from .console import progress_bar
 
-    return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True, mininterval=1.0)
+    return progress_bar(total, initial=initial, unit="step")
 
 
 def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,

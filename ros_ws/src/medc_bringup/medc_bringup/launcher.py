@@ -486,8 +486,10 @@ def policy_from_cwd(policy: str | None, cwd: Path | None = None) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-launch`` (see the module docstring)."""
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
     parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                     formatter_class=HelpFormatter, epilog=epilog(__doc__))
     parser.add_argument("--config", help=f"launch YAML (default {DEFAULT_CONFIG})")
     parser.add_argument(
         "--episodes", type=int, default=0, help="run N episodes, then print a JSON line and exit"
@@ -499,8 +501,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
-    parser.add_argument("--quiet", action="store_true",
-                        help="print only the final JSON line (no per-episode lines, no progress)")
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     parser.add_argument("--record", metavar="FILE.mcap",
                         help="record every topic of the team to this MCAP file (rosbag2 layout; medc-record)")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",

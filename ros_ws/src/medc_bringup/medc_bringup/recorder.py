@@ -212,9 +212,11 @@ def spin_then_drain(drain_s: float):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
     parser = argparse.ArgumentParser(
         prog="medc-record", description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter, epilog=epilog(__doc__),
     )
     parser.add_argument("-o", "--output", help="MCAP file to write (rosbag2 layout); none = do not record")
     parser.add_argument("--namespace", default="/medc",
@@ -227,8 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="MCAP chunk compression")
     parser.add_argument("--drain", type=float, default=0.5,
                         help="seconds to keep receiving after Ctrl-C before the file is closed")
-    parser.add_argument("--quiet", action="store_true",
-                        help="print only the final JSON line (no progress lines)")
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     return parser
 
 
