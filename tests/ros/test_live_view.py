@@ -171,3 +171,20 @@ def test_scene_places_walls_and_estimate_in_the_map_frame():
     sphere = entities["estimate"].spheres[0]
     assert (sphere.pose.position.x, sphere.pose.position.y, sphere.size.x) == (4.0, 5.0, 4.0)
     assert entities["agent_0"].spheres[0].pose.position.x == 7.0
+
+
+def test_a_busy_port_or_a_missing_folder_is_refused_with_what_to_do(tmp_path, capsys):
+    from medc_bringup.recorder import main
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["--foxglove", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"127.0.0.1:{port}" in err and "--foxglove PORT" in err
+    with pytest.raises(SystemExit) as exc:
+        main(["-o", str(tmp_path / "no" / "such" / "run.mcap")])
+    assert exc.value.code == 2 and "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([])  # nothing to do

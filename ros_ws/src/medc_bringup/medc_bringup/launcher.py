@@ -529,6 +529,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"medc-launch: {exc}", file=sys.stderr)
         return 2
     recording: dict[str, Any] | None = None
+    recorder_failed = False
     rclpy.init(args=["medc-launch"])
     start = time.monotonic()
     ok = False
@@ -546,6 +547,11 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.try_shutdown()
         if recorder is not None:
             recording = stop_recorder(recorder)
+            if recorder.returncode != 0 or recording is None:
+                # Its own error (a busy Foxglove port, an unwritable file) is on stderr already.
+                print(f"medc-launch: the recorder failed (exit status {recorder.returncode}); "
+                      "see its message above", file=sys.stderr)
+                recorder_failed = True
     if args.episodes or interrupted:
         print(
             json.dumps(
@@ -560,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
             )
         )
-    if not ok and not interrupted:  # a node process failed, or --timeout ran out
+    if (not ok and not interrupted) or recorder_failed:  # a node failed, --timeout ran out, no recording
         return 1
     return 0
 
