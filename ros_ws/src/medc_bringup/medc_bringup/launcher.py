@@ -379,6 +379,12 @@ def run_in_process(
             executor.spin_once(timeout_sec=0.1)
             if deadline is not None and time.monotonic() > deadline:
                 return False
+        if sim.finished and extra_listeners:
+            # A reader in another process (the recorder) gets the last results only while their
+            # reliable writers live: linger as medc-sim does before the nodes go.
+            linger = time.monotonic() + 1.0
+            while rclpy.ok() and time.monotonic() < linger:
+                executor.spin_once(timeout_sec=0.05)
         return sim.finished
     finally:
         executor.shutdown()
