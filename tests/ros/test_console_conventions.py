@@ -94,3 +94,15 @@ def test_a_progress_bar_into_a_file_does_not_redraw_every_update(monkeypatch):
         for _ in range(2000):
             bar.update(1)
     assert flood.getvalue().count("\r") > 100
+
+
+def test_demo_quiet_drops_the_step_lines(capsys):
+    from medc_bringup.demo import Narrator
+
+    Narrator(quiet=True).step("1. users register")
+    Narrator(quiet=True).say("done")
+    assert capsys.readouterr().out == ""
+    loud = Narrator()
+    loud.step("1. users register")
+    loud.say("done")
+    assert "users register" in capsys.readouterr().out
