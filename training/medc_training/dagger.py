@@ -192,9 +192,9 @@ def clone_oracle(
     per_iteration = env.num_envs * cfg.rollout_len
     bar = None
     if progress:
-        from tqdm import tqdm
+        from .console import progress_bar
 
-        bar = tqdm(total=cfg.iterations * per_iteration, unit="step", dynamic_ncols=True, mininterval=1.0)
+        bar = progress_bar(cfg.iterations * per_iteration, unit="step")
     obs, mask = env.reset(seed=cfg.seed)
     start = time.perf_counter()
     steps = 0

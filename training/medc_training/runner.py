@@ -27,9 +27,9 @@ BUNDLE = "policy.safetensors"
 def _progress(total: int, initial: int, enabled: bool):
     if not enabled:
         return None
-    from tqdm import tqdm
+    from .console import progress_bar
 
-    return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True, mininterval=1.0)
+    return progress_bar(total, initial=initial, unit="step")
 
 
 def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,
@@ -99,7 +99,10 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
                 row = {
                     "step": learner.global_step, "update": focal.updates,
                     "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
+                    "episode_return": ev.get("episode_return", math.nan),
                     "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
+                    # No training episode finished since the last row: nothing to report.
+                    "train_episode_return": tr["episode_return"] if tr.get("episodes") else math.nan,
                     "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
                     "expert_step_fraction": tr["expert_step_fraction"],
                     "sps": sps, "wall_time": train_seconds, **last_losses,

@@ -69,8 +69,10 @@ def engine_from_args(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..console import HelpFormatter, epilog
+
     p = argparse.ArgumentParser(prog="medc-reproduce", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--scale", choices=sorted(BUDGETS), default="cpu")
     p.add_argument("--seeds", type=int, default=4, help="seeds per target-localization run (default 4)")
     p.add_argument("--out", default="docs/reproduction")

@@ -30,6 +30,7 @@ import sys
 from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
+from ..console import QUIET_HELP, HelpFormatter, epilog
 from ..envs import core_has_estimate
 from ..envs.tl_observation import DEFAULT_OBSERVATION
 from ..envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
@@ -69,7 +70,7 @@ def parse_env_options(items: list[str]) -> dict:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="medc-train", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--env", default="target_localization", help="application (default target_localization)")
     p.add_argument("--agents", type=int, default=3, help="team size (the y in AyWz)")
     p.add_argument("--walls", type=int, default=2, help="number of walls (the z in AyWz)")
@@ -125,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra numeric environment option (e.g. customers=8, complexity=0.5)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-tensorboard", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     from .reproduce import add_engine_arguments
 
     add_engine_arguments(p)

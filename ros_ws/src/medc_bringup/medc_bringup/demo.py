@@ -39,7 +39,8 @@ APPLICATION = "target_localization"
 class Narrator:
     """Prints numbered steps with elapsed time, so a person can follow the run live."""
 
-    def __init__(self) -> None:
+    def __init__(self, quiet: bool = False) -> None:
+        self.quiet = quiet
         self.t0 = time.monotonic()
         self.timings: dict[str, float] = {}
         self._step: str | None = None
@@ -50,10 +51,12 @@ class Narrator:
         if self._step is not None:
             self.timings[self._step] = round(now - self._step_t, 2)
         self._step, self._step_t = title, now
-        print(f"\n\033[1m[{now - self.t0:6.1f}s] {title}\033[0m", flush=True)
+        if not self.quiet:
+            print(f"\n\033[1m[{now - self.t0:6.1f}s] {title}\033[0m", flush=True)
 
     def say(self, text: str) -> None:
-        print(f"    {text}", flush=True)
+        if not self.quiet:
+            print(f"    {text}", flush=True)
 
     def finish(self) -> float:
         now = time.monotonic()
@@ -212,7 +215,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, args.threads))
-    say = Narrator()
+    quiet = bool(getattr(args, "quiet", False))
+    say = Narrator(quiet=quiet)
     gas: dict[str, list[int]] = {}
 
     def spent(fn: str, g: int) -> None:
@@ -316,7 +320,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     t = time.monotonic()
     with subprocess.Popen(sparse_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sparse:
         trainer = Trainer(cfg, experts, expert_weights=r_s)
-        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress,
+        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not (args.no_progress or quiet),
                                        overwrite=True)
         results["medc"]["wall_s"] = round(time.monotonic() - t, 1)
         sparse_out, sparse_err = sparse.communicate()
@@ -407,7 +411,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     team_path = root / "models" / "team" / "A3W2.safetensors"
     if not args.no_ros:
         say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
-        graph = run_graph(policy_paths["medc"], target, cfg, episodes, args.seed, out)
+        graph = run_graph(policy_paths["medc"], target, cfg, episodes, args.seed, out, quiet=quiet)
         graph["skipped"] = False
         graph["beats_random"] = bool(graph["mean_length"] < random_len)
         say.say(
@@ -417,7 +421,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         )
         if team_path.is_file():
             say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
-            graph_team = run_graph(team_path, target, cfg, episodes, args.seed, out)
+            graph_team = run_graph(team_path, target, cfg, episodes, args.seed, out, quiet=quiet)
             graph_team["skipped"] = False
             say.say(
                 f"shipped team: mean episode length {graph_team['mean_length']:.1f} "
@@ -476,9 +480,10 @@ def _graph_summary(graph: dict) -> dict:
     return {k: graph[k] for k in keys if k in graph}
 
 
-def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path) -> dict:
+def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path,
+              quiet: bool = False) -> dict:
     """Run ``medc-launch`` (simulator + one agent node per agent, each its own process) for
-    ``episodes`` episodes with ``policy``; its per-episode lines are shown live."""
+    ``episodes`` episodes with ``policy``; its per-episode lines are shown live (not ``quiet``)."""
     import subprocess
 
     import yaml
@@ -499,7 +504,7 @@ def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Pa
             tail = [*tail[-29:], line]
             if line.startswith("{"):
                 last_json = line
-            elif line.startswith("episode "):
+            elif line.startswith("episode ") and not quiet:
                 print(f"      {line}", flush=True)
         rc = proc.wait()
     if rc != 0 or last_json is None:
@@ -591,7 +596,10 @@ def write_report(out: Path, s: dict, cfg) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0])
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
+    p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=0)
@@ -599,7 +607,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars, the step lines stay (--quiet drops both)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     try:
         summary = run(args)

@@ -118,20 +118,23 @@ class SimNode(Node):
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
-        for a in self.ids:
+        self.move_subs = [
             self.create_subscription(
                 AgentMove,
                 contract.move_topic(ns, a),
                 lambda m, a=a: self._on_move(a, m),
                 contract.RELIABLE_QOS,
             )
+            for a in self.ids
+        ]
 
         self.wait_for = int(
             p(
                 "wait_for_subscribers",
                 cfg.agents,
                 "Publish the first step once this many nodes "
-                "subscribe to the episode status (the agents; a launcher adds itself)",
+                "subscribe to the episode status (the agents; a launcher or recorder adds itself) "
+                "and, when > 0, every agent's move publisher is there (a recorder is no agent)",
                 True,
             )
         )
@@ -152,12 +155,17 @@ class SimNode(Node):
 
     # -- publishing ----------------------------------------------------------------------
     def _try_start(self) -> None:
-        """Start once the team listens: a step published before discovery would be lost."""
+        """Start once the team listens: a step published before discovery would be lost. Listeners
+        alone could be recorders, so every agent's own move publisher must be matched too."""
         listeners = self.status_pub.get_subscription_count()
-        if listeners < self.wait_for and time.monotonic() < self._start_deadline:
+        movers = sum(1 for sub in self.move_subs if sub.get_publisher_count() > 0) if self.wait_for > 0 else 0
+        ready = listeners >= self.wait_for and movers >= (len(self.move_subs) if self.wait_for > 0 else 0)
+        if not ready and time.monotonic() < self._start_deadline:
             return
-        if listeners < self.wait_for:
-            self.get_logger().warning(f"starting with {listeners} of {self.wait_for} expected subscribers")
+        if not ready:
+            self.get_logger().warning(
+                f"starting with {listeners} of {self.wait_for} expected subscribers and "
+                f"{movers} of {len(self.move_subs)} agents' move publishers")
         self._start_timer.cancel()
         self.destroy_timer(self._start_timer)
         self.started = True
