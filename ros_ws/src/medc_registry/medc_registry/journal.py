@@ -32,6 +32,8 @@ from .request import ModelRequest, request_id_from
 
 #: Most seconds a request waits for another run's request on the same pending file to finish.
 LOCK_WAIT = 600.0
+#: Seconds a confirmed request's record is kept (see PendingRequests.finish).
+DONE_KEEP = 3600.0
 #: Largest pending-requests file read (a record is a few KB; a home holds a handful).
 MAX_PENDING_CHARS = 16 << 20
 _HEX = set("0123456789abcdef")
@@ -58,6 +60,10 @@ def _record_problem(key: Any, record: Any) -> str | None:
         return f"record {printable(key, 140)!r} has no request_id of 0x + 64 hex digits"
     if not isinstance(record.get("account"), str) or not isinstance(record.get("fingerprint"), str):
         return f"record {printable(key, 140)!r} lacks its account or fingerprint"
+    if "done" in record:
+        if not isinstance(record["done"], int | float) or isinstance(record["done"], bool):
+            return f"record {printable(key, 140)!r} has a done time that is not a number"
+        return None  # confirmed
     if "tx_hash" not in record:
         return None  # recorded before signing: nothing was sent
     ints_ok = all(isinstance(record.get(k), int) and not isinstance(record.get(k), bool)
@@ -148,6 +154,8 @@ class PendingRequests:
         return records
 
     def _save(self, records: dict[str, dict[str, Any]]) -> None:
+        now = time.time()
+        records = {k: r for k, r in records.items() if not now - r.get("done", now) > DONE_KEEP}
         if self.path is None:
             self._memory = records
             return
@@ -175,14 +183,36 @@ class PendingRequests:
         if records.pop(self._key(record), None) is not None:
             self._save(records)
 
+    def finish(self, record: dict[str, Any]) -> None:
+        """Mark a request confirmed: its record keeps only its id, fingerprint and the time, for
+        :data:`DONE_KEEP` seconds, so an identical request that waited for the lock meanwhile is
+        known to be this one (:meth:`done_since`)."""
+        records = self.load()
+        records[self._key(record)] = {
+            "request_id": record["request_id"],
+            "account": record["account"],
+            "fingerprint": record["fingerprint"],
+            "created": record.get("created", 0),
+            "done": time.time(),
+        }
+        self._save(records)
+
+    def done_since(self, account: str, fingerprint: str, since: float) -> dict[str, Any] | None:
+        """``account``'s request with this fingerprint confirmed at or after ``since``, if any."""
+        for record in self.load().values():
+            if (record["account"] == account and record["fingerprint"] == fingerprint
+                    and isinstance(record.get("done"), int | float) and record["done"] >= since):
+                return record
+        return None
+
     def find(
         self, account: str, fingerprint: str | None = None, request_id: str | None = None
     ) -> dict[str, Any] | None:
         """``account``'s pending record with that request id, or else for the same request, if any
-        (a record of a sent transaction before one recorded only)."""
+        (a record of a sent transaction before one recorded only; confirmed ones are not pending)."""
         found = None
         for record in self.load().values():
-            if record["account"] != account:
+            if record["account"] != account or "done" in record:
                 continue
             if (request_id is not None and record["request_id"] == request_id) or (
                 request_id is None and record["fingerprint"] == fingerprint
@@ -234,12 +264,21 @@ class PaidRequests:
             json.dumps([self.account, request.args(), payment, max_price], sort_keys=True).encode()
         ).hexdigest()
         rid = request_id_from(request_id) if request_id is not None else None
+        started = time.time()
         with self.pending.lock():
             record = self.pending.find(self.account, fingerprint, "0x" + rid.hex() if rid else None)
             if record is not None and "tx_hash" in record:
                 return self._resolve(record)
             if record is not None:  # an earlier run stopped before signing: nothing was sent
                 rid = bytes.fromhex(record["request_id"][2:])
+            elif rid is None:
+                # The same request finished by another run while this one waited for the lock
+                # (started together, or while it waited on a slow node) is this request.
+                done = self.pending.done_since(self.account, fingerprint, started)
+                if done is not None:
+                    paid = self.paid(bytes.fromhex(done["request_id"][2:]))
+                    if paid is not None:
+                        return paid
             rid = rid or request_id_from(None)
             record = {
                 "request_id": "0x" + rid.hex(),
@@ -301,7 +340,7 @@ class PaidRequests:
                 "at most once, so re-running cannot pay twice"
             ) from None
         self.last_tx = result
-        self.pending.drop(record)
+        self.pending.finish(record)
         return self._allocations(result.receipt, record["request_id"], replayed=False)
 
     def _settled(self, record: dict[str, Any], exc: ContractRevert) -> list[Allocation]:
@@ -310,6 +349,7 @@ class PaidRequests:
         if exc.error == "RequestAlreadyPaid":
             paid = self.paid(bytes.fromhex(record["request_id"][2:]))
             if paid is not None:
+                self.pending.finish(record)
                 return paid
         raise exc
 
@@ -322,11 +362,11 @@ class PaidRequests:
         except ContractRevert as exc:
             return self._settled(record, exc)
         if isinstance(state, TxResult):
-            self.pending.drop(record)
+            self.pending.finish(record)
             return self._allocations(state.receipt, record["request_id"], replayed=True)
         paid = self.paid(rid)
         if paid is not None:
-            self.pending.drop(record)
+            self.pending.finish(record)
             return paid
         raw = bytes.fromhex(record["raw"][2:])
         if state == "unknown" and record["nonce"] < self.chain.pending_nonce(self.account):

@@ -329,7 +329,8 @@ class Registry:
 
     def pending_requests(self) -> list[dict[str, Any]]:
         """This account's paid requests not confirmed yet (resolve one by requesting it again)."""
-        return [r for r in self.pending.load().values() if r["account"] == self.address and "tx_hash" in r]
+        return [r for r in self.pending.load().values()
+                if r["account"] == self.address and "tx_hash" in r and "done" not in r]
 
     def allocation(self, allocation_id: int) -> tuple[str, int, bool]:
         """(requester, model id, reviewed) of an allocation."""
