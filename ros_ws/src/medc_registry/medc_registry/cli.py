@@ -132,12 +132,13 @@ def read_model_file(path: str) -> bytes:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     except OSError as exc:
         raise CliError(f"cannot open {path}: {exc.strerror}") from None
-    with os.fdopen(fd, "rb", buffering=0) as fh:
-        info = os.fstat(fd)
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_CONTENT_BYTES:
+        os.close(fd)
         if not stat.S_ISREG(info.st_mode):
             raise CliError(f"{path} is not a regular file (a folder, FIFO or device): give the model file")
-        if info.st_size > MAX_CONTENT_BYTES:
-            raise CliError(f"{path} is {info.st_size} bytes, over the {MAX_CONTENT_BYTES} byte content limit")
+        raise CliError(f"{path} is {info.st_size} bytes, over the {MAX_CONTENT_BYTES} byte content limit")
+    with os.fdopen(fd, "rb", buffering=0) as fh:
         chunks, size = [], 0
         while chunk := fh.read(1 << 20):
             size += len(chunk)
