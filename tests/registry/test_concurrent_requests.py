@@ -102,6 +102,7 @@ def _finish(proc: subprocess.Popen) -> tuple[int, str, str]:
 
 
 @pytest.mark.anvil
+@pytest.mark.slow
 def test_a_second_run_during_a_slow_first_run_pays_nothing_more(slow_home):
     """Issue 20, item 7: with a node answering in 0.4 s per call, a second run of the same request
     started 2 s after the first (which is still ranking) resolves the first run's request."""

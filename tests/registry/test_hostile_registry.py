@@ -457,17 +457,21 @@ def test_amounts_with_extreme_exponents_are_refused(value, why, tmp_path, capsys
 
 
 def test_share_and_cid_read_regular_files_only(tmp_path):
-    """/dev/zero was read until the kernel killed the process; a FIFO hung. Run as children so
-    a regression shows as a timeout, not a hung test run."""
+    """/dev/zero was read until the kernel killed the process; a FIFO hung. Run in a child
+    process, so a regression shows as a timeout, not a hung or killed test run."""
     fifo = tmp_path / "fifo"
     os.mkfifo(fifo)
-    for argv in (["cid", "/dev/zero"], ["cid", str(fifo)], ["cid", str(tmp_path)],
-                 ["share", str(fifo), "--application", "app", "--env", "agents=1"],
-                 ["share", "/dev/zero", "--application", "app", "--env", "agents=1"]):
-        cmd = [sys.executable, "-m", "medc_registry.cli", "--home", str(tmp_path / "h"), *argv]
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-        assert proc.returncode == 2, (argv, proc.stderr)
-        assert "is not a regular file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    cases = [["cid", "/dev/zero"], ["cid", str(fifo)], ["cid", str(tmp_path)],
+             ["share", str(fifo), "--application", "app", "--env", "agents=1"],
+             ["share", "/dev/zero", "--application", "app", "--env", "agents=1"]]
+    proc = _run(f"""
+        from medc_registry.cli import main
+        for argv in {cases!r}:
+            print(main(["--home", {str(tmp_path / "h")!r}, *argv]), flush=True)
+    """, timeout=60)
+    assert proc.stdout.split() == ["2"] * len(cases), proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == len(cases) and all("is not a regular file" in line for line in lines), lines
 
 
 def test_oversize_local_files_are_refused_before_reading(tmp_path, monkeypatch, capsys):

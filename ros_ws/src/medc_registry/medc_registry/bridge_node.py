@@ -266,8 +266,8 @@ def bridge_node_class():
                     req.min_owner_reputation,
                 )
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"request_experts refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"request_experts refused: {res.message}")
                 return res
             res.ok = True
             res.message = f"{len(allocs)} expert(s) allocated"
@@ -304,8 +304,8 @@ def bridge_node_class():
             try:
                 res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"submit_review refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"submit_review refused: {res.message}")
                 return res
             res.ok, res.message = True, "review recorded"
             return res
