@@ -26,7 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from medc_common.ros_env import require_interfaces
-from medc_training.untrusted import printable
+from medc_training.untrusted import UntrustedJSONError, parse_json, printable
+
+#: Longest ``requirements_json`` / ``weights_json`` a service call may carry (8 features of a
+#: short name each fit in a few hundred characters).
+MAX_REQUEST_JSON_CHARS = 4096
 
 
 class BridgeError(ValueError):
@@ -45,12 +49,15 @@ class RegistryBridge:
 
     @staticmethod
     def _json_object(text: str, what: str) -> dict[str, Any] | None:
-        if not text.strip():
+        """``text`` (from a service call) as a JSON object, read by the same bounded reader as
+        bundle manifests (:func:`medc_training.untrusted.parse_json`): size, depth, numbers and
+        strings are bounded before the parser recurses, whatever the process's recursion limit."""
+        if not isinstance(text, str) or not text.strip():
             return None
         try:
-            value = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise BridgeError(f"{what} is not valid JSON: {exc}") from exc
+            value = parse_json(text, what, MAX_REQUEST_JSON_CHARS)
+        except UntrustedJSONError as exc:
+            raise BridgeError(str(exc)) from None
         if not isinstance(value, dict):
             raise BridgeError(
                 f"{what} must be a JSON object (feature name -> value), got {type(value).__name__}"
@@ -259,8 +266,8 @@ def bridge_node_class():
                     req.min_owner_reputation,
                 )
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"request_experts refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"request_experts refused: {res.message}")
                 return res
             res.ok = True
             res.message = f"{len(allocs)} expert(s) allocated"
@@ -297,8 +304,8 @@ def bridge_node_class():
             try:
                 res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"submit_review refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"submit_review refused: {res.message}")
                 return res
             res.ok, res.message = True, "review recorded"
             return res
