@@ -50,35 +50,10 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     each differing field; without ``resume`` a folder that already holds a run (a summary or a
     checkpoint) is refused unless ``overwrite``. Returns the summary dict.
     """
-    from .runs import RESUME_FREE, RunMismatch, differences
-
     check_learner(learner)
     out = Path(out_dir)
     ckpt = out / CHECKPOINT
-    if not resume and not overwrite and ((out / "summary.json").exists() or ckpt.exists()):
-        if _finished(out / "summary.json"):
-            raise RunMismatch(f"{out} already holds a finished run (summary.json); give --overwrite to "
-                              "replace it, or use another --out")
-        raise RunMismatch(f"{out} holds an unfinished run ({CHECKPOINT}); give --resume to carry it on, "
-                          "or --overwrite to start afresh")
-    out.mkdir(parents=True, exist_ok=True)
-    next_eval = 0
-    train_seconds = 0.0
-    if resume:
-        if not ckpt.exists():
-            raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
-        state = load_state(ckpt, device=cfg.device)
-        # A checkpoint from before eval_episodes existed was evaluated with the legacy window
-        # (TrainConfig.from_dict reads it so); one run's curve never mixes two evaluators.
-        diffs = differences({**LEGACY_EVAL, **state["config"]}, state.get("inputs"), cfg.to_dict(), inputs,
-                            ignore=RESUME_FREE)
-        if diffs:
-            raise RunMismatch(f"--resume: the checkpoint in {out} was made with another configuration: "
-                              f"{'; '.join(diffs)}; resume with its options, or give --overwrite to start "
-                              "afresh")
-        learner.load_state_dict(state["learner"])
-        next_eval = int(state["next_eval"])
-        train_seconds = float(state["train_seconds"])
+    next_eval, train_seconds = _open_run_folder(out, learner, cfg, resume, overwrite, inputs)
     logger = MetricsLogger(out, tensorboard=tensorboard,
                            resume_from_step=learner.global_step if resume else None)
     focal = learner.focal
@@ -95,24 +70,13 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         while True:
             if learner.global_step >= next_eval or learner.global_step >= cfg.total_steps:
                 ev = learner.evaluate()
-                tr = focal.take_train_stats()
-                row = {
-                    "step": learner.global_step, "update": focal.updates,
-                    "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
-                    "episode_return": ev.get("episode_return", math.nan),
-                    "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
-                    # No training episode finished since the last row: nothing to report.
-                    "train_episode_return": tr["episode_return"] if tr.get("episodes") else math.nan,
-                    "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
-                    "expert_step_fraction": tr["expert_step_fraction"],
-                    "sps": sps, "wall_time": train_seconds, **last_losses,
-                }
+                row = _metrics_row(learner, ev, sps, train_seconds, last_losses)
                 logger.log(row)
                 if side_loggers:
-                    for name, ev in learner.side_evaluate().items():
+                    for name, side_ev in learner.side_evaluate().items():
                         side_loggers[name].log({"step": learner.global_step, "update": focal.updates,
-                                                "episode_length": ev["episode_length"],
-                                                "success_rate": ev["success_rate"]})
+                                                "episode_length": side_ev["episode_length"],
+                                                "success_rate": side_ev["success_rate"]})
                 if bar is not None:
                     bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}")
                 while next_eval <= learner.global_step:
@@ -138,7 +102,63 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         logger.close()
         for side in side_loggers.values():
             side.close()
+    return _finish_run(out, learner, cfg, row, train_seconds, inputs, save_final)
 
+
+def _open_run_folder(out: Path, learner, cfg: TrainConfig, resume: bool, overwrite: bool,
+                     inputs: dict | None) -> tuple[int, float]:
+    """Check that ``out`` may take this run (:func:`run_training`'s rules) and, with ``resume``, load
+    its checkpoint into ``learner``. Returns (next evaluation step, training seconds so far)."""
+    from .runs import RESUME_FREE, RunMismatch, differences
+
+    ckpt = out / CHECKPOINT
+    if not resume and not overwrite and ((out / "summary.json").exists() or ckpt.exists()):
+        if _finished(out / "summary.json"):
+            raise RunMismatch(f"{out} already holds a finished run (summary.json); give --overwrite to "
+                              "replace it, or use another --out")
+        raise RunMismatch(f"{out} holds an unfinished run ({CHECKPOINT}); give --resume to carry it on, "
+                          "or --overwrite to start afresh")
+    out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        return 0, 0.0
+    if not ckpt.exists():
+        raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
+    state = load_state(ckpt, device=cfg.device)
+    # A checkpoint from before eval_episodes existed was evaluated with the legacy window
+    # (TrainConfig.from_dict reads it so); one run's curve never mixes two evaluators.
+    diffs = differences({**LEGACY_EVAL, **state["config"]}, state.get("inputs"), cfg.to_dict(), inputs,
+                        ignore=RESUME_FREE)
+    if diffs:
+        raise RunMismatch(f"--resume: the checkpoint in {out} was made with another configuration: "
+                          f"{'; '.join(diffs)}; resume with its options, or give --overwrite to start "
+                          "afresh")
+    learner.load_state_dict(state["learner"])
+    return int(state["next_eval"]), float(state["train_seconds"])
+
+
+def _metrics_row(learner, ev: dict, sps: float, train_seconds: float, last_losses: dict) -> dict:
+    """One metrics row: the evaluation ``ev``, the training episodes since the last row, the last
+    update's losses."""
+    focal = learner.focal
+    tr = focal.take_train_stats()
+    return {
+        "step": learner.global_step, "update": focal.updates,
+        "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
+        "episode_return": ev.get("episode_return", math.nan),
+        "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
+        # No training episode finished since the last row: nothing to report.
+        "train_episode_return": tr["episode_return"] if tr.get("episodes") else math.nan,
+        "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
+        "expert_step_fraction": tr["expert_step_fraction"],
+        "sps": sps, "wall_time": train_seconds, **last_losses,
+    }
+
+
+def _finish_run(out: Path, learner, cfg: TrainConfig, row: dict, train_seconds: float, inputs: dict | None,
+                save_final: bool) -> dict:
+    """Write the bundle and learning curve (a run that reached its budget) and summary.json from the
+    last metrics ``row``; return the summary."""
+    focal = learner.focal
     summary = {
         "config": cfg.to_dict(),
         **({"inputs": inputs} if inputs is not None else {}),
