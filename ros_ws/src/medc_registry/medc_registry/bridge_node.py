@@ -209,6 +209,19 @@ def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
     return namespace, connection, cache
 
 
+def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
+    """Fill a RequestExperts response with the allocations made."""
+    res.ok = True
+    res.message = f"{len(allocs)} expert(s) allocated"
+    res.allocation_ids = [int(a.allocation_id) for a in allocs]
+    res.model_ids = [int(a.model_id) for a in allocs]
+    res.cids = [a.cid for a in allocs]
+    res.qos = [float(a.qos) for a in allocs]
+    res.descriptions = [a.model.description for a in allocs]
+    res.price_wei = str(sum(int(a.price_wei) for a in allocs))
+    return res
+
+
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
     from medc_common import contract
@@ -269,15 +282,7 @@ def bridge_node_class():
                 res.ok, res.message = False, printable(str(exc), 2000)
                 self.get_logger().warning(f"request_experts refused: {res.message}")
                 return res
-            res.ok = True
-            res.message = f"{len(allocs)} expert(s) allocated"
-            res.allocation_ids = [int(a.allocation_id) for a in allocs]
-            res.model_ids = [int(a.model_id) for a in allocs]
-            res.cids = [a.cid for a in allocs]
-            res.qos = [float(a.qos) for a in allocs]
-            res.descriptions = [a.model.description for a in allocs]
-            res.price_wei = str(sum(int(a.price_wei) for a in allocs))
-            return res
+            return _allocations_answer(res, allocs)
 
         def _on_fetch(self, req, res):
             try:

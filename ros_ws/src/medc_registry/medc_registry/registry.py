@@ -215,11 +215,7 @@ class Registry:
             description: extra text or JSON-able details stored with the model.
             cid_version: 0 (``ipfs add``) or 1 (``ipfs add --cid-version=1``).
         """
-        if not isinstance(bundle, bytes | bytearray) or not bundle:
-            raise ValueError("bundle must be non-empty bytes (the model file's content)")
-        check_share_text(application, description)
-        if not isinstance(price, int) or price < 0 or price >= 2**128:
-            raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
+        _check_share_args(bundle, application, price, description)
         names, values = parse_features(env_features)
         existing = self.feature_names(application)
         if existing is not None and names and existing and names != existing:
@@ -412,6 +408,16 @@ def check_share_text(application: str, description: str | Mapping[str, Any] | No
         raise ValueError("the description must be valid Unicode text (no lone surrogates)") from None
     if size > MAX_DESCRIPTION_BYTES:
         raise ValueError(f"the description is {size} bytes, over the {MAX_DESCRIPTION_BYTES} byte limit")
+
+
+def _check_share_args(bundle: bytes, application: str, price: int,
+                      description: str | Mapping[str, Any] | None) -> None:
+    """:meth:`Registry.share_model`'s argument checks, before anything is stored or sent."""
+    if not isinstance(bundle, bytes | bytearray) or not bundle:
+        raise ValueError("bundle must be non-empty bytes (the model file's content)")
+    check_share_text(application, description)
+    if not isinstance(price, int) or price < 0 or price >= 2**128:
+        raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
 
 
 def bundle_summary(data: bytes) -> dict[str, Any]:
