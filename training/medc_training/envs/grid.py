@@ -96,18 +96,8 @@ def agent_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
     takes on cells off the grid (default 0). Agent i's window has its own cell at the centre.
     """
     b, n, c, g, _ = maps.shape
-    r, side = int(radius), 2 * int(radius) + 1
-    padded = F.pad(maps.reshape(b * n, c, g, g), (r, r, r, r))
-    if outside is not None:
-        border = torch.ones((g + 2 * r, g + 2 * r), dtype=torch.bool, device=maps.device)
-        border[r:r + g, r:r + g] = False
-        padded = padded + border * outside.view(1, c, 1, 1).to(padded.dtype)
-    gp = g + 2 * r
-    offs = torch.arange(side, device=maps.device)
-    rows = positions[..., 0:1] + offs  # [B,N,side]
-    cols = positions[..., 1:2] + offs
-    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b * n, 1, side * side).expand(b * n, c, -1)
-    win = padded.view(b * n, c, gp * gp).gather(2, idx)
+    side = 2 * int(radius) + 1
+    win = team_windows(maps.reshape(b * n, c, g, g), positions.reshape(b * n, 1, 2), radius, outside)
     return win.view(b, n, c, side, side)
 
 
