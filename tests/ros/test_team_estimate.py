@@ -101,3 +101,48 @@ def test_source_rule_is_today_s_and_ignores_declarations(graph):
     assert spin_until(executor, lambda: sim.finished, 120)
     assert {r.ended_by for r in sim.core.results} <= {"source", "max_steps"}
     assert agents[0].estimate.declarations >= 1  # the team still says it
+
+
+@pytest.mark.parametrize("yaw", [0.0, math.pi / 2, 0.7])
+def test_estimate_in_map_follows_the_grid_geometry(yaw):
+    """A posterior mean on a cell centre lands on that cell's centre in the map frame (origin, yaw,
+    resolution); a spread along a grid column (rows) becomes a spread along the grid frame's y."""
+    from medc_agents.estimate import estimate_in_map
+    from medc_common.contract import GridGeometry
+
+    geo = GridGeometry(9, 9, 2.0, 250.0, -80.0, yaw)
+    (x, y), cov = estimate_in_map((3.0, 5.0), [[4.0, 0.0], [0.0, 0.0]], geo)
+    assert (x, y) == pytest.approx(geo.cell_to_xy(3, 5))
+    # Variance 4 cells² along rows (+1/12 within a cell), 1/12 along columns, times r² = 4 m².
+    along_j, along_i = (4.0 + 1 / 12) * 4.0, (1 / 12) * 4.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    assert cov[0][0] == pytest.approx(c * c * along_i + s * s * along_j)
+    assert cov[1][1] == pytest.approx(s * s * along_i + c * c * along_j)
+    assert cov[0][1] == pytest.approx(cov[1][0]) == pytest.approx(c * s * (along_i - along_j))
+
+
+def test_heat_map_rows_follow_the_occupancy_grid():
+    """data[j * width + i] holds environment row H - 1 - j: the first message row is the southern."""
+    import torch
+    from medc_agents.estimate import heat_map_data
+
+    p = torch.zeros(4 * 4)
+    p[0 * 4 + 1] = 0.8  # environment row 0 (north), col 1
+    p[3 * 4 + 2] = 0.2  # row 3 (south), col 2
+    data = heat_map_data(p, 4)
+    assert data[3 * 4 + 1] == 100 and data[0 * 4 + 2] == 25 and sum(data) == 125
+
+
+def test_episode_end_rules_and_judging_a_declaration():
+    from medc_sim.episode_end import check_end_rule, declared_cell, judge
+
+    rules = ["source", "declaration", "either"]
+    assert [check_end_rule(r) for r in rules] == rules
+    with pytest.raises(ValueError, match="end_on must be one of"):
+        check_end_rule("first")
+    assert declared_cell(2, 0, 5) == (4, 2)  # i = col, j = 0 is the southern row
+    with pytest.raises(ValueError, match="outside"):
+        declared_cell(5, 0, 5)
+    assert judge((4, 2), (4, 2), 0.0) == (0.0, True)
+    assert judge((4, 2), (3, 2), 0.0) == (1.0, False)
+    assert judge((4, 2), (3, 2), 1.1)[1] and not judge((4, 2), (3, 3), 1.1)[1]
