@@ -28,6 +28,8 @@ def test_an_agent_centred_observer_takes_any_square_map(observation):
     obs = TeamObserver("agent_0", 3, 13, observation=observation)
     obs.add_map(grid_msg(17))  # not 13x13: taken
     assert obs.any_grid and obs.map_geometry(1_000_000_000).height == 17
+    with pytest.raises(ValueError, match="square grids of 5x5 to 64x64"):
+        obs.add_map(grid_msg(65))
     with pytest.raises(ValueError, match="square"):
         msg = grid_msg(17)
         msg.info.width = 15

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 #: Posterior mass within the radius that makes the team declare (docs/ros.md, "The team's source
-#: estimate"; measured in docs/environments.md, "Declaring the source").
+#: estimate", which gives the measured errors and times).
 DEFAULT_THRESHOLD = 0.95
 
 

@@ -154,7 +154,8 @@ class AgentNode(Node):
         )
         self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
         num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
-        grid = p("grid", 0, "Grid side in cells; 0: the policy bundle's manifest's", True)
+        grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
+                         "size); 0: the policy bundle's manifest's", True)
         observation = p(
             "observation",
             "",

@@ -250,9 +250,11 @@ class TeamObserver:
 
         size = (int(msg.info.height), int(msg.info.width))
         if size != (self.height, self.width) and self.any_grid:
-            if size[0] != size[1] or size[0] < 5:
-                raise ValueError(f"map is {size[0]}x{size[1]}: the team works on square grids of at least "
-                                 "5x5 cells")
+            from medc_training.bundle import MAX_BUNDLE_GRID
+
+            if size[0] != size[1] or not 5 <= size[0] <= MAX_BUNDLE_GRID:
+                raise ValueError(f"map is {size[0]}x{size[1]}: the team works on square grids of 5x5 to "
+                                 f"{MAX_BUNDLE_GRID}x{MAX_BUNDLE_GRID} cells")
             height = width = size[0]
         elif size != (self.height, self.width):
             raise ValueError(f"map is {size[0]}x{size[1]}, but this agent's observation "
