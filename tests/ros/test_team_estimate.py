@@ -146,3 +146,23 @@ def test_episode_end_rules_and_judging_a_declaration():
     assert judge((4, 2), (4, 2), 0.0) == (0.0, True)
     assert judge((4, 2), (3, 2), 0.0) == (1.0, False)
     assert judge((4, 2), (3, 2), 1.1)[1] and not judge((4, 2), (3, 3), 1.1)[1]
+
+
+@pytest.mark.ros
+def test_medc_launch_ends_episodes_on_the_declaration_with_agent_processes(tmp_path):
+    """The deployment shape: the simulator and one medc-agent process per UAV, `end_on: declaration`
+    in the launch config (the launcher gives the agents source_ends_episode false): every episode
+    ends on the team's declaration of the right cell, before a UAV could have reached it."""
+    import json
+    import subprocess
+    import sys
+
+    config = tmp_path / "launch.yaml"
+    config.write_text(json.dumps({"policy": str(TEAM), "end_on": "declaration", "seed": 3}))  # JSON is YAML
+    launcher = Path(sys.executable).parent / "medc-launch"
+    out = subprocess.run([str(launcher), "--config", str(config), "--episodes", "5", "--timeout", "150"],
+                         capture_output=True, text=True, timeout=200)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["episodes"] == 5 and result["success_rate"] == 1.0, result
+    assert result["end_on"] == "declaration" and result["mean_length"] < 4, result

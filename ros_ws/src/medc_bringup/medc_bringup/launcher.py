@@ -572,6 +572,7 @@ def main(argv: list[str] | None = None) -> int:
                     seed=cfg.seed,
                     agents=cfg.agents,
                     mode=cfg.mode,
+                    end_on=cfg.end_on,
                     in_process=args.in_process,
                     wall_s=round(time.monotonic() - start, 3),
                     config=asdict(cfg) | {"policies": policies},
