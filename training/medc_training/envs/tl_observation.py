@@ -28,7 +28,8 @@ Source estimate (:class:`SourceEstimator`)
         log p(s | r_1..r_t) = const + sum_k [ r_k log lambda_s(p_k) - lambda_s(p_k) ]
 
     over free cells s; the prior is uniform over free cells, and a cell some agent has stood on
-    without the episode ending is not the source (probability 0). With ``noise=True`` the readings
+    without the episode ending is not the source (probability 0; ``rule_out=False`` drops this rule
+    for episodes that finding the source does not end). With ``noise=True`` the readings
     are Poisson counts and this is the exact posterior; without noise the readings equal the rates
     and the same formula is the posterior of a Poisson sensor (peaked at the true source). Log
     probabilities are kept relative to their maximum and floored at :data:`LOG_FLOOR`, below
@@ -104,8 +105,13 @@ class SourceEstimator:
     levels, strength-major (:class:`~medc_training.envs.tl_sensing.SensingModel`).
     """
 
-    def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING) -> None:
+    def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING,
+                 rule_out: bool = True) -> None:
+        """``rule_out``: a cell some agent has stood within the success radius of is not the source
+        (true when an episode ends as soon as an agent finds the source, as in training); False for
+        episodes that a finding does not end (a driver that ends them on the team's declaration)."""
         self.grid = int(grid)
+        self.rule_out = bool(rule_out)
         self.device = torch.device(device)
         self.sensing = parse_sensing(sensing)
         g = self.grid
@@ -187,7 +193,9 @@ class SourceEstimator:
         log_post.add_(loglik)
         flat = log_post.view(k, -1, self.grid * self.grid)
         # Standing within reach of a cell without the episode ending rules it out as the source.
-        out = self.ruled_out(positions) | walls.reshape(k, -1).bool()
+        out = walls.reshape(k, -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
         flat.masked_fill_(out.unsqueeze(1), LOG_FLOOR)
         top = flat.amax((1, 2), keepdim=True)
         flat.sub_(top).clamp_(min=LOG_FLOOR)
@@ -288,11 +296,12 @@ class TeamMemory:
     :class:`SourceEstimator`; kept when the observation shows the estimate or ``posterior`` is
     True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact line-of-sight
     rule). The batched core, the PettingZoo env and the ROS agent node hold one each and feed it the
-    same readings, under the same ``sensing`` model.
+    same readings, under the same ``sensing`` model. ``rule_out``: :class:`SourceEstimator`'s.
     """
 
     def __init__(self, spec: ObservationSpec, batch: int, grid: int, device: torch.device | str,
-                 sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1) -> None:
+                 sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1,
+                 rule_out: bool = True) -> None:
         self.spec = parse_observation(spec)
         self.sensing = parse_sensing(sensing)
         self.grid = int(grid)
@@ -302,7 +311,7 @@ class TeamMemory:
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
         keep = self.spec.estimate or posterior
-        self.estimator = SourceEstimator(g, self.device, self.sensing) if keep else None
+        self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out) if keep else None
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
         self.log_post = self.estimator.prior(blank) if keep else None
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)

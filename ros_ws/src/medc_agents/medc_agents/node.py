@@ -39,6 +39,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from medc_agents.controller import controller_move, controller_name, controller_scenario
+from medc_agents.estimate import TeamEstimate
 from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
@@ -153,7 +154,8 @@ class AgentNode(Node):
         )
         self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
         num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
-        grid = p("grid", 0, "Grid side in cells; 0: the policy bundle's manifest's", True)
+        grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
+                         "size); 0: the policy bundle's manifest's", True)
         observation = p(
             "observation",
             "",
@@ -205,6 +207,12 @@ class AgentNode(Node):
             "preset always counts them): the gradient controller's flatness test",
             True,
         ))
+        rule_out = bool(p(
+            "source_ends_episode", True,
+            "The driver ends an episode as soon as a UAV finds the source (the simulator's end_on "
+            "'source' or 'either'), so a cell the team stood on is not the source; false for a driver "
+            "that ends episodes only on the team's declaration (a real one: it cannot know the source)",
+            True))
         initial = p(
             "policy", "",
             "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
@@ -215,7 +223,7 @@ class AgentNode(Node):
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
-                                     observation or DEFAULT_OBSERVATION, sensing)
+                                     observation or DEFAULT_OBSERVATION, sensing, rule_out)
         spec = self.observer.observation
         self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
                                observation=explicit_observation or None,
@@ -250,6 +258,8 @@ class AgentNode(Node):
         self.diag_pub = self.create_publisher(
             DiagnosticArray, contract.DIAGNOSTICS_TOPIC, contract.DIAGNOSTICS_QOS
         )
+        #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
+        self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
@@ -408,6 +418,11 @@ class AgentNode(Node):
         self._unanswered = None
         self._stall_over(tick)
         self._flush_notes()
+        try:  # the estimate goes out before the move: a driver ending on the declaration sees it first
+            self.estimate.on_step(self.observer, tick)
+        except Exception as exc:  # never let the estimate cost the team its move
+            self.get_logger().error(f"team estimate not published for episode {tick.episode} step "
+                                    f"{tick.step}: {type(exc).__name__}: {printable(str(exc), 300)}")
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME

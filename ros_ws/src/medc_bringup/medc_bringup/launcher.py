@@ -56,6 +56,8 @@ class LaunchConfig:
     # (environment.sensing; a manifest without it: paper-simple).
     sensing: str | None = None
     mode: str = "stepped"
+    #: What ends an episode besides max_steps (medc_sim.episode_end): source, declaration, either.
+    end_on: str = "source"
     rate_hz: float = 0.0
     resolution: float = 1.0
     policy: str = "models/team"
@@ -105,6 +107,8 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
             )
     if cfg.mode not in ("stepped", "realtime"):
         raise ValueError(f"mode must be 'stepped' or 'realtime', got {cfg.mode!r}")
+    if cfg.end_on not in ("source", "declaration", "either"):
+        raise ValueError(f"end_on in {path} must be 'source', 'declaration' or 'either', got {cfg.end_on!r}")
     if cfg.sensing is not None:
         from medc_training.envs.tl_sensing import SENSING_PRESETS
 
@@ -260,6 +264,7 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
         # None (resolve_policies not called): the node's default.
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "mode": cfg.mode,
+        "end_on": cfg.end_on,
         "rate_hz": cfg.rate_hz,
         "resolution": cfg.resolution,
         "episodes": episodes,
@@ -278,6 +283,8 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "resolution": cfg.resolution,
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "noise": cfg.noise,
+        # Only a finding that ends the episode lets the team rule out the cells it stood on.
+        "source_ends_episode": cfg.end_on != "declaration",
         "policy": policy,
     }
 
@@ -565,6 +572,7 @@ def main(argv: list[str] | None = None) -> int:
                     seed=cfg.seed,
                     agents=cfg.agents,
                     mode=cfg.mode,
+                    end_on=cfg.end_on,
                     in_process=args.in_process,
                     wall_s=round(time.monotonic() - start, 3),
                     config=asdict(cfg) | {"policies": policies},

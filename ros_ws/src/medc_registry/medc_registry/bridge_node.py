@@ -319,7 +319,15 @@ def bridge_node_class():
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
+    """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C; ``--help`` lists
+    its parameters and exits 0 without starting it."""
+    from medc_common.cli_help import print_node_help, wants_help
+
+    if wants_help(argv):
+        return print_node_help(
+            "medc-bridge", "The registry bridge node: the model registry's services (request_experts, "
+                           "fetch_bundle, submit_review) on the ROS graph.", ["medc_registry.bridge_node"],
+            "medc-bridge --ros-args -p chain:=embedded -p content:=/tmp/store")
     require_interfaces()
     from medc_common.executors import run_node
     from rclpy.executors import SingleThreadedExecutor
