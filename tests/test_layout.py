@@ -42,6 +42,8 @@ ROSDEP_KEYS = {
     "eth_utils": "python3-eth-utils",
     "httpx": "python3-httpx",
     "requests": "python3-requests",
+    "mcap": "python3-mcap-pip",
+    "foxglove": "python3-foxglove-sdk-pip",
 }
 
 

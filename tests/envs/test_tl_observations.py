@@ -200,22 +200,68 @@ def test_observe_requires_the_estimate_when_the_variant_shows_it():
         observe(parse_observation("ego2+estimate"), pos, maps, maps, maps)
 
 
-@pytest.mark.parametrize(("grid", "walls"), [(5, 0), (13, 3), (22, 4)])
+@pytest.mark.parametrize(("grid", "walls"), [(5, 0), (5, 1), (13, 3), (22, 4), (30, 5), (33, 2)])
 def test_rates_from_every_cell_equal_the_sensor_model_bit_for_bit(grid, walls):
-    """The table path (grids up to 21x21) and the computed path (22x22) give exactly the
-    simulator's noise-free readings for every candidate source cell."""
+    """Sampling every line, and the crossing tables (the walls as segments, grids up to 32x32; 33x33
+    falls back to sampling), give exactly the simulator's noise-free readings for every candidate
+    source cell, from sensors on every free cell of several layouts."""
     from medc_training.envs.target_localization import (
         expected_rate_from_sources,
         generate_layouts,
         rates_from_every_cell,
     )
+    from medc_training.envs.tl_sensing import wall_segments
 
     lay = generate_layouts(6, grid, walls, 3, torch.Generator().manual_seed(grid), torch.device("cpu"))
     idx = torch.arange(grid * grid)
     every = torch.stack((idx // grid, idx % grid), dim=-1)
     got = rates_from_every_cell(lay["positions"], lay["walls"])
     assert torch.equal(got, expected_rate_from_sources(lay["positions"], every, lay["walls"]))
+    segments, ok = wall_segments(lay["walls"], max(1, walls))
+    assert bool(ok.all())
+    sensors = every[::3].unsqueeze(0).expand(6, -1, -1)  # a third of the cells, walls included
+    assert torch.equal(rates_from_every_cell(sensors, lay["walls"], segments),
+                       expected_rate_from_sources(sensors, every, lay["walls"]))
     # ... and column s is what sensor_reading returns with the source at cell s.
     s = int(lay["target"][0, 0] * grid + lay["target"][0, 1])
     direct = sensor_reading(lay["positions"][:1], lay["target"][:1], lay["walls"][:1])
     assert torch.equal(got[0, :, s], direct[0])
+
+
+def test_wall_segments_accept_only_maps_made_of_non_touching_thin_segments():
+    """The crossing tables count segments met, which equals the sampled rule's count of wall runs
+    only for one-cell-thick segments that never touch; any other map takes the sampled path."""
+    from medc_training.envs.tl_sensing import wall_segments
+
+    walls = torch.zeros((5, 9, 9), dtype=torch.bool)
+    walls[0, 2, 1:5] = True  # one horizontal segment
+    walls[0, 5:8, 7] = True  # and one vertical
+    walls[1, 2:4, 2:4] = True  # a 2x2 block
+    walls[2, 2, 1:5] = True
+    walls[2, 3, 5] = True  # touches the first diagonally
+    walls[3, 2, 1:5] = True
+    walls[3, 2:6, 4] = True  # an L
+    for c in range(0, 9, 2):  # five segments: more than the slots asked for
+        walls[4, 0:2, c] = True
+    segments, ok = wall_segments(walls, 4)
+    assert ok.tolist() == [True, False, False, False, False]
+    assert segments.shape == (5, 4, 4)
+    assert sorted(segments[0, :2].tolist()) == [[2, 1, 2, 4], [5, 7, 7, 7]]
+    assert segments[0, 2:].tolist() == [[-1, -1, -2, -2]] * 2
+    assert wall_segments(walls[4:], 5)[1].tolist() == [True]
+
+
+def test_team_memory_falls_back_to_sampling_for_maps_not_made_of_segments():
+    """An operator's own map (here a 2x2 block, which the sampled rule counts as one run) gives the
+    posterior of the sampled rule, not of the crossing tables."""
+    walls = torch.zeros((2, 9, 9), dtype=torch.bool)
+    walls[:, 4:6, 4:6] = True
+    pos = torch.tensor([[[1, 1], [8, 8], [1, 8]]] * 2)
+    spec = parse_observation("ego3+estimate")
+    mem = TeamMemory(spec, 2, 9, "cpu", posterior=True, max_walls=2)
+    readings = sensor_reading(pos, torch.tensor([[7, 7]] * 2), walls)
+    mem.start(walls, pos, readings)
+    assert not bool(mem.segments_ok.any())
+    expected = mem.estimator.prior(walls)
+    mem.estimator.update(expected, walls, pos, readings)  # no segments: every line sampled
+    assert torch.equal(mem.log_post, expected)

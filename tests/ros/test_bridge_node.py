@@ -71,6 +71,18 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
             count=1,
         )
         assert not res_bad.ok and "JSON" in res_bad.message
+        # JSON nested 70,000 deep (issue 20, item 5; it crashed this process, whose recursion limit
+        # the embedded chain raised) is refused by the bounded reader before any parser recursion,
+        # in requirements and in weights alike; the node keeps serving.
+        deep = "[" * 70_000 + "]" * 70_000
+        for field in ("requirements_json", "weights_json"):
+            given = {"requirements_json": '{"agents": 3, "walls": 1}', field: deep}
+            res_deep = call(RequestExperts, "request_experts", application="target_localization",
+                            count=1, **given)
+            assert not res_deep.ok and "character limit" in res_deep.message, res_deep.message
+        res_deep = call(RequestExperts, "request_experts", application="target_localization",
+                        count=1, requirements_json="[" * 2000 + "]" * 2000)
+        assert not res_deep.ok and "nests deeper than 16 levels" in res_deep.message, res_deep.message
         unknown = call(FetchBundle, "fetch_bundle", cid="QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG")
         assert not unknown.ok
         junk = call(FetchBundle, "fetch_bundle", cid=bad.cid, agent_ids=["agent_1"])

@@ -173,5 +173,5 @@ def test_a_stall_says_whether_no_map_came_or_why_it_was_dropped():
     with pytest.raises(ValueError):
         o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), Time(sec=1), 1.0))
     need, have = o.waiting_for()
-    assert any("no usable map: the last one was dropped (map with map_load_time 1.000000000: map is 8x8, "
-               "this agent works on a 10x10 grid)" in h for h in have), have
+    assert any("no usable map: the last one was dropped (map with map_load_time 1.000000000: map is 8x8"
+               in h for h in have), have

@@ -286,7 +286,6 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
     cand = cells_nb.view(b, m, 2)
     idx = torch.arange(g2, device=dev)
     grid_cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2]
-    radius = sensing.success_radius
     k = int(quantiles)
     probs = (torch.arange(k, device=dev, dtype=torch.float32) + 0.5) / k
     out = torch.empty((b, m), device=dev)
@@ -300,10 +299,7 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
         f = geometric_factor(sensing, cand[sl], grid_cells, walls[sl], None if rects is None else rects[sl])
         lam = s_est[sl].view(-1, 1, 1) * f + b_est[sl].view(-1, 1, 1)  # [R,M,G²]
         delta = cand[sl].unsqueeze(2) - grid_cells  # [R,M,G²,2]
-        if radius < 1.0:
-            near = (delta == 0).all(-1)
-        else:
-            near = (delta * delta).sum(-1) <= radius * radius
+        near = sensing.within_reach((delta * delta).sum(-1))
         pm = p.unsqueeze(1).expand_as(lam)
         p_found = (pm * near).sum(-1)  # [R,M]
         q = pm.masked_fill(near, 0.0)

@@ -174,12 +174,11 @@ def clone_oracle(
     env = make_env_for(cfg, cfg.num_envs, cfg.seed, False)
     if not hasattr(env, "oracle_action_scores"):
         raise ValueError(f"environment {cfg.env!r} has no oracle to clone")
-    B, N, A = env.num_envs, env.num_agents, env.num_actions
     obs_shape = tuple(env.obs_shape)
-    net = make_actor_critic(cfg.arch, obs_shape, A, device=device)
+    net = make_actor_critic(cfg.arch, obs_shape, env.num_actions, device=device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(cfg.seed + 7)
-    data = _Dataset(obs_shape, A, cfg.max_samples, device)
+    data = _Dataset(obs_shape, env.num_actions, cfg.max_samples, device)
     policy = net_policy(net, device)
     eval_seed = cfg.seed + EVAL_SEED_OFFSET
 
@@ -190,13 +189,12 @@ def clone_oracle(
 
     with open(out / "metrics.csv", "w", newline="") as f:
         csv.DictWriter(f, fieldnames=CSV_COLUMNS).writeheader()
+    per_iteration = env.num_envs * cfg.rollout_len
     bar = None
     if progress:
-        from tqdm import tqdm
+        from .console import progress_bar
 
-        bar = tqdm(
-            total=cfg.iterations * B * cfg.rollout_len, unit="step", dynamic_ncols=True, mininterval=1.0
-        )
+        bar = progress_bar(cfg.iterations * per_iteration, unit="step")
     obs, mask = env.reset(seed=cfg.seed)
     start = time.perf_counter()
     steps = 0
@@ -205,49 +203,15 @@ def clone_oracle(
     try:
         for it in range(cfg.iterations):
             beta = cfg.beta_decay**it
-            net.eval()
-            for _ in range(cfg.rollout_len):
-                flat_obs, flat_mask = obs.reshape(B * N, *obs_shape), mask.reshape(B * N, A)
-                scores = env.oracle_action_scores().reshape(B * N, A)
-                best = best_moves(flat_mask, scores)
-                data.add(flat_obs, flat_mask, best)
-                with torch.no_grad():
-                    probs = torch.softmax(masked_logits(net(flat_obs)[0], flat_mask), -1).cpu()
-                own = torch.multinomial(probs, 1, generator=gen).squeeze(-1)
-                oracle = scores.masked_fill(~flat_mask, -1e9).argmax(-1).cpu()
-                take_oracle = torch.rand(own.shape, generator=gen) < beta
-                step = env.step(torch.where(take_oracle, oracle, own).view(B, N).to(env.device))
-                obs, mask = step.obs, step.mask
-            steps += B * cfg.rollout_len
-            net.train()
-            for _ in range(cfg.grad_steps):
-                o, m, b = data.sample(cfg.batch_size, gen)
-                loss = clone_loss(net(o)[0], m, b)
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                losses.append(loss.item())
-            net.eval()
+            obs, mask = _collect(env, net, data, obs, mask, beta, cfg.rollout_len, gen)
+            steps += per_iteration
+            losses += _fit(net, opt, data, cfg, gen)
             if bar is not None:
-                bar.update(B * cfg.rollout_len)
+                bar.update(per_iteration)
             if (it + 1) % cfg.eval_every and it + 1 < cfg.iterations:
                 continue
             greedy, sampled = evaluate(policy, True), evaluate(policy, False)
-            head = greedy if cfg.eval_greedy else sampled
-            row = {
-                "iteration": it,
-                "step": steps,
-                "samples": data.size,
-                "beta": beta,
-                "bc_loss": sum(losses) / len(losses) if losses else math.nan,
-                "episode_length": head["episode_length"],
-                "success_rate": head["success_rate"],
-                "greedy_length": greedy["episode_length"],
-                "greedy_success": greedy["success_rate"],
-                "sampled_length": sampled["episode_length"],
-                "sampled_success": sampled["success_rate"],
-                "wall_time": time.perf_counter() - start,
-            }
+            row = _metrics_row(cfg, it, steps, data.size, beta, losses, greedy, sampled, start)
             with open(out / "metrics.csv", "a", newline="") as f:
                 csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
             losses.clear()
@@ -258,7 +222,71 @@ def clone_oracle(
     finally:
         if bar is not None:
             bar.close()
-    rand = evaluate(None, False)
+    return _finish(cfg, out, env, net, row, evaluate(None, False), steps, bundle_to)
+
+
+def _collect(env, net, data: _Dataset, obs: torch.Tensor, mask: torch.Tensor, beta: float, rollout_len: int,
+             gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Play ``rollout_len`` batched steps, each agent taking the oracle's best move with probability
+    ``beta`` and else a move sampled from the clone, and label every observation with the oracle's
+    set of best moves. Returns the last observation and mask."""
+    b, n, a = env.num_envs, env.num_agents, env.num_actions
+    obs_shape = tuple(env.obs_shape)
+    net.eval()
+    for _ in range(rollout_len):
+        flat_obs, flat_mask = obs.reshape(b * n, *obs_shape), mask.reshape(b * n, a)
+        scores = env.oracle_action_scores().reshape(b * n, a)
+        data.add(flat_obs, flat_mask, best_moves(flat_mask, scores))
+        with torch.no_grad():
+            probs = torch.softmax(masked_logits(net(flat_obs)[0], flat_mask), -1).cpu()
+        own = torch.multinomial(probs, 1, generator=gen).squeeze(-1)
+        oracle = scores.masked_fill(~flat_mask, -1e9).argmax(-1).cpu()
+        take_oracle = torch.rand(own.shape, generator=gen) < beta
+        step = env.step(torch.where(take_oracle, oracle, own).view(b, n).to(env.device))
+        obs, mask = step.obs, step.mask
+    return obs, mask
+
+
+def _fit(net, opt: torch.optim.Optimizer, data: _Dataset, cfg: CloneConfig,
+         gen: torch.Generator) -> list[float]:
+    """``cfg.grad_steps`` Adam minibatches on the aggregated dataset; their losses."""
+    net.train()
+    losses = []
+    for _ in range(cfg.grad_steps):
+        o, m, b = data.sample(cfg.batch_size, gen)
+        loss = clone_loss(net(o)[0], m, b)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    net.eval()
+    return losses
+
+
+def _metrics_row(cfg: CloneConfig, it: int, steps: int, samples: int, beta: float, losses: list[float],
+                 greedy: dict, sampled: dict, start: float) -> dict:
+    """One metrics.csv row (:data:`CSV_COLUMNS`); the headline columns follow ``cfg.eval_greedy``."""
+    head = greedy if cfg.eval_greedy else sampled
+    return {
+        "iteration": it,
+        "step": steps,
+        "samples": samples,
+        "beta": beta,
+        "bc_loss": sum(losses) / len(losses) if losses else math.nan,
+        "episode_length": head["episode_length"],
+        "success_rate": head["success_rate"],
+        "greedy_length": greedy["episode_length"],
+        "greedy_success": greedy["success_rate"],
+        "sampled_length": sampled["episode_length"],
+        "sampled_success": sampled["success_rate"],
+        "wall_time": time.perf_counter() - start,
+    }
+
+
+def _finish(cfg: CloneConfig, out: Path, env, net, row: dict, rand: dict, steps: int,
+            bundle_to: str | Path | None) -> dict:
+    """Write the bundle (and its copy at ``bundle_to``), the learning curve and summary.json from the
+    last metrics ``row`` and the random team's evaluation ``rand``; return the summary."""
     metrics = {
         "mean_episode_length": row["episode_length"],
         "success_rate": row["success_rate"],

@@ -1,7 +1,12 @@
 """Metrics of a run: one CSV row per evaluation, the same figures in TensorBoard.
 
-TensorBoard names are namespaced CleanRL-style (``charts/episodic_length``,
-``losses/approx_kl``); the CSV uses the plain column names in :data:`CSV_COLUMNS`.
+TensorBoard tags mean what they mean in CleanRL: ``charts/episodic_return``,
+``charts/episodic_length`` and ``charts/success_rate`` are the *training* episodes that finished
+since the last log point (sampled actions, exploration included); ``eval/...`` the fixed-episode
+evaluation (greedy unless ``eval_greedy`` is off); ``charts/learning_rate``, ``charts/SPS``;
+``losses/...`` the update's losses and ``losses/explained_variance`` (of the returns by the
+value head, CleanRL's formula). The CSV keeps its plain column names (:data:`CSV_COLUMNS`):
+``episode_length``/``success_rate`` are the evaluation, ``train_*`` the training episodes.
 """
 
 from __future__ import annotations
@@ -14,13 +19,20 @@ CSV_COLUMNS = (
     "step", "update", "episode_length", "success_rate", "train_episode_length", "train_success_rate",
     "expert_follow_rate", "expert_top_rate", "expert_step_fraction", "policy_loss", "value_loss", "entropy",
     "approx_kl", "clipfrac", "bc_loss", "sps", "wall_time",
+    # Added later; appended so that older CSVs keep their column order.
+    "episode_return", "train_episode_return", "learning_rate", "explained_variance",
 )
 
 TB_NAMES = {
-    "episode_length": "charts/episodic_length",
-    "success_rate": "charts/success_rate",
-    "train_episode_length": "charts/train_episodic_length",
-    "train_success_rate": "charts/train_success_rate",
+    # Evaluation (fixed episodes, greedy by default).
+    "episode_length": "eval/episodic_length",
+    "success_rate": "eval/success_rate",
+    "episode_return": "eval/episodic_return",
+    # Training episodes (CleanRL's charts/episodic_*).
+    "train_episode_length": "charts/episodic_length",
+    "train_success_rate": "charts/success_rate",
+    "train_episode_return": "charts/episodic_return",
+    "learning_rate": "charts/learning_rate",
     "expert_follow_rate": "charts/expert_follow_rate",
     "expert_top_rate": "charts/expert_top_rate",
     "expert_step_fraction": "charts/expert_step_fraction",
@@ -30,6 +42,7 @@ TB_NAMES = {
     "approx_kl": "losses/approx_kl",
     "clipfrac": "losses/clipfrac",
     "bc_loss": "losses/bc_loss",
+    "explained_variance": "losses/explained_variance",
     "sps": "charts/SPS",
 }
 

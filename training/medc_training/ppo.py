@@ -263,7 +263,23 @@ class Trainer:
                     sums[k] = sums.get(k, 0.0) + float(v.detach())
                 count += 1
         self.updates += 1
-        return {k: v / max(count, 1) for k, v in sums.items()}
+        out = {k: v / max(count, 1) for k, v in sums.items()}
+        out["explained_variance"] = self.explained_variance()
+        out["learning_rate"] = float(self.optimizer.param_groups[0]["lr"])
+        return out
+
+    @torch.no_grad()
+    def explained_variance(self) -> float:
+        """1 - Var(returns - values) / Var(returns) over the rollout's RL samples (CleanRL's
+        ``losses/explained_variance``; NaN when the returns do not vary)."""
+        rl = ~self.buffer.bc
+        y_true, y_pred = self.buffer.returns[rl].double(), self.buffer.values[rl].double()
+        if y_true.numel() < 2:
+            return float("nan")
+        var_y = y_true.var(unbiased=False)
+        if float(var_y) == 0.0:
+            return float("nan")
+        return float(1.0 - (y_true - y_pred).var(unbiased=False) / var_y)
 
     # -------------------------------------------------------------- evaluation -----
     @torch.no_grad()

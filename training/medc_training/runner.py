@@ -27,13 +27,14 @@ BUNDLE = "policy.safetensors"
 def _progress(total: int, initial: int, enabled: bool):
     if not enabled:
         return None
-    from tqdm import tqdm
+    from .console import progress_bar
 
-    return tqdm(total=total, initial=initial, unit="step", dynamic_ncols=True, mininterval=1.0)
+    return progress_bar(total, initial=initial, unit="step")
 
 
 def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = False, progress: bool = False,
-                 tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None) -> dict:
+                 tensorboard: bool = True, save_final: bool = True, max_updates: int | None = None,
+                 inputs: dict | None = None, overwrite: bool = False) -> dict:
     """Train ``learner`` (a :class:`medc_training.learner.Learner`) to ``cfg.total_steps`` training
     steps, writing everything to ``out_dir``.
 
@@ -41,29 +42,18 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     (TensorBoard events), ``checkpoint.safetensors`` (after every update), and at the end
     ``policy.safetensors`` (the focal learner's bundle), ``learning_curve.png`` and
     ``summary.json``. ``max_updates`` stops early (used to simulate a killed run).
-    Returns the summary dict.
+    ``inputs`` (:func:`medc_training.runs.run_inputs`: expert specs and weights, FRL side users)
+    is recorded with the config in the checkpoint and the summary.
+
+    A folder holds one run (:mod:`medc_training.runs`): ``resume`` refuses a checkpoint of another
+    configuration (every field but ``total_steps`` and ``torch_threads``, and the inputs), naming
+    each differing field; without ``resume`` a folder that already holds a run (a summary or a
+    checkpoint) is refused unless ``overwrite``. Returns the summary dict.
     """
     check_learner(learner)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     ckpt = out / CHECKPOINT
-    next_eval = 0
-    train_seconds = 0.0
-    if resume:
-        if not ckpt.exists():
-            raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
-        state = load_state(ckpt, device=cfg.device)
-        # A checkpoint from before eval_episodes existed was evaluated with the legacy window.
-        saved_cfg = {**LEGACY_EVAL, **state["config"]}
-        # The evaluator too: one run's learning curve never mixes two evaluators.
-        for key in ("env", "method", "agents", "walls", "grid", "seed", "arch", "num_envs", "horizon",
-                    "eval_episodes", "eval_steps", "eval_envs", "eval_greedy"):
-            if saved_cfg.get(key) != getattr(cfg, key):
-                raise ValueError(f"--resume: checkpoint was made with {key}={saved_cfg.get(key)!r}, "
-                                 f"this run has {key}={getattr(cfg, key)!r}")
-        learner.load_state_dict(state["learner"])
-        next_eval = int(state["next_eval"])
-        train_seconds = float(state["train_seconds"])
+    next_eval, train_seconds = _open_run_folder(out, learner, cfg, resume, overwrite, inputs)
     logger = MetricsLogger(out, tensorboard=tensorboard,
                            resume_from_step=learner.global_step if resume else None)
     focal = learner.focal
@@ -80,21 +70,13 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         while True:
             if learner.global_step >= next_eval or learner.global_step >= cfg.total_steps:
                 ev = learner.evaluate()
-                tr = focal.take_train_stats()
-                row = {
-                    "step": learner.global_step, "update": focal.updates,
-                    "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
-                    "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
-                    "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
-                    "expert_step_fraction": tr["expert_step_fraction"],
-                    "sps": sps, "wall_time": train_seconds, **last_losses,
-                }
+                row = _metrics_row(learner, ev, sps, train_seconds, last_losses)
                 logger.log(row)
                 if side_loggers:
-                    for name, ev in learner.side_evaluate().items():
+                    for name, side_ev in learner.side_evaluate().items():
                         side_loggers[name].log({"step": learner.global_step, "update": focal.updates,
-                                                "episode_length": ev["episode_length"],
-                                                "success_rate": ev["success_rate"]})
+                                                "episode_length": side_ev["episode_length"],
+                                                "success_rate": side_ev["success_rate"]})
                 if bar is not None:
                     bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}")
                 while next_eval <= learner.global_step:
@@ -110,6 +92,7 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             sps = (learner.global_step - before) / elapsed if elapsed > 0 else math.nan
             updates_done += 1
             save_state(ckpt, {"learner": learner.state_dict(), "config": cfg.to_dict(),
+                              **({"inputs": inputs} if inputs is not None else {}),
                               "next_eval": next_eval, "train_seconds": train_seconds})
             if bar is not None:
                 bar.update(learner.global_step - before)
@@ -119,9 +102,66 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
         logger.close()
         for side in side_loggers.values():
             side.close()
+    return _finish_run(out, learner, cfg, row, train_seconds, inputs, save_final)
 
+
+def _open_run_folder(out: Path, learner, cfg: TrainConfig, resume: bool, overwrite: bool,
+                     inputs: dict | None) -> tuple[int, float]:
+    """Check that ``out`` may take this run (:func:`run_training`'s rules) and, with ``resume``, load
+    its checkpoint into ``learner``. Returns (next evaluation step, training seconds so far)."""
+    from .runs import RESUME_FREE, RunMismatch, differences
+
+    ckpt = out / CHECKPOINT
+    if not resume and not overwrite and ((out / "summary.json").exists() or ckpt.exists()):
+        if _finished(out / "summary.json"):
+            raise RunMismatch(f"{out} already holds a finished run (summary.json); give --overwrite to "
+                              "replace it, or use another --out")
+        raise RunMismatch(f"{out} holds an unfinished run ({CHECKPOINT}); give --resume to carry it on, "
+                          "or --overwrite to start afresh")
+    out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        return 0, 0.0
+    if not ckpt.exists():
+        raise FileNotFoundError(f"--resume: no checkpoint at {ckpt}; start without --resume")
+    state = load_state(ckpt, device=cfg.device)
+    # A checkpoint from before eval_episodes existed was evaluated with the legacy window
+    # (TrainConfig.from_dict reads it so); one run's curve never mixes two evaluators.
+    diffs = differences({**LEGACY_EVAL, **state["config"]}, state.get("inputs"), cfg.to_dict(), inputs,
+                        ignore=RESUME_FREE)
+    if diffs:
+        raise RunMismatch(f"--resume: the checkpoint in {out} was made with another configuration: "
+                          f"{'; '.join(diffs)}; resume with its options, or give --overwrite to start "
+                          "afresh")
+    learner.load_state_dict(state["learner"])
+    return int(state["next_eval"]), float(state["train_seconds"])
+
+
+def _metrics_row(learner, ev: dict, sps: float, train_seconds: float, last_losses: dict) -> dict:
+    """One metrics row: the evaluation ``ev``, the training episodes since the last row, the last
+    update's losses."""
+    focal = learner.focal
+    tr = focal.take_train_stats()
+    return {
+        "step": learner.global_step, "update": focal.updates,
+        "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
+        "episode_return": ev.get("episode_return", math.nan),
+        "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
+        # No training episode finished since the last row: nothing to report.
+        "train_episode_return": tr["episode_return"] if tr.get("episodes") else math.nan,
+        "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
+        "expert_step_fraction": tr["expert_step_fraction"],
+        "sps": sps, "wall_time": train_seconds, **last_losses,
+    }
+
+
+def _finish_run(out: Path, learner, cfg: TrainConfig, row: dict, train_seconds: float, inputs: dict | None,
+                save_final: bool) -> dict:
+    """Write the bundle and learning curve (a run that reached its budget) and summary.json from the
+    last metrics ``row``; return the summary."""
+    focal = learner.focal
     summary = {
         "config": cfg.to_dict(),
+        **({"inputs": inputs} if inputs is not None else {}),
         "steps": learner.global_step,
         "updates": focal.updates,
         "train_seconds": train_seconds,
@@ -144,6 +184,15 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             summary["learning_curve_error"] = str(exc)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def _finished(summary: Path) -> bool:
+    """Whether ``summary`` is the summary of a run that reached its total_steps."""
+    try:
+        data = json.loads(summary.read_text())
+        return int(data["steps"]) >= int(data["config"]["total_steps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
 
 
 def observation_section(env) -> dict:

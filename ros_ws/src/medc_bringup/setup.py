@@ -23,6 +23,7 @@ setup(
         "console_scripts": [
             "medc-launch = medc_bringup.launcher:main",
             "medc-demo = medc_bringup.demo:main",
+            "medc-record = medc_bringup.recorder:main",
             "medc-gas-report = medc_bringup.gas:main",
         ],
         "medc_bench": ["ros = medc_bringup.bench:main"],

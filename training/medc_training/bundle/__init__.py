@@ -36,10 +36,12 @@ The package is split by job; every name is importable from ``medc_training.bundl
 * :mod:`~medc_training.bundle.manifest`: the manifest schema, completed on save and validated on load;
 * :mod:`~medc_training.bundle.fileformat`: the hardened safetensors/JSON reader and atomic writes;
 * :mod:`~medc_training.bundle.policy`: ``PolicyBundle``, saving and the loaders;
+* :mod:`~medc_training.bundle.dryrun`: what a policy costs on this machine (the timed dry run);
 * :mod:`~medc_training.bundle.checkpoint`: training checkpoints.
 """
 
 from medc_training.bundle.checkpoint import load_state, save_state
+from medc_training.bundle.dryrun import dry_run_observations, flush_denormals, flush_subnormal
 from medc_training.bundle.fileformat import (
     MANIFEST_KEY,
     MAX_HEADER_BYTES,
@@ -55,6 +57,8 @@ from medc_training.bundle.manifest import (
     FORMAT,
     FORMAT_VERSION,
     KNOWN_APPLICATIONS,
+    MAX_BUNDLE_AGENTS,
+    MAX_BUNDLE_GRID,
     check_sensing,
     complete_manifest,
     manifest_observation,
@@ -75,10 +79,12 @@ from medc_training.bundle.policy import (
 from medc_training.untrusted import MAX_BUNDLE_BYTES, printable
 
 __all__ = [
-    "FORMAT", "FORMAT_VERSION", "KNOWN_APPLICATIONS", "MANIFEST_KEY", "MAX_BUNDLE_BYTES",
+    "FORMAT", "FORMAT_VERSION", "KNOWN_APPLICATIONS", "MANIFEST_KEY", "MAX_BUNDLE_AGENTS", "MAX_BUNDLE_BYTES",
+    "MAX_BUNDLE_GRID",
     "MAX_FORWARD_SECONDS", "MAX_HEADER_BYTES", "MAX_JSON_DEPTH", "MAX_MANIFEST_CHARS",
     "MAX_NUMBER_CHARS", "MAX_STRING_CHARS", "BundleError", "PolicyBundle", "bundle_bytes",
-    "bundle_digest", "check_sensing", "complete_manifest", "dry_run_seconds", "json_depth",
+    "bundle_digest", "check_sensing", "complete_manifest", "dry_run_observations", "dry_run_seconds",
+    "flush_denormals", "flush_subnormal", "json_depth",
     "load_bundle", "load_state", "load_untrusted", "manifest_observation", "manifest_sensing",
     "parse_json", "printable", "read_manifest", "save_bundle", "save_state", "validate_manifest",
 ]

@@ -8,20 +8,24 @@ echo the file's bytes.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
-import re
 import stat
 import struct
 import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from medc_training import untrusted
 from medc_training.nets import safe_repr
-from medc_training.untrusted import MAX_BUNDLE_BYTES, printable
+from medc_training.untrusted import (  # noqa: F401  (re-exported)
+    MAX_BUNDLE_BYTES,
+    MAX_JSON_DEPTH,
+    MAX_NUMBER_CHARS,
+    MAX_STRING_CHARS,
+    json_depth,
+    printable,
+)
 
 MANIFEST_KEY = "medc.manifest"
 
@@ -29,10 +33,8 @@ MAX_HEADER_BYTES = 1 << 20  # the manifest and tensor table of any sane bundle f
 # Limits on the JSON of the header and of the manifest, checked before and while parsing it. The
 # shipped bundles' manifests are under 2 KB, nest 4 levels deep and hold no string over 120
 # characters; a 256-layer architecture needs ~25 KB.
-MAX_JSON_DEPTH = 16  # nested objects/lists; checked by a scan before json.loads ever recurses
+# MAX_JSON_DEPTH, MAX_STRING_CHARS and MAX_NUMBER_CHARS are medc_training.untrusted's.
 MAX_MANIFEST_CHARS = 64 << 10
-MAX_STRING_CHARS = 4096  # any key or string value
-MAX_NUMBER_CHARS = 40  # any JSON number literal (a 64-bit seed has 20 digits)
 _DTYPE_SIZES = {"F32": 4}
 
 
@@ -144,98 +146,19 @@ class _Source:
         self.close()
 
 
-class _JSONLimit(ValueError):
-    """A JSON text over one of this module's limits (the message names the limit, not the text)."""
-
-
-# A JSON string literal (possessive: linear time on any input). Removing them leaves the brackets
-# that structure the text, so nesting depth is measured without recursing.
-_JSON_STRING = re.compile(r'"(?:[^"\\]++|\\.)*+"', re.S)
-_NOT_BRACKET = re.compile(r"[^\[\]{}]++")
-
-
-def json_depth(text: str) -> int:
-    """How deep the objects and lists of a JSON text nest, by a linear scan (no parsing, no recursion).
-
-    Brackets inside complete string literals do not count; those of an unterminated string do
-    (such a text is not JSON anyway), so the result is never below the true depth.
-    """
-    brackets = _NOT_BRACKET.sub("", _JSON_STRING.sub("", text)).encode("ascii")
-    if not brackets:
-        return 0
-    codes = np.frombuffer(brackets, dtype=np.uint8)
-    steps = np.where((codes == ord("[")) | (codes == ord("{")), 1, -1)
-    return int(np.cumsum(steps).max())
-
-
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    # Two entries with one name would let a reader and a checker see different tensors.
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise _JSONLimit("a key appears twice in one object")  # which key is not said: file content
-        out[key] = value
-    return out
-
-
-def _reject_constant(name: str) -> Any:
-    raise _JSONLimit(f"non-standard JSON constant {name}")
-
-
-def _parse_number(kind: type) -> Any:
-    def parse(text: str) -> Any:
-        if len(text) > MAX_NUMBER_CHARS:
-            raise _JSONLimit(f"a number of more than {MAX_NUMBER_CHARS} characters")
-        value = kind(text)
-        if not math.isfinite(value):
-            raise _JSONLimit("a number too large for a float")
-        return value
-    return parse
-
-
-def _check_strings(value: Any, what: str, max_string: int = MAX_STRING_CHARS) -> None:
-    """Every key and string in ``value`` (depth already bounded) is valid Unicode and not over-long."""
-    stack = [value]
-    while stack:
-        item = stack.pop()
-        if isinstance(item, dict):
-            stack.extend(item.keys())
-            stack.extend(item.values())
-        elif isinstance(item, list):
-            stack.extend(item)
-        elif isinstance(item, str):
-            if len(item) > max_string:
-                raise BundleError(f"{what} holds a string of more than {max_string} characters")
-            try:
-                item.encode("utf-8")
-            except UnicodeEncodeError:
-                raise BundleError(f"{what} holds invalid Unicode (a lone surrogate, e.g. a \\ud800 "
-                                  "escape)") from None
-
-
 def parse_json(text: str, what: str, max_chars: int, max_string: int = MAX_STRING_CHARS) -> Any:
     """``text`` parsed as strict JSON within this module's limits; ``BundleError`` names ``what``.
 
-    Refused, and never echoed: more than ``max_chars`` characters, nesting deeper than
-    ``MAX_JSON_DEPTH`` (checked before parsing, so the parser never recurses deep), NaN/Infinity,
-    numbers over ``MAX_NUMBER_CHARS`` characters or beyond float range, duplicate keys, strings or
-    keys over ``max_string`` characters, and invalid Unicode (lone surrogates).
+    The one bounded reader of :mod:`medc_training.untrusted` (also what the registry bridge uses
+    for JSON from the graph): refused, and never echoed, are more than ``max_chars`` characters,
+    nesting deeper than ``MAX_JSON_DEPTH`` (checked before parsing, so the parser never recurses
+    deep), NaN/Infinity, numbers over ``MAX_NUMBER_CHARS`` characters or beyond float range,
+    duplicate keys, strings or keys over ``max_string`` characters, and invalid Unicode.
     """
-    if len(text) > max_chars:
-        raise BundleError(f"{what} is over the {max_chars} character limit")
-    if json_depth(text) > MAX_JSON_DEPTH:
-        raise BundleError(f"{what} nests deeper than {MAX_JSON_DEPTH} levels")
     try:
-        value = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_reject_constant,
-                           parse_int=_parse_number(int), parse_float=_parse_number(float))
-    except json.JSONDecodeError as exc:
-        raise BundleError(f"{what} is not valid JSON ({exc.msg} at character {exc.pos})") from None
-    except _JSONLimit as exc:
-        raise BundleError(f"{what} is not valid JSON: {exc}") from None
-    except (ValueError, RecursionError, MemoryError) as exc:
-        raise BundleError(f"{what} is not valid JSON ({type(exc).__name__})") from None
-    _check_strings(value, what, max_string)
-    return value
+        return untrusted.parse_json(text, what, max_chars, max_string=max_string)
+    except untrusted.UntrustedJSONError as exc:
+        raise BundleError(str(exc)) from None
 
 
 def _parse_header(src: _Source) -> tuple[dict[str, Any], dict[str, Any], int]:

@@ -26,6 +26,16 @@ FORMAT_VERSION = 1
 # A bundle for an application this code does not know cannot be run by it, so it is rejected
 # rather than guessed at.
 KNOWN_APPLICATIONS: tuple[str, ...] = tuple(ENV_NAMES)
+#: The largest ``environment.grid`` and ``environment.agents`` a bundle may name. An agent node
+#: builds its team memory for the grid and subscribes to every agent's topics *from the manifest*,
+#: before any weight is used, so these bound what one file can make an agent allocate: its memory
+#: grows faster than G^2 (measured for the ROS agent's observer, init + first reading, paper-simple
+#: sensing: +20 MB at 30, +57 MB at 64, +330 MB at 128, +2.5 GB at 256), and 10^6 would need
+#: terabytes. 64 is the largest grid any of the three environments is used with (fleet coordination
+#: and maze cleaning accept no more; every shipped and reproduced bundle is on 10-30) and the most
+#: agents target localization accepts.
+MAX_BUNDLE_GRID = 64
+MAX_BUNDLE_AGENTS = 64
 _MANIFEST_KEYS = {
     "format", "format_version", "application", "description", "environment", "observation",
     "actions", "architecture", "training", "metrics",
@@ -222,6 +232,7 @@ def validate_manifest(manifest: Any) -> dict[str, Any]:
     except SpecError as exc:
         raise BundleError(f"manifest: invalid architecture: {exc}") from None
     shape = _check_shapes(manifest, spec)
+    _check_scenario_size(manifest["environment"])
     _check_view(app, manifest["observation"], shape, manifest["environment"].get("grid"))
     out = dict(manifest)
     out["architecture"] = spec
@@ -278,6 +289,19 @@ def _check_sections(manifest: dict[str, Any]) -> None:
                                   f"bool or string, got {safe_repr(item)}")
             raise BundleError(f"manifest: metrics.{safe_repr(key)[1:-1]} must be a finite number, bool, "
                               "string or null")
+
+
+def _check_scenario_size(env: dict[str, Any]) -> None:
+    """``environment.grid`` and ``environment.agents``, when numbers, are whole and within
+    ``MAX_BUNDLE_GRID`` / ``MAX_BUNDLE_AGENTS``: checked before anything is sized from them."""
+    for key, most in (("grid", MAX_BUNDLE_GRID), ("agents", MAX_BUNDLE_AGENTS)):
+        value = env.get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            continue
+        if value != int(value) or not 1 <= value <= most:
+            raise BundleError(f"manifest: environment.{key} is {safe_repr(value)}, but a bundle may name "
+                              f"a whole number from 1 to {most} (MAX_BUNDLE_{key.upper()}: what an agent "
+                              f"node can be asked to allocate for)")
 
 
 def _check_shapes(manifest: dict[str, Any], spec: dict[str, Any]) -> tuple[int, int, int]:

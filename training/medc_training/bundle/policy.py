@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import struct
 import time
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,12 @@ import torch
 from safetensors.torch import load as _st_load
 from safetensors.torch import save as _st_save
 
+from medc_training.bundle.dryrun import (
+    TooSlow,
+    dry_run_observations,
+    flush_subnormal,
+    timed_forward,
+)
 from medc_training.bundle.fileformat import (
     MANIFEST_KEY,
     BundleError,
@@ -29,14 +37,21 @@ from medc_training.bundle.fileformat import (
     _check_table,
     _parse_header,
     _Source,
-    _where,
 )
 from medc_training.bundle.manifest import complete_manifest, manifest_observation, validate_manifest
 from medc_training.nets import ActorCritic, masked_logits, safe_names, spec_tensor_shapes
 
-# The dry run of ``load_untrusted``: one blank observation through the network, on this machine.
-# The shipped architectures take under 5 ms (61 ms for convnet-small on a 256x256 grid, first call).
+# The dry run of ``load_untrusted``: each of a few observations (``dryrun.dry_run_observations``)
+# through the network, on this machine, must take at most this long. The shipped architectures take
+# under 5 ms (61 ms for convnet-small on a 256x256 grid, first call).
 MAX_FORWARD_SECONDS = 0.5
+#: Refusals ``load_untrusted`` remembers by content (sha256 of the bytes): a republished refused
+#: bundle is refused again at the cost of hashing it. A refusal for time (a dry run over the limit,
+#: which a busy machine can cause) is remembered for ``REFUSED_SLOW_MEMORY_S`` seconds, any other
+#: for the life of the process (the oldest forgotten beyond ``MAX_REMEMBERED_REFUSALS``).
+MAX_REMEMBERED_REFUSALS = 1024
+REFUSED_SLOW_MEMORY_S = 600.0
+_REFUSED: OrderedDict[tuple[str, float, str], tuple[str, float]] = OrderedDict()
 
 
 def save_bundle(path: str | os.PathLike[str], net: ActorCritic, manifest: Mapping[str, Any]) -> Path:
@@ -142,20 +157,27 @@ def load_bundle(source: str | os.PathLike[str] | bytes | bytearray | memoryview,
                 device: torch.device | str = "cpu") -> PolicyBundle:
     """Load and verify a bundle from a path or from its bytes; the net is on ``device`` in eval mode.
 
+    Subnormal weights (below ~1.2e-38, a compute bomb on CPUs that handle them slowly) are loaded
+    as 0 (``dryrun.flush_subnormal``); ``sha256`` is still that of the bytes as stored.
+
     Raises ``BundleError`` for anything that is not a valid bundle (see the module docstring);
     no other exception escapes for any file content (a loader failure, a RecursionError or a
     MemoryError included, is reported as a BundleError).
     """
     with _Source(source) as src:
-        try:
-            manifest, tensors, data = _parse(src, decode=True)
-            net = ActorCritic(manifest["architecture"], initialize=False)  # every weight is overwritten
-            net.load_state_dict(tensors, strict=True)
-            return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
-        except BundleError:
-            raise
-        except Exception as exc:  # no file may end in anything but a BundleError
-            raise BundleError(f"{src.where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
+        return _load(src, device)
+
+
+def _load(src: _Source, device: torch.device | str) -> PolicyBundle:
+    try:
+        manifest, tensors, data = _parse(src, decode=True)
+        net = ActorCritic(manifest["architecture"], initialize=False)  # every weight is overwritten
+        net.load_state_dict(tensors, strict=True)
+        return PolicyBundle(manifest, net.to(device).eval(), hashlib.sha256(data).hexdigest())
+    except BundleError:
+        raise
+    except Exception as exc:  # no file may end in anything but a BundleError
+        raise BundleError(f"{src.where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
 
 
 def read_manifest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> dict[str, Any]:
@@ -180,37 +202,89 @@ def load_untrusted(source: str | os.PathLike[str] | bytes | bytearray | memoryvi
     The agent nodes (before swapping policies) and the registry bridge (before caching and handing
     out a fetched bundle) both call this, so a bundle one accepts the other accepts too. After
     every static check of ``load_bundle`` (including the architecture's compute and memory caps,
-    ``nets.MAX_OPERATIONS`` and ``nets.MAX_ACTIVATION_BYTES``), one blank observation with every
-    move allowed goes through the network; a bundle whose forward pass takes longer than
-    ``max_forward_s`` seconds (twice, so that a cold first call is forgiven) is refused.
+    ``nets.MAX_OPERATIONS`` and ``nets.MAX_ACTIVATION_BYTES``), each observation of
+    ``dryrun.dry_run_observations`` (a blank one, one the application's environment makes for the
+    manifest's scenario, a dense random one) goes through the network with every move allowed and
+    flush-to-zero on; a bundle whose pass on any of them takes longer than ``max_forward_s`` seconds
+    is refused, and the pass is abandoned as soon as it is over (or a large layer's estimate puts it
+    over: ``dryrun.timed_forward``), so refusing a slow bundle costs about ``max_forward_s``.
+
+    A refusal after the header checks is remembered by the content's sha256 (``_REFUSED``): the
+    same bytes again, under any name, are refused at once with the same reason.
 
     Raises:
         BundleError: for any refusal; no other exception escapes.
     """
-    bundle = load_bundle(source, device=device)
-    where = _where(source)
+    with _Source(source) as src:
+        where = src.where
+        try:
+            _parse(src, decode=False)  # the header, manifest and table first: cheap, and bounded reads
+            data = src.read(0, src.size)
+        except BundleError:
+            raise
+        except Exception as exc:
+            raise BundleError(f"{where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
+    key = (hashlib.sha256(data).hexdigest(), float(max_forward_s), torch.device(device).type)
+    remembered = _remembered_refusal(key)
+    if remembered is not None:
+        raise BundleError(f"{where}: {remembered} (the same content was refused before; not checked again)")
     try:
-        seconds = dry_run_seconds(bundle)
-        if seconds > max_forward_s:
-            seconds = min(seconds, dry_run_seconds(bundle))
-    except Exception as exc:
-        raise BundleError(f"{where}: fails on a blank observation ({type(exc).__name__})") from exc
-    if seconds > max_forward_s:
-        raise BundleError(f"{where}: one observation takes {seconds:.2f} s to evaluate, over the "
-                          f"{max_forward_s:g} s limit (too slow to act with)")
+        with _Source(data) as src:
+            src.where = where
+            bundle = _load(src, device)
+        _dry_run(bundle, where, max_forward_s)
+    except BundleError as exc:
+        text = str(exc)
+        reason = text[len(where) + 2:] if text.startswith(f"{where}: ") else text
+        if not isinstance(exc.__cause__, MemoryError):  # the machine's state, not the content's
+            _remember_refusal(key, reason, slow=isinstance(exc.__cause__, TooSlow))
+        raise
     return bundle
 
 
-def dry_run_seconds(bundle: PolicyBundle) -> float:
-    """Wall time of one greedy ``act`` on a blank observation with every move allowed."""
-    blank = torch.zeros((1, *bundle.obs_shape), device=bundle.device)
+def _dry_run(bundle: PolicyBundle, where: str, max_forward_s: float) -> None:
     allowed = torch.ones((1, bundle.num_actions), dtype=torch.bool, device=bundle.device)
-    start = time.perf_counter()
-    with torch.no_grad():
-        bundle.act(blank, allowed, greedy=True)
-    if bundle.device.type == "cuda":
-        torch.cuda.synchronize(bundle.device)
-    return time.perf_counter() - start
+    what = ("a blank observation", "an observation of its environment", "a random observation")
+    observations = dry_run_observations(bundle.manifest, bundle.obs_shape)
+    for i, obs in enumerate(observations):
+        name = what[0] if i == 0 else what[-1] if i == len(observations) - 1 else what[1]
+        try:
+            timed_forward(bundle.net, obs.to(bundle.device), allowed, max_forward_s)
+        except TooSlow as slow:
+            about = "about " if slow.estimated else ""
+            how = f"{name}, estimated from a part of layer {slow.layer}" if slow.estimated else name
+            raise BundleError(f"{where}: one observation takes {about}{slow.seconds:.2f} s to evaluate, "
+                              f"over the {max_forward_s:g} s limit (too slow to act with: {how})") from slow
+        except Exception as exc:
+            raise BundleError(f"{where}: fails on {name} ({type(exc).__name__})") from exc
+
+
+def _remembered_refusal(key: tuple[str, float, str]) -> str | None:
+    entry = _REFUSED.get(key)
+    if entry is None:
+        return None
+    reason, expires = entry
+    if time.monotonic() > expires:
+        del _REFUSED[key]
+        return None
+    _REFUSED.move_to_end(key)
+    return reason
+
+
+def _remember_refusal(key: tuple[str, float, str], reason: str, slow: bool) -> None:
+    _REFUSED[key] = (reason, time.monotonic() + REFUSED_SLOW_MEMORY_S if slow else math.inf)
+    _REFUSED.move_to_end(key)
+    while len(_REFUSED) > MAX_REMEMBERED_REFUSALS:
+        _REFUSED.popitem(last=False)
+
+
+def dry_run_seconds(bundle: PolicyBundle, obs: torch.Tensor | None = None) -> float:
+    """Wall time of one greedy decision on ``obs`` [1,C,H,W] (default a blank observation) with
+    every move allowed and flush-to-zero on (no limit)."""
+    if obs is None:
+        obs = torch.zeros((1, *bundle.obs_shape), device=bundle.device)
+    allowed = torch.ones((obs.shape[0], bundle.num_actions), dtype=torch.bool, device=bundle.device)
+    return timed_forward(bundle.net, obs.to(bundle.device), allowed, math.inf)
 
 
 def bundle_digest(source: str | os.PathLike[str] | bytes | bytearray | memoryview) -> str:
@@ -257,4 +331,5 @@ def _parse(src: _Source, decode: bool) -> tuple[dict[str, Any], dict[str, torch.
     for name, tensor in tensors.items():
         if not torch.isfinite(tensor).all():
             raise BundleError(f"{where}: tensor {name!r} contains NaN or infinite values")
+        flush_subnormal(tensor)
     return manifest, tensors, data

@@ -84,7 +84,10 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="medc-bench train", description=__doc__.split("\n\n")[0])
+    from ..console import HelpFormatter
+
+    p = argparse.ArgumentParser(prog="medc-bench train", description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter)
     p.add_argument("--updates", type=int, default=5, help="timed rounds (one update per method each)")
     p.add_argument("--cuda-updates", type=int, default=2, help="timed updates at paper scale on CUDA")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")

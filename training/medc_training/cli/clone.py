@@ -18,7 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
+from ..console import QUIET_HELP, HelpFormatter, epilog
 from .train import parse_env_options
 
 
@@ -29,8 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="medc-clone",
         description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
+        formatter_class=HelpFormatter,
+        epilog=epilog(__doc__),
     )
     p.add_argument("--env", default=d.env, help=f"application (default {d.env})")
     p.add_argument("--agents", type=int, default=d.agents, help=f"team size (default {d.agents})")
@@ -79,7 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--bundle", help="also write the trained bundle here")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    p.add_argument("--overwrite", action="store_true", help="replace a cloning run already in OUT")
     return p
 
 
@@ -107,6 +110,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.threads:
             torch.set_num_threads(args.threads)
         cfg = config_from_args(args)
+        if (Path(args.out) / "summary.json").exists() and not args.overwrite:
+            # DAgger has no checkpoint to resume: a folder holds one finished cloning run.
+            raise ValueError(f"{args.out} already holds a cloning run (summary.json); give --overwrite to "
+                             "replace it, or use another --out")
         summary = clone_oracle(cfg, args.out, progress=not args.quiet, bundle_to=args.bundle)
     except (ValueError, FileNotFoundError) as exc:
         print(f"medc-clone: error: {exc}", file=sys.stderr)

@@ -111,8 +111,11 @@ def _export(bundle: str, out: str, fmt: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``medc-inspect`` console script."""
+    from ..console import HelpFormatter
+
     parser = argparse.ArgumentParser(
         prog="medc-inspect",
+        formatter_class=HelpFormatter,
         description="Verify a MEDC policy bundle (.safetensors) and print its manifest. Exits 1 with the "
                     "reason when the file is not a valid bundle.",
     )

@@ -20,10 +20,12 @@ Phases (``--only`` picks some; default all):
 Every run writes OUT/runs/<run>/seed<k>/ (metrics.csv, summary.json), which appears only
 when the run has finished (it trains in a hidden .seed<k>.partial/ beside it); a finished run is
 not run again and an unfinished one resumes from its checkpoint, so a killed reproduction picks
-up where it stopped. The figures and OUT/report.md are written at the end from whatever runs
-exist. The runs go to a local process pool (``--jobs``) or, with ``--ray``, to Ray: a local
-cluster, or with ``--ray HEAD:6379`` an existing one (docs/training.md). The experiments
-themselves are declared in medc_training.experiments.
+up where it stopped. "Finished" means finished with the same configuration: a run folder holding
+another (say a different step count) is refused, naming the fields, unless ``--overwrite``.
+The figures and OUT/report.md are written at the end from whatever runs exist. The runs go to a
+local process pool (``--jobs``) or, with ``--ray``, to Ray: a local cluster, or with
+``--ray HEAD:6379`` an existing one (docs/training.md). The experiments themselves are declared in
+medc_training.experiments.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from ..experiments.engines import INTERRUPTED, LocalPool, RayCluster
 from ..experiments.plan import Plan
 from ..experiments.report import build_report
 from ..experiments.reproduction import record_command, reproduce
+from ..runs import RunMismatch
 
 
 def add_engine_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,8 +69,10 @@ def engine_from_args(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..console import HelpFormatter, epilog
+
     p = argparse.ArgumentParser(prog="medc-reproduce", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--scale", choices=sorted(BUDGETS), default="cpu")
     p.add_argument("--seeds", type=int, default=4, help="seeds per target-localization run (default 4)")
     p.add_argument("--out", default="docs/reproduction")
@@ -81,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--long-steps", type=int, help="training steps of the supplementary long runs")
     p.add_argument("--other-seeds", type=int, default=2, help="seeds for Figs. 10-11 (default 2)")
     p.add_argument("--retrain", action="store_true", help="retrain experts even if bundles exist")
+    p.add_argument("--overwrite", action="store_true",
+                   help="rerun and replace finished runs of another configuration (refused without it)")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
     p.add_argument("--app", action="append", choices=("fleet_coordination", "maze_cleaning"), default=None,
                    help="repeatable: plan the experts and runs of only this fleet/maze application "
@@ -108,10 +115,14 @@ def main(argv: list[str] | None = None) -> int:
     command = "medc-reproduce " + " ".join(argv if argv is not None else sys.argv[1:])
     command = record_command(out, command, report_only=phases == ["report"])
     try:
-        elapsed = reproduce(plan, phases, engine, retrain=args.retrain, other_apps=not args.no_other_apps)
+        elapsed = reproduce(plan, phases, engine, retrain=args.retrain, other_apps=not args.no_other_apps,
+                            overwrite=args.overwrite)
     except KeyboardInterrupt:
         print(f"medc-reproduce: interrupted; {INTERRUPTED}", file=sys.stderr)
         return 130
+    except RunMismatch as exc:
+        print(f"medc-reproduce: error: {exc}", file=sys.stderr)
+        return 2
     path = build_report(out, args.scale, args.seeds, command, plan, elapsed)
     print(f"report: {path}")
     print(json.dumps({"report": str(path), "elapsed_s": elapsed}))

@@ -15,7 +15,9 @@ Examples::
 
 A sweep (``--seeds``) runs through the same engines as ``medc-reproduce``: a local process pool
 (``--jobs``) or Ray (``--ray``, docs/training.md). Each seed's folder appears only when its run
-has finished; rerunning the sweep skips finished seeds and resumes unfinished ones.
+has finished; rerunning the sweep skips finished seeds and resumes unfinished ones. A folder
+holds one run: ``--resume`` and a rerun sweep refuse a run of another configuration (naming every
+differing field), and a finished run is replaced only with ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import sys
 from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
+from ..console import QUIET_HELP, HelpFormatter, epilog
 from ..envs import core_has_estimate
 from ..envs.tl_observation import DEFAULT_OBSERVATION
 from ..envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
@@ -67,7 +70,7 @@ def parse_env_options(items: list[str]) -> dict:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="medc-train", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--env", default="target_localization", help="application (default target_localization)")
     p.add_argument("--agents", type=int, default=3, help="team size (the y in AyWz)")
     p.add_argument("--walls", type=int, default=2, help="number of walls (the z in AyWz)")
@@ -95,6 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.safetensors")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a run already in OUT (refused without it; a sweep: seeds of another config)")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu",
                    help="base hyperparameters (default cpu)")
     p.add_argument("--arch", help="network architecture (lenet5, convnet-small, mlp)")
@@ -121,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra numeric environment option (e.g. customers=8, complexity=0.5)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-tensorboard", action="store_true")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     from .reproduce import add_engine_arguments
 
     add_engine_arguments(p)
@@ -166,7 +171,8 @@ def sweep_jobs(args: argparse.Namespace) -> list[dict]:
         check_experts(cfg.method, args.expert, args.expert_weight)
         jobs.append({"name": f"seed-{seed}", "config": cfg.to_dict(), "experts": list(args.expert),
                      "expert_weights": args.expert_weight, "out": str(Path(args.out) / f"seed-{seed}"),
-                     "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True})
+                     "tensorboard": not args.no_tensorboard, "save_final": True, "keep_checkpoint": True,
+                     "overwrite": args.overwrite})
     return jobs
 
 
@@ -181,10 +187,12 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(args)
         from ..experiments.jobs import make_learner
         from ..runner import run_training
+        from ..runs import run_inputs
 
         learner = make_learner(cfg, args.expert, args.expert_weight)
         summary = run_training(learner, cfg, args.out, resume=args.resume, progress=not args.quiet,
-                               tensorboard=not args.no_tensorboard)
+                               tensorboard=not args.no_tensorboard, overwrite=args.overwrite,
+                               inputs=run_inputs(args.expert, args.expert_weight))
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"medc-train: error: {exc}", file=sys.stderr)
         return 2

@@ -189,7 +189,10 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="medc-bench env", description=__doc__.split("\n\n")[0])
+    from ..console import HelpFormatter
+
+    p = argparse.ArgumentParser(prog="medc-bench env", description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter)
     p.add_argument("--num-envs", type=int, default=256)
     p.add_argument("--agents", type=int, default=3)
     p.add_argument("--walls", type=int, default=2)

@@ -9,6 +9,7 @@ PPO can bootstrap truncated episodes.
 
 Code outside a core reads its state through :meth:`BatchedEnv.state` (a snapshot of copies)
 and changes it only through its methods (``reset``, ``step``, :meth:`BatchedEnv.hold`,
+:meth:`BatchedEnv.end_episode`,
 :meth:`BatchedEnv.keep_pictures`), never by writing its tensors.
 """
 
@@ -269,6 +270,21 @@ class BatchedEnv(ABC):
         if rows:
             self.mask = self.mask.clone()
             self.mask[index, rows] = False
+
+    def end_episode(self, index: int) -> None:
+        """End environment ``index``'s episode now and start its next one, by a caller's own rule
+        (e.g. a simulator that ends episodes on the team's declaration that it has localised the
+        source). The next episode is the one the core's own rules would have started; the step
+        clock restarts at 0 and the move mask of the row is recomputed (a :meth:`hold` on it lapses).
+        """
+        from medc_training.envs.grid import move_mask
+
+        index = self._check_index(index)
+        rows = torch.tensor([index], device=self.device)
+        self._start_episodes(rows)
+        self._obs[rows] = self._observe(rows)
+        self.mask = self.mask.clone()
+        self.mask[rows] = move_mask(self.positions[rows], self.blocked_pad[rows], self._deltas)
 
     def picture_maps(self, index: int) -> torch.Tensor:
         """float32 [N,C,G,G]: the absolute maps a picture of environment ``index`` is drawn from

@@ -96,8 +96,20 @@ def agent_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
     takes on cells off the grid (default 0). Agent i's window has its own cell at the centre.
     """
     b, n, c, g, _ = maps.shape
+    side = 2 * int(radius) + 1
+    win = team_windows(maps.reshape(b * n, c, g, g), positions.reshape(b * n, 1, 2), radius, outside)
+    return win.view(b, n, c, side, side)
+
+
+def team_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
+                 outside: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`agent_windows` of maps the whole team shares: float32 [B,N,C,2r+1,2r+1] from maps
+    float [B,C,G,G], equal to ``agent_windows(maps.unsqueeze(1).expand(B, N, C, G, G), ...)`` but
+    padding each episode's maps once instead of once per agent."""
+    b, c, g, _ = maps.shape
+    n = positions.shape[1]
     r, side = int(radius), 2 * int(radius) + 1
-    padded = F.pad(maps.reshape(b * n, c, g, g), (r, r, r, r))
+    padded = F.pad(maps, (r, r, r, r))
     if outside is not None:
         border = torch.ones((g + 2 * r, g + 2 * r), dtype=torch.bool, device=maps.device)
         border[r:r + g, r:r + g] = False
@@ -106,9 +118,9 @@ def agent_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
     offs = torch.arange(side, device=maps.device)
     rows = positions[..., 0:1] + offs  # [B,N,side]
     cols = positions[..., 1:2] + offs
-    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b * n, 1, side * side).expand(b * n, c, -1)
-    win = padded.view(b * n, c, gp * gp).gather(2, idx)
-    return win.view(b, n, c, side, side)
+    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b, 1, n * side * side).expand(b, c, -1)
+    win = padded.view(b, c, gp * gp).gather(2, idx)  # [B,C,N·side²]
+    return win.view(b, c, n, side, side).transpose(1, 2)
 
 
 def random_free_cells(free: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:

@@ -38,6 +38,8 @@ Observation of agent i (:func:`build_observations`), 5 maps G×G, float32 in [0,
 Reward, end of episode
     Sparse team reward :data:`SUCCESS_REWARD` when an agent stands on the target cell; the
     episode then terminates. After ``max_steps`` steps without success it is truncated.
+    With ``end_on_find=False`` finding the target neither ends the episode nor counts as success
+    (a caller ends it: :meth:`~medc_training.envs.core.BatchedEnv.end_episode`).
     With ``reward_shaping=True`` (the RS baseline) the team also gets, every step,
     :data:`SHAPING_SCALE` × (decrease of the team's mean BFS distance to the target), where
     the BFS distance goes around walls and is computed once per episode, at reset.
@@ -284,6 +286,7 @@ class TargetLocalization(BatchedEnv):
         observation: str = DEFAULT_OBSERVATION,
         sensing: str | dict | SensingModel = DEFAULT_SENSING,
         posterior: bool = False,
+        end_on_find: bool = True,
     ) -> None:
         self.num_agents, self.num_walls, self.grid, self.max_steps = check_options(
             agents, walls, grid, max_steps
@@ -307,8 +310,13 @@ class TargetLocalization(BatchedEnv):
         maps_size = len(CHANNELS) * self.grid ** 2
         self._agent_base = torch.arange(b * n, device=self.device).view(b, n) * maps_size
         self._others = ~torch.eye(n, dtype=torch.bool, device=self.device)
+        #: Finding the source ends the episode (success). False: only ``max_steps`` or the caller
+        #: (:meth:`end_episode`, e.g. on the team's declaration) ends it, ``success`` is never set,
+        #: and the team's estimate no longer rules out the cells the agents have stood on.
+        self.end_on_find = check_bool("end_on_find", end_on_find)
         self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device, self.sensing,
-                                 posterior=check_bool("posterior", posterior), max_walls=self.num_walls)
+                                 posterior=check_bool("posterior", posterior), max_walls=self.num_walls,
+                                 rule_out=self.end_on_find)
         self._deltas = action_deltas(self.device)
         # Layouts are generated in chunks and handed out on reset: one batched BFS serves
         # many episodes, so auto-resets cost little inside the step loop.
@@ -417,17 +425,16 @@ class TargetLocalization(BatchedEnv):
 
     def found(self) -> torch.Tensor:
         """bool [B]: an agent is within the success radius of the source."""
-        if self.sensing.success_radius < 1.0:
-            return (self.positions == self.target.unsqueeze(1)).all(-1).any(-1)
-        delta = (self.positions - self.target.unsqueeze(1)).float()
-        radius = self.sensing.success_radius
-        return ((delta * delta).sum(-1) <= radius * radius).any(-1)
+        delta = self.positions - self.target.unsqueeze(1)
+        return self.sensing.within_reach((delta * delta).sum(-1)).any(-1)
 
     def _transition(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         found = self.found()
         readings = self._read(self._episode_state())
         self.memory.record(self.walls, self.positions, readings)
         self.readings = readings
+        if not self.end_on_find:
+            found = torch.zeros_like(found)
         reward = found.float() * SUCCESS_REWARD
         if self.reward_shaping:
             team_dist = gather_cells(self.distance, self.positions).mean(1)

@@ -28,7 +28,8 @@ Source estimate (:class:`SourceEstimator`)
         log p(s | r_1..r_t) = const + sum_k [ r_k log lambda_s(p_k) - lambda_s(p_k) ]
 
     over free cells s; the prior is uniform over free cells, and a cell some agent has stood on
-    without the episode ending is not the source (probability 0). With ``noise=True`` the readings
+    without the episode ending is not the source (probability 0; ``rule_out=False`` drops this rule
+    for episodes that finding the source does not end). With ``noise=True`` the readings
     are Poisson counts and this is the exact posterior; without noise the readings equal the rates
     and the same formula is the posterior of a Poisson sensor (peaked at the true source). Log
     probabilities are kept relative to their maximum and floored at :data:`LOG_FLOOR`, below
@@ -47,7 +48,7 @@ from __future__ import annotations
 
 import torch
 
-from medc_training.envs.grid import agent_windows
+from medc_training.envs.grid import team_windows
 from medc_training.envs.observation import (
     EGO_CHANNELS,
     MAP_CHANNELS,
@@ -61,10 +62,13 @@ from medc_training.envs.tl_sensing import (
     geometric_factor,
     parse_sensing,
     rates_from_every_cell,
+    sampled_rate_table,
+    segment_crossings,
     sight_lines,
     update_memory,
     visit_norm,
     wall_rectangles,
+    wall_segments,
 )
 
 __all__ = [
@@ -101,8 +105,13 @@ class SourceEstimator:
     levels, strength-major (:class:`~medc_training.envs.tl_sensing.SensingModel`).
     """
 
-    def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING) -> None:
+    def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING,
+                 rule_out: bool = True) -> None:
+        """``rule_out``: a cell some agent has stood within the success radius of is not the source
+        (true when an episode ends as soon as an agent finds the source, as in training); False for
+        episodes that a finding does not end (a driver that ends them on the team's declaration)."""
         self.grid = int(grid)
+        self.rule_out = bool(rule_out)
         self.device = torch.device(device)
         self.sensing = parse_sensing(sensing)
         g = self.grid
@@ -122,6 +131,11 @@ class SourceEstimator:
         self.level_background = b_lv.repeat(len(s_lv))
         #: (log rate [L, Q], factor [Q]) for Q = (d², walls crossed) pairs, made on first use.
         self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
+        #: The paper-simple model's (rate, log rate) by (walls crossed, d²), made on first use.
+        self._sampled: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._span = 2 * (g - 1) ** 2 + 1
+        lines = torch.arange(g, device=self.device)
+        self._square = (lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2  # int64 [G, G]: (i - j)²
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -131,19 +145,36 @@ class SourceEstimator:
         return prior if self.levels > 1 else prior.squeeze(1)
 
     def update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
-               readings: torch.Tensor, rects: torch.Tensor | None = None) -> None:
+               readings: torch.Tensor, rects: torch.Tensor | None = None,
+               segments: torch.Tensor | None = None) -> None:
         """Fold the team's readings at ``positions`` (int64 [K,N,2]) into ``log_post`` in place.
 
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as the sensor returns them); ``rects``
         the episode's wall rectangles (:func:`~medc_training.envs.tl_sensing.wall_rectangles`; made
-        from ``walls`` when not given) for the exact line-of-sight rule. Cost: O(G² · levels) per
-        reading (plus O(G² · walls) for the line of sight).
+        from ``walls`` when not given) for the exact line-of-sight rule; ``segments`` the walls as
+        :func:`~medc_training.envs.tl_sensing.wall_segments` gives them, when every map is made of
+        segments, for the sampled rule's crossing tables. Cost: O(G² · levels) per reading (plus
+        O(G² · walls) for the line of sight; O(G³) per reading for the sampled rule without
+        ``segments``).
         """
         k = positions.shape[0]
         # No sensor of this model reads more than MAX_READING; a larger (or infinite) value from a
         # mismatched or faulty sensor is taken as MAX_READING, so the float32 sums below stay finite.
         readings = torch.nan_to_num(readings, nan=0.0, posinf=MAX_READING).clamp(0.0, MAX_READING)
-        if self.sensing.line == "sampled" and self.levels == 1:
+        crossed = None
+        if self.sensing.line == "sampled" and segments is not None:
+            crossed = segment_crossings(positions, segments, self.grid)  # [K,N,G²] or None
+        if crossed is not None and self.levels == 1:
+            # The sensor model's rate and its log, looked up by (walls crossed, d²).
+            most = max(1, segments.shape[1])
+            if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
+                self._sampled = sampled_rate_table(self.grid, most, self.device)
+            index = crossed.mul_(self._span).add_(self.dist2(positions))
+            flat = index.view(-1)
+            rate = self._sampled[0].index_select(0, flat).view_as(index)
+            logs = self._sampled[1].index_select(0, flat).view_as(index)
+            loglik = logs.mul_(readings.unsqueeze(-1)).sub_(rate).sum(1)  # [K,G²]
+        elif self.sensing.line == "sampled" and self.levels == 1:
             rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         elif (lines := self._sight_lines(positions, walls, rects)) is not None:
@@ -162,7 +193,9 @@ class SourceEstimator:
         log_post.add_(loglik)
         flat = log_post.view(k, -1, self.grid * self.grid)
         # Standing within reach of a cell without the episode ending rules it out as the source.
-        out = self.ruled_out(positions) | walls.reshape(k, -1).bool()
+        out = walls.reshape(k, -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
         flat.masked_fill_(out.unsqueeze(1), LOG_FLOOR)
         top = flat.amax((1, 2), keepdim=True)
         flat.sub_(top).clamp_(min=LOG_FLOOR)
@@ -178,36 +211,44 @@ class SourceEstimator:
     def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,
                             readings: torch.Tensor) -> torch.Tensor:
         """float32 [K,L,G²] (or [K,G²] with one level): sum over the readings of r log(rate) - rate,
-        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading)."""
+        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading).
+        The log rates of one (d², k) pair are one contiguous row of L, so the lookup copies rows;
+        the sum runs reading by reading, element by element (no BLAS, whose blocking would make an
+        episode's sum depend on the batch size). Returned as a [K,L,G²] view of [K,G²,L] memory."""
         k, n = readings.shape
         span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
         most = int(crossed.max()) if crossed.numel() else 0
-        if self._tables is None or self._tables[0].shape[1] < span * (most + 1):
+        if self._tables is None or self._tables[0].shape[0] < span * (most + 1):
             q = torch.arange(span * (max(most, 1) + 1), device=self.device)
             crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
             factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
             rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            self._tables = (rate.log(), factor)
+            self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
         log_rate, factor = self._tables
         index = (d2 + span * crossed).view(-1)
-        logs = log_rate.index_select(1, index).view(self.levels, k, n, -1)  # [L,K,N,G²]
-        loglik = (logs * readings.view(1, k, n, 1)).sum(2).transpose(0, 1)  # [K,L,G²]
+        cells = d2.shape[-1]
+        logs = log_rate.index_select(0, index).view(k, n, cells, self.levels)  # [K,N,G²,L]
+        r = readings.view(k, n, 1, 1)
+        loglik = logs[:, 0] * r[:, 0]
+        for i in range(1, n):
+            loglik.addcmul_(logs[:, i], r[:, i])
         fsum = factor.index_select(0, index).view(k, n, -1).sum(1)  # [K,G²]
-        loglik = loglik - fsum.unsqueeze(1) * self.level_strength.view(1, -1, 1)
-        loglik = loglik - n * self.level_background.view(1, -1, 1)
+        loglik.sub_(fsum.unsqueeze(-1) * self.level_strength).sub_(n * self.level_background)
+        loglik = loglik.transpose(1, 2)
         return loglik if self.levels > 1 else loglik.squeeze(1)
 
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would
         have ended the episode there)."""
-        k = positions.shape[0]
-        g = self.grid
-        radius = self.sensing.success_radius
-        if radius < 1.0:
-            out = torch.zeros((k, g * g), dtype=torch.bool, device=self.device)
-            return out.scatter_(1, positions[..., 0] * g + positions[..., 1], True)
-        delta = positions.unsqueeze(2) - self.cells  # [K,N,G²,2]
-        return ((delta * delta).sum(-1) <= radius * radius).any(1)
+        return self.sensing.within_reach(self.dist2(positions)).any(1)
+
+    def dist2(self, positions: torch.Tensor) -> torch.Tensor:
+        """int64 [K,N,G²]: d² (cells²) from each of ``positions`` (int64 [K,N,2]) to every cell, from
+        two O(G²) tables of squared row and column gaps."""
+        k, n = positions.shape[:2]
+        rows = self._square.index_select(0, positions[..., 0].reshape(-1)).view(k, n, self.grid, 1)
+        cols = self._square.index_select(0, positions[..., 1].reshape(-1)).view(k, n, 1, self.grid)
+        return (rows + cols).view(k, n, -1)
 
     def posterior(self, log_post: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] posterior probabilities of the source cell (strength and background
@@ -255,11 +296,12 @@ class TeamMemory:
     :class:`SourceEstimator`; kept when the observation shows the estimate or ``posterior`` is
     True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact line-of-sight
     rule). The batched core, the PettingZoo env and the ROS agent node hold one each and feed it the
-    same readings, under the same ``sensing`` model.
+    same readings, under the same ``sensing`` model. ``rule_out``: :class:`SourceEstimator`'s.
     """
 
     def __init__(self, spec: ObservationSpec, batch: int, grid: int, device: torch.device | str,
-                 sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1) -> None:
+                 sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1,
+                 rule_out: bool = True) -> None:
         self.spec = parse_observation(spec)
         self.sensing = parse_sensing(sensing)
         self.grid = int(grid)
@@ -269,11 +311,14 @@ class TeamMemory:
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
         keep = self.spec.estimate or posterior
-        self.estimator = SourceEstimator(g, self.device, self.sensing) if keep else None
+        self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out) if keep else None
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
         self.log_post = self.estimator.prior(blank) if keep else None
-        self.rects = wall_rectangles(torch.zeros((batch, g, g), dtype=torch.bool, device=self.device),
-                                     self.max_walls)
+        blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
+        self.rects = wall_rectangles(blank, self.max_walls)
+        #: The sampled rule's walls as segments (:func:`~medc_training.envs.tl_sensing.wall_segments`),
+        #: and which episodes' maps are made of them (else every line is sampled).
+        self.segments, self.segments_ok = wall_segments(blank, self.max_walls)
 
     def start(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor,
               rows: torch.Tensor | None = None, rects: torch.Tensor | None = None) -> None:
@@ -283,33 +328,45 @@ class TeamMemory:
         visit_map = torch.zeros_like(reading_map)
         scale = self.sensing.max_rate
         update_memory(reading_map, visit_map, positions, readings, scale)
+        segments = segments_ok = None
         if self.sensing.line != "exact":
             rects = None
+            if self.estimator is not None:
+                segments, segments_ok = wall_segments(walls, self.max_walls)
         elif rects is None:
             rects = wall_rectangles(walls, self.max_walls)
         log_post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
-            self.estimator.update(log_post, walls, positions, readings, rects)
+            self.estimator.update(log_post, walls, positions, readings, rects,
+                                  segments if segments_ok is not None and bool(segments_ok.all()) else None)
         if rows is None:
             self.reading_map, self.visit_map = reading_map, visit_map
             if log_post is not None:
                 self.log_post = log_post
             if rects is not None:
                 self.rects = rects
+            if segments is not None:
+                self.segments, self.segments_ok = segments, segments_ok
         else:
             self.reading_map[rows], self.visit_map[rows] = reading_map, visit_map
             if log_post is not None:
                 self.log_post[rows] = log_post
             if rects is not None:
                 self.rects[rows] = rects
+            if segments is not None:
+                self.segments[rows], self.segments_ok[rows] = segments, segments_ok
 
     def record(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor) -> None:
         """Record one team step's readings (every episode of the batch)."""
         update_memory(self.reading_map, self.visit_map, positions, readings, self.sensing.max_rate)
-        if self.estimator is not None:
-            self.estimator.update(self.log_post, walls, positions, readings,
-                                  self.rects if self.sensing.line == "exact" else None)
+        if self.estimator is None:
+            return
+        if self.sensing.line == "exact":
+            self.estimator.update(self.log_post, walls, positions, readings, self.rects)
+        else:
+            segments = self.segments if bool(self.segments_ok.all()) else None
+            self.estimator.update(self.log_post, walls, positions, readings, segments=segments)
 
     def posterior(self) -> torch.Tensor | None:
         """float32 [B,G²] the source posterior, or None when this memory keeps none."""
@@ -363,7 +420,7 @@ def observe(
     r = spec.radius
     side = 2 * r + 1
     # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate; each agent
-    # sees them in a window centred on itself (grid.agent_windows, shared with fleet and maze).
+    # sees them in a window centred on itself (grid.team_windows).
     layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map)]
     if spec.estimate:
         layers.append(estimate)
@@ -375,7 +432,7 @@ def observe(
     c = stack.shape[1]
     outside = torch.zeros(c, device=positions.device)
     outside[0] = 1.0
-    win = agent_windows(stack.unsqueeze(1).expand(b, n, c, g, g), positions, r, outside)
+    win = team_windows(stack, positions, r, outside)
     if out is None:
         out = torch.empty((b, n, c, side, side), dtype=torch.float32, device=positions.device)
     out.copy_(win)

@@ -30,10 +30,13 @@ __all__ = [
     "parse_sensing",
     "rates_from_every_cell",
     "realistic_rates",
+    "sampled_rate_table",
+    "segment_crossings",
     "sensor_reading",
     "update_memory",
     "visit_norm",
     "wall_rectangles",
+    "wall_segments",
 ]
 
 SOURCE_STRENGTH = 1000.0
@@ -108,48 +111,153 @@ def expected_rate_from_sources(
     return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
 
 
-#: Largest (cells² × samples) for which :func:`rates_from_every_cell` keeps a table of the line
-#: samples of every (sensor cell, source cell) pair (int64: 64 MiB); larger grids compute them.
-_SAMPLE_TABLE_LIMIT = 1 << 23
-_SAMPLE_TABLES: dict[tuple[int, int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+#: Largest grid (cells per side) whose crossing tables (:func:`_crossing_tables`) are kept:
+#: 2 × G⁵ × 2 bytes, 30 -> 93 MiB, 32 -> 128 MiB. Larger grids sample every line each call.
+_CROSSING_TABLE_GRID = 32
+_CROSSING_TABLES: dict[tuple[int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
 
 
-def _sample_table(h: int, w: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """(flat cell index of every line sample [H·W, H·W, H+W], squared distance [H·W, H·W]) for
-    sensor cell p (first index) and source cell s (second), computed by exactly the arithmetic of
-    :func:`expected_rate_from_sources`; None when the table would exceed _SAMPLE_TABLE_LIMIT."""
-    cells, samples = h * w, h + w
-    if cells * cells * samples > _SAMPLE_TABLE_LIMIT:
+def _crossing_tables(g: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Where the sampled line between two cells runs, per row and per column of a G×G grid.
+
+    (int8 [2, G², G, 2, G²], float32 [G², G²]): entries [0, p, r, :, s] are the (smallest, largest)
+    column among the line's samples that fall on row r, for the line from source cell s to sensor
+    cell p sampled exactly as :func:`expected_rate_from_sources` samples it; entries [1, p, c, :, s] the
+    (smallest, largest) row among the samples in column c; (G, -1) where no sample falls. Every
+    source cell of one (orientation, sensor cell, line) is one contiguous block. The
+    second tensor is d² between the cell centres. Made once per grid (a few seconds at G = 30);
+    None above _CROSSING_TABLE_GRID.
+
+    Why this is enough (:func:`segment_crossings`): a sample's row and column are rounded values of
+    float32 expressions that are monotone in the sample index, so the samples inside one
+    axis-aligned wall segment are consecutive; consecutive samples are at most one cell apart in
+    each coordinate (the step is below half a cell), and segments never touch, so the samples of
+    two segments never join into one run. The sampled rule's count of wall runs is therefore the
+    number of segments the samples meet, and a sample meets a horizontal segment on row r with
+    columns c0..c1 exactly when the row-r column range overlaps c0..c1.
+    """
+    if g > _CROSSING_TABLE_GRID:
         return None
-    key = (h, w, device)
-    if key not in _SAMPLE_TABLES:
+    key = (g, device)
+    if key not in _CROSSING_TABLES:
+        cells = g * g
+        samples = 2 * g
         idx = torch.arange(cells, device=device)
-        grid_cells = torch.stack((idx // w, idx % w), dim=-1)
+        grid_cells = torch.stack((idx // g, idx % g), dim=-1)
         src = grid_cells.to(torch.float32).unsqueeze(0)  # [1,M,2]
-        delta = grid_cells.to(torch.float32).unsqueeze(1) - src  # [P,M,2]
         t = (torch.arange(samples, device=device, dtype=torch.float32) + 0.5) / samples
-        rows = (src[..., 0:1] + delta[..., 0:1] * t).round_()
-        cols = (src[..., 1:2] + delta[..., 1:2] * t).round_()
-        _SAMPLE_TABLES[key] = (rows.mul_(w).add_(cols).long(), (delta * delta).sum(-1))
-    return _SAMPLE_TABLES[key]
+        table = torch.empty((2, cells, g, 2, cells), dtype=torch.int8, device=device)
+        chunk = max(1, (1 << 21) // (cells * samples))  # sensor cells per chunk (~2M samples)
+        for lo in range(0, cells, chunk):
+            hi = min(cells, lo + chunk)
+            delta = grid_cells[lo:hi].to(torch.float32).unsqueeze(1) - src  # [P,M,2]
+            rows = (src[..., 0:1] + delta[..., 0:1] * t).round_().long()  # [P,M,S]
+            cols = (src[..., 1:2] + delta[..., 1:2] * t).round_().long()
+            for orient, (line, value) in enumerate(((rows, cols), (cols, rows))):
+                shape = (hi - lo, cells, g)
+                least = torch.full(shape, g, dtype=torch.long, device=device)
+                most = torch.full(shape, -1, dtype=torch.long, device=device)
+                least.scatter_reduce_(2, line, value, reduce="amin")
+                most.scatter_reduce_(2, line, value, reduce="amax")
+                table[orient, lo:hi, :, 0] = least.transpose(1, 2).to(torch.int8)
+                table[orient, lo:hi, :, 1] = most.transpose(1, 2).to(torch.int8)
+        delta = grid_cells.unsqueeze(1) - grid_cells.unsqueeze(0)
+        _CROSSING_TABLES[key] = (table, (delta * delta).sum(-1).to(torch.float32))
+    return _CROSSING_TABLES[key]
 
 
-def rates_from_every_cell(positions: torch.Tensor, walls: torch.Tensor) -> torch.Tensor:
-    """float32 [B,N,H·W]: :func:`expected_rate_from_sources` for every cell as a candidate source
-    (cells in row-major order), bit for bit. On grids up to 21×21 (_SAMPLE_TABLE_LIMIT) the line
-    samples come from a per-grid table made once, which halves the cost; larger grids compute
-    them each call."""
+def wall_segments(walls: torch.Tensor, most: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(int64 [B,most,4], bool [B]): each map's wall segments as (first row, first column, last row,
+    last column), and whether the map is made of at most ``most`` one-cell-thick segments that never
+    touch, as every generated layout is (an operator's own map may not be). Only then is the
+    sampled rule's count of wall runs the number of segments met (:func:`segment_crossings`).
+    Empty slots are (-1, -1, -2, -2) and meet nothing."""
+    walls = walls.bool()
+    b = walls.shape[0]
+    rects = wall_rectangles(walls)  # as many slots as the fullest map needs
+    empty = rects[..., 2] < rects[..., 0]
+    segs = torch.stack((rects[..., 0] + 0.5, rects[..., 1] + 0.5, rects[..., 2] - 0.5,
+                        rects[..., 3] - 0.5), -1).round_().long()
+    segs[empty] = torch.tensor([-1, -1, -2, -2], device=segs.device)
+    ok = _segments_are_the_walls(walls, segs, empty) & ((~empty).sum(1) <= most)
+    out = torch.tensor([-1, -1, -2, -2], device=segs.device).repeat(b, max(1, most), 1)
+    keep = min(out.shape[1], segs.shape[1])
+    out[:, :keep] = segs[:, :keep]
+    return out, ok
+
+
+def _segments_are_the_walls(walls: torch.Tensor, segs: torch.Tensor, empty: torch.Tensor) -> torch.Tensor:
+    """bool [B]: whether ``segs`` paint exactly ``walls``, each is one cell thick, and no two touch
+    (their Chebyshev gap is at least one free cell)."""
+    _b, h, w = walls.shape
+    rows = torch.arange(h, device=walls.device)
+    cols = torch.arange(w, device=walls.device)
+    in_r = (rows >= segs[..., 0:1]) & (rows <= segs[..., 2:3])  # [B,Z,H]
+    in_c = (cols >= segs[..., 1:2]) & (cols <= segs[..., 3:4])
+    painted = (in_r.unsqueeze(-1) & in_c.unsqueeze(-2)).any(1)
+    ok = (painted == walls).flatten(1).all(1)
+    ok &= ((segs[..., 0] == segs[..., 2]) | (segs[..., 1] == segs[..., 3]) | empty).all(1)
+    a, c = segs.unsqueeze(2), segs.unsqueeze(1)  # [B,Z,1,4], [B,1,Z,4]
+    gap = torch.maximum(torch.maximum(c[..., 0] - a[..., 2], a[..., 0] - c[..., 2]),
+                        torch.maximum(c[..., 1] - a[..., 3], a[..., 1] - c[..., 3]))
+    both = ~(empty.unsqueeze(2) | empty.unsqueeze(1))
+    both &= ~torch.eye(segs.shape[1], dtype=torch.bool, device=walls.device)
+    return ok & ~(both & (gap <= 1)).flatten(1).any(1)
+
+
+def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int) -> torch.Tensor | None:
+    """int64 [B,N,G²]: the sampled rule's count of walls crossed between each sensor at
+    ``positions`` (int64 [B,N,2]) and every cell as a candidate source, from the crossing tables
+    (:func:`_crossing_tables`): O(G² · segments) per sensor instead of O(G³). ``segments`` from
+    :func:`wall_segments`. None above _CROSSING_TABLE_GRID."""
+    tables = _crossing_tables(grid, positions.device)
+    if tables is None:
+        return None
+    table = tables[0]
     b, n = positions.shape[:2]
+    cell = positions[..., 0] * grid + positions[..., 1]  # [B,N]
+    if segments.shape[1] == 0:
+        return torch.zeros((b, n, grid * grid), dtype=torch.long, device=positions.device)
+    horizontal = segments[..., 0] == segments[..., 2]  # [B,Z] (a 1x1 segment: either test holds)
+    orient = (~horizontal).long()
+    line = torch.where(horizontal, segments[..., 0], segments[..., 1]).clamp(min=0)
+    lo = torch.where(horizontal, segments[..., 1], segments[..., 0])
+    hi = torch.where(horizontal, segments[..., 3], segments[..., 2])
+    cells = grid * grid
+    row = (orient.unsqueeze(1) * cells + cell.unsqueeze(2)) * grid + line.unsqueeze(1)  # [B,N,Z]
+    span = table.view(-1, 2 * cells).index_select(0, row.view(-1)).view(b, n, -1, 2, cells)
+    met = (span[..., 0, :] <= hi.view(b, 1, -1, 1).to(torch.int8)).logical_and_(
+        span[..., 1, :] >= lo.view(b, 1, -1, 1).to(torch.int8))
+    return met.sum(2)
+
+
+def sampled_rate_table(grid: int, most: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rate float32 [Q], log rate float32 [Q]) of the paper-simple model for Q = (walls crossed k
+    in 0..most) x (d² in 0..2(G-1)²), index k * (2(G-1)² + 1) + d²: the arithmetic of
+    :func:`expected_rate_from_sources`, element by element, so a lookup equals the computed rate
+    bit for bit."""
+    span = 2 * (grid - 1) ** 2 + 1
+    q = torch.arange(span * (most + 1), device=device)
+    crossed, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+    rate = SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, crossed) / (1.0 + dist2) + BACKGROUND
+    return rate, torch.log(rate)
+
+
+def rates_from_every_cell(positions: torch.Tensor, walls: torch.Tensor,
+                          segments: torch.Tensor | None = None) -> torch.Tensor:
+    """float32 [B,N,H·W]: :func:`expected_rate_from_sources` for every cell as a candidate source
+    (cells in row-major order), bit for bit. With the walls' ``segments`` (:func:`wall_segments`)
+    on a square grid up to _CROSSING_TABLE_GRID the walls crossed come from the crossing tables;
+    otherwise every line is sampled."""
     h, w = walls.shape[-2:]
-    table = _sample_table(h, w, positions.device)
-    if table is None:
+    crossed = segment_crossings(positions, segments, h) if segments is not None and h == w else None
+    if crossed is None:
         idx = torch.arange(h * w, device=positions.device)
         return expected_rate_from_sources(positions, torch.stack((idx // w, idx % w), dim=-1), walls)
-    samples_idx, dist2 = table
-    cell = positions[..., 0] * w + positions[..., 1]  # [B,N]
-    inside = walls.reshape(b, -1).gather(1, samples_idx[cell].view(b, -1)).view(b, n, h * w, h + w)
-    entries = inside[..., 0].to(torch.float32) + (inside[..., 1:] > inside[..., :-1]).sum(-1)
-    return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2[cell]) + BACKGROUND
+    dist2 = _crossing_tables(h, positions.device)[1]
+    cell = positions[..., 0] * w + positions[..., 1]
+    attenuated = torch.pow(WALL_ATTENUATION, crossed.to(torch.float32))
+    return SOURCE_STRENGTH * attenuated / (1.0 + dist2[cell]) + BACKGROUND
 
 
 def update_memory(
@@ -272,6 +380,12 @@ class SensingModel:
         if fixed_s != (ns == 1) or fixed_b != (nb == 1):
             raise ValueError("sensing levels: a known (fixed) strength or background takes exactly 1 level, "
                              "an unknown one at least 2")
+
+    def within_reach(self, dist2: torch.Tensor) -> torch.Tensor:
+        """bool, same shape: whether an agent at squared distance ``dist2`` (cells², integers) from
+        the source has found it: d <= ``success_radius`` (radius 0: only on the source's cell). The
+        one success rule of the environment, the team's estimator and the controllers."""
+        return dist2 <= self.success_radius * self.success_radius
 
     @property
     def known(self) -> bool:

@@ -152,8 +152,6 @@ class RayCluster:
 def run_jobs(jobs: list[dict], engine, label: str) -> list[dict]:
     """Run the unfinished ``jobs`` on ``engine``, with a runs done / total progress bar and one
     line per finished run; returns the summaries of the runs this call finished."""
-    from tqdm import tqdm
-
     todo = [j for j in jobs if not job_done(j)]
     print(f"[{label}] {len(jobs) - len(todo)} of {len(jobs)} runs already done; running {len(todo)} "
           f"on {engine.describe()}", flush=True)
@@ -161,8 +159,9 @@ def run_jobs(jobs: list[dict], engine, label: str) -> list[dict]:
     if not todo:
         return finished
     start = time.time()
-    with tqdm(total=len(jobs), initial=len(jobs) - len(todo), unit="run", desc=label,
-              dynamic_ncols=True) as bar:
+    from ..console import progress_bar
+
+    with progress_bar(len(jobs), initial=len(jobs) - len(todo), unit="run", desc=label) as bar:
         def done(job: dict, summary: dict) -> None:
             finished.append(summary)
             bar.write(f"  {_line(job, summary, start)}")

@@ -55,9 +55,28 @@ def partial_dir(out: Path) -> Path:
 
 
 def job_done(job: dict) -> bool:
-    """A training job is done when its run folder holds a summary. A clone job is planned only
-    when its bundle is missing or stale (Plan._expert_job), so a planned one is never done."""
-    return job.get("kind") != "clone" and (Path(job["out"]) / SUMMARY).exists()
+    """A training job is done when its run folder holds the summary of the same run: its config
+    and inputs (experts, their weights, side users), every field compared
+    (:mod:`medc_training.runs`; a summary recorded before inputs were, like the committed
+    docs/reproduction runs, compares its config). A clone job is planned only when its bundle is
+    missing or stale (Plan._expert_job), so a planned one is never done.
+
+    Raises:
+        RunMismatch: the folder holds a finished run of another configuration (the message names
+        the fields), unless the job says ``overwrite``: then it is not done, and running it
+        replaces that run.
+    """
+    from ..runs import RunMismatch, check_finished, job_inputs
+
+    summary = Path(job["out"]) / SUMMARY
+    if job.get("kind") == "clone" or not summary.exists():
+        return False
+    try:
+        return check_finished(json.loads(summary.read_text()), job["config"], job_inputs(job), job["out"])
+    except RunMismatch:
+        if job.get("overwrite"):
+            return False
+        raise
 
 
 def run_job(job: dict) -> dict:
@@ -84,18 +103,24 @@ def _train(job: dict, out: Path, work: Path) -> dict:
     from ..config import TrainConfig
     from ..runner import CHECKPOINT, run_training
 
-    if out.exists() and not work.exists():  # an unfinished run left in place by an older version
-        out.rename(work)
+    if out.exists() and not work.exists() and not (out / SUMMARY).exists():
+        out.rename(work)  # an unfinished run left in place by an older version
+    # A finished run of another config (replaced with overwrite) stays until the new one finishes.
+    from ..runs import job_inputs
+
     cfg = TrainConfig.from_dict(job["config"]).validate()
     learner = make_learner(cfg, job.get("experts", ()), job.get("expert_weights"), job.get("side_users", ()))
-    options = {"tensorboard": job.get("tensorboard", False), "save_final": job.get("save_final", False)}
+    options = {"tensorboard": job.get("tensorboard", False), "save_final": job.get("save_final", False),
+               "inputs": job_inputs(job)}
     resume = (work / CHECKPOINT).exists()
     try:
-        summary = run_training(learner, cfg, work, resume=resume, **options)
+        summary = run_training(learner, cfg, work, resume=resume, overwrite=True, **options)
     except ValueError:  # a checkpoint of another config, or an unreadable one: start afresh
         if not resume:
             raise
-        summary = run_training(learner, cfg, work, resume=False, **options)
+        learner = make_learner(cfg, job.get("experts", ()), job.get("expert_weights"),
+                               job.get("side_users", ()))
+        summary = run_training(learner, cfg, work, resume=False, overwrite=True, **options)
     if not job.get("keep_checkpoint", False):
         (work / CHECKPOINT).unlink(missing_ok=True)  # keep the report folder small
     return summary

@@ -27,9 +27,12 @@ def record_command(out: Path, command: str, report_only: bool) -> str:
     return command
 
 
-def reproduce(plan: Plan, phases, engine, retrain: bool = False, other_apps: bool = True) -> dict[str, float]:
+def reproduce(plan: Plan, phases, engine, retrain: bool = False, other_apps: bool = True,
+              overwrite: bool = False) -> dict[str, float]:
     """Run the jobs of ``phases`` (experts first, then every experiment run once, the longest
-    first) on ``engine``; returns the wall time of each stage in seconds."""
+    first) on ``engine``; returns the wall time of each stage in seconds. A run folder holding a
+    finished run of another configuration is refused (RunMismatch, naming the fields) unless
+    ``overwrite``: then it is run again and replaced."""
     elapsed: dict[str, float] = {}
 
     def timed(name: str, jobs: list[dict]) -> None:
@@ -47,7 +50,7 @@ def reproduce(plan: Plan, phases, engine, retrain: bool = False, other_apps: boo
         if phase in phases and (other_apps or phase not in OTHER_APP_PHASES):
             runs += plan.jobs(phase)
     if runs:
-        unique = {j["out"]: j for j in runs}  # sparse baselines are shared by several figures
+        unique = {j["out"]: {**j, "overwrite": overwrite} for j in runs}  # sparse baselines are shared
         # the longest jobs first so the pool's tail is short
         timed("experiments", sorted(unique.values(), key=lambda j: -len(j["config"].get("frl_users") or [0])))
     return elapsed

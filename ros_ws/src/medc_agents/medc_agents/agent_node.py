@@ -31,7 +31,16 @@ def agent_id_from_arguments() -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-agent``."""
+    """Console script ``medc-agent``; ``--help`` lists its parameters and exits 0 without starting it."""
+    from medc_common.cli_help import print_node_help, wants_help
+
+    if wants_help(argv):
+        return print_node_help(
+            "medc-agent", "One agent node per UAV: observes the team, runs its policy bundle (or a "
+                          "classical controller) and publishes its move; agent_0 also publishes the "
+                          "team's source estimate and declaration.",
+            ["medc_agents.node", "medc_agents.estimate"],
+            "medc-agent --ros-args -p agent_id:=agent_0 -p policy:=models/team/A3W2.safetensors")
     require_interfaces()
     from medc_common.executors import run_node
 

@@ -30,7 +30,7 @@ from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_interfaces.srv import FetchBundle
-from medc_training.bundle import MAX_FORWARD_SECONDS
+from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
@@ -41,6 +41,7 @@ from std_msgs.msg import String
 
 from medc_agents import guard
 from medc_agents.controller import controller_move, controller_name, controller_scenario
+from medc_agents.estimate import TeamEstimate
 from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
@@ -82,6 +83,7 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         raise PolicyRejected("no policy bundle: start the agent with -p policy:=<bundle.safetensors> "
                              "(its manifest gives the team size, grid and observation) or with a "
                              "controller, e.g. -p policy:=greedy -p agents:=3 -p grid:=30")
+    check_scenario_size(agents, grid)
     name = controller_name(policy)
     if name is not None:
         try:
@@ -106,7 +108,20 @@ def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
         return value
 
     agents, grid = from_manifest("agents", agents), from_manifest("grid", grid)
+    check_scenario_size(agents, grid)  # the manifest's are bounded already; this says so again
     return agents, grid, observation or manifest_observation(manifest)
+
+
+def check_scenario_size(agents: int, grid: int) -> None:
+    """Refuse a team or grid larger than any bundle may name (``MAX_BUNDLE_AGENTS``,
+    ``MAX_BUNDLE_GRID``), before anything is allocated for it: the agent's memory grows faster
+    than the grid's area. Raises PolicyRejected saying the bound."""
+    from medc_training.bundle import MAX_BUNDLE_AGENTS, MAX_BUNDLE_GRID
+
+    for key, value, most in (("agents", agents, MAX_BUNDLE_AGENTS), ("grid", grid, MAX_BUNDLE_GRID)):
+        if value > most:
+            raise PolicyRejected(f"{key} {value} is over the {most} an agent runs with "
+                                 f"(MAX_BUNDLE_{key.upper()}); pass -p {key}:=<n> with n <= {most}")
 
 
 def default_node_name(agent_id: str | None) -> str:
@@ -141,7 +156,8 @@ class AgentNode(Node):
         )
         self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
         num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
-        grid = p("grid", 0, "Grid side in cells; 0: the policy bundle's manifest's", True)
+        grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
+                         "size); 0: the policy bundle's manifest's", True)
         observation = p(
             "observation",
             "",
@@ -174,7 +190,8 @@ class AgentNode(Node):
         max_forward_s = p(
             "policy_max_forward_s",
             MAX_FORWARD_SECONDS,
-            "A bundle whose dry run on one blank observation takes longer (seconds) is refused",
+            "A bundle whose dry run on any of its observations (blank, environment-made, random) takes "
+            "longer (seconds) is refused",
             True,
         )
         self.stall_timeout_s = float(p(
@@ -211,6 +228,12 @@ class AgentNode(Node):
             "preset always counts them): the gradient controller's flatness test",
             True,
         ))
+        rule_out = bool(p(
+            "source_ends_episode", True,
+            "The driver ends an episode as soon as a UAV finds the source (the simulator's end_on "
+            "'source' or 'either'), so a cell the team stood on is not the source; false for a driver "
+            "that ends episodes only on the team's declaration (a real one: it cannot know the source)",
+            True))
         initial = p(
             "policy", "",
             "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
@@ -221,7 +244,7 @@ class AgentNode(Node):
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, int(threads)))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
-                                     observation or DEFAULT_OBSERVATION, sensing, edge_tolerance)
+                                     observation or DEFAULT_OBSERVATION, sensing, rule_out, edge_tolerance)
         #: Per-run id of this node, sent with every move (AgentMove.sender).
         self.sender = run_id()
         self.lost_watch = guard.LostWatch(num_agents, self.observer.index, lost_timeout_s)
@@ -263,6 +286,8 @@ class AgentNode(Node):
         # Another process publishing moves as this agent (a duplicate id) is reported here too.
         self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self._on_own_move,
                                  contract.RELIABLE_QOS)
+        #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
+        self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
@@ -534,6 +559,11 @@ class AgentNode(Node):
         self._unanswered = None
         self._stall_over(tick)
         self._flush_notes()
+        try:  # the estimate goes out before the move: a driver ending on the declaration sees it first
+            self.estimate.on_step(self.observer, tick)
+        except Exception as exc:  # never let the estimate cost the team its move
+            self.get_logger().error(f"team estimate not published for episode {tick.episode} step "
+                                    f"{tick.step}: {type(exc).__name__}: {printable(str(exc), 300)}")
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME
@@ -660,7 +690,7 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
         obs = torch.stack([m[1] for m in members])
         mask = torch.stack([m[2] for m in members])
         try:
-            with torch.no_grad():
+            with torch.no_grad(), flush_denormals():
                 actions = bundle.act(obs, mask, greedy=True).tolist()
         except Exception:
             # Fall back to one by one: each agent logs and keeps its own failure.

@@ -11,6 +11,7 @@ and the old policy keeps running. A classical controller's name (``gradient``, `
 from __future__ import annotations
 
 import re
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,7 +171,25 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
 
 #: Validated bundles by (path, size, mtime): agents of one process loading the same file share one
 #: PolicyBundle (loaded and checked once), which also lets a TeamFeed batch their forward passes.
-_LOADED: dict[tuple[str, int, int, tuple, int, str | None, str | None, str | None], LoadedPolicy] = {}
+#: The least recently used are forgotten beyond ``MAX_CACHED_POLICIES`` bundles or
+#: ``MAX_CACHED_POLICY_BYTES`` bytes of weights (the latest is always kept); a forgotten bundle that
+#: no agent runs any more is freed, and one asked for again is loaded and checked again.
+_LOADED: OrderedDict[tuple[str, int, int, tuple, int, str | None, str | None, str | None], LoadedPolicy] = \
+    OrderedDict()
+MAX_CACHED_POLICIES = 4
+MAX_CACHED_POLICY_BYTES = 64 << 20
+
+
+def _weight_bytes(loaded: LoadedPolicy) -> int:
+    return sum(p.numel() * p.element_size() for p in loaded.bundle.net.parameters())
+
+
+def _evict() -> None:
+    """Forget the least recently used bundles beyond the count and byte bounds (never the latest)."""
+    total = sum(_weight_bytes(v) for v in _LOADED.values())
+    while len(_LOADED) > 1 and (len(_LOADED) > MAX_CACHED_POLICIES or total > MAX_CACHED_POLICY_BYTES):
+        _, old = _LOADED.popitem(last=False)
+        total -= _weight_bytes(old)
 
 
 def load_policy_cached(
@@ -200,7 +219,10 @@ def load_policy_cached(
     if key not in _LOADED:
         _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
                                    sensing)
-    return _LOADED[key]
+    _LOADED.move_to_end(key)
+    loaded = _LOADED[key]
+    _evict()
+    return loaded
 
 
 class PolicySlot:
@@ -282,5 +304,8 @@ class PolicySlot:
         if self.controller is not None:
             raise RuntimeError(f"controller {self.controller} decides from the team's state, not an "
                                "observation: medc_agents.controller.controller_move")
-        action = self.current.bundle.act(obs.unsqueeze(0), mask.unsqueeze(0), greedy=True)
+        from medc_training.bundle import flush_denormals
+
+        with flush_denormals():  # subnormal activations cost no more than normal ones
+            action = self.current.bundle.act(obs.unsqueeze(0), mask.unsqueeze(0), greedy=True)
         return int(action[0])

@@ -155,20 +155,25 @@ class TeamObserver:
     """Collects the team's poses, readings and map, and builds this agent's observation."""
 
     def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
-                 observation: str = "maps", sensing: str = "paper-simple",
+                 observation: str = "maps", sensing: str = "paper-simple", rule_out: bool = True,
                  edge_tolerance: float = EDGE_TOLERANCE_CELLS) -> None:
         """``resolution``: metres per cell the maps must have; 0 = whatever the map says.
         ``edge_tolerance``: cells; a pose at most this far outside the grid's edge is taken as the
         nearest edge cell (GNSS noise on the edge row), one farther out is dropped with the distance.
         ``sensing``: the team's sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``),
         which the readings follow; the memory normalises them and weighs the source posterior by it.
+        ``rule_out``: the driver ends an episode as soon as an agent finds the source, so the cells
+        the team stood on without the episode ending are not the source (False: a driver that ends
+        episodes only on the team's declaration; ``SourceEstimator``'s ``rule_out``).
+        ``grid``: the grid the agent starts on. An observation that does not depend on the grid's
+        size (an agent-centred window, ``egoR``) takes a square map of any size, and the memory
+        follows the map of each episode; the whole-grid ``maps`` observation takes ``grid`` only.
 
         Raises:
             ValueError: an unknown sensing preset.
         """
         from medc_training.envs.grid import action_deltas
-        from medc_training.envs.target_localization import max_walls
-        from medc_training.envs.tl_observation import ObservationSpec, TeamMemory, parse_observation
+        from medc_training.envs.tl_observation import parse_observation
         from medc_training.envs.tl_sensing import parse_sensing
 
         self.agent_id = agent_id
@@ -207,17 +212,37 @@ class TeamObserver:
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
         self.observation = parse_observation(observation)
         self.sensing = parse_sensing(sensing)
-        #: Most wall segments a map may hold (the exact line-of-sight rule keeps one rectangle
-        #: each): as many as the environment places on this grid.
-        self.max_walls = max(1, max_walls(grid))
-        self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu", sensing=self.sensing,
-                                 max_walls=self.max_walls)
+        self.rule_out = bool(rule_out)
+        self._resize(grid)
         self._memory_started = False
         #: The last observed step (:meth:`observe`): every agent's cell int64 [1,N,2], the walls
         #: bool [1,G,G] and every agent's move mask bool [1,N,A]; what a controller decides from.
         self.positions: torch.Tensor | None = None
         self.walls: torch.Tensor | None = None
         self.team_mask: torch.Tensor | None = None
+
+    def _resize(self, grid: int) -> None:
+        """Work on a ``grid``×``grid`` area from now on: a fresh memory of that size."""
+        from medc_training.envs.target_localization import max_walls
+        from medc_training.envs.tl_observation import ObservationSpec, TeamMemory
+
+        self.height = self.width = int(grid)
+        #: Most wall segments a map may hold (the exact line-of-sight rule keeps one rectangle
+        #: each): as many as the environment places on this grid.
+        self.max_walls = max(1, max_walls(grid))
+        self.memory = TeamMemory(ObservationSpec("maps", 0, True), 1, grid, "cpu", sensing=self.sensing,
+                                 max_walls=self.max_walls, rule_out=self.rule_out)
+
+    @property
+    def any_grid(self) -> bool:
+        """Whether the observation built does not depend on the grid's size (an agent-centred
+        window), so that a map of any square size can be played."""
+        return self.observation.view != "maps"
+
+    def map_geometry(self, map_stamp: int) -> GridGeometry | None:
+        """The grid geometry of the map with ``info.map_load_time`` ``map_stamp`` (a stamp key), if held."""
+        entry = self._maps.get(map_stamp)
+        return None if entry is None else entry[1]
 
     def use_observation(self, observation: str | None) -> None:
         """Build ``observation`` from now on (the memory keeps what every variant needs)."""
@@ -236,9 +261,26 @@ class TeamObserver:
 
     def add_map(self, msg) -> None:
         try:
-            walls = walls_from_grid(msg, self.height, self.width)
+            from medc_training.envs.target_localization import max_walls
+
+            size = (int(msg.info.height), int(msg.info.width))
+            if size != (self.height, self.width) and self.any_grid:
+                from medc_training.bundle import MAX_BUNDLE_GRID
+
+                if size[0] != size[1] or not 5 <= size[0] <= MAX_BUNDLE_GRID:
+                    raise ValueError(f"map is {size[0]}x{size[1]}: the team works on square grids of 5x5 to "
+                                     f"{MAX_BUNDLE_GRID}x{MAX_BUNDLE_GRID} cells")
+                height = width = size[0]
+            elif size != (self.height, self.width):
+                raise ValueError(f"map is {size[0]}x{size[1]}, but this agent's observation "
+                                 f"'{self.observation.name}' shows the whole {self.height}x{self.width} "
+                                 "grid its policy was trained on: publish a map of that size, or run a "
+                                 "policy with an agent-centred observation (egoR), which plays any size")
+            else:
+                height, width = self.height, self.width
+            walls = walls_from_grid(msg, height, width)
             if self.sensing.line == "exact":
-                check_wall_segments(walls, self.max_walls)
+                check_wall_segments(walls, max(1, max_walls(height)))
             geometry = geometry_of(msg)
             if self.resolution > 0 and abs(geometry.resolution - self.resolution) > 1e-9 * self.resolution:
                 raise ValueError(f"map resolution is {geometry.resolution:g} m, this agent's 'resolution' "
@@ -489,6 +531,8 @@ class TeamObserver:
             new_episode, self._force_start = True, False
             self._memory_started = False
         if new_episode or not self._memory_started:
+            if walls.shape[-1] != self.memory.grid:
+                self._resize(walls.shape[-1])
             if self._memory_started and (t.episode, t.step) <= (self.mem_episode, self.mem_step):
                 self.notes.append(
                     f"episode status went back from episode {self.mem_episode} step {self.mem_step} to "

@@ -141,7 +141,10 @@ def run_graph(
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``medc-bench ros``."""
-    parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0])
+    from medc_training.console import HelpFormatter
+
+    parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0],
+                                     formatter_class=HelpFormatter)
     parser.add_argument("--steps", type=int, default=500, help="measured steps per latency run")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of the sustained-rate run")
     parser.add_argument("--policy", help="bundle to run, on its grid, or a classical controller (gradient, "

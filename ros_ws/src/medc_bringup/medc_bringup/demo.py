@@ -26,6 +26,7 @@ import math
 import subprocess
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,8 @@ APPLICATION = "target_localization"
 class Narrator:
     """Prints numbered steps with elapsed time, so a person can follow the run live."""
 
-    def __init__(self) -> None:
+    def __init__(self, quiet: bool = False) -> None:
+        self.quiet = quiet
         self.t0 = time.monotonic()
         self.timings: dict[str, float] = {}
         self._step: str | None = None
@@ -50,10 +52,12 @@ class Narrator:
         if self._step is not None:
             self.timings[self._step] = round(now - self._step_t, 2)
         self._step, self._step_t = title, now
-        print(f"\n\033[1m[{now - self.t0:6.1f}s] {title}\033[0m", flush=True)
+        if not self.quiet:
+            print(f"\n\033[1m[{now - self.t0:6.1f}s] {title}\033[0m", flush=True)
 
     def say(self, text: str) -> None:
-        print(f"    {text}", flush=True)
+        if not self.quiet:
+            print(f"    {text}", flush=True)
 
     def finish(self) -> float:
         now = time.monotonic()
@@ -198,35 +202,121 @@ def curves_png(runs: dict[str, Path], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def run(args: argparse.Namespace) -> dict[str, Any]:
-    import torch
-    from medc_registry.registry import Registry
-    from medc_training.bundle import load_bundle, read_manifest
-    from medc_training.config import scaled_config
-    from medc_training.experts import BundleExpert
-    from medc_training.ppo import Trainer
-    from medc_training.qos import selection_weights
-    from medc_training.runner import run_training
+@dataclass
+class _Demo:
+    """What every phase of one demo run shares: its options, output folder, narrator and gas log."""
 
-    root = repo_root()
+    args: argparse.Namespace
+    out: Path
+    root: Path
+    say: Narrator
+    quiet: bool
+    gas: dict[str, list[int]] = field(default_factory=dict)
+
+    def spent(self, fn: str, gas: int) -> None:
+        self.gas.setdefault(fn, []).append(int(gas))
+
+
+@dataclass
+class _Users:
+    """Phase 1: the registry and its registered users (three owners, one requester)."""
+
+    reg: Any
+    names: list[str]
+    users: dict[str, Any]
+
+    @property
+    def owners(self) -> list[Any]:
+        return [self.users[n] for n in self.names[:3]]
+
+    @property
+    def requester(self) -> Any:
+        return self.users["requester"]
+
+    def name_of(self, owner: Any) -> str:
+        return self.names[self.owners.index(owner)]
+
+
+@dataclass
+class _Allocation:
+    """Phase 3: what the requester paid for and fetched, and the reputations before it."""
+
+    allocations: list[Any]
+    experts: list[Any]
+    qos_values: list[float]
+    price: int
+    r_s: list[float]
+    qos_order_ok: bool
+    model_rep_before: dict[int, float]
+    owner_rep_before: dict[str, float]
+
+
+@dataclass
+class _Training:
+    """Phase 4: MEDC and sparse on the requester's environment."""
+
+    cfg: Any
+    results: dict[str, dict]
+    scores: dict[str, float]
+    policy_paths: dict[str, Path]
+
+    @property
+    def medc_faster(self) -> bool:
+        return self.scores["medc"] < self.scores["sparse"]
+
+
+@dataclass
+class _Settlement:
+    """Phase 5: reviews, reputations after them, and the owners' withdrawals."""
+
+    reviews: list[dict]
+    model_reputations: list[dict]
+    owner_reputations: list[dict]
+    payments: list[dict]
+    contract_balance: int
+
+
+@dataclass
+class _Graph:
+    """Phase 6: the ROS 2 graph's runs and the random team's episode length."""
+
+    random_len: float
+    graph: dict[str, Any]
+    shipped_team: dict[str, Any]
+
+
+TARGET = {"agents": 3, "walls": 2}
+EXPERTS_REQUESTED = 3
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The whole demo (module docstring): the seven phases in turn; returns the summary."""
+    import torch
+
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, args.threads))
-    say = Narrator()
-    gas: dict[str, list[int]] = {}
-
-    def spent(fn: str, g: int) -> None:
-        gas.setdefault(fn, []).append(int(g))
-
+    quiet = bool(getattr(args, "quiet", False))
+    demo = _Demo(args, out, repo_root(), Narrator(quiet=quiet), quiet)
     steps = args.steps or (40_960 if args.quick else 409_600)
     episodes = args.episodes or (5 if args.quick else 10)
-    count = 3
+    users = _register_users(demo)
+    shared = _share_experts(demo, users)
+    allocation = _request_experts(demo, users, shared)
+    training = _train(demo, allocation, steps)
+    settlement = _review_and_pay(demo, users, shared, allocation, training)
+    graph = _run_graph_phase(demo, training, episodes)
+    return _summarise(demo, allocation, training, settlement, graph)
 
-    # 1. ---------------------------------------------------------------- users register
+
+def _register_users(demo: _Demo) -> _Users:
+    from medc_registry.registry import Registry
+
+    say = demo.say
     say.step("1. Users register with the Users Manager Contract (embedded chain, local IPFS store)")
-    reg = Registry.embedded(str(out / "ipfs-store"))
+    reg = Registry.embedded(str(demo.out / "ipfs-store"))
     for name, g in reg.deployment.gas.items():
-        spent(f"deploy {name}", g)
+        demo.spent(f"deploy {name}", g)
     say.say(
         f"chain: {reg.chain.description}; UsersManager {reg.deployment.users}, "
         f"ModelsManager {reg.deployment.models}"
@@ -235,16 +325,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     users = {name: reg.as_user(i + 1) for i, name in enumerate(names)}
     for name, user in users.items():
         tx = user.register_user()
-        spent("addUser", tx.gas_used)
+        demo.spent("addUser", tx.gas_used)
         say.say(f"{name:18s} {user.address}  reputation {user.user().reputation:.2f}  gas {tx.gas_used:,}")
-    owners = [users[n] for n in names[:3]]
-    requester = users["requester"]
+    return _Users(reg, names, users)
 
-    # 2. ---------------------------------------------------------------- owners share experts
-    say.step("2. Owners share expert bundles: content store (CID) + Models Manager Contract")
-    expert_files = sorted((root / "models" / "experts").glob("*.safetensors"))
+
+def _share_experts(demo: _Demo, users: _Users) -> list[Any]:
+    from medc_training.bundle import read_manifest
+
+    demo.say.step("2. Owners share expert bundles: content store (CID) + Models Manager Contract")
+    expert_files = sorted((demo.root / "models" / "experts").glob("*.safetensors"))
     if not expert_files:
         raise RuntimeError("models/experts holds no bundles; regenerate them (see models/README.md)")
+    owners = users.owners
     shared = []
     for i, path in enumerate(expert_files):
         data = path.read_bytes()
@@ -260,23 +353,28 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             PRICE_WEI,
             description={"file": path.name, "arch": manifest["architecture"].get("name", "")},
         )
-        spent("addModel", owner.last_tx.gas_used)
+        demo.spent("addModel", owner.last_tx.gas_used)
         shared.append(model)
-        owner_name = names[owners.index(owner)]
-        say.say(
+        demo.say.say(
             f"model {model.model_id}: {path.name:22s} A{feats['agents']}W{feats['walls']}  "
-            f"{len(data) / 1024:6.0f} KiB  CID {model.cid}  by {owner_name}"
+            f"{len(data) / 1024:6.0f} KiB  CID {model.cid}  by {users.name_of(owner)}"
         )
+    return shared
 
-    # 3. ---------------------------------------------------------------- request, pay, fetch, verify
-    target = {"agents": 3, "walls": 2}
-    say.step(f"3. The requester (A{target['agents']}W{target['walls']}) requests {count} experts and pays")
-    before_rep = {m.model_id: m.reputation for m in shared}
-    before_owner_rep = {names[owners.index(o)]: o.user().reputation for o in owners}
-    ids, price = requester.quote(APPLICATION, target, count=count)
+
+def _request_experts(demo: _Demo, users: _Users, shared: list[Any]) -> _Allocation:
+    from medc_training.bundle import load_bundle
+    from medc_training.experts import BundleExpert
+    from medc_training.qos import selection_weights
+
+    say, requester, count = demo.say, users.requester, EXPERTS_REQUESTED
+    say.step(f"3. The requester (A{TARGET['agents']}W{TARGET['walls']}) requests {count} experts and pays")
+    model_rep_before = {m.model_id: m.reputation for m in shared}
+    owner_rep_before = {users.name_of(o): o.user().reputation for o in users.owners}
+    ids, price = requester.quote(APPLICATION, TARGET, count=count)
     say.say(f"quote: models {ids} for {_eth(price)}")
-    allocations = requester.request_models(APPLICATION, target, count=count, payment=price)
-    spent("allocateModels", requester.last_tx.gas_used)
+    allocations = requester.request_models(APPLICATION, TARGET, count=count, payment=price)
+    demo.spent("allocateModels", requester.last_tx.gas_used)
     say.say(f"{'alloc':>5} {'model':>5} {'env':>6} {'D_m':>5} {'QoS':>8} {'price':>12}  CID")
     experts, qos_values = [], []
     for a in allocations:
@@ -301,21 +399,31 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rep_products = [a.model.reputation * requester.user(a.owner).reputation for a in allocations]
     r_s = selection_weights(qos_values, rep_products)
     say.say("R_S (roulette-wheel slices) = " + ", ".join(f"{x:.2f}" for x in r_s))
+    return _Allocation(allocations, experts, qos_values, price, r_s, qos_order_ok, model_rep_before,
+                       owner_rep_before)
 
-    # 4. ---------------------------------------------------------------- train: MEDC vs sparse
+
+def _train(demo: _Demo, allocation: _Allocation, steps: int) -> _Training:
+    from medc_training.config import scaled_config
+    from medc_training.ppo import Trainer
+    from medc_training.runner import run_training
+
+    say, out, args = demo.say, demo.out, demo.args
     say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone")
     # The sparse baseline runs beside MEDC as its own `medc-train` process (one core each).
     results: dict[str, dict] = {}
     policy_paths = {m: out / m / "policy.safetensors" for m in ("medc", "sparse")}
-    cfg = scaled_config("cpu", agents=target["agents"], walls=target["walls"], method="medc",
+    cfg = scaled_config("cpu", agents=TARGET["agents"], walls=TARGET["walls"], method="medc",
                         total_steps=steps, seed=args.seed, torch_threads=1)
-    sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--agents", str(target["agents"]),
-                  "--walls", str(target["walls"]), "--method", "sparse", "--steps", str(steps),
-                  "--seed", str(args.seed), "--threads", "1", "--quiet", "--out", str(out / "sparse")]
+    sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--agents", str(TARGET["agents"]),
+                  "--walls", str(TARGET["walls"]), "--method", "sparse", "--steps", str(steps),
+                  "--seed", str(args.seed), "--threads", "1", "--quiet", "--overwrite",
+                  "--out", str(out / "sparse")]
     t = time.monotonic()
     with subprocess.Popen(sparse_cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as sparse:
-        trainer = Trainer(cfg, experts, expert_weights=r_s)
-        results["medc"] = run_training(trainer, cfg, out / "medc", progress=not args.no_progress)
+        trainer = Trainer(cfg, allocation.experts, expert_weights=allocation.r_s)
+        results["medc"] = run_training(trainer, cfg, out / "medc",
+                                       progress=not (args.no_progress or demo.quiet), overwrite=True)
         results["medc"]["wall_s"] = round(time.monotonic() - t, 1)
         sparse_out, sparse_err = sparse.communicate()
     if sparse.returncode != 0:
@@ -329,11 +437,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f"success {summary['final_success_rate']:.0%}, done after {summary['wall_s']:.0f} s"
         )
     scores = {m: learning_score_of(out / m / "metrics.csv") for m in ("medc", "sparse")}
-    medc_faster = scores["medc"] < scores["sparse"]
+    training = _Training(cfg, results, scores, policy_paths)
     say.say(
         f"learning score (mean greedy evaluation episode length over the run, lower = faster): MEDC "
-        f"{scores['medc']:.2f}, sparse {scores['sparse']:.2f}: MEDC learned "
-        f"{'faster' if medc_faster else 'no faster'} than sparse on this seed "
+        f"{training.scores['medc']:.2f}, sparse {training.scores['sparse']:.2f}: MEDC learned "
+        f"{'faster' if training.medc_faster else 'no faster'} than sparse on this seed "
         "(one seed: a measurement, not a verdict; the reproduction report has the multi-seed claims)"
     )
     curves_png(
@@ -345,91 +453,92 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         f"A3W2, grid {cfg.grid}: MEDC vs sparse, seed {args.seed}",
     )
     say.say(f"learning curves: {out / 'learning_curves.png'}")
+    return training
 
-    # 5. ---------------------------------------------------------------- reviews, reputations, payments
+
+def _review_and_pay(demo: _Demo, users: _Users, shared: list[Any], allocation: _Allocation,
+                    training: _Training) -> _Settlement:
+    say, requester, cfg = demo.say, users.requester, training.cfg
     say.step("5. The requester reviews the experts; reputations update; owners withdraw")
     reviews = []
-    for a, expert in zip(allocations, experts):
-        played = play_bundle(
-            expert.bundle,
-            target["agents"],
-            target["walls"],
-            cfg.grid,
-            cfg.max_steps,
-            episodes=32,
-            seed=args.seed + 99,
-        )
+    for a, expert in zip(allocation.allocations, allocation.experts):
+        played = play_bundle(expert.bundle, TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps,
+                             episodes=32, seed=demo.args.seed + 99)
         value = round(float(played["success_rate"]), 3)
         tx = requester.review(a.allocation_id, value)
-        spent("updateModelRep", tx.gas_used)
-        reviews.append(
-            {
-                "allocation": a.allocation_id,
-                "model": a.model_id,
-                "review": value,
-                "expert_success_on_A3W2": played["success_rate"],
-            }
-        )
+        demo.spent("updateModelRep", tx.gas_used)
+        reviews.append({"allocation": a.allocation_id, "model": a.model_id, "review": value,
+                        "expert_success_on_A3W2": played["success_rate"]})
         say.say(f"model {a.model_id}: success {played['success_rate']:.0%} on A3W2 -> review {value:.3f}")
     rep_table = []
     for m in shared:
-        after = reg.model(m.model_id)
-        rep_table.append({"model": m.model_id, "before": before_rep[m.model_id], "after": after.reputation})
+        after = users.reg.model(m.model_id)
+        rep_table.append({"model": m.model_id, "before": allocation.model_rep_before[m.model_id],
+                          "after": after.reputation})
     for row in rep_table:
         if row["before"] != row["after"]:
             say.say(f"model {row['model']} reputation {row['before']:.3f} -> {row['after']:.3f}")
-    owner_reps = []
-    payments = []
-    for o in owners:
-        name = names[owners.index(o)]
+    owner_reps, payments = [], []
+    for o in users.owners:
+        name = users.name_of(o)
         rep_after = o.user().reputation
-        owner_reps.append({"owner": name, "before": before_owner_rep[name], "after": rep_after})
+        owner_reps.append({"owner": name, "before": allocation.owner_rep_before[name], "after": rep_after})
         owed = o.owed()
         withdrawn = o.withdraw() if owed else 0
         if owed:
-            spent("withdraw", o.last_tx.gas_used)
+            demo.spent("withdraw", o.last_tx.gas_used)
         payments.append({"owner": name, "withdrawn_wei": withdrawn})
         say.say(
-            f"{name:18s} reputation {before_owner_rep[name]:.3f} -> {rep_after:.3f}; "
+            f"{name:18s} reputation {allocation.owner_rep_before[name]:.3f} -> {rep_after:.3f}; "
             f"withdrew {_eth(withdrawn)}"
         )
-    contract_balance = reg.chain.balance(reg.deployment.models)
+    contract_balance = users.reg.chain.balance(users.reg.deployment.models)
     say.say(f"Models Manager balance after withdrawals: {_eth(contract_balance)} (owed to nobody)")
+    return _Settlement(reviews, rep_table, owner_reps, payments, contract_balance)
 
-    # 6. ---------------------------------------------------------------- the ROS 2 graph
-    random_len = random_policy_length(
-        target["agents"], target["walls"], cfg.grid, cfg.max_steps, 200, seed=args.seed + 5
-    )
+
+def _run_graph_phase(demo: _Demo, training: _Training, episodes: int) -> _Graph:
+    say, args, cfg, root = demo.say, demo.args, training.cfg, demo.root
+    random_len = random_policy_length(TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps, 200,
+                                      seed=args.seed + 5)
     graph: dict[str, Any] = {"skipped": True}
     graph_team: dict[str, Any] = {"skipped": True}
     team_path = root / "models" / "team" / "A3W2.safetensors"
-    if not args.no_ros:
-        say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
-        graph = run_graph(policy_paths["medc"], target, cfg, episodes, args.seed, out)
-        graph["skipped"] = False
-        graph["beats_random"] = bool(graph["mean_length"] < random_len)
+    if args.no_ros:
+        return _Graph(random_len, graph, graph_team)
+    say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
+    graph = run_graph(training.policy_paths["medc"], TARGET, cfg, episodes, args.seed, demo.out,
+                      quiet=demo.quiet)
+    graph["skipped"] = False
+    graph["beats_random"] = bool(graph["mean_length"] < random_len)
+    say.say(
+        f"new policy: mean episode length {graph['mean_length']:.1f} (random moves: {random_len:.1f}); "
+        f"success {graph['success_rate']:.0%}: it "
+        f"{'beats' if graph['beats_random'] else 'does not beat'} random moves in the graph"
+    )
+    if team_path.is_file():
+        say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
+        graph_team = run_graph(team_path, TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet)
+        graph_team["skipped"] = False
         say.say(
-            f"new policy: mean episode length {graph['mean_length']:.1f} (random moves: {random_len:.1f}); "
-            f"success {graph['success_rate']:.0%}: it "
-            f"{'beats' if graph['beats_random'] else 'does not beat'} random moves in the graph"
+            f"shipped team: mean episode length {graph_team['mean_length']:.1f} "
+            f"(random moves: {random_len:.1f}); success {graph_team['success_rate']:.0%}"
         )
-        if team_path.is_file():
-            say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
-            graph_team = run_graph(team_path, target, cfg, episodes, args.seed, out)
-            graph_team["skipped"] = False
-            say.say(
-                f"shipped team: mean episode length {graph_team['mean_length']:.1f} "
-                f"(random moves: {random_len:.1f}); success {graph_team['success_rate']:.0%}"
-            )
+    return _Graph(random_len, graph, graph_team)
 
-    # 7. ---------------------------------------------------------------- summary and report
+
+def _summarise(demo: _Demo, allocation: _Allocation, training: _Training, settlement: _Settlement,
+               graph: _Graph) -> dict[str, Any]:
+    from medc_training.bundle import load_bundle
+
+    say, out, cfg = demo.say, demo.out, training.cfg
     say.step("7. Summary and report")
-    trained = load_bundle(policy_paths["medc"].read_bytes())
-    traj = trajectory_png(trained, cfg, args.seed + 7, out / "trajectory.png")
+    trained = load_bundle(training.policy_paths["medc"].read_bytes())
+    traj = trajectory_png(trained, cfg, demo.args.seed + 7, out / "trajectory.png")
     total_s = say.finish()
     summary = {
         "ok": True,
-        "quick": bool(args.quick),
+        "quick": bool(demo.args.quick),
         "seconds": round(total_s, 1),
         "out": str(out),
         "allocations": [
@@ -441,27 +550,27 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 "price_wei": a.price_wei,
                 "cid": a.cid,
             }
-            for a, q in zip(allocations, qos_values)
+            for a, q in zip(allocation.allocations, allocation.qos_values)
         ],
-        "qos_order_ok": qos_order_ok,
-        "paid_wei": price,
-        "payments": payments,
-        "models_manager_balance_wei": contract_balance,
-        "reviews": reviews,
-        "model_reputations": rep_table,
-        "owner_reputations": owner_reps,
+        "qos_order_ok": allocation.qos_order_ok,
+        "paid_wei": allocation.price,
+        "payments": settlement.payments,
+        "models_manager_balance_wei": settlement.contract_balance,
+        "reviews": settlement.reviews,
+        "model_reputations": settlement.model_reputations,
+        "owner_reputations": settlement.owner_reputations,
         "training": {
             m: {k: r[k] for k in ("steps", "final_episode_length", "final_success_rate", "wall_s")}
-            for m, r in results.items()
+            for m, r in training.results.items()
         },
-        "random_policy_episode_length": random_len,
-        "learning_scores": scores,
-        "medc_learned_faster_than_sparse": medc_faster,
-        "new_policy_beats_random_in_graph": graph.get("beats_random"),
-        "graph": _graph_summary(graph),
-        "graph_shipped_team": _graph_summary(graph_team),
+        "random_policy_episode_length": graph.random_len,
+        "learning_scores": training.scores,
+        "medc_learned_faster_than_sparse": training.medc_faster,
+        "new_policy_beats_random_in_graph": graph.graph.get("beats_random"),
+        "graph": _graph_summary(graph.graph),
+        "graph_shipped_team": _graph_summary(graph.shipped_team),
         "trajectory": traj,
-        "gas": {k: v for k, v in gas.items()},
+        "gas": dict(demo.gas),
         "timings_s": say.timings,
     }
     write_report(out, summary, cfg)
@@ -474,9 +583,10 @@ def _graph_summary(graph: dict) -> dict:
     return {k: graph[k] for k in keys if k in graph}
 
 
-def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path) -> dict:
+def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Path,
+              quiet: bool = False) -> dict:
     """Run ``medc-launch`` (simulator + one agent node per agent, each its own process) for
-    ``episodes`` episodes with ``policy``; its per-episode lines are shown live."""
+    ``episodes`` episodes with ``policy``; its per-episode lines are shown live (not ``quiet``)."""
     import subprocess
 
     import yaml
@@ -497,7 +607,7 @@ def run_graph(policy: Path, target: dict, cfg, episodes: int, seed: int, out: Pa
             tail = [*tail[-29:], line]
             if line.startswith("{"):
                 last_json = line
-            elif line.startswith("episode "):
+            elif line.startswith("episode ") and not quiet:
                 print(f"      {line}", flush=True)
         rc = proc.wait()
     if rc != 0 or last_json is None:
@@ -589,7 +699,10 @@ def write_report(out: Path, s: dict, cfg) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0])
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
+    p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=0)
@@ -597,7 +710,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars, the step lines stay (--quiet drops both)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     try:
         summary = run(args)

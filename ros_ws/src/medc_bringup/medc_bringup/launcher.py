@@ -10,6 +10,8 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
     medc-launch --sensing realistic --policy path/to/realistic_bundle.safetensors
     medc-launch --policy greedy --episodes 20  # a team of classical controllers (also gradient, infotaxis)
+    medc-launch --episodes 5 --record run.mcap # and record every topic (rosbag2's MCAP; medc-record)
+    medc-launch --foxglove                    # and watch it live in Foxglove: ws://127.0.0.1:8765
 
 A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
 file (e.g. the default ``models/team``) from the repository root.
@@ -54,6 +56,8 @@ class LaunchConfig:
     # (environment.sensing; a manifest without it: paper-simple).
     sensing: str | None = None
     mode: str = "stepped"
+    #: What ends an episode besides max_steps (medc_sim.episode_end): source, declaration, either.
+    end_on: str = "source"
     rate_hz: float = 0.0
     resolution: float = 1.0
     policy: str = "models/team"
@@ -103,6 +107,8 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
             )
     if cfg.mode not in ("stepped", "realtime"):
         raise ValueError(f"mode must be 'stepped' or 'realtime', got {cfg.mode!r}")
+    if cfg.end_on not in ("source", "declaration", "either"):
+        raise ValueError(f"end_on in {path} must be 'source', 'declaration' or 'either', got {cfg.end_on!r}")
     if cfg.sensing is not None:
         from medc_training.envs.tl_sensing import SENSING_PRESETS
 
@@ -258,6 +264,7 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
         # None (resolve_policies not called): the node's default.
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "mode": cfg.mode,
+        "end_on": cfg.end_on,
         "rate_hz": cfg.rate_hz,
         "resolution": cfg.resolution,
         "episodes": episodes,
@@ -276,6 +283,8 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "resolution": cfg.resolution,
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
         "noise": cfg.noise,
+        # Only a finding that ends the episode lets the team rule out the cells it stood on.
+        "source_ends_episode": cfg.end_on != "declaration",
         "policy": policy,
     }
 
@@ -322,13 +331,15 @@ class EpisodeLog:
 
 
 def build_graph(
-    cfg: LaunchConfig, policies: list[str], episodes: int = 0, record: bool = False, shared_feed: bool = True
+    cfg: LaunchConfig, policies: list[str], episodes: int = 0, record: bool = False, shared_feed: bool = True,
+    extra_listeners: int = 0,
 ):
     """The simulator node and one agent node per agent, for one process (rclpy initialised).
 
     ``record``: the simulator keeps every applied step in ``sim.core.trace``.
     ``shared_feed``: the agents take the team's messages from one TeamFeed node instead of each
     subscribing to all of them (same messages, same checks, N times fewer deliveries).
+    ``extra_listeners``: status subscribers of other processes (a recorder) the first step waits for.
     Returns ``(sim, agents, nodes)``, ``nodes`` = every node to spin (the feed included).
     """
     from medc_agents.node import AgentNode, TeamFeed
@@ -338,9 +349,9 @@ def build_graph(
     def overrides(params: dict[str, Any]) -> list[Parameter]:
         return [Parameter(k, value=v) for k, v in params.items()]
 
-    params = sim_parameters(cfg, episodes)
+    params = sim_parameters(cfg, episodes, extra_listeners)
     if shared_feed:
-        params["wait_for_subscribers"] = 1  # the feed listens for every agent
+        params["wait_for_subscribers"] = 1 + extra_listeners  # the feed listens for every agent
     sim = SimNode(parameter_overrides=overrides(params))
     sim.core.record = record
     feed = TeamFeed(cfg.namespace, cfg.agents) if shared_feed else None
@@ -354,7 +365,8 @@ def build_graph(
 
 
 def run_in_process(
-    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
+    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None,
+    extra_listeners: int = 0,
 ) -> bool:
     """Run the graph on one executor in this process; True if ``episodes`` finished (0 = until Ctrl-C).
 
@@ -363,7 +375,7 @@ def run_in_process(
     import rclpy
     from medc_common.executors import make_executor
 
-    sim, _, nodes = build_graph(cfg, policies, episodes)
+    sim, _, nodes = build_graph(cfg, policies, episodes, extra_listeners=extra_listeners)
     sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
     executor = make_executor()
     for node in nodes:
@@ -374,6 +386,12 @@ def run_in_process(
             executor.spin_once(timeout_sec=0.1)
             if deadline is not None and time.monotonic() > deadline:
                 return False
+        if sim.finished and extra_listeners:
+            # A reader in another process (the recorder) gets the last results only while their
+            # reliable writers live: linger as medc-sim does before the nodes go.
+            linger = time.monotonic() + 1.0
+            while rclpy.ok() and time.monotonic() < linger:
+                executor.spin_once(timeout_sec=0.05)
         return sim.finished
     finally:
         executor.shutdown()
@@ -402,7 +420,8 @@ def _stop(children: list[subprocess.Popen], grace_s: float = 5.0) -> None:
 
 
 def run_processes(
-    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None
+    cfg: LaunchConfig, policies: list[str], episodes: int, log: EpisodeLog, timeout_s: float | None = None,
+    extra_listeners: int = 0,
 ) -> bool:
     """Run every node as its own process; this process listens to the episode status.
 
@@ -426,7 +445,8 @@ def run_processes(
     )
     bindir = Path(sys.executable).parent
     env = _child_env()
-    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_parameters(cfg, episodes))]]
+    sim_params = sim_parameters(cfg, episodes, extra_listeners)
+    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params)]]
     commands += [
         [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
         for i, p in enumerate(policies)
@@ -479,7 +499,10 @@ def policy_from_cwd(policy: str | None, cwd: Path | None = None) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Console script ``medc-launch`` (see the module docstring)."""
-    parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0])
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
+    parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0],
+                                     formatter_class=HelpFormatter, epilog=epilog(__doc__))
     parser.add_argument("--config", help=f"launch YAML (default {DEFAULT_CONFIG})")
     parser.add_argument(
         "--episodes", type=int, default=0, help="run N episodes, then print a JSON line and exit"
@@ -491,7 +514,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
-    parser.add_argument("--quiet", action="store_true", help="no per-episode lines")
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    parser.add_argument("--record", metavar="FILE.mcap",
+                        help="record every topic of the team to this MCAP file (rosbag2 layout; medc-record)")
+    parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
+                        help="serve a live view to Foxglove on ws://127.0.0.1:PORT (default port 8765)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
@@ -506,14 +533,24 @@ def main(argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from medc_bringup.recorder import start_recorder, stop_recorder
+
     log = EpisodeLog(quiet=args.quiet)
+    try:
+        recorder = start_recorder(cfg, args.record, args.foxglove, quiet=args.quiet)
+    except ValueError as exc:
+        print(f"medc-launch: {exc}", file=sys.stderr)
+        return 2
+    recording: dict[str, Any] | None = None
+    recorder_failed = False
     rclpy.init(args=["medc-launch"])
     start = time.monotonic()
     ok = False
     interrupted = False
     run = run_in_process if args.in_process else run_processes
     try:
-        ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout)
+        ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout,
+                 extra_listeners=1 if recorder is not None else 0)
         # Ctrl-C either raises here or, when it lands while rclpy waits, makes rclpy's own
         # signal handler shut the context down so the run loop ends: both are an interruption.
         interrupted = not ok and not rclpy.ok()
@@ -521,6 +558,13 @@ def main(argv: list[str] | None = None) -> int:
         interrupted = True
     finally:
         rclpy.try_shutdown()
+        if recorder is not None:
+            recording = stop_recorder(recorder)
+            if recorder.returncode != 0 or recording is None:
+                # Its own error (a busy Foxglove port, an unwritable file) is on stderr already.
+                print(f"medc-launch: the recorder failed (exit status {recorder.returncode}); "
+                      "see its message above", file=sys.stderr)
+                recorder_failed = True
     if args.episodes or interrupted:
         print(
             json.dumps(
@@ -528,13 +572,15 @@ def main(argv: list[str] | None = None) -> int:
                     seed=cfg.seed,
                     agents=cfg.agents,
                     mode=cfg.mode,
+                    end_on=cfg.end_on,
                     in_process=args.in_process,
                     wall_s=round(time.monotonic() - start, 3),
                     config=asdict(cfg) | {"policies": policies},
+                    **({"recording": recording} if recorder is not None else {}),
                 )
             )
         )
-    if not ok and not interrupted:  # a node process failed, or --timeout ran out
+    if (not ok and not interrupted) or recorder_failed:  # a node failed, --timeout ran out, no recording
         return 1
     return 0
 

@@ -128,6 +128,33 @@ def results_topic(namespace: str) -> str:
     return f"{_ns(namespace)}/episode_result"
 
 
+def estimate_topic(namespace: str) -> str:
+    """geometry_msgs/PoseWithCovarianceStamped, ESTIMATE_QOS: the team's source estimate in the map
+    frame (posterior mean, covariance of the position), once per team step."""
+    return f"{_ns(namespace)}/team/source_estimate"
+
+
+def posterior_topic(namespace: str) -> str:
+    """nav_msgs/OccupancyGrid, LATCHED_QOS: the team's source posterior as a heat map on the walls
+    map's grid (100 = the most probable cell), at the publisher's ``estimate_map_rate_hz``."""
+    return f"{_ns(namespace)}/team/source_posterior"
+
+
+def declaration_topic(namespace: str) -> str:
+    """medc_interfaces/SourceDeclaration, RELIABLE_QOS: the team declares the source localised (once
+    per episode); a driver ends the episode on it."""
+    return f"{_ns(namespace)}/team/source_declared"
+
+
+#: The source estimate: reliable, keep last 5, volatile (a monitor wants the latest ones).
+ESTIMATE_QOS = QoSProfile(
+    depth=5,
+    reliability=ReliabilityPolicy.RELIABLE,
+    history=HistoryPolicy.KEEP_LAST,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+
 #: Topic of the agents' diagnostics (diagnostic_msgs/DiagnosticArray): the ROS convention's
 #: absolute ``/diagnostics``, so diagnostic aggregators and rqt_robot_monitor see it.
 DIAGNOSTICS_TOPIC = "/diagnostics"

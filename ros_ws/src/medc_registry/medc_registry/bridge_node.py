@@ -26,7 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from medc_common.ros_env import require_interfaces
-from medc_training.untrusted import printable
+from medc_training.untrusted import UntrustedJSONError, parse_json, printable
+
+#: Longest ``requirements_json`` / ``weights_json`` a service call may carry (8 features of a
+#: short name each fit in a few hundred characters).
+MAX_REQUEST_JSON_CHARS = 4096
 
 
 class BridgeError(ValueError):
@@ -45,12 +49,15 @@ class RegistryBridge:
 
     @staticmethod
     def _json_object(text: str, what: str) -> dict[str, Any] | None:
-        if not text.strip():
+        """``text`` (from a service call) as a JSON object, read by the same bounded reader as
+        bundle manifests (:func:`medc_training.untrusted.parse_json`): size, depth, numbers and
+        strings are bounded before the parser recurses, whatever the process's recursion limit."""
+        if not isinstance(text, str) or not text.strip():
             return None
         try:
-            value = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise BridgeError(f"{what} is not valid JSON: {exc}") from exc
+            value = parse_json(text, what, MAX_REQUEST_JSON_CHARS)
+        except UntrustedJSONError as exc:
+            raise BridgeError(str(exc)) from None
         if not isinstance(value, dict):
             raise BridgeError(
                 f"{what} must be a JSON object (feature name -> value), got {type(value).__name__}"
@@ -202,6 +209,19 @@ def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
     return namespace, connection, cache
 
 
+def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
+    """Fill a RequestExperts response with the allocations made."""
+    res.ok = True
+    res.message = f"{len(allocs)} expert(s) allocated"
+    res.allocation_ids = [int(a.allocation_id) for a in allocs]
+    res.model_ids = [int(a.model_id) for a in allocs]
+    res.cids = [a.cid for a in allocs]
+    res.qos = [float(a.qos) for a in allocs]
+    res.descriptions = [a.model.description for a in allocs]
+    res.price_wei = str(sum(int(a.price_wei) for a in allocs))
+    return res
+
+
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
     from medc_common import contract
@@ -259,18 +279,10 @@ def bridge_node_class():
                     req.min_owner_reputation,
                 )
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"request_experts refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"request_experts refused: {res.message}")
                 return res
-            res.ok = True
-            res.message = f"{len(allocs)} expert(s) allocated"
-            res.allocation_ids = [int(a.allocation_id) for a in allocs]
-            res.model_ids = [int(a.model_id) for a in allocs]
-            res.cids = [a.cid for a in allocs]
-            res.qos = [float(a.qos) for a in allocs]
-            res.descriptions = [a.model.description for a in allocs]
-            res.price_wei = str(sum(int(a.price_wei) for a in allocs))
-            return res
+            return _allocations_answer(res, allocs)
 
         def _on_fetch(self, req, res):
             try:
@@ -297,8 +309,8 @@ def bridge_node_class():
             try:
                 res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
             except BridgeError as exc:
-                res.ok, res.message = False, str(exc)
-                self.get_logger().warning(f"submit_review refused: {exc}")
+                res.ok, res.message = False, printable(str(exc), 2000)
+                self.get_logger().warning(f"submit_review refused: {res.message}")
                 return res
             res.ok, res.message = True, "review recorded"
             return res
@@ -307,7 +319,15 @@ def bridge_node_class():
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C."""
+    """Console script ``medc-bridge``: serve the registry to the graph until Ctrl-C; ``--help`` lists
+    its parameters and exits 0 without starting it."""
+    from medc_common.cli_help import print_node_help, wants_help
+
+    if wants_help(argv):
+        return print_node_help(
+            "medc-bridge", "The registry bridge node: the model registry's services (request_experts, "
+                           "fetch_bundle, submit_review) on the ROS graph.", ["medc_registry.bridge_node"],
+            "medc-bridge --ros-args -p chain:=embedded -p content:=/tmp/store")
     require_interfaces()
     from medc_common.executors import run_node
     from rclpy.executors import SingleThreadedExecutor

@@ -19,14 +19,17 @@ HTTP retries are switched off so they never nest inside the client's.
 from __future__ import annotations
 
 import ast
+import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+from urllib.parse import urlsplit
 
 from eth_abi import decode as abi_decode
 from eth_account import Account
 from eth_utils import keccak, to_checksum_address
+from medc_training.untrusted import json_depth, printable
 from web3 import Web3
 from web3.exceptions import TimeExhausted, TransactionNotFound
 
@@ -69,6 +72,7 @@ ERROR_HINTS = {
     "TooManyCandidates": "pass 1 to 256 candidates, positions in the application's Models List "
     "(Registry.request_models ranks larger applications page by page)",
     "InvalidCandidate": "candidates must be strictly increasing positions in the application's Models List",
+    "MalformedRevert": "the call reverted, but the node's revert data is truncated or malformed",
 }
 
 
@@ -124,7 +128,10 @@ def _revert_bytes(exc: BaseException) -> bytes | None:
     if isinstance(data, dict):
         data = data.get("data")
     if isinstance(data, str) and data.startswith("0x"):
-        return bytes.fromhex(data[2:])
+        try:
+            return bytes.fromhex(data[2:])
+        except ValueError:
+            return b"\xff" + data[2:].encode("ascii", "replace")[:1024]  # malformed: decodes as "Reverted"
     if isinstance(data, bytes | bytearray):
         return bytes(data)
     for arg in getattr(exc, "args", ()):
@@ -170,19 +177,39 @@ def decode_error_data(data: bytes) -> ContractRevert:
     global _ERRORS
     if _ERRORS is None:
         _ERRORS = _error_table()
-    if len(data) >= 4 and data[:4] in _ERRORS:
-        name, names, types = _ERRORS[data[:4]]
-        values = abi_decode(types, data[4:]) if types else ()
-        values = [
-            to_checksum_address(v) if t == "address" else "0x" + v.hex() if isinstance(v, bytes) else v
-            for t, v in zip(types, values)
-        ]
-        return ContractRevert(name, dict(zip(names, values)), "0x" + data.hex())
-    if data[:4] == bytes.fromhex("08c379a0"):  # Error(string)
-        return ContractRevert("Error", {"reason": abi_decode(["string"], data[4:])[0]}, "0x" + data.hex())
-    if data[:4] == bytes.fromhex("4e487b71"):  # Panic(uint256)
-        return ContractRevert("Panic", {"code": abi_decode(["uint256"], data[4:])[0]}, "0x" + data.hex())
-    return ContractRevert("Reverted", {"data": "0x" + data.hex()}, "0x" + data.hex())
+    try:
+        if len(data) >= 4 and data[:4] in _ERRORS:
+            name, names, types = _ERRORS[data[:4]]
+            values = abi_decode(types, data[4:]) if types else ()
+            values = [
+                to_checksum_address(v) if t == "address" else "0x" + v.hex() if isinstance(v, bytes) else v
+                for t, v in zip(types, values)
+            ]
+            return ContractRevert(name, dict(zip(names, values)), "0x" + data.hex())
+        if data[:4] == bytes.fromhex("08c379a0"):  # Error(string)
+            reason = printable(abi_decode(["string"], data[4:])[0], 500)
+            return ContractRevert("Error", {"reason": reason}, "0x" + data.hex())
+        if data[:4] == bytes.fromhex("4e487b71"):  # Panic(uint256)
+            return ContractRevert("Panic", {"code": abi_decode(["uint256"], data[4:])[0]}, "0x" + data.hex())
+    except Exception:  # eth_abi's InsufficientDataBytes, NonEmptyPaddingBytes, ...: truncated data
+        return ContractRevert("MalformedRevert", {"data": "0x" + data[:68].hex()}, "0x" + data.hex())
+    return ContractRevert("Reverted", {"data": "0x" + data[:68].hex()}, "0x" + data.hex())
+
+
+def _refusal(exc: BaseException, what: str) -> ChainError:
+    """The typed error for a node's answer that is neither a result nor a transient failure: the
+    :class:`ContractRevert` of a revert, :class:`MalformedAnswer` for a result that does not decode
+    (e.g. a short ``eth_call`` answer), else a :class:`ChainError` naming the node's reason."""
+    from eth_abi.exceptions import DecodingError
+    from web3.exceptions import BadFunctionCallOutput
+
+    revert = decode_revert(exc)
+    if revert is not None:
+        return revert
+    if isinstance(exc, BadFunctionCallOutput | DecodingError):
+        return MalformedAnswer(f"the node's answer to {what} does not decode as its result "
+                               f"({type(exc).__name__}: {printable(str(exc), 300)})")
+    return ChainError(f"the node refused {what} ({type(exc).__name__}): {printable(str(exc), 500)}")
 
 
 def _is_transient(exc: BaseException) -> bool:
@@ -222,16 +249,53 @@ class _Deadline:
             self.client._until = None
 
 
+#: Largest JSON-RPC answer read (a page of logs or a block is far smaller); refused past it.
+MAX_RPC_ANSWER_BYTES = 32 << 20
+#: Deepest nesting of a JSON-RPC answer parsed (web3's answers nest 5 levels or so).
+MAX_RPC_ANSWER_DEPTH = 64
+
+
+class MalformedAnswer(ChainError):
+    """The node's answer is too large, not JSON, or not what the call returns; never retried."""
+
+
 def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
-    """An HTTPProvider without web3's retries whose request timeout never outlasts the deadline."""
+    """An HTTPProvider without web3's retries whose every request, headers and body included,
+    ends within what is left of the client's deadline (or ``timeout``), and whose answers are
+    size-capped and depth-checked before parsing (:mod:`medc_registry.bounded_http`)."""
     from web3 import HTTPProvider
 
+    from . import bounded_http
+
+    parts = urlsplit(url)
+    target = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
+
     class DeadlineHTTPProvider(HTTPProvider):
-        def get_request_kwargs(self) -> dict[str, Any]:
-            kwargs = dict(super().get_request_kwargs())
+        def _make_request(self, method: str, request_data: bytes) -> bytes:
             left = client_ref[0].time_left() if client_ref else None
-            kwargs["timeout"] = timeout if left is None else max(0.05, min(timeout, left))
-            return kwargs
+            until = time.monotonic() + (timeout if left is None else max(0.05, min(timeout, left)))
+            headers = dict(self.get_request_headers())
+            try:
+                status, body = bounded_http.post(url, target, request_data, headers, until=until,
+                                                 timeout=timeout, max_body=MAX_RPC_ANSWER_BYTES,
+                                                 what=f"JSON-RPC {method}")
+            except bounded_http.BodyTooLarge as exc:
+                raise MalformedAnswer(str(exc)) from None
+            if status != 200:
+                raise ConnectionError(f"JSON-RPC {method}: the node at {url} answered HTTP {status}")
+            return body
+
+        def decode_rpc_response(self, raw: bytes) -> Any:
+            try:
+                text = raw.decode("utf-8")
+                if json_depth(text) > MAX_RPC_ANSWER_DEPTH:
+                    raise ValueError(f"nests deeper than {MAX_RPC_ANSWER_DEPTH} levels")
+                answer = json.loads(text)
+            except (ValueError, RecursionError) as exc:
+                raise MalformedAnswer(f"the node at {url} answered with malformed JSON ({exc})") from None
+            if not isinstance(answer, dict | list):
+                raise MalformedAnswer(f"the node at {url} answered with JSON that is not a JSON-RPC response")
+            return answer
 
     return DeadlineHTTPProvider(url, request_kwargs={"timeout": timeout}, exception_retry_configuration=None)
 
@@ -400,10 +464,7 @@ class ChainClient(RetryPolicy):
         except ChainError:
             raise
         except Exception as exc:
-            revert = decode_revert(exc)
-            if revert is not None:
-                raise revert from None
-            raise
+            raise _refusal(exc, "a contract call") from None
 
     def transact(self, fn: Any, sender: int | str = 0, value: int = 0, gas: int | None = None) -> TxResult:
         """Sign, send and wait for ``fn`` (a contract function or constructor call).
@@ -439,10 +500,7 @@ class ChainClient(RetryPolicy):
         except ChainError:
             raise
         except Exception as exc:
-            revert = decode_revert(exc)
-            if revert is not None:
-                raise revert from None
-            raise
+            raise _refusal(exc, "preparing a transaction") from None
         if "gas" not in params:
             # Estimation is exact for this state; headroom covers state that changes before mining.
             tx["gas"] = int(tx["gas"] * 1.25) + 20_000

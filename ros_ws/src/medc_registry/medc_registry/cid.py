@@ -351,6 +351,8 @@ def _cid_from_bytes(raw: bytes) -> Cid:
     length, pos = _read_varint(raw, pos)
     if version != 1 or codec not in (_DAG_PB, _RAW) or hash_code != _SHA2_256 or length != 32:
         raise CidError("link to an unsupported CID kind (only sha2-256 dag-pb/raw)")
+    if len(raw) != pos + 32:
+        raise CidError("link with a truncated or over-long hash")
     return Cid(1, codec, raw[pos : pos + 32])
 
 
@@ -399,7 +401,10 @@ def assemble(
             for num, value in _fields(block):
                 if num == 2 and isinstance(value, bytes):
                     link = dict(_fields(value))
-                    links.append(_cid_from_bytes(link[1]))
+                    target = link.get(1)
+                    if not isinstance(target, bytes):
+                        raise CidError(f"block {node.encode()} of {root.encode()} has a link without a hash")
+                    links.append(_cid_from_bytes(target))
                 elif num == 1 and isinstance(value, bytes):
                     data = value
             unixfs = dict(_fields(data)) if data else {}

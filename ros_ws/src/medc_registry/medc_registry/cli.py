@@ -27,13 +27,16 @@ import json
 import math
 import os
 import signal
+import stat
 import sys
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
 
+from medc_training.untrusted import printable
+
 from .chain import DEFAULT_DEADLINE, ChainClient, ChainError
-from .cid import compute_cid
+from .cid import MAX_CONTENT_BYTES, compute_cid
 from .content import ContentStoreError
 from .home import (
     HOME_DEADLINE,
@@ -44,7 +47,8 @@ from .home import (
     save_state,
     state_settings,
 )
-from .registry import Registry, deploy_contracts, format_eth
+from .journal import PendingLockTimeout, PendingRecordsError
+from .registry import Registry, check_share_text, deploy_contracts, format_eth
 
 #: Default total seconds for one chain call from the CLI (``--deadline``).
 CLI_DEADLINE = HOME_DEADLINE
@@ -67,6 +71,8 @@ def open_registry(args: argparse.Namespace) -> Registry:
 
 # ---------------------------------------------------------------- parsing helpers
 #: What an amount may be, for every message about one.
+#: Longest amount text read (digits beyond this are not an amount anyone means).
+MAX_AMOUNT_CHARS = 100
 AMOUNT_RULE = (
     "an amount is a finite, non-negative number of ETH with at most 18 decimals (e.g. 0.001) "
     "or a whole number of wei (e.g. 1000wei), below 2**128 wei"
@@ -74,8 +80,14 @@ AMOUNT_RULE = (
 
 
 def parse_eth(text: str, what: str = "amount") -> int:
-    """``"0.001"`` ETH (or ``"1000wei"``) -> wei; CliError saying what is allowed otherwise."""
+    """``"0.001"`` ETH (or ``"1000wei"``) -> wei; CliError saying what is allowed otherwise.
+
+    Exact whatever the exponent: ``1e999999999`` is too large and ``1e-999999999`` has more than
+    18 decimals, both refused before any arithmetic (no ``decimal.Overflow``, no silent 0).
+    """
     text = text.strip().lower()
+    if len(text) > MAX_AMOUNT_CHARS:
+        raise CliError(f"{what} is over {MAX_AMOUNT_CHARS} characters: {AMOUNT_RULE}")
     try:
         if text.endswith("wei"):
             value = int(text[:-3])
@@ -83,17 +95,62 @@ def parse_eth(text: str, what: str = "amount") -> int:
             amount = Decimal(text.removesuffix("eth"))
             if not amount.is_finite():
                 raise CliError(f"{what} {text!r} is not finite: {AMOUNT_RULE}")
-            value = amount * 10**18
-            if value != value.to_integral_value():
-                raise CliError(f"{what} {text!r} has more than 18 decimals: {AMOUNT_RULE}")
-            value = int(value)
+            if amount.is_signed() and amount != 0:
+                raise CliError(f"{what} {text!r} is negative: {AMOUNT_RULE}")
+            value = _wei(amount, what, text)
     except (InvalidOperation, ValueError):
-        raise CliError(f"{what} {text!r} is not an amount: {AMOUNT_RULE}") from None
+        raise CliError(f"{what} {printable(text, 60)!r} is not an amount: {AMOUNT_RULE}") from None
     if value < 0:
         raise CliError(f"{what} {text!r} is negative: {AMOUNT_RULE}")
     if value >= 2**128:
         raise CliError(f"{what} {text!r} is too large: {AMOUNT_RULE}")
     return value
+
+
+def _wei(amount: Decimal, what: str, text: str) -> int:
+    """A non-negative finite ETH amount in wei, exactly (integer arithmetic on its digits)."""
+    _sign, digits, exponent = amount.as_tuple()
+    number = int("".join(map(str, digits)) or "0")
+    if number == 0:
+        return 0
+    if amount.adjusted() > 21:  # 10**22 ETH is over 2**128 wei
+        raise CliError(f"{what} {text!r} is too large: {AMOUNT_RULE}")
+    if amount.adjusted() < -18:
+        raise CliError(f"{what} {text!r} has more than 18 decimals: {AMOUNT_RULE}")
+    shift = int(exponent) + 18  # bounded by the checks above and the number of digits
+    if shift >= 0:
+        return number * 10**shift
+    if number % 10**-shift:
+        raise CliError(f"{what} {text!r} has more than 18 decimals: {AMOUNT_RULE}")
+    return number // 10**-shift
+
+
+def read_model_file(path: str) -> bytes:
+    """The bytes of the model file ``path``: a regular file of at most the content limit, read
+    without blocking (a FIFO or a device such as ``/dev/zero`` is refused before any read)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError as exc:
+        raise CliError(f"cannot open {path}: {exc.strerror}") from None
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_CONTENT_BYTES:
+        os.close(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise CliError(f"{path} is not a regular file (a folder, FIFO or device): give the model file")
+        raise CliError(f"{path} is {info.st_size} bytes, over the {MAX_CONTENT_BYTES} byte content limit")
+    with os.fdopen(fd, "rb", buffering=0) as fh:
+        chunks, size = [], 0
+        while chunk := fh.read(1 << 20):
+            size += len(chunk)
+            if size > MAX_CONTENT_BYTES:
+                raise CliError(f"{path} grew past the {MAX_CONTENT_BYTES} byte content limit while read")
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _show(text: object, limit: int = 200) -> str:
+    """On-chain text (anyone's: application names, CIDs, feature names) safe for a terminal."""
+    return printable(str(text), limit)
 
 
 def parse_pairs(items: list[str] | None, kind: type, what: str) -> dict[str, Any]:
@@ -208,16 +265,16 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 
 def cmd_share(args: argparse.Namespace) -> int:
-    data = Path(args.file).read_bytes()
     env = parse_pairs(args.env, int, "--env")
     if not env:
         raise CliError("give the environment features, e.g. --env agents=3 --env walls=2")
-    parse_eth(args.price, "--price")  # refused before connecting
+    price = parse_eth(args.price, "--price")  # refused before connecting
+    check_share_text(args.application, args.description)
+    data = read_model_file(args.file)
     reg = open_registry(args)
-    price = parse_eth(args.price, "--price")
     m = reg.share_model(data, args.application, env, price, args.description, args.cid_version)
     print(
-        f"model {m.model_id} shared: CID {m.cid}, {args.application} {m.env_features}, "
+        f"model {m.model_id} shared: CID {_show(m.cid)}, {_show(m.application)} {_show(m.env_features)}, "
         f"price {format_eth(m.price_wei)}"
     )
     return 0
@@ -227,6 +284,7 @@ def cmd_request(args: argparse.Namespace) -> int:
     env = parse_pairs(args.env, int, "--env")
     weights = parse_pairs(args.weight, float, "--weight") or None
     payment = parse_eth(args.payment, "--payment") if args.payment else None
+    max_price = parse_eth(args.max_price, "--max-price") if args.max_price else None
     reg = open_registry(args)
     try:
         allocs = reg.request_models(
@@ -238,6 +296,7 @@ def cmd_request(args: argparse.Namespace) -> int:
             args.min_owner_rep,
             payment,
             args.request_id,
+            max_price,
         )
     except ChainError as exc:
         raise CliError(str(exc)) from None
@@ -253,7 +312,8 @@ def cmd_request(args: argparse.Namespace) -> int:
     for a in allocs:
         print(
             f"{a.allocation_id:>5}  {a.model_id:>5}  {_qos(a.qos):>17}  {a.distance:>6.3f}  "
-            f"{format_eth(a.price_wei):>12}  {a.model.reputation:>5.2f}  {a.model.env_features} {a.cid}"
+            f"{format_eth(a.price_wei):>12}  {a.model.reputation:>5.2f}  {_show(a.model.env_features)} "
+            f"{_show(a.cid)}"
         )
     others = reg.pending_requests()
     if others:
@@ -275,6 +335,10 @@ def cmd_fetch(args: argparse.Namespace) -> int:
 
 
 def cmd_review(args: argparse.Namespace) -> int:
+    if not 0 <= args.allocation_id < 2**256:
+        raise CliError(f"allocation id {args.allocation_id} is not one: ids are 0 to 2**256 - 1")
+    if not (math.isfinite(args.value) and 0.0 <= args.value <= 1.0):
+        raise CliError(f"review {args.value} is not in [0, 1]")
     reg = open_registry(args)
     reg.review(args.allocation_id, args.value)
     _, model_id, _ = reg.allocation(args.allocation_id)
@@ -311,14 +375,14 @@ def cmd_models(args: argparse.Namespace) -> int:
     reg = open_registry(args)
     for m in reg.list_models(args.application):
         print(
-            f"{m.model_id:>4}  {m.application}  {m.env_features}  rep {m.reputation:.3f} "
-            f"({m.alloc_count} alloc)  {format_eth(m.price_wei)}  owner {m.owner}  {m.cid}"
+            f"{m.model_id:>4}  {_show(m.application)}  {_show(m.env_features)}  rep {m.reputation:.3f} "
+            f"({m.alloc_count} alloc)  {format_eth(m.price_wei)}  owner {m.owner}  {_show(m.cid)}"
         )
     return 0
 
 
 def cmd_cid(args: argparse.Namespace) -> int:
-    print(compute_cid(Path(args.file).read_bytes(), args.cid_version))
+    print(compute_cid(read_model_file(args.file), args.cid_version))
     return 0
 
 
@@ -378,6 +442,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--min-owner-rep", type=float, default=0.0)
     sp.add_argument("--payment", help="amount to send (default: the exact price); excess is refundable")
     sp.add_argument(
+        "--max-price",
+        help="the most one model may cost, in ETH or NNNwei (default: the account's balance); "
+        "dearer models are passed over",
+    )
+    sp.add_argument(
         "--request-id",
         help="idempotency key (0x + 64 hex, or any text); default: a new one, recorded in the home "
         "with the signed payment before it is sent, so re-running the same request never pays twice",
@@ -404,7 +473,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, RegistryHomeError, ChainError, ContentStoreError, ValueError, OSError) as exc:
+    except (CliError, RegistryHomeError, ChainError, ContentStoreError, PendingRecordsError,
+            PendingLockTimeout, ValueError, OSError) as exc:
         print(f"medc-registry {args.command}: {exc}", file=sys.stderr)
         return 2
 

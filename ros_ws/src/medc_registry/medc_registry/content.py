@@ -14,6 +14,7 @@ more than one chunk in memory besides the result); CID texts are length-capped b
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import os
 import shutil
@@ -24,8 +25,9 @@ from pathlib import Path
 from typing import IO, Protocol
 from urllib.parse import urlencode, urlsplit
 
-import httpx
+from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 
+from . import bounded_http
 from .cid import (
     MAX_BLOCK_BYTES,
     MAX_CONTENT_BYTES,
@@ -42,6 +44,8 @@ from .cid import (
 
 #: Total seconds one Kubo fetch may take (``cat``, and block by block reading if needed).
 FETCH_DEADLINE = 300.0
+#: Largest answer read from a Kubo node other than content (``add``, ``version``, pins, errors).
+MAX_ANSWER_BYTES = 1 << 20
 #: Bytes of a fetch kept in memory before the temporary file spills to disk.
 _SPOOL_BYTES = 8 << 20
 
@@ -109,13 +113,30 @@ def _deliver(spool: IO[bytes], path: str | os.PathLike[str] | None) -> bytes | i
     spool.seek(0)
     if path is None:
         return spool.read()
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=target.parent or ".", prefix=".medc-fetch-")
-    with os.fdopen(fd, "wb") as fh:
-        shutil.copyfileobj(spool, fh, 1 << 20)
-        size = fh.tell()
-    os.replace(tmp, target)
+    target = _check_target(path)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".medc-fetch-")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            shutil.copyfileobj(spool, fh, 1 << 20)
+            size = fh.tell()
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)  # never leave the verified bytes behind in a temporary file
+        raise
     return size
+
+
+def _check_target(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a file to write, refused (before anything is fetched) when it is a folder or
+    its folder does not exist."""
+    target = Path(path)
+    if target.is_dir():
+        raise ContentStoreError(f"{target} is a folder: give the file to write, e.g. {target / 'model.bin'}")
+    parent = target.parent
+    if not parent.is_dir():
+        raise ContentStoreError(f"cannot write {target}: the folder {parent} does not exist")
+    return target
 
 
 def _parsed(cid: str) -> str:
@@ -166,6 +187,7 @@ class LocalContentStore:
 
     def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
         """Write the verified bytes of ``cid`` to ``path`` (atomically); returns their size."""
+        _check_target(path)
         return self._fetch(cid, path)  # type: ignore[return-value]
 
     def _fetch(self, cid: str, path: str | os.PathLike[str] | None) -> bytes | int:
@@ -193,9 +215,12 @@ class LocalContentStore:
 class KuboContentStore:
     """A Kubo-compatible RPC endpoint (``http://127.0.0.1:5001``): add, cat, pin.
 
-    ``timeout`` bounds every request and every read; it matters for ``cat`` of a CID no peer has,
-    which an IPFS node otherwise waits on forever. A fetch also has one total ``deadline`` and
-    reads at most ``max_size`` bytes.
+    Every request has one total deadline, status line and headers included (a node that drips
+    header bytes is cut off like one that drips the body; :mod:`medc_registry.bounded_http`):
+    ``deadline`` for a fetch (``cat``, and block by block reading if needed), for ``add`` and for
+    ``pin``, ``timeout`` for the small queries; ``timeout`` also bounds every single read, which
+    matters for ``cat`` of a CID no peer has. A fetch reads at most ``max_size`` bytes, and every
+    other answer at most :data:`MAX_ANSWER_BYTES`.
     """
 
     def __init__(
@@ -205,35 +230,74 @@ class KuboContentStore:
         deadline: float = FETCH_DEADLINE,
         max_size: int = MAX_CONTENT_BYTES,
     ) -> None:
+        if not api_url.startswith(("http://", "https://")):
+            raise ValueError(f"IPFS API URL must start with http:// or https://, got {api_url!r}")
         self.api_url = api_url.rstrip("/")
         self.timeout = timeout
         self.deadline = deadline
         self.max_size = max_size
-        self._http = httpx.Client(base_url=self.api_url + "/api/v0", timeout=timeout)
 
     def __repr__(self) -> str:
         return f"KuboContentStore({self.api_url!r})"
 
     def close(self) -> None:
-        """Close the HTTP connection pool."""
-        self._http.close()
+        """Nothing to close: every request has its own connection (kept for callers)."""
 
-    def _post(self, path: str, **kwargs) -> httpx.Response:
+    def _target(self, path: str, params: dict[str, str]) -> str:
+        base = urlsplit(self.api_url).path.rstrip("/")
+        return f"{base}/api/v0{path}" + (f"?{urlencode(params)}" if params else "")
+
+    def _post(
+        self,
+        path: str,
+        params: dict[str, str] | None = None,
+        body: bytes = b"",
+        content_type: str | None = None,
+        total: float | None = None,
+    ) -> bytes:
+        """The body of one RPC answer (at most :data:`MAX_ANSWER_BYTES`, all of it within
+        ``total`` seconds, default ``timeout``); ContentStoreError (ContentNotFoundError when the
+        node did not answer in time) otherwise."""
+        total = self.timeout if total is None else total
+        headers = {"Content-Type": content_type} if content_type else {}
         try:
-            resp = self._http.post(path, **kwargs)
-        except httpx.TimeoutException:
+            status, answer = bounded_http.post(
+                self.api_url, self._target(path, params or {}), body, headers,
+                until=time.monotonic() + total, timeout=self.timeout, max_body=MAX_ANSWER_BYTES,
+                what=f"IPFS {path}",
+            )
+        except (TimeoutError, bounded_http.DeadlineExceeded):
             raise ContentNotFoundError(
-                f"IPFS node at {self.api_url} did not answer {path} within {self.timeout} s"
+                f"IPFS node at {self.api_url} did not answer {path} in full within {total:g} s"
             ) from None
-        except httpx.HTTPError as exc:
+        except bounded_http.BodyTooLarge as exc:
+            raise ContentStoreError(f"IPFS node at {self.api_url}: {exc}") from None
+        except (OSError, http.client.HTTPException) as exc:
             raise ContentStoreError(f"IPFS node at {self.api_url} unreachable: {exc}") from None
-        if resp.status_code != 200:
-            raise ContentStoreError(f"IPFS {path} failed ({resp.status_code}): {resp.text.strip()[:300]}")
-        return resp
+        if status != 200:
+            text = printable(answer[:300].decode("utf-8", "replace").strip(), 300)
+            raise ContentStoreError(f"IPFS {path} failed ({status}): {text}")
+        return answer
+
+    def _json(self, path: str, answer: bytes) -> dict:
+        """The last JSON object line of an RPC answer (``add`` streams one line per entry)."""
+        lines = [line for line in answer.splitlines() if line.strip()]
+        if not lines:
+            raise ContentStoreError(f"IPFS {path} at {self.api_url} answered nothing; expected JSON")
+        try:
+            value = parse_json(lines[-1].decode("utf-8"), f"the IPFS {path} answer", MAX_ANSWER_BYTES)
+        except (UnicodeDecodeError, UntrustedJSONError) as exc:
+            raise ContentStoreError(f"IPFS {path} at {self.api_url}: malformed answer ({exc})") from None
+        if not isinstance(value, dict):
+            raise ContentStoreError(f"IPFS {path} at {self.api_url}: the answer is not a JSON object")
+        return value
 
     def version(self) -> str:
         """The node's version string."""
-        return self._post("/version").json()["Version"]
+        version = self._json("/version", self._post("/version")).get("Version")
+        if not isinstance(version, str):
+            raise ContentStoreError(f"IPFS /version at {self.api_url}: the answer names no version")
+        return printable(version, 100)
 
     def add(self, data: bytes, cid_version: int = 0) -> str:
         """``ipfs add`` (pinned); checks the node's CID equals the locally computed one."""
@@ -242,14 +306,23 @@ class KuboContentStore:
         params = {"cid-version": str(cid_version), "pin": "true", "quieter": "true"}
         if cid_version == 1:
             params["cid-base"] = "base32"
-        resp = self._post("/add", params=params, files={"file": ("model.bin", bytes(data))})
-        lines = [line for line in resp.text.splitlines() if line.strip()]
-        cid = httpx.Response(200, content=lines[-1]).json()["Hash"]
+        boundary = "medc-" + os.urandom(12).hex()
+        body = b"".join((
+            f"--{boundary}\r\n".encode(),
+            b'Content-Disposition: form-data; name="file"; filename="model.bin"\r\n',
+            b"Content-Type: application/octet-stream\r\n\r\n",
+            bytes(data),
+            f"\r\n--{boundary}--\r\n".encode(),
+        ))
+        answer = self._post("/add", params, body, f"multipart/form-data; boundary={boundary}", self.deadline)
+        cid = self._json("/add", answer).get("Hash")
+        if not isinstance(cid, str):
+            raise ContentStoreError(f"IPFS /add at {self.api_url}: the answer names no CID (no \"Hash\")")
         expected = compute_cid(bytes(data), cid_version)
         if cid != expected:
             raise ContentStoreError(
-                f"IPFS node returned CID {cid} but the Kubo default layout gives {expected}; "
-                "the node must use Kubo's defaults (262144-byte chunks, balanced DAG)"
+                f"IPFS node returned CID {printable(cid, 130)} but the Kubo default layout gives "
+                f"{expected}; the node must use Kubo's defaults (262144-byte chunks, balanced DAG)"
             )
         return cid
 
@@ -265,6 +338,7 @@ class KuboContentStore:
 
     def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
         """Write the verified bytes of ``cid`` to ``path`` (atomically); returns their size."""
+        _check_target(path)
         return self._fetch(cid, path)  # type: ignore[return-value]
 
     def _fetch(self, cid: str, path: str | os.PathLike[str] | None) -> bytes | int:
@@ -299,50 +373,38 @@ class KuboContentStore:
     ) -> Iterator[bytes]:
         """POST ``/api/v0{path}`` and yield the body, at most ``limit`` bytes, before ``until``.
 
-        Each socket operation waits at most ``timeout`` and never past ``until``, and the
-        deadline is checked after every read, so neither a silent nor a dripping node holds a
-        fetch past its deadline.
+        Every receive, from the status line on, waits at most ``timeout`` and never past
+        ``until`` (:mod:`medc_registry.bounded_http`), so neither a silent node nor one that
+        drips header or body bytes holds a fetch past its deadline.
         """
-        url = urlsplit(self.api_url)
         received = 0
 
-        def left() -> float:
-            remaining = until - time.monotonic()
-            if remaining <= 0:
-                raise ContentNotFoundError(
-                    f"IPFS node at {self.api_url} did not deliver {cid} within the {self.deadline:g} s "
-                    f"fetch deadline ({received} bytes received)"
-                )
-            return min(self.timeout, remaining)
+        def late() -> ContentNotFoundError:
+            return ContentNotFoundError(
+                f"IPFS node at {self.api_url} did not deliver {cid} within the {self.deadline:g} s "
+                f"fetch deadline ({received} bytes received)"
+            )
 
-        conn = http.client.HTTPConnection(url.hostname or "127.0.0.1", url.port or 80, timeout=left())
+        left = bounded_http.deadline_clock(until, self.timeout, late)
         try:
-            conn.request("POST", f"{url.path.rstrip('/')}/api/v0{path}?{urlencode(params)}")
-            sock = conn.sock  # getresponse() drops conn.sock for a body that ends at close
-            resp = conn.getresponse()
-            if resp.status != 200:
-                text = resp.read(300).decode("utf-8", "replace").strip()
-                if "not found" in text.lower():
-                    raise ContentNotFoundError(f"IPFS {path} {cid}: {text}")
-                raise ContentStoreError(f"IPFS {path} failed ({resp.status}): {text}")
-            for header in ("X-Content-Length", "Content-Length"):
-                declared = resp.getheader(header)
-                if declared and declared.isdigit() and int(declared) > limit:
-                    raise _too_large(
-                        cid, int(declared), limit, "refused before reading (declared by the node)"
-                    )
-            while True:
-                wait = left()
-                if sock is not None:
-                    sock.settimeout(wait)
-                chunk = resp.read1(1 << 16)
-                if not chunk:
-                    left()  # a body that ended at the deadline is still late
-                    return
-                received += len(chunk)
-                if received > limit:
-                    raise _too_large(cid, received, limit, "refused while streaming")
-                yield chunk
+            with bounded_http.open_post(self.api_url, self._target(path, params), b"", {}, left) as resp:
+                if resp.status != 200:
+                    text = printable(resp.read(300).decode("utf-8", "replace").strip(), 300)
+                    if "not found" in text.lower():
+                        raise ContentNotFoundError(f"IPFS {path} {cid}: {text}")
+                    raise ContentStoreError(f"IPFS {path} failed ({resp.status}): {text}")
+                declared = bounded_http.declared_length(resp)
+                if declared is not None and declared > limit:
+                    raise _too_large(cid, declared, limit, "refused before reading (declared by the node)")
+                while True:
+                    chunk = resp.read1(1 << 16)
+                    if not chunk:
+                        left()  # a body that ended at the deadline is still late
+                        return
+                    received += len(chunk)
+                    if received > limit:
+                        raise _too_large(cid, received, limit, "refused while streaming")
+                    yield chunk
         except TimeoutError:
             left()
             raise ContentNotFoundError(
@@ -350,17 +412,15 @@ class KuboContentStore:
             ) from None
         except (OSError, http.client.HTTPException) as exc:
             raise ContentStoreError(f"IPFS node at {self.api_url} unreachable: {exc}") from None
-        finally:
-            conn.close()
 
     def pin(self, cid: str) -> None:
         """``ipfs pin add``."""
-        self._post("/pin/add", params={"arg": _parsed(cid)})
+        self._post("/pin/add", {"arg": _parsed(cid)}, total=self.deadline)
 
     def has(self, cid: str) -> bool:
         """Whether the node holds the root block of ``cid`` locally (offline check)."""
         try:
-            self._post("/block/stat", params={"arg": _parsed(cid), "offline": "true"})
+            self._post("/block/stat", {"arg": _parsed(cid), "offline": "true"})
         except ContentStoreError:
             return False
         return True

@@ -9,16 +9,20 @@ the contract can only pay once.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import math
 import os
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from medc_training.qos import from_fixed, is_exact
+from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
@@ -26,31 +30,132 @@ from .ranker import Ranker
 from .records import Allocation, SharedModel
 from .request import ModelRequest, request_id_from
 
+#: Most seconds a request waits for another run's request on the same pending file to finish.
+LOCK_WAIT = 600.0
+#: Seconds a confirmed request's record is kept (see PendingRequests.finish).
+DONE_KEEP = 3600.0
+#: Largest pending-requests file read (a record is a few KB; a home holds a handful).
+MAX_PENDING_CHARS = 16 << 20
+_HEX = set("0123456789abcdef")
+
+
+class PendingRecordsError(RuntimeError):
+    """The pending-requests file cannot be read as records; the message says what to do."""
+
+
+class PendingLockTimeout(RuntimeError):
+    """Another run's request on the same pending file did not finish within the wait."""
+
+
+def _is_hex(text: Any, digits: int | None = None) -> bool:
+    return (isinstance(text, str) and text.startswith("0x") and set(text[2:].lower()) <= _HEX
+            and (digits is None or len(text) == 2 + digits))
+
+
+def _record_problem(key: Any, record: Any) -> str | None:
+    """Why ``record`` (under ``key``) is not a pending record, or None when it is one."""
+    if not isinstance(key, str) or not isinstance(record, dict):
+        return "an entry is not a record (an object under an account:request-id key)"
+    if not _is_hex(record.get("request_id"), 64):
+        return f"record {printable(key, 140)!r} has no request_id of 0x + 64 hex digits"
+    if not isinstance(record.get("account"), str) or not isinstance(record.get("fingerprint"), str):
+        return f"record {printable(key, 140)!r} lacks its account or fingerprint"
+    if "done" in record:
+        if not isinstance(record["done"], int | float) or isinstance(record["done"], bool):
+            return f"record {printable(key, 140)!r} has a done time that is not a number"
+        return None  # confirmed
+    if "tx_hash" not in record:
+        return None  # recorded before signing: nothing was sent
+    ints_ok = all(isinstance(record.get(k), int) and not isinstance(record.get(k), bool)
+                  and record[k] >= 0 for k in ("value", "nonce"))
+    if not (_is_hex(record["tx_hash"], 64) and _is_hex(record.get("raw")) and ints_ok
+            and isinstance(record.get("args"), list) and len(record["args"]) == 7):
+        return (f"record {printable(key, 140)!r} of a sent transaction lacks a valid tx_hash, raw, "
+                "nonce, value or args")
+    return None
+
 
 class PendingRequests:
     """Paid requests sent but not yet confirmed: one JSON file (``path``), or memory (``None``).
 
-    A record is written (and fsynced) *before* its transaction is sent, with the request id, the
-    signed transaction and its hash, so a run that lost the node's answer can be resolved by the
-    next one instead of paying again.
+    A record is written (and fsynced) *first*, under :meth:`lock`, before the request is ranked,
+    signed or sent: then with the signed transaction and its hash before it is sent, so a run that
+    lost the node's answer, or a second run started while the first was still waiting on a slow
+    node, resolves that same request instead of paying again.
     """
 
-    def __init__(self, path: str | os.PathLike[str] | None = None) -> None:
+    def __init__(self, path: str | os.PathLike[str] | None = None, lock_wait: float = LOCK_WAIT) -> None:
         self.path = Path(path) if path is not None else None
+        self.lock_wait = lock_wait
         self._memory: dict[str, dict[str, Any]] = {}
+        self._thread_lock = threading.Lock()
 
     def __repr__(self) -> str:
         return f"PendingRequests({str(self.path) if self.path else 'in memory'})"
 
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the pending file's lock (one request at a time per file, across processes: an
+        advisory ``flock`` on ``<path>.lock``, released by the kernel if the holder dies); waits at
+        most :attr:`lock_wait` seconds for another run's request to finish."""
+        until = time.monotonic() + self.lock_wait
+        if not self._thread_lock.acquire(timeout=self.lock_wait):
+            raise PendingLockTimeout(self._busy())
+        try:
+            if self.path is None:
+                yield
+                return
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path.with_name(self.path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                while True:
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                        break
+                    except BlockingIOError:
+                        if time.monotonic() >= until:
+                            raise PendingLockTimeout(self._busy()) from None
+                        time.sleep(0.05)
+                yield
+            finally:
+                os.close(fd)  # releases the flock
+        finally:
+            self._thread_lock.release()
+
+    def _busy(self) -> str:
+        return (f"another request on {self.path or 'this registry'} has been running for over "
+                f"{self.lock_wait:g} s; wait for it to finish, then run the same request again "
+                "(it resolves the other run's payment instead of paying twice)")
+
     def load(self) -> dict[str, dict[str, Any]]:
-        """All records, keyed ``account:request_id``."""
+        """All records, keyed ``account:request_id`` (PendingRecordsError for a file that is not
+        a valid record file, e.g. edited by hand: it may hold an unconfirmed payment, so it is
+        never ignored)."""
         if self.path is None:
             return dict(self._memory)
         if not self.path.is_file():
             return {}
-        return json.loads(self.path.read_text())
+        fix = ("it may record a payment that is not confirmed yet: restore it, or move it aside only "
+               "when no request of this home is unconfirmed")
+        try:
+            with open(self.path, encoding="utf-8") as fh:
+                text = fh.read(MAX_PENDING_CHARS + 1)
+            records = parse_json(text, str(self.path), MAX_PENDING_CHARS, max_string=MAX_PENDING_CHARS)
+        except (OSError, UnicodeDecodeError, UntrustedJSONError) as exc:
+            raise PendingRecordsError(f"cannot read {self.path}: {exc}; {fix}") from None
+        if not isinstance(records, dict):
+            raise PendingRecordsError(
+                f"{self.path} must hold a JSON object of records, not {type(records).__name__}; {fix}"
+            )
+        for key, record in records.items():
+            problem = _record_problem(key, record)
+            if problem is not None:
+                raise PendingRecordsError(f"{self.path}: {problem}; {fix}")
+        return records
 
     def _save(self, records: dict[str, dict[str, Any]]) -> None:
+        now = time.time()
+        records = {k: r for k, r in records.items() if not now - r.get("done", now) > DONE_KEEP}
         if self.path is None:
             self._memory = records
             return
@@ -78,18 +183,44 @@ class PendingRequests:
         if records.pop(self._key(record), None) is not None:
             self._save(records)
 
+    def finish(self, record: dict[str, Any]) -> None:
+        """Mark a request confirmed: its record keeps only its id, fingerprint and the time, for
+        :data:`DONE_KEEP` seconds, so an identical request that waited for the lock meanwhile is
+        known to be this one (:meth:`done_since`)."""
+        records = self.load()
+        records[self._key(record)] = {
+            "request_id": record["request_id"],
+            "account": record["account"],
+            "fingerprint": record["fingerprint"],
+            "created": record.get("created", 0),
+            "done": time.time(),
+        }
+        self._save(records)
+
+    def done_since(self, account: str, fingerprint: str, since: float) -> dict[str, Any] | None:
+        """``account``'s request with this fingerprint confirmed at or after ``since``, if any."""
+        for record in self.load().values():
+            if (record["account"] == account and record["fingerprint"] == fingerprint
+                    and isinstance(record.get("done"), int | float) and record["done"] >= since):
+                return record
+        return None
+
     def find(
         self, account: str, fingerprint: str | None = None, request_id: str | None = None
     ) -> dict[str, Any] | None:
-        """``account``'s pending record with that request id, or else for the same request, if any."""
+        """``account``'s pending record with that request id, or else for the same request, if any
+        (a record of a sent transaction before one recorded only; confirmed ones are not pending)."""
+        found = None
         for record in self.load().values():
-            if record["account"] != account:
+            if record["account"] != account or "done" in record:
                 continue
-            if request_id is not None and record["request_id"] == request_id:
-                return record
-            if request_id is None and record["fingerprint"] == fingerprint:
-                return record
-        return None
+            if (request_id is not None and record["request_id"] == request_id) or (
+                request_id is None and record["fingerprint"] == fingerprint
+            ):
+                if "tx_hash" in record:
+                    return record
+                found = found or record
+        return found
 
 
 class PaidRequests:
@@ -115,41 +246,71 @@ class PaidRequests:
         self.last_tx: TxResult | None = None
 
     def pay(
-        self, request: ModelRequest, payment: int | None, request_id: str | bytes | None
+        self,
+        request: ModelRequest,
+        payment: int | None,
+        request_id: str | bytes | None,
+        max_price: int | None = None,
     ) -> list[Allocation]:
-        """Request ``request``'s models and pay for them, exactly once (see Registry.request_models)."""
+        """Request ``request``'s models and pay for them, exactly once (see Registry.request_models).
+
+        Under the pending file's lock, a record of the request (its id and fingerprint) is written
+        before anything else, so a second run of the same request, started while this one waits
+        on a slow node or after it was killed, finds it and resolves the same request id.
+        """
         if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
             raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
         fingerprint = hashlib.sha256(
-            json.dumps([self.account, request.args(), payment], sort_keys=True).encode()
+            json.dumps([self.account, request.args(), payment, max_price], sort_keys=True).encode()
         ).hexdigest()
         rid = request_id_from(request_id) if request_id is not None else None
-        record = self.pending.find(self.account, fingerprint, "0x" + rid.hex() if rid else None)
-        if record is not None:
-            return self._resolve(record)
-        rid = rid or request_id_from(None)
-        paid = self.paid(rid)
-        if paid is not None:
-            return paid
-        ranking = Ranker(self.chain, self.models, self.account).rank(request)
-        if payment is None:
-            payment = ranking.price_wei
-        args = [*request.args(), ranking.positions]
-        fn = self.models.functions.allocateModels(rid, *args)
-        signed = self.chain.sign(fn, self.account, payment)
-        record = {
-            "request_id": "0x" + rid.hex(),
-            "account": self.account,
-            "fingerprint": fingerprint,
-            "args": args,
-            "value": payment,
-            "tx_hash": signed.tx_hash,
-            "raw": "0x" + signed.raw.hex(),
-            "nonce": signed.nonce,
-            "created": time.time(),
-        }
-        self.pending.put(record)  # before sending: a lost answer is resolved by the next call
-        return self._send(record, fn, signed.raw)
+        started = time.time()
+        with self.pending.lock():
+            record = self.pending.find(self.account, fingerprint, "0x" + rid.hex() if rid else None)
+            if record is not None and "tx_hash" in record:
+                return self._resolve(record)
+            if record is not None:  # an earlier run stopped before signing: nothing was sent
+                rid = bytes.fromhex(record["request_id"][2:])
+            elif rid is None:
+                # The same request finished by another run while this one waited for the lock
+                # (started together, or while it waited on a slow node) is this request.
+                done = self.pending.done_since(self.account, fingerprint, started)
+                if done is not None:
+                    paid = self.paid(bytes.fromhex(done["request_id"][2:]))
+                    if paid is not None:
+                        return paid
+            rid = rid or request_id_from(None)
+            record = {
+                "request_id": "0x" + rid.hex(),
+                "account": self.account,
+                "fingerprint": fingerprint,
+                "created": time.time(),
+            }
+            self.pending.put(record)  # first of all: a second run sees this request
+            try:
+                paid = self.paid(rid)
+                if paid is not None:
+                    self.pending.drop(record)
+                    return paid
+                ranking = Ranker(self.chain, self.models, self.account).rank(request, max_price)
+                if payment is None:
+                    payment = ranking.price_wei
+                args = [*request.args(), ranking.positions]
+                fn = self.models.functions.allocateModels(rid, *args)
+                signed = self.chain.sign(fn, self.account, payment)
+            except BaseException:
+                self.pending.drop(record)  # nothing was signed, so nothing can have been sent
+                raise
+            record = {
+                **record,
+                "args": args,
+                "value": payment,
+                "tx_hash": signed.tx_hash,
+                "raw": "0x" + signed.raw.hex(),
+                "nonce": signed.nonce,
+            }
+            self.pending.put(record)  # before sending: a lost answer is resolved by the next call
+            return self._send(record, fn, signed.raw)
 
     def paid(self, rid: bytes) -> list[Allocation] | None:
         """The allocations of request ``rid`` if this account already paid it, else None.
@@ -179,7 +340,7 @@ class PaidRequests:
                 "at most once, so re-running cannot pay twice"
             ) from None
         self.last_tx = result
-        self.pending.drop(record)
+        self.pending.finish(record)
         return self._allocations(result.receipt, record["request_id"], replayed=False)
 
     def _settled(self, record: dict[str, Any], exc: ContractRevert) -> list[Allocation]:
@@ -188,6 +349,7 @@ class PaidRequests:
         if exc.error == "RequestAlreadyPaid":
             paid = self.paid(bytes.fromhex(record["request_id"][2:]))
             if paid is not None:
+                self.pending.finish(record)
                 return paid
         raise exc
 
@@ -200,11 +362,11 @@ class PaidRequests:
         except ContractRevert as exc:
             return self._settled(record, exc)
         if isinstance(state, TxResult):
-            self.pending.drop(record)
+            self.pending.finish(record)
             return self._allocations(state.receipt, record["request_id"], replayed=True)
         paid = self.paid(rid)
         if paid is not None:
-            self.pending.drop(record)
+            self.pending.finish(record)
             return paid
         raw = bytes.fromhex(record["raw"][2:])
         if state == "unknown" and record["nonce"] < self.chain.pending_nonce(self.account):

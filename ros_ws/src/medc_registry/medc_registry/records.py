@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
+
+from medc_training.untrusted import UntrustedJSONError, parse_json
+
+#: Longest model description read as JSON (a shared bundle's is a few hundred characters).
+MAX_DESCRIPTION_JSON_CHARS = 64 << 10
 
 
 def format_eth(wei: int) -> str:
@@ -84,10 +88,19 @@ class Deployment:
 
 
 def description_features(description: str) -> tuple[str, ...]:
-    """The feature names recorded in a model's description (JSON ``{"features": [...]}``), if any."""
-    if not description:
+    """The feature names recorded in a model's description (JSON ``{"features": [...]}``), if any.
+
+    Descriptions are anyone's on-chain text: read with the bounded reader of bundle manifests
+    (:func:`medc_training.untrusted.parse_json`), so no description can recurse the parser deep;
+    one that is not such JSON names no features.
+    """
+    if not isinstance(description, str) or not description:
         return ()
     try:
-        return tuple(json.loads(description).get("features", ()))
-    except (ValueError, AttributeError):
+        value = parse_json(description, "a model description", MAX_DESCRIPTION_JSON_CHARS)
+    except UntrustedJSONError:
         return ()
+    names = value.get("features") if isinstance(value, dict) else None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        return ()
+    return tuple(names)

@@ -68,6 +68,7 @@ __all__ = [
     "SharedModel",
     "UserInfo",
     "bundle_summary",
+    "check_share_text",
     "deploy_contracts",
     "format_eth",
     "request_id_from",
@@ -214,16 +215,15 @@ class Registry:
             description: extra text or JSON-able details stored with the model.
             cid_version: 0 (``ipfs add``) or 1 (``ipfs add --cid-version=1``).
         """
-        if not isinstance(bundle, bytes | bytearray) or not bundle:
-            raise ValueError("bundle must be non-empty bytes (the model file's content)")
-        check_application(application)
-        if not isinstance(price, int) or price < 0 or price >= 2**128:
-            raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
+        _check_share_args(bundle, application, price, description)
         names, values = parse_features(env_features)
         existing = self.feature_names(application)
         if existing is not None and names and existing and names != existing:
             raise ValueError(f"{application!r} models use features {list(existing)}, got {list(names)}")
         text = model_description(names, bytes(bundle), description)
+        if len(text.encode("utf-8")) > MAX_DESCRIPTION_BYTES:
+            raise ValueError(f"the model's description would be {len(text.encode('utf-8'))} bytes, over "
+                             f"the {MAX_DESCRIPTION_BYTES} byte limit: shorten the description")
         cid = self.store.add(bytes(bundle), cid_version)
         self.store.pin(cid)
         result = self._tx(self.models.functions.addModel(application, cid, text, list(values), price))
@@ -277,24 +277,28 @@ class Registry:
 
     # ------------------------------------------------------------ allocation
     @takes_request
-    def rank(self, request: ModelRequest) -> list[int]:
+    def rank(self, request: ModelRequest, max_price: int | None = None) -> list[int]:
         """The ids of the best ``count`` eligible models for this account, best first (no transaction).
 
         The contract ranks: ``allocateModels`` is simulated (eth_call, free) on pages of the
         application's models, each page joined by the best ids so far, so the result is the
         contract's own greedy top ``count`` over all of them, however many there are.
         """
-        return Ranker(self.chain, self.models, self.address).rank(request).model_ids
+        return Ranker(self.chain, self.models, self.address).rank(request, max_price).model_ids
 
     @takes_request
-    def quote(self, request: ModelRequest) -> tuple[list[int], int]:
+    def quote(self, request: ModelRequest, max_price: int | None = None) -> tuple[list[int], int]:
         """Which models a request would get now and their total price in wei (no transaction)."""
-        ranking = Ranker(self.chain, self.models, self.address).rank(request)
+        ranking = Ranker(self.chain, self.models, self.address).rank(request, max_price)
         return ranking.model_ids, ranking.price_wei
 
     @takes_request
     def request_models(
-        self, request: ModelRequest, payment: int | None = None, request_id: str | bytes | None = None
+        self,
+        request: ModelRequest,
+        payment: int | None = None,
+        request_id: str | bytes | None = None,
+        max_price: int | None = None,
     ) -> list[Allocation]:
         """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once.
 
@@ -306,17 +310,23 @@ class Registry:
         id and the signed transaction are written to :attr:`pending` before sending; when the
         node's answer is lost, calling again with the same arguments (or the same ``request_id``)
         resolves that record: the original allocation if it was mined (``replayed=True``), else
-        the same request is sent again, which the contract can only pay once.
+        the same request is sent again, which the contract can only pay once. The record is
+        written first, under a lock on the pending file, so a second run of the same request
+        started while the first still waits (a slow node), or two runs started together, pay once.
+
+        ``max_price``: the most wei any one allocated model may cost (default: what the account
+        holds); dearer models are not candidates, so none can block the ranking.
         """
         payer = PaidRequests(self.chain, self.models, self.address, self.pending, self.model)
-        allocations = payer.pay(request, payment, request_id)
+        allocations = payer.pay(request, payment, request_id, max_price)
         if payer.last_tx is not None:
             self.last_tx = payer.last_tx
         return allocations
 
     def pending_requests(self) -> list[dict[str, Any]]:
         """This account's paid requests not confirmed yet (resolve one by requesting it again)."""
-        return [r for r in self.pending.load().values() if r["account"] == self.address]
+        return [r for r in self.pending.load().values()
+                if r["account"] == self.address and "tx_hash" in r and "done" not in r]
 
     def allocation(self, allocation_id: int) -> tuple[str, int, bool]:
         """(requester, model id, reviewed) of an allocation."""
@@ -338,9 +348,10 @@ class Registry:
         Paper: updateModelRep. Only the requester it was allocated to may review it, once.
         """
         allocation_id = allocation.allocation_id if isinstance(allocation, Allocation) else allocation
-        if isinstance(allocation_id, bool) or not isinstance(allocation_id, int) or allocation_id < 0:
+        if (isinstance(allocation_id, bool) or not isinstance(allocation_id, int)
+                or not 0 <= allocation_id < 2**256):
             raise ValueError(
-                f"allocation must be an allocation id (int >= 0) or an Allocation, got {allocation!r}"
+                f"allocation must be an allocation id (0 to 2**256 - 1) or an Allocation, got {allocation!r}"
             )
         return self._tx(self.models.functions.updateModelRep(allocation_id, to_fixed(value, "review")))
 
@@ -377,6 +388,36 @@ class Registry:
             "allocations": self.chain.call(self.models.functions.allocationCount()),
             "contract_balance_wei": self.chain.balance(self.deployment.models),
         }
+
+
+#: Longest model description recorded on chain (UTF-8 bytes of the JSON :func:`model_description`
+#: writes; a shared bundle's is a few hundred). Storage costs gas per 32 bytes: 4 KB is ~3 M gas.
+MAX_DESCRIPTION_BYTES = 4096
+
+
+def check_share_text(application: str, description: str | Mapping[str, Any] | None) -> None:
+    """Refuse an application name or a description too long to share (checked before the model
+    file is read or anything is sent: a 100 KB description would only run out of gas)."""
+    check_application(application)
+    if description is None:
+        return
+    text = description if isinstance(description, str) else json.dumps(description, default=str)
+    try:
+        size = len(text.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise ValueError("the description must be valid Unicode text (no lone surrogates)") from None
+    if size > MAX_DESCRIPTION_BYTES:
+        raise ValueError(f"the description is {size} bytes, over the {MAX_DESCRIPTION_BYTES} byte limit")
+
+
+def _check_share_args(bundle: bytes, application: str, price: int,
+                      description: str | Mapping[str, Any] | None) -> None:
+    """:meth:`Registry.share_model`'s argument checks, before anything is stored or sent."""
+    if not isinstance(bundle, bytes | bytearray) or not bundle:
+        raise ValueError("bundle must be non-empty bytes (the model file's content)")
+    check_share_text(application, description)
+    if not isinstance(price, int) or price < 0 or price >= 2**128:
+        raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
 
 
 def bundle_summary(data: bytes) -> dict[str, Any]:

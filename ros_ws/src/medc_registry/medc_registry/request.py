@@ -20,6 +20,8 @@ from medc_training.qos import fixed_weights, to_fixed
 from .chain import ContractRevert
 
 MAX_FEATURES = 8
+#: Longest application name (UTF-8 bytes) shared or requested; checked before anything is sent.
+MAX_APPLICATION_BYTES = 128
 #: Most candidate models one allocateModels call examines (the contract's MAX_CANDIDATES).
 MAX_CANDIDATES = 256
 #: Most models one request may ask for (so a ranking page always has room for new candidates).
@@ -149,9 +151,19 @@ def request_id_from(value: str | bytes | None) -> bytes:
 
 
 def check_application(application: str) -> None:
-    """Refuse an application name that is not a non-empty string."""
+    """Refuse an application name that is not a non-empty string of at most
+    :data:`MAX_APPLICATION_BYTES` bytes of UTF-8 without control characters."""
     if not isinstance(application, str) or not application.strip():
         raise ValueError("application must be a non-empty string, e.g. 'target_localization'")
+    try:
+        size = len(application.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise ValueError("application must be valid Unicode text (no lone surrogates)") from None
+    if size > MAX_APPLICATION_BYTES:
+        raise ValueError(f"application is {size} bytes, over the {MAX_APPLICATION_BYTES} byte limit "
+                         "(a name such as 'target_localization')")
+    if any(ord(ch) < 32 or 127 <= ord(ch) < 160 for ch in application):
+        raise ValueError("application must not hold control characters (e.g. 'target_localization')")
 
 
 def parse_features(features: Features) -> tuple[tuple[str, ...], list[int]]:

@@ -32,6 +32,7 @@ from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
 from medc_sim import messages
+from medc_sim.episode_end import declared_cell
 from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.watch import GraphWatch
@@ -60,6 +61,13 @@ class SimNode(Node):
                 "paper-simple",
                 "Sensing model, a preset (paper-simple, realistic; docs/ros.md, 'Sensor model'): how "
                 "readings are made and how near an agent must come to the source",
+                True,
+            ),
+            end_on=p(
+                "end_on", "source",
+                "What ends an episode besides max_steps: 'source' (a UAV finds it, as in training), "
+                "'declaration' (the team's SourceDeclaration; agents need source_ends_episode:=false) or "
+                "'either' (whichever comes first)",
                 True,
             ),
         )
@@ -137,13 +145,20 @@ class SimNode(Node):
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
-        for a in self.ids:
+        if cfg.end_on != "source":
+            from medc_interfaces.msg import SourceDeclaration
+
+            self.create_subscription(SourceDeclaration, contract.declaration_topic(ns), self._on_declaration,
+                                     contract.RELIABLE_QOS)
+        self.move_subs = [
             self.create_subscription(
                 AgentMove,
                 contract.move_topic(ns, a),
                 lambda m, a=a: self._on_move(a, m),
                 contract.RELIABLE_QOS,
             )
+            for a in self.ids
+        ]
         self.health = Health(self, "driver", self._summary)
         #: Other drivers' statuses and maps on this namespace (a second graph, a hostile map).
         self.watch = GraphWatch(self)
@@ -155,7 +170,8 @@ class SimNode(Node):
                 "wait_for_subscribers",
                 cfg.agents,
                 "Publish the first step once this many nodes "
-                "subscribe to the episode status (the agents; a launcher adds itself)",
+                "subscribe to the episode status (the agents; a launcher or recorder adds itself) "
+                "and, when > 0, every agent's move publisher is there (a recorder is no agent)",
                 True,
             )
         )
@@ -176,12 +192,17 @@ class SimNode(Node):
 
     # -- publishing ----------------------------------------------------------------------
     def _try_start(self) -> None:
-        """Start once the team listens: a step published before discovery would be lost."""
+        """Start once the team listens: a step published before discovery would be lost. Listeners
+        alone could be recorders, so every agent's own move publisher must be matched too."""
         listeners = self.status_pub.get_subscription_count()
-        if listeners < self.wait_for and time.monotonic() < self._start_deadline:
+        movers = sum(1 for sub in self.move_subs if sub.get_publisher_count() > 0) if self.wait_for > 0 else 0
+        ready = listeners >= self.wait_for and movers >= (len(self.move_subs) if self.wait_for > 0 else 0)
+        if not ready and time.monotonic() < self._start_deadline:
             return
-        if listeners < self.wait_for:
-            self.get_logger().warning(f"starting with {listeners} of {self.wait_for} expected subscribers")
+        if not ready:
+            self.get_logger().warning(
+                f"starting with {listeners} of {self.wait_for} expected subscribers and "
+                f"{movers} of {len(self.move_subs)} agents' move publishers")
         self._start_timer.cancel()
         self.destroy_timer(self._start_timer)
         self.started = True
@@ -329,13 +350,42 @@ class SimNode(Node):
             return
         result = self.core.advance(self.book.actions())
         if result.finished is not None:
-            self._publish_done(result.finished)
-            for listener in self.episode_listeners:
-                listener(result.finished)
-            if self.max_episodes and len(self.core.results) >= self.max_episodes:
-                self.finished = True
-                self.get_logger().info(f"{len(self.core.results)} episodes done; simulator idle")
-                return
-            self._begin_episode()
+            self._finish_episode(result.finished)
         else:
             self._publish_step()
+
+    def _finish_episode(self, finished: EpisodeResult) -> None:
+        self._publish_done(finished)
+        for listener in self.episode_listeners:
+            listener(finished)
+        if self.max_episodes and len(self.core.results) >= self.max_episodes:
+            self.finished = True
+            self.get_logger().info(f"{len(self.core.results)} episodes done; simulator idle")
+            return
+        self._begin_episode()
+
+    def _on_declaration(self, msg) -> None:
+        """End the episode on the team's declaration (``end_on`` 'declaration' or 'either')."""
+        if not self.started or self.finished:
+            return
+        core = self.core
+        if int(msg.episode) < core.episode:
+            return  # the episode has ended already (e.g. a UAV found the source under 'either')
+        if int(msg.episode) != core.episode or (msg.map_stamp.sec, msg.map_stamp.nanosec) != (
+                self._map_stamp.sec, self._map_stamp.nanosec) or int(msg.step) > core.step:
+            self.get_logger().warning(
+                f"dropped declaration for episode {msg.episode} step {msg.step}: the simulator is at episode "
+                f"{core.episode} step {core.step} (its map_stamp must be this episode's map)")
+            return
+        try:
+            cell = declared_cell(msg.cell_i, msg.cell_j, core.config.grid)
+        except ValueError as exc:
+            self.dropped += 1
+            self.get_logger().warning(f"dropped declaration: {exc}")
+            return
+        finished = core.end_by_declaration(cell)
+        self.get_logger().info(
+            f"episode {finished.episode} ended by the team's declaration at step {finished.length} "
+            f"(declared at step {msg.step}, posterior mass {msg.mass:.3f}): {finished.error:.2f} cells "
+            f"from the source, {'found' if finished.success else 'wrong cell'}")
+        self._finish_episode(finished)

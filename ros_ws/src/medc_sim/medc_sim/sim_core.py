@@ -29,6 +29,9 @@ class SimConfig:
     #: The sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``): how readings are made
     #: and when an agent has found the source (docs/ros.md, "Sensor model").
     sensing: str = "paper-simple"
+    #: What ends an episode besides max_steps (medc_sim.episode_end): ``source``, ``declaration`` or
+    #: ``either``.
+    end_on: str = "source"
 
 
 @dataclass
@@ -40,6 +43,10 @@ class EpisodeResult:
     success: bool
     truncated: bool
     reward: float
+    #: ``source`` (a UAV found it), ``declaration`` (the team declared it), ``max_steps``.
+    ended_by: str = ""
+    #: For a declaration: cells from the declared cell to the source.
+    error: float | None = None
 
 
 @dataclass
@@ -66,7 +73,10 @@ class SimCore:
         from medc_training.envs import make_batched
         from medc_training.envs.tl_sensing import parse_sensing
 
+        from medc_sim.episode_end import check_end_rule
+
         c = self.config
+        check_end_rule(c.end_on)
         model = parse_sensing(c.sensing)
         self.env = make_batched(
             "target_localization",
@@ -84,6 +94,8 @@ class SimCore:
             # The agents build their own observations from the messages; the simulator needs none,
             # and the paper's maps are the cheapest to keep.
             observation="maps",
+            # Under 'declaration' finding the source does not end the episode: the team must say it.
+            end_on_find=c.end_on != "declaration",
         )
         self.env.reset()
 
@@ -150,7 +162,22 @@ class SimCore:
                 success=bool(out.success[0]),
                 truncated=bool(out.truncated[0]),
                 reward=result.reward,
+                ended_by="source" if bool(out.success[0]) else "max_steps",
             )
             self.results.append(result.finished)
             self.episode += 1
         return result
+
+    def end_by_declaration(self, cell: tuple[int, int]) -> EpisodeResult:
+        """End the current episode now on the team's declaration that the source is at ``cell``
+        (row, col): a success when a UAV on that cell would find it (the preset's success radius).
+        The next episode starts (the one the core's own rules would have started)."""
+        from medc_sim.episode_end import judge
+
+        error, correct = judge(cell, self.target(), self.sensing.success_radius)
+        finished = EpisodeResult(episode=self.episode, length=self.step, success=correct, truncated=False,
+                                 reward=0.0, ended_by="declaration", error=error)
+        self.env.end_episode(0)
+        self.results.append(finished)
+        self.episode += 1
+        return finished

@@ -33,7 +33,15 @@ def spin_episodes(node, executor) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done)."""
+    """Console script ``medc-sim``: run the simulator node until Ctrl-C (or ``episodes`` done);
+    ``--help`` lists its parameters and exits 0 without starting it."""
+    from medc_common.cli_help import print_node_help, wants_help
+
+    if wants_help(argv):
+        return print_node_help(
+            "medc-sim", "The simulator node: plays the UAV team's drivers (poses, readings, the walls map, "
+                        "the episode status) and applies the agents' moves.", ["medc_sim.node"],
+            "medc-sim --ros-args -p agents:=3 -p grid:=13 -p seed:=0")
     require_interfaces()
     from medc_common.executors import run_node
 

@@ -1,0 +1,205 @@
+"""The team's source estimate on the graph: where the team believes the source is, and its declaration.
+
+Every agent keeps the team's posterior over the source cell (``TeamObserver.memory``, the training
+environment's :class:`~medc_training.envs.tl_observation.TeamMemory`); all agents hold the same one.
+One agent publishes it for the team: by default ``agent_0`` (parameter ``publish_estimate``). After
+each team step it has decided, before its move, it publishes (topics: ``medc_common.contract``):
+
+- ``<ns>/team/source_estimate`` (geometry_msgs/PoseWithCovarianceStamped, frame ``map``, stamp =
+  the step's): the posterior mean of the source's position and its covariance (x, y block; the
+  spread of the posterior over cell centres plus the uniform spread within a cell, r²/12 per axis;
+  z and the orientation are not estimated: 0);
+- ``<ns>/team/source_posterior`` (nav_msgs/OccupancyGrid on the walls map's grid, same
+  ``info``): the posterior as a heat map, 100 = the most probable cell, round(100 · p / p_max),
+  at most ``estimate_map_rate_hz`` times a second (0 = never);
+- ``<ns>/team/source_declared`` (medc_interfaces/SourceDeclaration): once per episode, when the
+  posterior mass within ``declare_radius`` cells of the most probable cell reaches
+  ``declare_threshold`` (:func:`medc_training.envs.tl_estimate.declare`).
+
+The pure conversions (:func:`estimate_in_map`, :func:`heat_map_data`) take no ROS objects.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from medc_common import contract
+from medc_common.contract import GridGeometry, cell_to_ij
+from medc_common.params import declare
+
+#: Parameter defaults (docs/ros.md, "The team's source estimate").
+DEFAULT_MAP_RATE_HZ = 1.0
+
+
+def estimate_in_map(mean_rc: tuple[float, float], cov_rc, geometry: GridGeometry
+                    ) -> tuple[tuple[float, float], list[list[float]]]:
+    """((x, y), 2×2 covariance) in the map frame of a posterior mean (row, col) and covariance
+    [[rr, rc], [cr, cc]] in cells (over cell centres): the grid frame's (i, j) = (col, H - 1 - row),
+    the spread within a cell (1/12 cell² per axis) added, scaled by the resolution and rotated by
+    the map origin's yaw."""
+    row, col = float(mean_rc[0]), float(mean_rc[1])
+    gx = (col + 0.5) * geometry.resolution
+    gy = (geometry.height - 1 - row + 0.5) * geometry.resolution
+    c, s = math.cos(geometry.origin_yaw), math.sin(geometry.origin_yaw)
+    x = geometry.origin_x + c * gx - s * gy
+    y = geometry.origin_y + s * gx + c * gy
+    # (i, j) = (col, H-1-row): var_i = var_col, var_j = var_row, cov_ij = -cov_rowcol.
+    r2 = geometry.resolution ** 2
+    vi = (float(cov_rc[1][1]) + 1.0 / 12.0) * r2
+    vj = (float(cov_rc[0][0]) + 1.0 / 12.0) * r2
+    cij = -float(cov_rc[0][1]) * r2
+    # R C R^T with R the yaw rotation.
+    xx = c * c * vi - 2 * c * s * cij + s * s * vj
+    yy = s * s * vi + 2 * c * s * cij + c * c * vj
+    xy = c * s * (vi - vj) + (c * c - s * s) * cij
+    return (x, y), [[xx, xy], [xy, yy]]
+
+
+def heat_map_data(posterior: torch.Tensor, grid: int) -> list[int]:
+    """OccupancyGrid ``data`` (message row j = environment row H - 1 - j) of a posterior float [G²]
+    (row-major environment cells): round(100 · p / p_max), 0..100."""
+    p = posterior.reshape(grid, grid).double()
+    top = float(p.max())
+    scaled = torch.zeros_like(p) if top <= 0 else torch.round(p * (100.0 / top))
+    return scaled.flip(0).to(torch.int8).flatten().tolist()
+
+
+class TeamEstimate:
+    """The agent node's publisher of the team's estimate and declaration (module docstring)."""
+
+    def __init__(self, node, namespace: str, agent_index: int, sensing) -> None:
+        """Declare the parameters on ``node`` and, when it publishes, create its publishers.
+
+        Raises:
+            ValueError: a declaration radius or threshold out of range, a negative rate.
+        """
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from medc_interfaces.msg import SourceDeclaration
+        from medc_training.envs.tl_estimate import DEFAULT_THRESHOLD, check_rule
+        from nav_msgs.msg import OccupancyGrid
+
+        p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
+        self.node = node
+        self.enabled = bool(p(
+            "publish_estimate", agent_index == 0,
+            "Publish the team's source estimate, posterior heat map and declaration (default: agent_0 "
+            "only; every agent holds the same posterior)", True))
+        radius = float(p(
+            "declare_radius", -1.0,
+            "Declaration rule: radius in cells around the most probable cell (Euclidean, between cell "
+            "centres); -1 = the sensing preset's success radius (paper-simple 0, realistic 1.1)", True))
+        threshold = float(p(
+            "declare_threshold", DEFAULT_THRESHOLD,
+            "Declaration rule: the posterior mass within declare_radius that declares the source "
+            "localised (0 < t <= 1)", True))
+        self.radius, self.threshold = check_rule(sensing.success_radius if radius < 0 else radius, threshold)
+        rate = float(p("estimate_map_rate_hz", DEFAULT_MAP_RATE_HZ,
+                       "Most posterior heat maps published per second (0 = none)", True))
+        if not (rate >= 0 and math.isfinite(rate)):
+            raise ValueError(f"estimate_map_rate_hz must be >= 0, got {rate!r}")
+        self.map_period = 1.0 / rate if rate > 0 else None
+        self._last_map_at = -math.inf
+        self._declared_for: tuple[int, int] | None = None
+        #: Declarations published (tests, monitoring).
+        self.declarations = 0
+        self.last_estimate: tuple[float, float] | None = None
+        if not self.enabled:
+            return
+        self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, contract.estimate_topic(namespace),
+                                              contract.ESTIMATE_QOS)
+        self.map_pub = node.create_publisher(OccupancyGrid, contract.posterior_topic(namespace),
+                                             contract.LATCHED_QOS)
+        self.declaration_pub = node.create_publisher(SourceDeclaration, contract.declaration_topic(namespace),
+                                                     contract.RELIABLE_QOS)
+
+    def on_step(self, observer, tick) -> None:
+        """Publish the estimate of the step ``observer`` just observed (``tick``), the heat map when
+        due, and the declaration when the rule passes for the first time in the episode."""
+        if not self.enabled or observer.positions is None:
+            return
+        geometry = observer.map_geometry(tick.map_stamp)
+        if geometry is None:
+            return
+        from medc_training.envs.tl_estimate import declare as rule
+        from medc_training.envs.tl_estimate import mean_and_covariance
+
+        posterior = observer.memory.posterior()  # [1, G²]
+        grid = observer.memory.grid
+        stamp = _time_msg(tick.stamp)
+        mean, cov = mean_and_covariance(posterior, grid)
+        (x, y), c = estimate_in_map(mean[0].tolist(), cov[0].tolist(), geometry)
+        self.last_estimate = (x, y)
+        self.pose_pub.publish(self._pose_msg(stamp, x, y, c))
+        now = time.monotonic()
+        if self.map_period is not None and now - self._last_map_at >= self.map_period:
+            self._last_map_at = now
+            self.map_pub.publish(self._map_msg(stamp, tick.map_stamp, geometry, posterior[0], grid))
+        episode = (tick.episode, tick.map_stamp)
+        if self._declared_for == episode:
+            return
+        verdict = rule(posterior, grid, self.radius, self.threshold)
+        if bool(verdict.declared[0]):
+            self._declared_for = episode
+            self.declarations += 1
+            self.declaration_pub.publish(self._declaration_msg(stamp, tick, geometry, verdict))
+            row, col = (int(v) for v in verdict.cell[0])
+            self.node.get_logger().info(
+                f"source declared: episode {tick.episode} step {tick.step}, cell (row {row}, col {col}), "
+                f"posterior mass {float(verdict.mass[0]):.3f} within {self.radius:g} cells")
+
+    def _pose_msg(self, stamp, x: float, y: float, c):
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp = stamp
+        msg.header.frame_id = contract.MAP_FRAME
+        msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+        msg.pose.pose.orientation.w = 1.0
+        cov = [0.0] * 36
+        cov[0], cov[1], cov[6], cov[7] = c[0][0], c[0][1], c[1][0], c[1][1]
+        msg.pose.covariance = cov
+        return msg
+
+    def _map_msg(self, stamp, map_stamp: int, geometry: GridGeometry, posterior: torch.Tensor, grid: int):
+        from nav_msgs.msg import OccupancyGrid
+
+        msg = OccupancyGrid()
+        msg.header.stamp = stamp
+        msg.header.frame_id = contract.MAP_FRAME
+        msg.info.map_load_time = _time_msg(map_stamp)
+        msg.info.resolution = float(geometry.resolution)
+        msg.info.width, msg.info.height = grid, grid
+        msg.info.origin.position.x, msg.info.origin.position.y = geometry.origin_x, geometry.origin_y
+        msg.info.origin.orientation.z = math.sin(geometry.origin_yaw / 2)
+        msg.info.origin.orientation.w = math.cos(geometry.origin_yaw / 2)
+        msg.data = heat_map_data(posterior, grid)
+        return msg
+
+    def _declaration_msg(self, stamp, tick, geometry: GridGeometry, verdict):
+        from medc_interfaces.msg import SourceDeclaration
+
+        row, col = (int(v) for v in verdict.cell[0])
+        i, j = cell_to_ij(row, col, geometry.height)
+        x, y = geometry.cell_to_xy(row, col)
+        msg = SourceDeclaration()
+        msg.header.stamp = stamp
+        msg.header.frame_id = contract.MAP_FRAME
+        msg.agent_id = self.node.agent_id
+        msg.episode, msg.step = tick.episode, tick.step
+        msg.map_stamp = _time_msg(tick.map_stamp)
+        msg.cell_i, msg.cell_j = i, j
+        msg.position.x, msg.position.y = x, y
+        msg.mass = float(verdict.mass[0])
+        msg.radius_cells = self.radius
+        msg.radius_m = self.radius * geometry.resolution
+        msg.threshold = self.threshold
+        return msg
+
+
+def _time_msg(key: int):
+    """builtin_interfaces/Time of a stamp key (integer nanoseconds)."""
+    from builtin_interfaces.msg import Time
+
+    return Time(sec=key // 1_000_000_000, nanosec=key % 1_000_000_000)

@@ -1,0 +1,243 @@
+"""A live view of a running MEDC graph for Foxglove: a WebSocket server (foxglove-sdk) on
+127.0.0.1 that serves every recorded ROS topic as a channel (its CDR bytes, schema ``ros2msg``)
+and a 3D scene, ``<namespace>/scene`` (``foxglove.SceneUpdate``, frame ``map``): the walls, the
+agents with their tracks this episode and their latest readings, and the team's source estimate
+when a topic under the namespace whose name holds ``estimate`` carries a pose or a point.
+
+Open Foxglove, "Open connection", ``ws://127.0.0.1:PORT``, and add a 3D panel showing the scene
+topic. The recorder (``medc_bringup.recorder``) feeds it; ``medc-launch --foxglove`` and
+``medc-record --foxglove`` start it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+#: Foxglove's default port.
+DEFAULT_PORT = 8765
+#: Message types whose pose (or point) a topic named ``*estimate*`` contributes to the scene.
+ESTIMATE_TYPES = (
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PointStamped",
+)
+#: One colour per agent (cycled).
+PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16),
+           (0.58, 0.4, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.5, 0.5, 0.5)]
+
+
+class SceneState:
+    """What the scene shows, built from the graph's messages (no Foxglove types: testable alone).
+
+    ``on_message(topic, type_name, msg)`` takes a deserialised message; ``changed`` says a new
+    team step (or map, or estimate) arrived since the last ``take_changed()``.
+    """
+
+    def __init__(self, namespace: str) -> None:
+        self.ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+        self.walls: list[tuple[float, float]] = []
+        self.resolution = 1.0
+        self.agents: dict[str, tuple[float, float]] = {}
+        self.tracks: dict[str, list[tuple[float, float]]] = {}
+        self.readings: dict[str, float] = {}
+        self.estimate: tuple[float, float, float] | None = None  # x, y, spread (m)
+        self.episode = -1
+        self.step = -1
+        self.changed = False
+
+    def on_message(self, topic: str, type_name: str, msg) -> None:
+        """Update the state from one message of the graph."""
+        rest = topic[len(self.ns):] if topic.startswith(self.ns + "/") else None
+        if rest is None:
+            return
+        parts = rest.strip("/").split("/")
+        if parts == ["map"] and type_name == "nav_msgs/msg/OccupancyGrid":
+            self._on_map(msg)
+        elif parts == ["episode"] and type_name == "medc_interfaces/msg/EpisodeStatus":
+            self._on_status(msg)
+        elif len(parts) == 2 and parts[1] == "pose" and type_name == "geometry_msgs/msg/PoseStamped":
+            p = msg.pose.position
+            self.agents[parts[0]] = (float(p.x), float(p.y))
+        elif (len(parts) == 2 and parts[1] == "radiation"
+              and type_name == "medc_interfaces/msg/RadiationReading"):
+            self.readings[parts[0]] = float(msg.value)
+        elif "estimate" in parts[-1] and type_name in ESTIMATE_TYPES:
+            self._on_estimate(type_name, msg)
+
+    def _on_map(self, msg) -> None:
+        info = msg.info
+        r = float(info.resolution) or 1.0
+        o = info.origin
+        q = o.orientation
+        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        c, s = math.cos(yaw), math.sin(yaw)
+        walls = []
+        width = int(info.width)
+        for k, value in enumerate(msg.data):
+            if value >= 50:
+                i, j = k % width, k // width
+                lx, ly = (i + 0.5) * r, (j + 0.5) * r
+                walls.append((o.position.x + c * lx - s * ly, o.position.y + s * lx + c * ly))
+        self.walls, self.resolution = walls, r
+        self.changed = True
+
+    def _on_status(self, msg) -> None:
+        if int(msg.episode) != self.episode:
+            self.episode = int(msg.episode)
+            self.tracks = {}
+        self.step = int(msg.step)
+        for agent, xy in self.agents.items():
+            track = self.tracks.setdefault(agent, [])
+            if not track or track[-1] != xy:
+                track.append(xy)
+        self.changed = True
+
+    def _on_estimate(self, type_name: str, msg) -> None:
+        if type_name.endswith("PointStamped"):
+            x, y, spread = msg.point.x, msg.point.y, 0.0
+        elif type_name.endswith("PoseWithCovarianceStamped"):
+            p, cov = msg.pose.pose.position, msg.pose.covariance
+            x, y = p.x, p.y
+            spread = math.sqrt(max(0.0, (float(cov[0]) + float(cov[7])) / 2.0))
+        else:
+            x, y, spread = msg.pose.position.x, msg.pose.position.y, 0.0
+        self.estimate = (float(x), float(y), float(spread))
+        self.changed = True
+
+    def take_changed(self) -> bool:
+        """True once per change (and clears it)."""
+        changed, self.changed = self.changed, False
+        return changed
+
+
+def scene_update(state: SceneState, stamp_ns: int | None = None):
+    """The ``foxglove.messages.SceneUpdate`` that shows ``state`` (entities replace their
+    predecessors by id: ``walls``, ``agent_i``, ``estimate``, ``status``)."""
+    from foxglove.messages import (
+        Color,
+        CubePrimitive,
+        LinePrimitive,
+        LinePrimitiveLineType,
+        Point3,
+        Pose,
+        Quaternion,
+        SceneEntity,
+        SceneUpdate,
+        SpherePrimitive,
+        TextPrimitive,
+        Timestamp,
+        Vector3,
+    )
+
+    now = time.time_ns() if stamp_ns is None else stamp_ns
+    ts = Timestamp(sec=now // 1_000_000_000, nsec=now % 1_000_000_000)
+    r = state.resolution
+    ident = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+
+    def pose(x: float, y: float, z: float) -> Pose:
+        return Pose(position=Vector3(x=x, y=y, z=z), orientation=ident)
+
+    entities = [SceneEntity(
+        timestamp=ts, frame_id="map", id="walls",
+        cubes=[CubePrimitive(pose=pose(x, y, 0.5 * r), size=Vector3(x=r, y=r, z=r),
+                             color=Color(r=0.35, g=0.35, b=0.4, a=1.0)) for x, y in state.walls],
+    )]
+    for k, agent in enumerate(sorted(state.agents)):
+        cr, cg, cb = PALETTE[k % len(PALETTE)]
+        color = Color(r=cr, g=cg, b=cb, a=1.0)
+        x, y = state.agents[agent]
+        reading = state.readings.get(agent)
+        label = agent if reading is None else f"{agent}: {reading:.1f} cps"
+        track = state.tracks.get(agent, [])
+        points = [Point3(x=px, y=py, z=0.3 * r) for px, py in track]
+        lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, pose=pose(0.0, 0.0, 0.0),
+                               thickness=0.08 * r, scale_invariant=False, points=points,
+                               color=color)] if len(track) > 1 else []
+        entities.append(SceneEntity(
+            timestamp=ts, frame_id="map", id=agent,
+            spheres=[SpherePrimitive(pose=pose(x, y, 0.5 * r), size=Vector3(x=0.6 * r, y=0.6 * r, z=0.6 * r),
+                                     color=color)],
+            lines=lines,
+            texts=[TextPrimitive(pose=pose(x, y, 1.2 * r), billboard=True, font_size=14.0,
+                                 scale_invariant=True, color=color, text=label)],
+        ))
+    if state.estimate is not None:
+        x, y, spread = state.estimate
+        d = max(0.4 * r, 2.0 * spread)
+        entities.append(SceneEntity(
+            timestamp=ts, frame_id="map", id="estimate",
+            spheres=[SpherePrimitive(pose=pose(x, y, 0.1 * r), size=Vector3(x=d, y=d, z=0.1 * r),
+                                     color=Color(r=1.0, g=0.84, b=0.0, a=0.6))],
+            texts=[TextPrimitive(pose=pose(x, y, 0.8 * r), billboard=True, font_size=14.0,
+                                 scale_invariant=True, color=Color(r=1.0, g=0.84, b=0.0, a=1.0),
+                                 text="source estimate")],
+        ))
+    entities.append(SceneEntity(
+        timestamp=ts, frame_id="map", id="status",
+        texts=[TextPrimitive(pose=pose(0.0, -r, 0.0), billboard=True, font_size=16.0, scale_invariant=True,
+                             color=Color(r=0.1, g=0.1, b=0.1, a=1.0),
+                             text=f"episode {state.episode} step {state.step}")],
+    ))
+    return SceneUpdate(entities=entities)
+
+
+class LiveView:
+    """The Foxglove WebSocket server of a recorder: raw ROS topics as channels plus the scene.
+
+    ``port`` 0 picks a free port (``self.port`` tells which). The server binds ``127.0.0.1``.
+    """
+
+    def __init__(self, namespace: str, port: int = DEFAULT_PORT, host: str = "127.0.0.1") -> None:
+        import foxglove
+        from foxglove.channels import SceneUpdateChannel
+
+        self._foxglove = foxglove
+        self.server = foxglove.start_server(name="medc", host=host, port=int(port))
+        self.port = int(self.server.port)
+        self.state = SceneState(namespace)
+        self.scene_topic = f"{self.state.ns}/scene"
+        self.scene = SceneUpdateChannel(self.scene_topic)
+        self.channels: dict[str, object] = {}
+        self._last_scene = 0.0
+
+    def add_topic(self, topic: str, type_name: str, definition: str) -> None:
+        """Serve ``topic`` as a channel (CDR bytes, its ``ros2msg`` schema text)."""
+        if topic not in self.channels:
+            schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
+            self.channels[topic] = self._foxglove.Channel(topic, message_encoding="cdr", schema=schema)
+
+    def on_message(self, topic: str, type_name: str, data: bytes, msg=None,
+                   log_time_ns: int | None = None) -> None:
+        """Forward one message (its CDR ``data``; ``msg``: it deserialised, when the scene uses it)."""
+        channel = self.channels.get(topic)
+        if channel is not None:
+            channel.log(data, log_time=log_time_ns)
+        if msg is not None:
+            self.state.on_message(topic, type_name, msg)
+            if self.state.take_changed():
+                self.publish_scene(log_time_ns)
+
+    def publish_scene(self, log_time_ns: int | None = None) -> None:
+        """Send the scene now."""
+        self.scene.log(scene_update(self.state, log_time_ns), log_time=log_time_ns)
+        self._last_scene = time.monotonic()
+
+    def tick(self, every_s: float = 1.0) -> None:
+        """Re-send the scene when nothing changed for ``every_s`` (a client that just connected
+        sees the walls of an idle graph)."""
+        if time.monotonic() - self._last_scene >= every_s:
+            self.publish_scene()
+
+    def wants(self, topic: str, type_name: str) -> bool:
+        """Whether the scene needs ``topic`` deserialised."""
+        ns = self.state.ns
+        if not topic.startswith(ns + "/"):
+            return False
+        last = topic.rsplit("/", 1)[-1]
+        return (last in ("map", "episode", "pose", "radiation")
+                or ("estimate" in last and type_name in ESTIMATE_TYPES))
+
+    def close(self) -> None:
+        """Stop the server."""
+        self.server.stop()

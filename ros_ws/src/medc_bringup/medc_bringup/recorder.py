@@ -1,0 +1,299 @@
+"""medc-record: record a running MEDC graph to MCAP and/or serve it live to Foxglove.
+
+    medc-record -o mission.mcap                   # every topic under /medc, until Ctrl-C
+    medc-record -o mission.mcap --foxglove        # and a live view on ws://127.0.0.1:8765
+    medc-record --foxglove 8766 --namespace /team2
+
+The recorder finds the topics under the namespace (and ``/diagnostics``) as they appear, so
+topics added later (the team's estimate, for one) are recorded too. The file is rosbag2's MCAP
+layout (profile ``ros2``, ``ros2msg`` schemas from the installed ``.msg`` files, CDR messages):
+``ros2 bag info``, ``rosbags``, ``mcap_ros2`` and Foxglove read it. Ctrl-C (or SIGTERM) finishes
+the file; the last line on stdout is a JSON summary (topics, message counts, bytes, the time the
+recorder spent per message). A recorder never holds the simulator back or stands in for an agent:
+the simulator starts when every agent's own move publisher is there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+#: Topics outside the namespace that belong to a MEDC graph.
+GLOBAL_TOPICS = ("/diagnostics",)
+
+
+def _ns(namespace: str) -> str:
+    ns = "/" + namespace.strip("/")
+    return "" if ns == "/" else ns
+
+
+def known_topics(namespace: str, agents: int = 0) -> dict[str, tuple[str, object]]:
+    """The contract's topics (docs/ros.md) with their types and QoS, subscribed before they are
+    discovered so that nothing published early is lost; ``agents``: also those of agent_0..N-1."""
+    from medc_common import contract
+
+    ns = namespace
+    topics = {
+        contract.map_topic(ns): ("nav_msgs/msg/OccupancyGrid", contract.LATCHED_QOS),
+        contract.status_topic(ns): ("medc_interfaces/msg/EpisodeStatus", contract.RELIABLE_QOS),
+        contract.results_topic(ns): ("medc_interfaces/msg/EpisodeStatus", contract.RESULTS_QOS),
+        contract.team_policy_topic(ns): ("std_msgs/msg/String", contract.LATCHED_QOS),
+    }
+    for a in contract.agent_ids(agents) if agents > 0 else []:
+        topics[contract.pose_topic(ns, a)] = ("geometry_msgs/msg/PoseStamped", contract.SENSOR_QOS)
+        topics[contract.radiation_topic(ns, a)] = (
+            "medc_interfaces/msg/RadiationReading", contract.SENSOR_QOS)
+        topics[contract.move_topic(ns, a)] = ("medc_interfaces/msg/AgentMove", contract.RELIABLE_QOS)
+        topics[contract.policy_topic(ns, a)] = ("std_msgs/msg/String", contract.LATCHED_QOS)
+    return topics
+
+
+def qos_for_publishers(infos):
+    """A subscription QoS that matches every publisher in ``infos`` (rclpy TopicEndpointInfo):
+    reliable only if all are, transient local only if all are; keep last 100."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+    latched = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+    return QoSProfile(
+        depth=100,
+        history=HistoryPolicy.KEEP_LAST,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 0,
+                       discover_every_s: float = 0.2, node_name: str = "medc_recorder"):
+    """A node that subscribes (raw CDR) to every MEDC topic and hands each message to
+    ``recording`` (a :class:`medc_bringup.recording.McapRecording`) and ``live``
+    (a :class:`medc_bringup.live_view.LiveView`); either may be None."""
+    from rclpy.node import Node
+    from rclpy.serialization import deserialize_message
+
+    from medc_bringup.recording import message_class, message_definition
+
+    class RecorderNode(Node):
+        """Subscribes to the graph's topics as they appear (see the module docstring)."""
+
+        def __init__(self) -> None:
+            super().__init__(node_name)
+            self.ns = _ns(namespace)
+            self.subscribed: dict[str, str] = {}
+            self.skipped: set[str] = set()
+            self.messages = 0
+            self.busy_s = 0.0
+            for topic, (type_name, qos) in known_topics(namespace, agents).items():
+                self._subscribe(topic, type_name, qos)
+            self._discover()
+            self.create_timer(discover_every_s, self._discover)
+            if live is not None:
+                self.create_timer(0.5, live.tick)
+
+        def _ours(self, topic: str) -> bool:
+            return topic.startswith(self.ns + "/") or topic in GLOBAL_TOPICS
+
+        def _discover(self) -> None:
+            for topic, types in self.get_topic_names_and_types():
+                if topic in self.subscribed or topic in self.skipped or not self._ours(topic) or not types:
+                    continue
+                infos = self.get_publishers_info_by_topic(topic)
+                if not infos:
+                    continue  # only subscribers so far: match the publishers once they appear
+                self._subscribe(topic, types[0], qos_for_publishers(infos))
+
+        def _subscribe(self, topic: str, type_name: str, qos) -> None:
+            try:
+                cls = message_class(type_name)
+                definition = message_definition(type_name)
+            except ValueError as exc:
+                self.skipped.add(topic)
+                self.get_logger().warning(f"not recording {topic}: {exc}")
+                return
+            if recording is not None:
+                recording.add_topic(topic, type_name, qos)
+            decode = None
+            if live is not None:
+                live.add_topic(topic, type_name, definition)
+                if live.wants(topic, type_name):
+                    decode = cls
+            self.subscribed[topic] = type_name
+            self.create_subscription(
+                cls, topic, lambda data, t=topic, n=type_name, d=decode: self._on_message(t, n, d, data),
+                qos, raw=True,
+            )
+
+        def _on_message(self, topic: str, type_name: str, decode, data: bytes) -> None:
+            t0 = time.perf_counter()
+            now = time.time_ns()
+            if recording is not None and not recording.closed:
+                recording.write(topic, data, now)
+            if live is not None:
+                msg = deserialize_message(data, decode) if decode is not None else None
+                live.on_message(topic, type_name, data, msg, now)
+            self.messages += 1
+            self.busy_s += time.perf_counter() - t0
+
+    return RecorderNode()
+
+
+def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = False):
+    """For ``medc-launch --record/--foxglove``: start ``medc-record`` for ``cfg``'s team as its own
+    process (own session: Ctrl-C reaches the launcher, which stops it last). None if neither is
+    asked for. A relative ``record`` path is taken from the current directory.
+
+    Raises:
+        ValueError: the record file's folder does not exist.
+    """
+    import os
+    import subprocess
+
+    from medc_common.ros_env import interfaces_env
+
+    if record is None and foxglove is None:
+        return None
+    command = [sys.executable, "-m", "medc_bringup.recorder", "--namespace", cfg.namespace,
+               "--agents", str(cfg.agents)]
+    if record is not None:
+        path = Path(record).expanduser().resolve()
+        if not path.parent.is_dir():
+            raise ValueError(f"--record {record}: folder {path.parent} does not exist")
+        command += ["--output", str(path)]
+    if foxglove is not None:
+        command += ["--foxglove", str(foxglove)]
+    if quiet:
+        command.append("--quiet")
+    env = interfaces_env()
+    env["PYTHONUNBUFFERED"] = "1"
+    # The package may run from a source tree (PYTHONPATH) rather than an install: keep it importable.
+    here = str(Path(__file__).resolve().parents[1])
+    rest = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env["PYTHONPATH"] = os.pathsep.join([here, *rest])
+    return subprocess.Popen(command, env=env, stdout=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def stop_recorder(process, grace_s: float = 15.0) -> dict | None:
+    """SIGINT the recorder started by :func:`start_recorder`, wait for it to finish its file and
+    return its JSON summary (None if it printed none; killed after ``grace_s``)."""
+    import signal
+    import subprocess
+
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        out, _ = process.communicate(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, _ = process.communicate()
+    for line in reversed((out or "").splitlines()):
+        try:
+            return json.loads(line)
+        except ValueError:
+            continue
+    return None
+
+
+def spin_then_drain(drain_s: float):
+    """A ``run_node`` spin function: spin until stopped, then ``drain_s`` more seconds so that
+    messages already on their way (the last episode's result) are still written."""
+    def spin(node, executor) -> None:
+        import rclpy
+        from medc_common.executors import spin_until_shutdown
+
+        spin_until_shutdown(node, executor)
+        end = time.monotonic() + drain_s
+        while rclpy.ok() and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+
+    return spin
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from medc_training.console import QUIET_HELP, HelpFormatter, epilog
+
+    parser = argparse.ArgumentParser(
+        prog="medc-record", description=__doc__.split("\n\n")[0],
+        formatter_class=HelpFormatter, epilog=epilog(__doc__),
+    )
+    parser.add_argument("-o", "--output", help="MCAP file to write (rosbag2 layout); none = do not record")
+    parser.add_argument("--namespace", default="/medc",
+                        help="the team's namespace: every topic under it is recorded")
+    parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
+                        help="also serve a live view to Foxglove on ws://127.0.0.1:PORT (0 = any free port)")
+    parser.add_argument("--agents", type=int, default=0,
+                        help="subscribe to agent_0..N-1's topics at once instead of when discovered")
+    parser.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd",
+                        help="MCAP chunk compression")
+    parser.add_argument("--drain", type=float, default=0.5,
+                        help="seconds to keep receiving after Ctrl-C before the file is closed")
+    parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-record`` (see the module docstring)."""
+    parser = build_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.output is None and args.foxglove is None:
+        parser.error("nothing to do: give -o FILE.mcap, --foxglove [PORT], or both")
+    output = None
+    if args.output is not None:
+        output = Path(args.output).expanduser().resolve()
+        if not output.parent.is_dir():
+            parser.error(f"-o {args.output}: folder {output.parent} does not exist")
+    from medc_common.ros_env import require_interfaces
+
+    require_interfaces()
+    from medc_common.executors import run_node
+
+    from medc_bringup.recording import McapRecording
+
+    recording = McapRecording(output, compression=args.compression) if output is not None else None
+    live = None
+    holder: dict[str, object] = {}
+    try:
+        if args.foxglove is not None:
+            from medc_bringup.live_view import LiveView
+
+            try:
+                live = LiveView(args.namespace, port=args.foxglove)
+            except Exception as exc:  # the SDK raises its own error types for a busy port
+                print(f"medc-record: cannot start the Foxglove server on 127.0.0.1:{args.foxglove}: {exc} "
+                      "(pick another port with --foxglove PORT, or 0 for any free one)", file=sys.stderr)
+                return 2
+            if not args.quiet:
+                print(f"medc-record: Foxglove live view on ws://127.0.0.1:{live.port} "
+                      f"(scene: {live.scene_topic})", file=sys.stderr, flush=True)
+
+        def make_node():
+            node = make_recorder_node(args.namespace, recording, live, agents=args.agents)
+            holder["node"] = node
+            return node
+
+        rc = run_node("medc-record", argv, make_node, spin=spin_then_drain(args.drain))
+    finally:
+        if recording is not None:
+            recording.close()
+        if live is not None:
+            live.close()
+    node = holder.get("node")
+    messages = getattr(node, "messages", 0)
+    summary = {
+        "output": str(output) if output is not None else None,
+        "foxglove_port": live.port if live is not None else None,
+        "topics": dict(sorted(recording.counts.items())) if recording is not None else sorted(
+            getattr(node, "subscribed", {})),
+        "messages": messages,
+        "bytes": recording.bytes if recording is not None else 0,
+        "file_bytes": output.stat().st_size if output is not None and output.exists() else 0,
+        "per_message_us": round(1e6 * getattr(node, "busy_s", 0.0) / messages, 2) if messages else None,
+    }
+    print(json.dumps(summary), flush=True)
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Issue 20, items 3, 4 and 6: a bundle's cost is bounded by construction and measured on real
+data, a slow bundle is refused after about the limit and remembered, and the grid a manifest
+names is bounded before anything is sized from it. Each test builds its hostile file itself."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import pytest
+import torch
+from bundle_forge import bomb_spec, conv, forge, spec_parts, valid_parts
+from medc_training.bundle import (
+    MAX_BUNDLE_AGENTS,
+    MAX_BUNDLE_GRID,
+    BundleError,
+    dry_run_observations,
+    flush_denormals,
+    load_bundle,
+    load_untrusted,
+    read_manifest,
+)
+from medc_training.bundle import dryrun as dryrun_mod
+from medc_training.cli.inspect import main as inspect_main
+
+TINY = torch.finfo(torch.float32).tiny
+
+
+def _subnormal_bundle(arch: str = "convnet-small", grid: int = 30) -> bytes:
+    """A valid bundle whose convolution weights are all float32 subnormals (~1e-40, sign kept)."""
+    tensors, manifest = valid_parts(arch, grid=grid)
+    for name, t in tensors.items():
+        if t.dim() == 4:
+            tensors[name] = torch.where(t >= 0, 1e-40, -1e-40).to(torch.float32)
+    assert all(((t != 0) & (t.abs() < TINY)).all() for t in tensors.values() if t.dim() == 4)
+    return forge(tensors, manifest)
+
+
+# --- item 3: denormals ---------------------------------------------------------------------------
+
+def test_subnormal_weights_are_loaded_as_zero_everywhere(tmp_path) -> None:
+    data = _subnormal_bundle()
+    for load in (load_bundle, load_untrusted):
+        bundle = load(data)
+        for name, p in bundle.net.named_parameters():
+            assert not ((p != 0) & (p.abs() < TINY)).any(), (load.__name__, name)
+        conv_weights = [p for p in bundle.net.parameters() if p.dim() == 4]
+        assert conv_weights and all((p == 0).all() for p in conv_weights)
+    # medc-inspect loads it the same way (and says nothing false about it).
+    path = tmp_path / "denormal.safetensors"
+    path.write_bytes(data)
+    assert inspect_main([str(path)]) == 0
+
+
+def test_forward_passes_flush_subnormal_results_and_restore_the_mode() -> None:
+    a = torch.tensor([1e-20], dtype=torch.float32)
+    assert float(a * a) != 0.0  # IEEE: 1e-40 is a subnormal, not 0
+    with flush_denormals():
+        if torch.set_flush_denormal(True):  # the CPU has flush-to-zero (x86 with SSE3, arm64)
+            assert float(a * a) == 0.0
+    assert float(a * a) != 0.0  # training code outside keeps IEEE arithmetic
+
+
+def test_the_dry_run_uses_observations_with_real_structure(monkeypatch) -> None:
+    tensors, manifest = valid_parts("lenet5", grid=10)
+    obs = dry_run_observations(manifest, (5, 10, 10))
+    assert len(obs) == 3 and all(o.shape == (1, 5, 10, 10) for o in obs)
+    blank, real, dense = obs
+    assert not blank.any()
+    # The environment's own observation: several channels in use, with more than two values.
+    assert sum(bool(real[0, c].any()) for c in range(5)) >= 3 and real.unique().numel() > 2
+    assert (dense > 0).float().mean() > 0.99
+    seen = []
+    real_forward = dryrun_mod.timed_forward
+
+    def spy(net, o, mask, limit):
+        seen.append(o.clone())
+        return real_forward(net, o, mask, limit)
+
+    monkeypatch.setattr("medc_training.bundle.policy.timed_forward", spy)
+    load_untrusted(forge(tensors, manifest))
+    assert len(seen) == 3 and torch.equal(seen[1], real)
+
+
+# --- item 4: slow bundles --------------------------------------------------------------------------
+
+def _slow_bundle() -> bytes:
+    """The issue's slow bundle: 1-channel 64x64 convolutions on a padded-up map, ~418 M operations
+    (just under nets.MAX_OPERATIONS); 0.2 s a pass on this project's 2-core dev machine, idle."""
+    tensors, manifest = spec_parts(bomb_spec(5, 10, 3, 62, [conv(1, 64)]))
+    gen = torch.Generator().manual_seed(0)
+    tensors = {k: torch.rand(v.shape, generator=gen) * 0.01 for k, v in tensors.items()}
+    return forge(tensors, manifest)
+
+
+def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(tmp_path) -> None:
+    data = _slow_bundle()
+    full = load_bundle(data)
+    blank = torch.zeros((1, *full.obs_shape))
+    allowed = torch.ones((1, 8), dtype=torch.bool)
+    passes = []
+    for _ in range(2):  # warm: the first call of a shape also builds its kernels
+        start = time.perf_counter()
+        with torch.no_grad():
+            full.net(blank)
+        passes.append(time.perf_counter() - start)
+    one_pass = min(passes)
+    limit = one_pass / 4  # "too slow" here, whatever the machine's speed
+    # The big layer is timed on a 1/16 strip of its output first, and the pass abandoned.
+    start = time.perf_counter()
+    with pytest.raises(dryrun_mod.TooSlow) as slow:
+        dryrun_mod.timed_forward(full.net, blank, allowed, limit)
+    assert slow.value.estimated and slow.value.layer == 3 and slow.value.seconds > limit
+    assert time.perf_counter() - start < one_pass / 2
+    first = tmp_path / "slow.safetensors"
+    first.write_bytes(data)
+    start = time.perf_counter()
+    with pytest.raises(BundleError, match=r"takes .* s to evaluate, over the .* s limit \(too slow") as info:
+        load_untrusted(first, max_forward_s=limit)
+    refused_in = time.perf_counter() - start
+    assert str(info.value).startswith(f"{first}: ")
+    # Before: a full blank pass, then a second one (a cold start's second chance): >= 2 passes.
+    assert refused_in < one_pass, (refused_in, one_pass)
+    again = tmp_path / "republished.safetensors"
+    shutil.copy(first, again)
+    start = time.perf_counter()
+    with pytest.raises(BundleError, match="refused before; not checked again"):
+        load_untrusted(again, max_forward_s=limit)
+    assert time.perf_counter() - start < 0.05
+
+
+# --- item 6: the grid a manifest names -----------------------------------------------------------------
+
+@pytest.mark.parametrize("grid", [10**6, 256, MAX_BUNDLE_GRID + 1, 0, 12.5])
+def test_a_manifest_grid_beyond_the_bound_is_refused_by_every_reader(grid, tmp_path, capsys) -> None:
+    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.nets import make_actor_critic
+
+    # A grid-free observation (an agent-centred window), so the grid is not tied to the input size.
+    spec = parse_observation("ego4")
+    shape = spec.shape(10)
+    torch.manual_seed(0)
+    net = make_actor_critic("lenet5", shape, 8)
+    _, manifest = valid_parts("lenet5", grid=10)
+    manifest = {**manifest, "environment": {**manifest["environment"], "grid": grid},
+                "architecture": net.spec,
+                "observation": {"name": spec.name, "channels": shape[0], "height": shape[1],
+                                "width": shape[2], "channel_names": list(spec.channels)}}
+    data = forge(dict(net.state_dict()), manifest)
+    path = tmp_path / "grid.safetensors"
+    path.write_bytes(data)
+    for load in (read_manifest, load_bundle, load_untrusted):
+        with pytest.raises(BundleError, match=rf"environment.grid is .*from 1 to {MAX_BUNDLE_GRID}"):
+            load(path)
+    assert inspect_main([str(path)]) == 1
+    assert f"from 1 to {MAX_BUNDLE_GRID}" in capsys.readouterr().err
+    # The same bundle with a grid within the bound loads.
+    manifest["environment"]["grid"] = 30
+    assert read_manifest(forge(dict(net.state_dict()), manifest))["environment"]["grid"] == 30
+
+
+def test_a_manifest_team_beyond_the_bound_is_refused() -> None:
+    tensors, manifest = valid_parts("lenet5", grid=10)
+    manifest = {**manifest, "environment": {**manifest["environment"], "agents": 10**6}}
+    with pytest.raises(BundleError, match=f"environment.agents is 1000000.*from 1 to {MAX_BUNDLE_AGENTS}"):
+        read_manifest(forge(tensors, manifest))

@@ -1,0 +1,202 @@
+"""Recording a MEDC graph (medc-record, medc-launch --record): rosbag2's MCAP layout that
+``rosbags`` and ``mcap_ros2`` decode, topics found as they appear, and a recorder that never
+counts as an agent at the simulator's start gate."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _launch(args: list[str], tmp_path: Path, timeout: float = 180) -> subprocess.CompletedProcess:
+    err = tmp_path / "stderr.txt"
+    with err.open("w") as log:  # a file, not a pipe: the nodes' logs can never block
+        out = subprocess.run([sys.executable, "-m", "medc_bringup.launcher", *args], stdout=subprocess.PIPE,
+                             stderr=log, text=True, timeout=timeout, cwd=tmp_path)
+    assert out.returncode == 0, err.read_text()[-3000:]
+    return out
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", [[], ["--in-process"]], ids=["processes", "in-process"])
+def test_launch_record_decodes_to_the_episodes_it_printed(bundles, tmp_path, mode):
+    """An MCAP from ``medc-launch --record`` holds the episodes ``--episodes`` printed, readable
+    by rosbags and mcap_ros2, custom medc_interfaces types included."""
+    from mcap.reader import make_reader
+    from mcap_ros2.reader import read_ros2_messages
+    from rosbags.highlevel import AnyReader
+
+    config = tmp_path / "launch.yaml"
+    config.write_text(f"grid: 10\nwalls: 1\nmax_steps: 20\nseed: 3\npolicy: {bundles['a']}\n")
+    out = _launch(["--config", str(config), "--episodes", "3", "--record", "run.mcap", *mode], tmp_path)
+    printed = [(int(e), int(n), v == "target found")
+               for e, n, v in re.findall(r"^episode (\d+): (\d+) steps, (target found|truncated)$",
+                                         out.stdout, flags=re.M)]
+    summary = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(printed) == 3 and summary["episodes"] == 3
+    recording = summary["recording"]
+    assert recording["output"] == str(tmp_path / "run.mcap") and recording["messages"] > 0
+    assert recording["per_message_us"] is not None and recording["per_message_us"] > 0
+
+    path = tmp_path / "run.mcap"
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        header, summ = reader.get_header(), reader.get_summary()
+    assert header.profile == "ros2"
+    assert {s.encoding for s in summ.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summ.channels.values()} == {"cdr"}
+    topics = {c.topic for c in summ.channels.values()}
+    for agent in ("agent_0", "agent_1", "agent_2"):
+        assert {f"/medc/{agent}/pose", f"/medc/{agent}/radiation", f"/medc/{agent}/move"} <= topics
+
+    # mcap_ros2: the results and the closing statuses are the printed episodes.
+    results, done, readings, moves = [], [], {}, {}
+    for m in read_ros2_messages(str(path)):
+        topic = m.channel.topic
+        if topic == "/medc/episode_result":
+            results.append((m.ros_msg.episode, m.ros_msg.episode_length, m.ros_msg.success))
+        elif topic == "/medc/episode" and m.ros_msg.done:
+            done.append((m.ros_msg.episode, m.ros_msg.episode_length, m.ros_msg.success))
+        elif topic.endswith("/radiation"):
+            readings[topic] = readings.get(topic, 0) + 1
+            assert m.ros_msg.header.frame_id == "map" and m.ros_msg.value >= 0
+        elif topic.endswith("/move"):
+            moves.setdefault(topic, set()).add((m.ros_msg.episode, m.ros_msg.step))
+    assert sorted(results) == printed  # RESULTS_QOS keeps 1000: complete in either mode
+    steps = sum(n for _, n, _ in printed)
+    assert sorted(moves) == [f"/medc/agent_{i}/move" for i in range(3)]
+    assert len(readings) == 3 and all(n > 0 for n in readings.values())
+    if not mode:
+        # Processes: the team steps at the agents' pace, and a reliable topic (status, moves; keep
+        # last 20) reaches the recorder whole. In one process the team can outrun a recorder in
+        # another by more than 20 messages on a loaded machine (docs/ros.md says so). Readings are
+        # best effort (sensor-data QoS, as a driver publishes them): any reader may miss some.
+        assert sorted(set(done)) == printed
+        counts = {t: len(v) for t, v in moves.items()}
+        assert all(n == steps for n in counts.values()), counts
+
+    # rosbags: every message of every topic deserialises; the episodes again.
+    with AnyReader([path]) as bag:
+        assert "medc_interfaces/msg/AgentMove" in {c.msgtype for c in bag.connections}
+        count, episodes = 0, []
+        for conn, _, raw in bag.messages():
+            msg = bag.deserialize(raw, conn.msgtype)
+            count += 1
+            if conn.topic == "/medc/episode_result":
+                episodes.append((msg.episode, msg.episode_length, msg.success))
+            if conn.topic.endswith("/move"):
+                assert 0 <= msg.action <= 7
+    assert sorted(episodes) == printed
+    assert count == recording["messages"]
+
+
+def test_schema_text_embeds_every_type_it_uses():
+    from medc_bringup.recording import message_definition
+
+    text = message_definition("medc_interfaces/msg/EpisodeStatus")
+    assert text.startswith("# The simulator's clock tick")
+    assert "\nMSG: std_msgs/Header\n" in text and "\nMSG: builtin_interfaces/Time\n" in text
+    assert text.count("MSG: builtin_interfaces/Time") == 1  # used twice, embedded once
+    grid = message_definition("nav_msgs/msg/OccupancyGrid")
+    assert "MSG: nav_msgs/MapMetaData" in grid and "MSG: geometry_msgs/Pose" in grid
+    with pytest.raises(ValueError, match="build_interfaces"):
+        message_definition("no_such_msgs/msg/Thing")
+
+
+def _spin(executor, condition, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+        if condition():
+            return True
+    return False
+
+
+@pytest.mark.ros
+def test_recorder_finds_topics_that_appear_later(rclpy_context, tmp_path):
+    """A topic another node adds under the namespace after the recorder started (the team's
+    estimate) is recorded; one outside the namespace is not."""
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from mcap_ros2.reader import read_ros2_messages
+    from medc_bringup.recorder import make_recorder_node
+    from medc_bringup.recording import McapRecording
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import String
+
+    path = tmp_path / "late.mcap"
+    recording = McapRecording(path)
+    recorder = make_recorder_node("/rt", recording, discover_every_s=0.1)
+    other = rclpy.create_node("late_publisher")
+    executor = SingleThreadedExecutor()
+    executor.add_node(recorder)
+    executor.add_node(other)
+    try:
+        _spin(executor, lambda: False, 0.3)
+        estimate_pub = other.create_publisher(PoseWithCovarianceStamped, "/rt/team/estimate", 10)
+        foreign_pub = other.create_publisher(String, "/elsewhere/chatter", 10)
+        assert _spin(executor, lambda: "/rt/team/estimate" in recorder.subscribed, 10.0)
+        assert _spin(executor, lambda: estimate_pub.get_subscription_count() > 0, 10.0)
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = "map"
+        msg.pose.pose.position.x = 4.5
+        for _ in range(3):
+            estimate_pub.publish(msg)
+            foreign_pub.publish(String(data="not ours"))
+        assert _spin(executor, lambda: recording.counts.get("/rt/team/estimate", 0) >= 3, 10.0)
+    finally:
+        executor.shutdown()
+        recorder.destroy_node()
+        other.destroy_node()
+        recording.close()
+    assert "/elsewhere/chatter" not in recorder.subscribed
+    got = [m.ros_msg.pose.pose.position.x for m in read_ros2_messages(str(path))
+           if m.channel.topic == "/rt/team/estimate"]
+    assert got == [4.5, 4.5, 4.5]
+
+
+@pytest.mark.ros
+def test_a_recorder_does_not_start_the_simulator(rclpy_context):
+    """The start gate counts the agents' own move publishers: two status subscribers that are
+    recorders do not start a two-agent simulator; the agents' move publishers do."""
+    import rclpy
+    from medc_interfaces.msg import AgentMove, EpisodeStatus
+    from medc_sim.node import SimNode
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    ns = "/gate"
+    sim = SimNode(parameter_overrides=[Parameter("namespace", value=ns), Parameter("agents", value=2),
+                                       Parameter("grid", value=8), Parameter("walls", value=0),
+                                       Parameter("wait_for_subscribers", value=2)])
+    recorders = rclpy.create_node("recorders")
+    for _ in range(2):
+        recorders.create_subscription(EpisodeStatus, f"{ns}/episode", lambda m: None, 10)
+    executor = SingleThreadedExecutor()
+    executor.add_node(sim)
+    executor.add_node(recorders)
+    try:
+        assert _spin(executor, lambda: sim.status_pub.get_subscription_count() >= 2, 10.0)
+        _spin(executor, lambda: sim.started, 1.5)
+        assert not sim.started, "two recorders started the simulator without its agents"
+        agents = rclpy.create_node("agents")
+        executor.add_node(agents)
+        agents.create_publisher(AgentMove, f"{ns}/agent_0/move", 10)
+        _spin(executor, lambda: sim.started, 1.0)
+        assert not sim.started, "one agent of two started the simulator"
+        agents.create_publisher(AgentMove, f"{ns}/agent_1/move", 10)
+        assert _spin(executor, lambda: sim.started, 10.0)
+        agents.destroy_node()
+    finally:
+        executor.shutdown()
+        sim.destroy_node()
+        recorders.destroy_node()

@@ -1,0 +1,175 @@
+"""How well the team's declaration says where the source is (:mod:`medc_training.envs.tl_estimate`).
+
+Plays fixed, seeded episodes of a batched target-localization core (the episodes
+:func:`medc_training.evaluate.play_episodes` plays: round r resets with ``round_seed(seed, r)``,
+each environment's first episode counts) and checks the declaration rule on the team's posterior
+after every step (step 0 included: the first readings), as the ROS agents do. Two end rules, as the
+simulator's ``end_on`` parameter:
+
+``either``
+    the episode ends when an agent finds the source (the core's own rule, as in training) or at
+    the team's first declaration, whichever comes first (or at max_steps);
+``declaration``
+    finding the source does not end the episode (a real driver cannot know it): the core is made
+    with ``end_on_find=False``, so the team's estimate no longer rules out the cells it has stood
+    on, and only the declaration or max_steps ends it.
+
+Per episode: how it ended, its length (moves applied), and for a declaration the distance in
+cells from the declared cell to the true source and whether a UAV on that cell would find it (the
+preset's success radius). ``python -m medc_training.declaration_eval BUNDLE_OR_CONTROLLER ...``
+prints one JSON line per configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Callable
+
+import torch
+
+from .envs import make_batched
+from .envs.tl_estimate import DEFAULT_THRESHOLD, check_rule, declare
+from .evaluate import round_seed
+
+#: The end rules of the simulator (``end_on``) a declaration study can play.
+END_RULES = ("either", "declaration")
+
+
+@torch.no_grad()
+def declaration_episodes(env, policy: Callable | None, *, episodes: int, seed: int = 12345,
+                         radius: float | None = None, threshold: float = DEFAULT_THRESHOLD) -> list[dict]:
+    """Play ``episodes`` fixed episodes of ``env`` (made with ``posterior=True``, or with an
+    observation that shows the estimate) greedily with ``policy`` (logits [M, A] for observations
+    and masks, as :mod:`medc_training.evaluate` takes; None = uniformly random valid moves) and
+    return one dict per episode: ``ended_by`` (``declaration``, ``source`` or ``max_steps``),
+    ``length``, ``declared_step``, ``error`` (cells from the declared cell to the source),
+    ``correct`` (error within the preset's success radius), ``mass``.
+
+    ``radius`` None = the sensing preset's success radius. The core's ``end_on_find`` decides the
+    rule: True = ``either``, False = ``declaration`` (module docstring).
+    """
+    from .evaluate import _choose, _generator, net_policy
+
+    if policy is not None and hasattr(policy, "net"):
+        policy = net_policy(policy.net, policy.device)
+    if env.memory.log_post is None:
+        raise ValueError("the core keeps no source posterior: make it with posterior=True")
+    radius = env.sensing.success_radius if radius is None else radius
+    radius, threshold = check_rule(radius, threshold)
+    b = env.num_envs
+    gen = _generator(env, seed, "multinomial")
+    out: list[dict] = []
+    for r in range(math.ceil(episodes / b)):
+        wanted = min(b, episodes - r * b)
+        obs, mask = env.reset(seed=round_seed(seed, r))
+        target = torch.tensor([env.state(i).target for i in range(b)])
+        ended = torch.zeros(b, dtype=torch.bool)
+        rows: list[dict | None] = [None] * b
+
+        _declare_running(env, rows, ended, target, radius, threshold)  # step 0: the first readings
+        for _ in range(env.max_steps):
+            if bool(ended[:wanted].all()):
+                break
+            step_out = env.step(_choose(env, policy, obs, mask, True, "multinomial", gen))
+            done = (step_out.terminated | step_out.truncated).cpu() & ~ended
+            for i in done.nonzero().flatten().tolist():
+                rows[i] = {"ended_by": "source" if bool(step_out.success[i]) else "max_steps",
+                           "length": int(step_out.episode_length[i]), "declared_step": None, "error": None,
+                           "correct": None, "mass": None}
+            # Rows that just ended were reset by the core (their posterior is the next episode's).
+            ended |= done
+            _declare_running(env, rows, ended, target, radius, threshold)
+            obs, mask = step_out.obs, step_out.mask
+        missing = [i for i in range(wanted) if rows[i] is None]
+        if missing:
+            raise RuntimeError(f"episodes {missing} of round {r} neither ended nor declared in max_steps")
+        out.extend(rows[:wanted])  # type: ignore[arg-type]
+    return out
+
+
+def _declare_running(env, rows: list, ended: torch.Tensor, target: torch.Tensor, radius: float,
+                     threshold: float) -> None:
+    """Record a declaration for each running episode (not ``ended``) whose posterior passes the rule
+    now (this step's readings in), and mark it ended."""
+    verdict = declare(env.memory.posterior().cpu(), env.grid, radius, threshold)
+    for i in (verdict.declared & ~ended).nonzero().flatten().tolist():
+        error = float(torch.linalg.vector_norm((verdict.cell[i] - target[i]).float()))
+        step = env.state(i).step
+        rows[i] = {"ended_by": "declaration", "length": step, "declared_step": step, "error": error,
+                   "correct": error <= env.sensing.success_radius + 1e-9, "mass": float(verdict.mass[i])}
+        ended[i] = True
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Counts and means of :func:`declaration_episodes`' rows."""
+    n = len(rows)
+    declared = [row for row in rows if row["ended_by"] == "declaration"]
+    errors = sorted(row["error"] for row in declared)
+    steps = [row["declared_step"] for row in declared]
+    return {
+        "episodes": n,
+        "declared": len(declared),
+        "declared_correct": sum(1 for row in declared if row["correct"]),
+        "found_first": sum(1 for row in rows if row["ended_by"] == "source"),
+        "ended_at_max_steps": sum(1 for row in rows if row["ended_by"] == "max_steps"),
+        "mean_error_cells": sum(errors) / len(errors) if errors else None,
+        "max_error_cells": errors[-1] if errors else None,
+        "mean_declared_step": sum(steps) / len(steps) if steps else None,
+        "mean_length": sum(row["length"] for row in rows) / n if n else None,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m medc_training.declaration_eval``: one JSON line per (end rule, noise)."""
+    from .bundle import load_bundle
+    from .controllers import CONTROLLERS, controller_policy
+
+    p = argparse.ArgumentParser(description="Measure the team's declaration (the source localised) on fixed "
+                                            "episodes: declared cell's distance to the source, steps to it.")
+    p.add_argument("policy", help="a policy bundle, or a classical controller's name "
+                                  f"({', '.join(CONTROLLERS)})")
+    p.add_argument("--episodes", type=int, default=256)
+    p.add_argument("--envs", type=int, default=32)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--rule", choices=END_RULES, action="append", help="end rule(s) (default: both)")
+    p.add_argument("--noise", choices=("off", "on", "both"), default="both",
+                   help="paper-simple readings without / with Poisson noise (realistic always counts them)")
+    p.add_argument("--radius", type=float, default=None, help="cells (default: the preset's success radius)")
+    p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD)
+    p.add_argument("--agents", type=int, default=3)
+    p.add_argument("--walls", type=int, default=2)
+    p.add_argument("--grid", type=int, default=20)
+    p.add_argument("--max-steps", type=int, default=100)
+    p.add_argument("--sensing", default="realistic")
+    args = p.parse_args(argv)
+    bundle = None if args.policy in CONTROLLERS else load_bundle(args.policy)
+    if bundle is not None:
+        attrs = dict(bundle.manifest.get("environment", {}))
+        if bundle.observation is not None:
+            attrs["observation"] = bundle.observation
+    else:
+        attrs = {"agents": args.agents, "walls": args.walls, "grid": args.grid, "max_steps": args.max_steps,
+                 "sensing": args.sensing}
+    sensing = attrs.get("sensing", "paper-simple")
+    choices = {"off": [False], "on": [True], "both": [False, True]}
+    noises = [None] if sensing != "paper-simple" else choices[args.noise]
+    for rule in args.rule or list(END_RULES):
+        for noise in noises:
+            options = dict(attrs, posterior=True, end_on_find=rule == "either")
+            if noise is not None:
+                options["noise"] = noise
+            env = make_batched("target_localization", num_envs=args.envs, seed=args.seed, **options)
+            policy = bundle if bundle is not None else controller_policy(args.policy, env)
+            rows = declaration_episodes(env, policy, episodes=args.episodes, seed=args.seed,
+                                        radius=args.radius, threshold=args.threshold)
+            radius = args.radius if args.radius is not None else env.sensing.success_radius
+            print(json.dumps({"policy": args.policy, "rule": rule, "noise": env.noise,
+                              "sensing": env.sensing.name, "radius": radius, "threshold": args.threshold,
+                              **env.attributes, **summarize(rows)}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

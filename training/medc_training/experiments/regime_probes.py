@@ -1,0 +1,137 @@
+"""Regime probes for the claims protocol: where is reward rare, and how good are the classical controllers?
+
+Step 1 of the claims protocol (docs/reproduction/claims/PROTOCOL.md) chooses the regime before any
+MEDC run, from random play, the classical controllers and MDRL-sparse only. This module plays the
+first part: random moves and the classical controllers (:mod:`medc_training.controllers`) on the
+candidate regimes of the realistic sensing preset, each policy on the same fixed episodes played to
+their end (:func:`medc_training.evaluate.play_episodes`). Sparse's probes are ordinary ``medc-train``
+runs (``scripts/claims_probes.sh``).
+
+``python -m medc_training.experiments.regime_probes play --out docs/reproduction/claims/probes``
+plays what is missing (one JSON per regime and policy; finished ones are skipped, so it resumes);
+``report`` prints the table (success rate and mean episode length with 95% CIs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..stats import mean_ci
+
+AGENTS = 3
+EPISODES = 256
+EVAL_SEED = 20261203
+POLICIES = ("random", "gradient", "greedy", "infotaxis")
+
+
+@dataclass(frozen=True)
+class Regime:
+    grid: int
+    walls: int
+    max_steps: int
+
+    @property
+    def name(self) -> str:
+        return f"g{self.grid}w{self.walls}t{self.max_steps}"
+
+
+#: The candidates: the study's 30x30 (random play succeeds in ~30% of its episodes), shorter
+#: episodes on it, and larger areas up to the estimator's pair-table limit (48 cells a side).
+REGIMES = (
+    Regime(30, 2, 100), Regime(30, 2, 60), Regime(30, 5, 60),
+    Regime(40, 2, 100), Regime(40, 2, 70), Regime(40, 2, 50), Regime(40, 5, 100), Regime(48, 2, 100),
+    Regime(48, 2, 70),
+)
+
+
+def parse_regime(text: str) -> Regime:
+    """'g40w2t100' -> Regime(40, 2, 100)."""
+    try:
+        grid, rest = text.removeprefix("g").split("w", 1)
+        walls, steps = rest.split("t", 1)
+        return Regime(int(grid), int(walls), int(steps))
+    except ValueError:
+        raise ValueError(f"regime {text[:40]!r}: write it as g<grid>w<walls>t<max steps>, "
+                         "e.g. g40w2t100") from None
+
+
+def play(regime: Regime, policy: str) -> dict:
+    """Play ``policy`` on the regime's fixed episodes; the per-episode results and their summary."""
+    from ..controllers import controller_policy
+    from ..envs import make_batched
+    from ..evaluate import play_episodes
+
+    env = make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
+                       walls=regime.walls, grid=regime.grid, max_steps=regime.max_steps, sensing="realistic",
+                       posterior=policy != "random", copy_obs=False, observation="maps")
+    start = time.perf_counter()
+    net = None if policy == "random" else controller_policy(policy, env)
+    played = play_episodes(env, net, episodes=EPISODES, seed=EVAL_SEED)
+    lengths = [float(x) for x in played.lengths]
+    successes = [float(bool(x)) for x in played.successes]
+    return {"regime": regime.name, "policy": policy, "grid": regime.grid, "walls": regime.walls,
+            "max_steps": regime.max_steps, "agents": AGENTS, "sensing": "realistic", "episodes": EPISODES,
+            "eval_seed": EVAL_SEED, "seconds": round(time.perf_counter() - start, 1),
+            "lengths": lengths, "successes": successes}
+
+
+def summary(record: dict) -> dict:
+    """Mean episode length and success rate with 95% CIs."""
+    length, length_ci = mean_ci(record["lengths"])
+    success, success_ci = mean_ci(record["successes"])
+    return {"length": length, "length_ci": length_ci, "success": success, "success_ci": success_ci}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("command", choices=("play", "report"))
+    p.add_argument("--out", type=Path, default=Path("docs/reproduction/claims/probes"))
+    p.add_argument("--regime", action="append", help="only these regimes, e.g. g40w2t100 (repeatable)")
+    p.add_argument("--policy", action="append", choices=POLICIES, help="only these policies (repeatable)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    try:
+        regimes = [parse_regime(r) for r in args.regime] if args.regime else list(REGIMES)
+    except ValueError as exc:
+        p.error(str(exc))
+    policies = args.policy or list(POLICIES)
+    if args.command == "play":
+        for regime in regimes:
+            for policy in policies:
+                path = args.out / regime.name / f"{policy}.json"
+                if path.exists():
+                    continue
+                record = play(regime, policy)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps(record) + "\n")
+                s = summary(record)
+                print(f"{regime.name} {policy}: {s['success']:.0%} found, {s['length']:.1f} steps "
+                      f"({record['seconds']:.0f} s)", flush=True)
+        return 0
+    print(f"| regime | {' | '.join(policies)} |")
+    print(f"| --- |{' --- |' * len(policies)}")
+    for regime in regimes:
+        cells = []
+        for policy in policies:
+            path = args.out / regime.name / f"{policy}.json"
+            if not path.exists():
+                cells.append("not run")
+                continue
+            s = summary(json.loads(path.read_text()))
+            cells.append(f"{s['success']:.0%} ± {s['success_ci']:.0%}, "
+                         f"{s['length']:.1f} ± {s['length_ci']:.1f}")
+        print(f"| {regime.name} | {' | '.join(cells)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
