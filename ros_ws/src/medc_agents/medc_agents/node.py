@@ -18,9 +18,9 @@ RecursionError or MemoryError from a hostile file included) ends as a logged ref
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -29,13 +29,11 @@ from medc_common import contract
 from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
-from medc_interfaces.srv import FetchBundle
 from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_msgs.msg import String
 
@@ -45,25 +43,18 @@ from medc_agents.estimate import TeamEstimate
 from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
-    looks_like_cid,
     read_policy_manifest,
     shown,
-    strip_cid,
 )
-from medc_agents.team_state import EDGE_TOLERANCE_CELLS, TeamObserver, Tick, show_stamp, stamp_key
+from medc_agents.policy_swaps import PolicySwaps, refusal_reason
+from medc_agents.team_state import EDGE_TOLERANCE_CELLS, TeamObserver, show_stamp, stamp_key
+from medc_agents.team_watch import TeamWatch
 
 #: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
 NUM_ACTIONS = len(ACTIONS)
 #: Default of the agent's ``stall_timeout_s`` (docs/ros.md): longer than a driver's re-send period
 #: (the simulator's resend_s is 0.5 s), so one lost best-effort message is not reported.
 STALL_TIMEOUT_S = 2.0
-
-
-def _reason(exc: BaseException) -> str:
-    """What a refusal says: the PolicyRejected text, or just the type of an unexpected error;
-    printable ASCII only and bounded, as it goes to the log, /rosout and the caller."""
-    text = str(exc) if isinstance(exc, PolicyRejected) else f"could not be loaded ({type(exc).__name__})"
-    return printable(text, 2000)
 
 
 def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
@@ -132,7 +123,132 @@ def default_node_name(agent_id: str | None) -> str:
     return "medc_agent"
 
 
-class AgentNode(Node):
+def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameters:
+    """Declare every parameter of an agent node on ``node`` and return their values (ValueError for a
+    bad sensing preset)."""
+    p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
+    agent_id = p(
+        "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
+    )
+    namespace = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+    num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
+    grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
+                     "size); 0: the policy bundle's manifest's", True)
+    observation = p(
+        "observation",
+        "",
+        "Observation variant a policy must take (maps, maps+estimate, egoR, egoR+estimate); "
+        "empty: the one each policy bundle's manifest names",
+        True,
+    )
+    resolution = p("resolution", 0.0, "Cell side in metres a map must have; 0: the map's own", True)
+    sensing = p(
+        "sensing",
+        DEFAULT_SENSING,
+        f"Sensing model of the team's readings, a preset ({', '.join(sorted(SENSING_PRESETS))}; "
+        "docs/ros.md, 'Sensor model'); a bundle trained under another is refused",
+        True,
+    )
+    if sensing not in SENSING_PRESETS:
+        raise ValueError(f"sensing must be one of {sorted(SENSING_PRESETS)}, got {str(sensing)[:40]!r}")
+    bridge_service = p(
+        "bridge_service",
+        "/medc/registry/fetch_bundle",
+        "Registry bridge service that fetches and verifies a bundle by content id",
+        True,
+    )
+    application = p(
+        "application", "target_localization", "Application a bundle must be trained for", True
+    )
+    threads = p(
+        "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
+    )
+    max_forward_s = p(
+        "policy_max_forward_s",
+        MAX_FORWARD_SECONDS,
+        "A bundle whose dry run on any of its observations (blank, environment-made, random) takes "
+        "longer (seconds) is refused",
+        True,
+    )
+    stall_timeout_s = float(p(
+        "stall_timeout_s",
+        STALL_TIMEOUT_S,
+        "A team step that cannot be decided for this long (seconds) is logged once, with what it "
+        "waits for, and published as a diagnostic",
+        True,
+    ))
+    lost_timeout_s = float(p(
+        "lost_timeout_s", guard.LOST_TIMEOUT_S,
+        "A teammate whose pose or reading has not come for this long (seconds) while a step waits "
+        "for it is taken out of the team until it is heard again (docs/ros.md, 'A lost UAV'); 0: never",
+        True))
+    session_hold_s = float(p(
+        "session_hold_s", guard.SESSION_HOLD_S,
+        "Statuses of another driver session are held while the followed one published within this "
+        "many seconds (a second graph); after that the new session is followed (a restarted driver)",
+        True))
+    recover_s = float(p(
+        "recover_s", guard.RECOVER_S,
+        "A status that jumps ahead is answered once confirmed or re-sent after this many seconds; "
+        "statuses below the answered step for this long are followed again",
+        True))
+    edge_tolerance = float(p(
+        "edge_tolerance", EDGE_TOLERANCE_CELLS,
+        "Cells: a pose at most this far outside the map's grid is taken as the nearest edge cell",
+        True))
+    noise = bool(p(
+        "noise",
+        False,
+        "Whether the team's readings are Poisson counts (the simulator's 'noise'; the realistic "
+        "preset always counts them): the gradient controller's flatness test",
+        True,
+    ))
+    rule_out = bool(p(
+        "source_ends_episode", True,
+        "The driver ends an episode as soon as a UAV finds the source (the simulator's end_on "
+        "'source' or 'either'), so a cell the team stood on is not the source; false for a driver "
+        "that ends episodes only on the team's declaration (a real one: it cannot know the source)",
+        True))
+    initial = p(
+        "policy", "",
+        "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
+        "(gradient, greedy, infotaxis; needs agents and grid); set it to swap policies")
+    return AgentParameters(
+        agent_id=agent_id, namespace=namespace, agents=int(num_agents), grid=int(grid),
+        observation=str(observation), resolution=float(resolution), sensing=sensing,
+        bridge_service=bridge_service, application=application, threads=int(threads),
+        max_forward_s=float(max_forward_s), stall_timeout_s=stall_timeout_s, lost_timeout_s=lost_timeout_s,
+        session_hold_s=session_hold_s, recover_s=recover_s, edge_tolerance=edge_tolerance, noise=noise,
+        rule_out=rule_out, policy=str(initial))
+
+
+@dataclass(frozen=True)
+class AgentParameters:
+    """An agent node's parameters as declared (:func:`declare_agent_parameters`; their descriptions
+    are there and in ``medc-agent --help``)."""
+
+    agent_id: str
+    namespace: str
+    agents: int
+    grid: int
+    observation: str
+    resolution: float
+    sensing: str
+    bridge_service: str
+    application: str
+    threads: int
+    max_forward_s: float
+    stall_timeout_s: float
+    lost_timeout_s: float
+    session_hold_s: float
+    recover_s: float
+    edge_tolerance: float
+    noise: bool
+    rule_out: bool
+    policy: str
+
+
+class AgentNode(TeamWatch, PolicySwaps, Node):
     """One agent of the team (see the module docstring)."""
 
     def __init__(
@@ -150,109 +266,28 @@ class AgentNode(Node):
             refuses to start rather than idle without a policy.
         """
         super().__init__(node_name or default_node_name(agent_id), **kwargs)
-        p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        self.agent_id = p(
-            "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
-        )
-        self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
-        num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
-        grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
-                         "size); 0: the policy bundle's manifest's", True)
-        observation = p(
-            "observation",
-            "",
-            "Observation variant a policy must take (maps, maps+estimate, egoR, egoR+estimate); "
-            "empty: the one each policy bundle's manifest names",
-            True,
-        )
-        resolution = p("resolution", 0.0, "Cell side in metres a map must have; 0: the map's own", True)
-        sensing = p(
-            "sensing",
-            DEFAULT_SENSING,
-            f"Sensing model of the team's readings, a preset ({', '.join(sorted(SENSING_PRESETS))}; "
-            "docs/ros.md, 'Sensor model'); a bundle trained under another is refused",
-            True,
-        )
-        if sensing not in SENSING_PRESETS:
-            raise ValueError(f"sensing must be one of {sorted(SENSING_PRESETS)}, got {str(sensing)[:40]!r}")
-        self.bridge_service = p(
-            "bridge_service",
-            "/medc/registry/fetch_bundle",
-            "Registry bridge service that fetches and verifies a bundle by content id",
-            True,
-        )
-        application = p(
-            "application", "target_localization", "Application a bundle must be trained for", True
-        )
-        threads = p(
-            "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
-        )
-        max_forward_s = p(
-            "policy_max_forward_s",
-            MAX_FORWARD_SECONDS,
-            "A bundle whose dry run on any of its observations (blank, environment-made, random) takes "
-            "longer (seconds) is refused",
-            True,
-        )
-        self.stall_timeout_s = float(p(
-            "stall_timeout_s",
-            STALL_TIMEOUT_S,
-            "A team step that cannot be decided for this long (seconds) is logged once, with what it "
-            "waits for, and published as a diagnostic",
-            True,
-        ))
-        lost_timeout_s = float(p(
-            "lost_timeout_s", guard.LOST_TIMEOUT_S,
-            "A teammate whose pose or reading has not come for this long (seconds) while a step waits "
-            "for it is taken out of the team until it is heard again (docs/ros.md, 'A lost UAV'); 0: never",
-            True))
-        session_hold_s = float(p(
-            "session_hold_s", guard.SESSION_HOLD_S,
-            "Statuses of another driver session are held while the followed one published within this "
-            "many seconds (a second graph); after that the new session is followed (a restarted driver)",
-            True))
-        recover_s = float(p(
-            "recover_s", guard.RECOVER_S,
-            "A status that jumps ahead is answered once confirmed or re-sent after this many seconds; "
-            "statuses below the answered step for this long are followed again",
-            True))
-        edge_tolerance = float(p(
-            "edge_tolerance", EDGE_TOLERANCE_CELLS,
-            "Cells: a pose at most this far outside the map's grid is taken as the nearest edge cell",
-            True))
+        prm = declare_agent_parameters(self, agent_id)
+        self.agent_id, self.namespace_, self.bridge_service = prm.agent_id, prm.namespace, prm.bridge_service
+        self.stall_timeout_s = prm.stall_timeout_s
         #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
-        self.noise = bool(p(
-            "noise",
-            False,
-            "Whether the team's readings are Poisson counts (the simulator's 'noise'; the realistic "
-            "preset always counts them): the gradient controller's flatness test",
-            True,
-        ))
-        rule_out = bool(p(
-            "source_ends_episode", True,
-            "The driver ends an episode as soon as a UAV finds the source (the simulator's end_on "
-            "'source' or 'either'), so a cell the team stood on is not the source; false for a driver "
-            "that ends episodes only on the team's declaration (a real one: it cannot know the source)",
-            True))
-        initial = p(
-            "policy", "",
-            "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
-            "(gradient, greedy, infotaxis; needs agents and grid); set it to swap policies")
-        explicit_observation = observation
+        self.noise = prm.noise
+        sensing, application, initial = prm.sensing, prm.application, prm.policy
+        observation = explicit_observation = prm.observation
         num_agents, grid, observation = scenario_from_bundle(
-            str(initial), int(num_agents), int(grid), str(observation), application or None)
+            initial, prm.agents, prm.grid, observation, application or None)
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
-        torch.set_num_threads(max(1, int(threads)))
-        self.observer = TeamObserver(self.agent_id, num_agents, grid, float(resolution),
-                                     observation or DEFAULT_OBSERVATION, sensing, rule_out, edge_tolerance)
+        torch.set_num_threads(max(1, prm.threads))
+        self.observer = TeamObserver(self.agent_id, num_agents, grid, prm.resolution,
+                                     observation or DEFAULT_OBSERVATION, sensing, prm.rule_out,
+                                     prm.edge_tolerance)
         #: Per-run id of this node, sent with every move (AgentMove.sender).
         self.sender = run_id()
-        self.lost_watch = guard.LostWatch(num_agents, self.observer.index, lost_timeout_s)
-        self.gate = guard.StatusGate(session_hold_s, recover_s)
+        self.lost_watch = guard.LostWatch(num_agents, self.observer.index, prm.lost_timeout_s)
+        self.gate = guard.StatusGate(prm.session_hold_s, prm.recover_s)
         self.reading_check = guard.ReadingCheck(self.observer.sensing, num_agents)
         self._pending_since = (None, 0.0)  # (tick, since when it waits)
         spec = self.observer.observation
-        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, float(max_forward_s),
+        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
@@ -271,13 +306,18 @@ class AgentNode(Node):
         try:
             self.slot.swap(str(initial))
         except Exception as exc:  # PolicyRejected, or anything else: refuse to start, with the reason
-            raise PolicyRejected(f"policy {shown(initial)} refused, not starting: {_reason(exc)}") from None
+            why = refusal_reason(exc)
+            raise PolicyRejected(f"policy {shown(initial)} refused, not starting: {why}") from None
         self.observer.use_observation(self.slot.observation)
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
                                f"{self.observer.observation.name}), sensing {sensing}")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
+        self._connect(feed, num_agents)
+
+    def _connect(self, feed: TeamFeed | None, num_agents: int) -> None:
+        """Publishers, subscriptions (the team's messages directly or through ``feed``) and timers."""
         ns = self.namespace_
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
@@ -303,125 +343,6 @@ class AgentNode(Node):
             self.create_timer(min(0.25, self.stall_timeout_s / 4), self._watch)
 
     # -- stalls and diagnostics ----------------------------------------------------------------
-    def _on_own_move(self, msg: AgentMove) -> None:
-        if msg.sender == self.sender:
-            return
-        self.health.set("moves", DiagnosticStatus.WARN, (
-            f"another process publishes moves as {self.agent_id} (sender {printable(str(msg.sender), 40)!r}; "
-            f"this node is {self.sender}): two processes claim {self.agent_id}; stop one of them"))
-
-    def _summary(self) -> dict[str, str]:
-        o = self.observer
-        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.mem_episode),
-                "step": str(o.mem_step), "decisions": str(self.decisions), "dropped": str(self.dropped),
-                "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
-                "policy": self.slot.current.description if self.slot.current is not None else "none"}
-
-    def _flush_notes(self) -> None:
-        """Log each new note of the observer once (a restarted driver, a map with faint cells), at
-        level WARN on /diagnostics as in the log."""
-        notes, self.observer.notes[:] = list(self.observer.notes), []
-        for note in notes:
-            if note in self._noted:
-                continue
-            self._noted.add(note)
-            self.health.event("team step", DiagnosticStatus.WARN, note)
-
-    def _watch(self) -> None:
-        """Take silent teammates out; report, once, a team step this agent has not been able to
-        decide for stall_timeout_s."""
-        self._flush_notes()
-        self._check_lost()
-        foreign = self.gate.foreign_now()
-        if foreign:
-            topic = contract.status_topic(self.namespace_)
-            self.health.set("driver", DiagnosticStatus.WARN, (
-                f"statuses from {len(foreign) + 1} driver sessions on {topic} (following "
-                f"{self.gate.session or '(none)'!r}, held: {', '.join(foreign)}): a second graph shares this "
-                "ROS_DOMAIN_ID and namespace; give each graph its own ROS_DOMAIN_ID"))
-        elif self.health.level("driver") != DiagnosticStatus.OK:
-            self.health.set("driver", DiagnosticStatus.OK, "one driver session")
-        o = self.observer
-        t = o.pending
-        what: object = None
-        if t is not None and not o.answered_tick(t):
-            what = t
-        else:
-            orphan = o.orphan_round()
-            if orphan is not None:
-                what = ("orphan", orphan)
-        now = time.monotonic()
-        if what is None:
-            self._stall_since = None
-            return
-        if self._stall_since is None or self._stall_since[0] != what:
-            self._stall_since = (what, now)
-            return
-        waited = now - self._stall_since[1]
-        if waited < self.stall_timeout_s or (self._stall_report and self._stall_report[0] == what):
-            return
-        if isinstance(what, Tick):
-            need, have = o.waiting_for()
-            head = f"episode {what.episode} step {what.step} (stamp {show_stamp(what.stamp)})"
-            if self.slot.current is None:
-                need.append("a policy")
-        else:
-            head = f"poses and readings of every agent stamped {show_stamp(what[1])}"
-            need = [f"an EpisodeStatus with header.stamp {show_stamp(what[1])}"]
-            have = [f"last status answered: episode {o.mem_episode} step {o.mem_step} stamped "
-                    f"{show_stamp(o.mem_stamp)}" if o.mem_step >= 0 else "no status answered yet"]
-        report = (f"stalled: {head} not decided after {waited:.1f} s; waiting for: {'; '.join(need) or '?'}; "
-                  f"have: {'; '.join(have) or 'nothing else'}")
-        self._stall_report = (what, report)
-        self.stalls_reported += 1
-        self.health.set("team step", DiagnosticStatus.WARN, report, {
-            "waiting_for": "; ".join(need), "have": "; ".join(have), "waited_s": f"{waited:.1f}"})
-
-    def _check_lost(self) -> None:
-        o = self.observer
-        t = o.pending
-        if t is None or o.answered_tick(t):
-            return
-        if self._pending_since[0] != t:
-            self._pending_since = (t, time.monotonic())
-        fresh = {j for j in range(o.num_agents)
-                 if any(o.latest.get((kind, j), -1) > o.mem_stamp for kind in ("pose", "reading"))}
-        newly = self.lost_watch.check(o.missing(), self._pending_since[1], fresh)
-        for idx, _why in newly:
-            o.absent.add(idx)
-        if newly:
-            self._report_team()
-            self._maybe_decide()
-
-    def _report_team(self) -> None:
-        o, lost = self.observer, self.lost_watch.lost
-        if lost:
-            text = "; ".join(f"{o.ids[j]} lost ({why})" for j, why in sorted(lost.items()))
-            self.health.set("team", DiagnosticStatus.WARN,
-                            f"{text}: deciding with the {o.num_agents - len(lost)} agents heard; taken back "
-                            "when its pose and reading come again",
-                            {"lost": ", ".join(o.ids[j] for j in sorted(lost))})
-        else:
-            self.health.set("team", DiagnosticStatus.OK, f"all {o.num_agents} agents heard")
-
-    def _heard(self, kind: str, agent_id: str) -> None:
-        o = self.observer
-        idx = contract.agent_index(agent_id, o.num_agents)
-        self.lost_watch.seen(kind, idx)
-        if idx in o.absent and o.latest.get(("pose", idx)) == o.latest.get(("reading", idx)):
-            o.absent.discard(idx)
-            if self.lost_watch.back(idx):
-                self.get_logger().info(f"{agent_id} is heard again: back in the team")
-                self._report_team()
-
-    def _stall_over(self, tick) -> None:
-        if self._stall_report is not None and self._stall_report[0] == tick:
-            message = f"deciding again: episode {tick.episode} step {tick.step} decided"
-            self.health.set("team step", DiagnosticStatus.OK, message)
-        self._stall_report = None if self._stall_report is None or self._stall_report[0] == tick \
-            else self._stall_report
-        self._stall_since = None
-
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
         try:
@@ -548,7 +469,8 @@ class AgentNode(Node):
             # A policy failing on one observation must not take the node down; the observation
             # is kept and retried when the simulator re-sends the step.
             self.get_logger().error(
-                f"policy failed on episode {tick.episode} step {tick.step}: {_reason(PolicyRejected(exc))}"
+                f"policy failed on episode {tick.episode} step {tick.step}: "
+                f"{refusal_reason(PolicyRejected(exc))}"
             )
             self._unanswered = (obs, mask, tick)
             return
@@ -578,67 +500,6 @@ class AgentNode(Node):
     def dropped(self) -> int:
         """Messages dropped as invalid, in all."""
         return sum(self.dropped_by.values())
-
-    # -- policy swap ---------------------------------------------------------------------------
-    def swap_policy(self, source: str) -> str:
-        """Validate and run the bundle at ``source``; returns its description.
-
-        Raises:
-            PolicyRejected: refused; the previous policy keeps running.
-        """
-        loaded = self.slot.swap(source)
-        self.observer.use_observation(self.slot.observation)
-        self.get_logger().info(f"now running policy {loaded.description} "
-                               f"(observation {self.observer.observation.name})")
-        for listener in self.swap_listeners:
-            listener(source, None)
-        return loaded.description
-
-    def _refused(self, source: str, exc: Exception) -> None:
-        reason = _reason(exc)
-        self.get_logger().error(f"policy {shown(source)} refused, keeping the running one: {reason}")
-        for listener in self.swap_listeners:
-            try:
-                listener(source, reason)
-            except Exception as err:  # a listener's bug must not turn a refusal into a crash
-                self.get_logger().error(f"policy swap listener failed: {type(err).__name__}")
-
-    def _on_set_parameters(self, params) -> SetParametersResult:
-        for param in params:
-            if param.name != "policy":
-                continue
-            try:
-                self.swap_policy(str(param.value))
-            except Exception as exc:  # PolicyRejected, or anything at all: refuse, keep running
-                self._refused(str(param.value), exc)
-                return SetParametersResult(successful=False, reason=_reason(exc))
-        return SetParametersResult(successful=True)
-
-    def _on_policy_msg(self, msg: String) -> None:
-        source = ""
-        try:
-            source = msg.data.strip()
-            if looks_like_cid(source):
-                self._request_fetch(strip_cid(source))
-                return
-            self.swap_policy(source)
-        except Exception as exc:  # PolicyRejected, or anything at all: refuse, keep running
-            self.dropped_by["policy"] += 1
-            self._refused(source, exc)
-
-    def _request_fetch(self, cid: str) -> None:
-        if self._fetch_client is None:
-            self._fetch_client = self.create_client(FetchBundle, self.bridge_service)
-        if not self._fetch_client.service_is_ready():
-            self.dropped_by["policy"] += 1
-            self._refused(
-                cid, PolicyRejected(f"registry bridge service {self.bridge_service} is not running")
-            )
-            return
-        # The bridge verifies the bundle and publishes its local path on this agent's policy topic.
-        self._fetch_client.call_async(FetchBundle.Request(cid=cid, agent_ids=[self.agent_id]))
-        self.get_logger().info(f"asked the registry bridge for bundle {cid}")
-
 
 def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[AgentNode]) -> None:
     """Subscribe ``node`` to the team's poses, readings, map and status, for ``agents``.

@@ -33,15 +33,13 @@ from rclpy.node import Node
 
 from medc_sim import messages
 from medc_sim.episode_end import declared_cell
+from medc_sim.move_watch import MoveWatch
 from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.watch import GraphWatch
 
-#: An agent that has never moved is taken out only after this many times move_timeout_s.
-STARTUP_FACTOR = 5.0
 
-
-class SimNode(Node):
+class SimNode(MoveWatch, Node):
     """The simulator node (see the module docstring)."""
 
     def __init__(self, node_name: str = "medc_sim", **kwargs) -> None:
@@ -74,26 +72,13 @@ class SimNode(Node):
         self.mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
         if self.mode not in ("stepped", "realtime"):
             raise ValueError(f"mode must be 'stepped' or 'realtime', got {self.mode!r}")
-        self.rate_hz = float(
-            p(
-                "rate_hz",
-                0.0,
-                "Team steps per second (stepped: upper limit, 0 = none; "
-                "realtime: the step rate, must be > 0)",
-                True,
-            )
-        )
+        self.rate_hz = float(p("rate_hz", 0.0, "Team steps per second (stepped: upper limit, 0 = none; "
+                               "realtime: the step rate, must be > 0)", True))
         if self.mode == "realtime" and self.rate_hz <= 0:
             raise ValueError("realtime mode needs rate_hz > 0")
         self.resolution = float(p("resolution", 1.0, "Cell side in metres (map frame)", True))
-        self.resend_s = float(
-            p(
-                "resend_s",
-                0.5,
-                "Stepped mode: re-publish a step whose moves are missing after this many seconds",
-                True,
-            )
-        )
+        self.resend_s = float(p("resend_s", 0.5, "Stepped mode: re-publish a step whose moves are missing "
+                                "after this many seconds", True))
         self.max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
         self.stall_timeout_s = float(p(
             "stall_timeout_s", 2.0,
@@ -129,6 +114,26 @@ class SimNode(Node):
         #: Seconds from publishing a step to receiving the team's last move, per step (latest 100k).
         self.latencies: deque[float] = deque(maxlen=100_000)
 
+        self._connect(cfg)
+        self.wait_for = int(
+            p(
+                "wait_for_subscribers",
+                cfg.agents,
+                "Publish the first step once this many nodes "
+                "subscribe to the episode status (the agents; a launcher or recorder adds itself) "
+                "and, when > 0, every agent's move publisher is there (a recorder is no agent)",
+                True,
+            )
+        )
+        self._start_timers()
+        self.get_logger().info(
+            f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
+            f"seed {cfg.seed}, sensing {cfg.sensing}{' (Poisson counts)' if self.core.noise else ''}, "
+            f"{self.mode} mode on {self.namespace_}"
+        )
+
+    def _connect(self, cfg: SimConfig) -> None:
+        """The team's publishers, the move (and declaration) subscriptions, diagnostics."""
         ns = self.namespace_
         self.pose_pubs = [
             self.create_publisher(PoseStamped, contract.pose_topic(ns, a), contract.SENSOR_QOS)
@@ -165,16 +170,9 @@ class SimNode(Node):
         if self.mode == "stepped" and self.move_timeout_s > 0:
             self.create_timer(min(0.1, self.move_timeout_s / 4), self._move_timeout_tick)
 
-        self.wait_for = int(
-            p(
-                "wait_for_subscribers",
-                cfg.agents,
-                "Publish the first step once this many nodes "
-                "subscribe to the episode status (the agents; a launcher or recorder adds itself) "
-                "and, when > 0, every agent's move publisher is there (a recorder is no agent)",
-                True,
-            )
-        )
+
+    def _start_timers(self) -> None:
+        """The start gate, and the stepping timers of the mode."""
         self.started = False
         self._start_deadline = time.monotonic() + 30.0
         self._start_timer = self.create_timer(0.02, self._try_start)
@@ -184,11 +182,6 @@ class SimNode(Node):
             self.create_timer(max(self.resend_s, 0.01), self._resend_tick)
             if self.rate_hz > 0:
                 self.create_timer(1.0 / self.rate_hz, self._rate_tick)
-        self.get_logger().info(
-            f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
-            f"seed {cfg.seed}, sensing {cfg.sensing}{' (Poisson counts)' if self.core.noise else ''}, "
-            f"{self.mode} mode on {ns}"
-        )
 
     # -- publishing ----------------------------------------------------------------------
     def _try_start(self) -> None:
@@ -287,58 +280,6 @@ class SimNode(Node):
 
     def _rate_tick(self) -> None:
         if self.started and self.book.complete:
-            self._advance()
-
-    def _resend_tick(self) -> None:
-        if self.started and not self.finished and time.monotonic() - self._published_at >= self.resend_s:
-            self.resends += 1
-            waited = time.perf_counter() - self._step_t0 if self._step_t0 is not None else 0.0
-            step = (self.book.episode, self.book.step)
-            if 0 < self.stall_timeout_s <= waited and self._stall_logged != step and not self.book.complete:
-                self._stall_logged = step
-                missing = ", ".join(self.ids[i] for i in self.book.missing)
-                self.health.set("team step", DiagnosticStatus.WARN, (
-                    f"episode {step[0]} step {step[1]}: no move from {missing} after {waited:.1f} s; "
-                    f"re-sending the step every {self.resend_s:g} s (the agents' logs and /diagnostics "
-                    "say what they wait for)"), {"missing": missing, "waited_s": f"{waited:.1f}"})
-            self._send_state()
-
-    def _report_returned(self) -> None:
-        for idx in self.book.returned:
-            self.get_logger().info(f"{self.ids[idx]} moved again: back in the team")
-        if self.book.returned:
-            self.book.returned.clear()
-            self._report_lost()
-
-    def _report_lost(self) -> None:
-        lost = sorted(self.book.lost)
-        if lost:
-            names = ", ".join(self.ids[i] for i in lost)
-            self.health.set("team", DiagnosticStatus.WARN, (
-                f"{names} lost: no move within move_timeout_s ({self.move_timeout_s:g} s); staying in place, "
-                "the team steps without waiting for it until it moves again"), {"lost": names})
-        else:
-            self.health.set("team", DiagnosticStatus.OK, f"all {len(self.ids)} agents moving")
-
-    def _move_timeout_tick(self) -> None:
-        """Stepped mode: agents with no move move_timeout_s after the step's first move are taken
-        out, and the step goes on (a team with no answer at all is a stall, re-sent and reported,
-        not stepped)."""
-        first = self._first_move_at
-        if not self.started or self.finished or first is None or self.book.complete:
-            return
-        waited = time.perf_counter() - first
-        if waited < self.move_timeout_s:
-            return
-        # An agent that has never moved may still be starting: it is given STARTUP_FACTOR times as long.
-        newly = [i for i in self.book.missing if i not in self.book.lost
-                 and (self.book.known[i] or waited >= STARTUP_FACTOR * self.move_timeout_s)]
-        if not newly:
-            return
-        self.book.take_out(newly)
-        self._report_lost()
-        if self.book.complete and self.rate_hz <= 0:
-            self._step_t0 = None
             self._advance()
 
     def _realtime_tick(self) -> None:

@@ -1,0 +1,140 @@
+"""The agent node's watch over its team: stalls, lost teammates, duplicate ids, a second driver.
+
+A mixin of :class:`medc_agents.node.AgentNode` (it uses the node's observer, guards, health and
+slot); the rules themselves live in :mod:`medc_agents.guard` and :mod:`medc_agents.team_state` and
+are tested without a node.
+"""
+
+from __future__ import annotations
+
+import time
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from medc_common import contract
+from medc_interfaces.msg import AgentMove
+from medc_training.untrusted import printable
+
+from medc_agents.team_state import Tick, show_stamp
+
+
+class TeamWatch:
+    """Stall reports, lost and returning teammates, and the heartbeat's summary of an agent node."""
+
+    def _on_own_move(self, msg: AgentMove) -> None:
+        if msg.sender == self.sender:
+            return
+        self.health.set("moves", DiagnosticStatus.WARN, (
+            f"another process publishes moves as {self.agent_id} (sender {printable(str(msg.sender), 40)!r}; "
+            f"this node is {self.sender}): two processes claim {self.agent_id}; stop one of them"))
+
+    def _summary(self) -> dict[str, str]:
+        o = self.observer
+        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.mem_episode),
+                "step": str(o.mem_step), "decisions": str(self.decisions), "dropped": str(self.dropped),
+                "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
+                "policy": self.slot.current.description if self.slot.current is not None else "none"}
+
+    def _flush_notes(self) -> None:
+        """Log each new note of the observer once (a restarted driver, a map with faint cells), at
+        level WARN on /diagnostics as in the log."""
+        notes, self.observer.notes[:] = list(self.observer.notes), []
+        for note in notes:
+            if note in self._noted:
+                continue
+            self._noted.add(note)
+            self.health.event("team step", DiagnosticStatus.WARN, note)
+
+    def _watch(self) -> None:
+        """Take silent teammates out; report, once, a team step this agent has not been able to
+        decide for stall_timeout_s."""
+        self._flush_notes()
+        self._check_lost()
+        foreign = self.gate.foreign_now()
+        if foreign:
+            topic = contract.status_topic(self.namespace_)
+            self.health.set("driver", DiagnosticStatus.WARN, (
+                f"statuses from {len(foreign) + 1} driver sessions on {topic} (following "
+                f"{self.gate.session or '(none)'!r}, held: {', '.join(foreign)}): a second graph shares this "
+                "ROS_DOMAIN_ID and namespace; give each graph its own ROS_DOMAIN_ID"))
+        elif self.health.level("driver") != DiagnosticStatus.OK:
+            self.health.set("driver", DiagnosticStatus.OK, "one driver session")
+        o = self.observer
+        t = o.pending
+        what: object = None
+        if t is not None and not o.answered_tick(t):
+            what = t
+        else:
+            orphan = o.orphan_round()
+            if orphan is not None:
+                what = ("orphan", orphan)
+        now = time.monotonic()
+        if what is None:
+            self._stall_since = None
+            return
+        if self._stall_since is None or self._stall_since[0] != what:
+            self._stall_since = (what, now)
+            return
+        waited = now - self._stall_since[1]
+        if waited < self.stall_timeout_s or (self._stall_report and self._stall_report[0] == what):
+            return
+        if isinstance(what, Tick):
+            need, have = o.waiting_for()
+            head = f"episode {what.episode} step {what.step} (stamp {show_stamp(what.stamp)})"
+            if self.slot.current is None:
+                need.append("a policy")
+        else:
+            head = f"poses and readings of every agent stamped {show_stamp(what[1])}"
+            need = [f"an EpisodeStatus with header.stamp {show_stamp(what[1])}"]
+            have = [f"last status answered: episode {o.mem_episode} step {o.mem_step} stamped "
+                    f"{show_stamp(o.mem_stamp)}" if o.mem_step >= 0 else "no status answered yet"]
+        report = (f"stalled: {head} not decided after {waited:.1f} s; waiting for: {'; '.join(need) or '?'}; "
+                  f"have: {'; '.join(have) or 'nothing else'}")
+        self._stall_report = (what, report)
+        self.stalls_reported += 1
+        self.health.set("team step", DiagnosticStatus.WARN, report, {
+            "waiting_for": "; ".join(need), "have": "; ".join(have), "waited_s": f"{waited:.1f}"})
+
+    def _check_lost(self) -> None:
+        o = self.observer
+        t = o.pending
+        if t is None or o.answered_tick(t):
+            return
+        if self._pending_since[0] != t:
+            self._pending_since = (t, time.monotonic())
+        fresh = {j for j in range(o.num_agents)
+                 if any(o.latest.get((kind, j), -1) > o.mem_stamp for kind in ("pose", "reading"))}
+        newly = self.lost_watch.check(o.missing(), self._pending_since[1], fresh)
+        for idx, _why in newly:
+            o.absent.add(idx)
+        if newly:
+            self._report_team()
+            self._maybe_decide()
+
+    def _report_team(self) -> None:
+        o, lost = self.observer, self.lost_watch.lost
+        if lost:
+            text = "; ".join(f"{o.ids[j]} lost ({why})" for j, why in sorted(lost.items()))
+            self.health.set("team", DiagnosticStatus.WARN,
+                            f"{text}: deciding with the {o.num_agents - len(lost)} agents heard; taken back "
+                            "when its pose and reading come again",
+                            {"lost": ", ".join(o.ids[j] for j in sorted(lost))})
+        else:
+            self.health.set("team", DiagnosticStatus.OK, f"all {o.num_agents} agents heard")
+
+    def _heard(self, kind: str, agent_id: str) -> None:
+        o = self.observer
+        idx = contract.agent_index(agent_id, o.num_agents)
+        self.lost_watch.seen(kind, idx)
+        if idx in o.absent and o.latest.get(("pose", idx)) == o.latest.get(("reading", idx)):
+            o.absent.discard(idx)
+            if self.lost_watch.back(idx):
+                self.get_logger().info(f"{agent_id} is heard again: back in the team")
+                self._report_team()
+
+    def _stall_over(self, tick) -> None:
+        if self._stall_report is not None and self._stall_report[0] == tick:
+            message = f"deciding again: episode {tick.episode} step {tick.step} decided"
+            self.health.set("team step", DiagnosticStatus.OK, message)
+        self._stall_report = None if self._stall_report is None or self._stall_report[0] == tick \
+            else self._stall_report
+        self._stall_since = None
