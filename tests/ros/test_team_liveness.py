@@ -71,6 +71,16 @@ class Listener:
             QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(EpisodeStatus, contract.status_topic("/medc"), self.statuses.append,
                                       contract.RELIABLE_QOS)
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from medc_interfaces.msg import SourceDeclaration
+
+        #: The team's source estimates and declarations (published by agent_0).
+        self.estimates: list = []
+        self.declarations: list = []
+        self.node.create_subscription(PoseWithCovarianceStamped, contract.estimate_topic("/medc"),
+                                      self.estimates.append, contract.ESTIMATE_QOS)
+        self.node.create_subscription(SourceDeclaration, contract.declaration_topic("/medc"),
+                                      self.declarations.append, contract.RELIABLE_QOS)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
 
@@ -245,6 +255,10 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
     agents = [_agent(i, TEAM, logs[i]) for i in range(3)]
     duplicate = None
     try:
+        # agent_0 publishes the team's estimate and declarations: let this listener discover them first.
+        assert listen.spin(30, lambda: node_publishers(listen, "/medc/team/source_declared") >= 1
+                           and node_publishers(listen, "/medc/team/source_estimate") >= 1, agents)
+        listen.spin(1.0)
         # Every status is re-sent: every agent re-sends its move; the driver executes each once.
         steps, summary, _ = _run_driver(listen, agents, "resend", tmp_path, "--steps", "8", "--seed", "3",
                                         "--resend-always")
@@ -254,6 +268,19 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
         assert summary["resends_ignored"] >= 8, summary  # re-sent moves came and were recognised
         assert summary["moves_received"] == 24 + summary["resends_ignored"]
         assert summary["duplicates"] == []
+        # The team's estimate, seen by a driver that imports no simulator code: every declaration
+        # names the source of its episode (the driver's world: origin (-13, 4) m, 2 m cells), and
+        # the estimate published with it lies in the declared cell.
+        listen.spin(1.0)
+        sources = {s["episode"]: tuple(s["source"]) for s in steps}
+        declared = [d for d in listen.declarations if d.episode in sources]
+        assert declared, "the team declared no source in 8 steps"
+        for d in declared:
+            assert (d.cell_i, d.cell_j) == sources[d.episode], (d, sources)
+            centre = (-13.0 + (d.cell_i + 0.5) * 2.0, 4.0 + (d.cell_j + 0.5) * 2.0)
+            assert abs(d.position.x - centre[0]) < 1e-6 and abs(d.position.y - centre[1]) < 1e-6
+        assert len(listen.estimates) >= 4, "the team's estimate is published every step"
+        assert all(e.header.frame_id == "map" for e in listen.estimates)
 
         # A second process claims agent_1: the driver sees agent_1 answer from two senders.
         duplicate = _agent(1, TEAM, tmp_path / "duplicate.log", "-r", "__node:=medc_agent_1_again")
