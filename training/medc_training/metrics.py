@@ -48,10 +48,14 @@ TB_NAMES = {
 
 
 def read_metrics(path: str | Path) -> list[dict]:
-    """Rows of a metrics CSV as dicts of floats (empty cells become NaN)."""
+    """Rows of a metrics CSV as dicts of floats (empty cells become NaN). Every NaN is
+    ``math.nan`` itself, so two rows with NaN in the same cells compare equal."""
+    def value(v: str | None) -> float:
+        x = float(v) if v not in ("", None) else math.nan
+        return math.nan if x != x else x
+
     with open(path, newline="") as f:
-        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()}
-                for row in csv.DictReader(f)]
+        return [{k: value(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
 class MetricsLogger:
