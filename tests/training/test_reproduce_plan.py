@@ -248,3 +248,25 @@ def test_a_reproduction_keeps_the_evaluator_its_runs_were_made_with(tmp_path):
             assert _plan(tmp_path).window_eval
     with pytest.raises(ValueError, match="mixes evaluators"):
         _plan(tmp_path)
+
+
+def test_claims_scale_plans_the_protocol_regime_seeds_and_panels(tmp_path):
+    """docs/reproduction/claims/PROTOCOL.md: realistic 40x40, 2 walls, 50 steps, seeds 300-304,
+    250k steps, evaluation every 16,384 steps on 64 episodes; 15 configurations; its own experts
+    (realistic, 128k DAgger steps), no shipped team, no fleet/maze runs."""
+    plan = Plan("claims", 5, tmp_path / "out", tmp_path / "models")
+    jobs = [j for phase in ("fig6", "fig7", "fig8", "fig9") for j in plan.jobs(phase)]
+    unique = {j["name"]: j for j in jobs}
+    assert len({n.split("/")[0] for n in unique}) == 15 and len(unique) == 75
+    for job in unique.values():
+        c = job["config"]
+        assert c["seed"] in range(300, 305) and c["walls"] == 2 and c["grid"] == 40
+        assert (c["max_steps"], c["total_steps"], c["eval_every"], c["eval_episodes"]) == (50, 250_000, 16_384, 64)
+        assert c["env_options"] == {"sensing": "realistic"} and c["observation"] == "ego6+estimate"
+    experts = plan.expert_jobs(retrain=False)
+    assert sorted(j["name"] for j in experts) == sorted(f"expert {n}" for n in
+                                                        ("A1W0", "A1W3", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1"))
+    for job in experts:
+        assert job["config"]["env_options"] == {"sensing": "realistic"} and job["config"]["grid"] == 40
+        assert job["config"]["total_steps"] == 128_000
+    assert plan.other_expert_jobs(retrain=False) == []

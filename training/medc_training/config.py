@@ -271,11 +271,23 @@ PAPER_SCALE = {
     "observation": "maps",
 }
 
-SCALES = {"cpu": CPU_SCALE, "paper": PAPER_SCALE}
+# The rare-reward regime of docs/reproduction/claims/PROTOCOL.md (fixed before its runs): the
+# realistic sensing preset on 40x40 cells with 50-step episodes, where random play finds the
+# source in 9% of episodes. Evaluated every 16,384 steps on 64 fixed episodes.
+CLAIMS_SCALE = {
+    **CPU_SCALE,
+    "grid": 40,
+    "env_options": {"sensing": "realistic"},
+    "eval_every": 16_384,
+    "eval_envs": 64,
+    "eval_episodes": 64,
+}
+
+SCALES = {"cpu": CPU_SCALE, "paper": PAPER_SCALE, "claims": CLAIMS_SCALE}
 
 
 def scaled_config(scale: str, **overrides) -> TrainConfig:
-    """A TrainConfig at a named scale ('cpu' or 'paper') with overrides applied."""
+    """A TrainConfig at a named scale ('cpu', 'paper' or 'claims') with overrides applied."""
     if scale not in SCALES:
         raise ValueError(f"scale must be one of {sorted(SCALES)}, got {scale!r}")
     values = dict(SCALES[scale])

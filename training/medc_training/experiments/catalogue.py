@@ -6,6 +6,7 @@ Everything here is data; :mod:`.figures` declares which runs each paper figure m
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
@@ -16,7 +17,28 @@ BUDGETS = {
             "long_steps": 200_000},
     "paper": {"steps": 20_000_000, "expert_steps": 2_000_000, "team_steps": 2_000_000,
               "fleet_maze_steps": 20_000_000, "long_steps": 20_000_000},
+    "claims": {"steps": 250_000, "expert_steps": 128_000, "team_steps": 128_000, "fleet_maze_steps": 0,
+               "long_steps": 250_000},
 }
+
+
+@dataclass(frozen=True)
+class Scope:
+    """What a scale's reproduction covers: its seeds start at ``first_seed``; only the
+    target-localization panels with ``walls`` obstructions (None: all) are run; ``team``: whether
+    the shipped team is cloned with the experts; ``other_apps``: whether fleet coordination and
+    maze cleaning are part of it."""
+
+    first_seed: int = 0
+    walls: tuple[int, ...] | None = None
+    team: bool = True
+    other_apps: bool = True
+
+
+#: The claims protocol (docs/reproduction/claims/PROTOCOL.md): seeds 300-304, the A3W2 panels
+#: only, its own experts and no shipped team, target localization only.
+SCOPES = {"cpu": Scope(), "paper": Scope(),
+          "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False)}
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
 # users A1W0, A3W0, A2W1, A2W2, A2W3, A3W1 plus the "complex" A1W3 of Fig. 6. Two

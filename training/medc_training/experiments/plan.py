@@ -15,7 +15,7 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
-from .catalogue import BUDGETS, OTHER_APPS, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, TL_EXPERTS, long_tag
+from .catalogue import BUDGETS, OTHER_APPS, SCOPES, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, TL_EXPERTS, long_tag
 from .figures import FIGURES, TAGGED, Figure, Run
 
 
@@ -45,8 +45,12 @@ class Plan:
         from ..config import LEGACY_EVAL, scaled_config
 
         self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
+        #: What this scale's reproduction covers (seeds, panels, team, applications).
+        self.scope = SCOPES[scale]
         #: Fleet coordination / maze cleaning applications whose experts and runs are planned.
         self.apps = tuple(OTHER_APPS) if apps is None else tuple(apps)
+        if not self.scope.other_apps:
+            self.apps = ()
         unknown = set(self.apps) - set(OTHER_APPS)
         if unknown:
             raise ValueError(f"unknown application(s) {sorted(unknown)}; choose from {sorted(OTHER_APPS)}")
@@ -71,6 +75,16 @@ class Plan:
             return FIGURES[phase](long_tag(self.budget["long_steps"]))
         return FIGURES[phase]()
 
+    def seed_range(self, count: int) -> range:
+        """The seeds of a run planned ``count`` times: from the scope's first seed on."""
+        return range(self.scope.first_seed, self.scope.first_seed + count)
+
+    def planned(self, run: Run) -> bool:
+        """Whether ``run`` is in this plan's scope (its application, its number of walls)."""
+        if run.env != "target_localization":
+            return run.env in self.apps
+        return self.scope.walls is None or run.walls in self.scope.walls
+
     def jobs(self, phase: str) -> list[dict]:
         """One job per run of the phase's figure and seed."""
         fig = self.figure(phase)
@@ -78,8 +92,8 @@ class Plan:
         if fig.max_seeds is not None:
             seeds = min(seeds, fig.max_seeds)
         steps = self.budget[fig.steps]
-        runs = [r for r in fig.runs() if r.env == "target_localization" or r.env in self.apps]
-        return [self.job(fig.phase, run, seed, steps) for seed in range(seeds) for run in runs]
+        runs = [r for r in fig.runs() if self.planned(r)]
+        return [self.job(fig.phase, run, seed, steps) for seed in self.seed_range(seeds) for run in runs]
 
     def job(self, fig: str, run: Run, seed: int, steps: int) -> dict:
         cfg = self.run_config(run, seed, steps)
@@ -121,9 +135,9 @@ class Plan:
         for name, agents, walls, arch in TL_EXPERTS:
             jobs.append(self._expert_job(name, "target_localization", agents, arch, steps, retrain,
                                          walls=walls))
-        team = self._expert_job("A3W2", "target_localization", 3, "mlp", self.budget["team_steps"],
-                                retrain, walls=2, folder="team")
-        jobs.append(team)
+        if self.scope.team:
+            jobs.append(self._expert_job("A3W2", "target_localization", 3, "mlp", self.budget["team_steps"],
+                                         retrain, walls=2, folder="team"))
         return [j for j in jobs if j is not None]
 
     def other_expert_jobs(self, retrain: bool) -> list[dict]:
@@ -141,12 +155,17 @@ class Plan:
         """A DAgger job for one bundle, or None when a DAgger bundle for the same grid and step
         limit is already there (bundles made any other way are retrained). The bundle is what
         marks a clone job done: a planned one always runs, and replaces its old training folder."""
-        from ..bundle import BundleError, manifest_observation, read_manifest
+        from ..bundle import BundleError, manifest_observation, manifest_sensing, read_manifest
+        from ..envs.tl_sensing import DEFAULT_SENSING, parse_sensing
         from ..dagger import CloneConfig
         from ..envs import core_has_estimate
 
         target = self.models / folder / f"{name}.safetensors"
         grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]
+        sensing = DEFAULT_SENSING
+        if core_has_estimate(env):  # target localization: the scale's sensing preset
+            env_options = {**self.base["env_options"], **(env_options or {})}
+            sensing = parse_sensing(env_options.get("sensing", DEFAULT_SENSING)).name
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
@@ -155,6 +174,7 @@ class Plan:
                 else:  # the observation is an env option of fleet coordination / maze cleaning
                     wanted = (env_options or {}).get("observation", "maps")
                 same = (manifest["environment"].get("grid") == grid
+                        and (not core_has_estimate(env) or manifest_sensing(manifest) == sensing)
                         and (manifest_observation(manifest) or "maps") == wanted
                         and manifest.get("environment", {}).get("max_steps") == max_steps
                         and manifest.get("training", {}).get("method") == "dagger")
