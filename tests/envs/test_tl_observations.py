@@ -265,3 +265,18 @@ def test_team_memory_falls_back_to_sampling_for_maps_not_made_of_segments():
     expected = mem.estimator.prior(walls)
     mem.estimator.update(expected, walls, pos, readings)  # no segments: every line sampled
     assert torch.equal(mem.log_post, expected)
+
+
+@pytest.mark.parametrize("sensing", ["paper-simple", "realistic"])
+def test_ruled_out_cells_are_those_within_the_success_radius(sensing):
+    """The stencil ruled_out marks exactly the cells some agent's d² puts within reach (corners
+    and edges included)."""
+    est = SourceEstimator(9, "cpu", sensing)
+    gen = torch.Generator().manual_seed(3)
+    pos = torch.randint(0, 9, (64, 3, 2), generator=gen)
+    pos[0, 0] = torch.tensor([0, 0])
+    pos[1, 1] = torch.tensor([8, 8])
+    pos[2, 2] = torch.tensor([0, 8])
+    expected = est.sensing.within_reach(est.dist2(pos)).any(1)
+    assert torch.equal(est.ruled_out(pos), expected)
+    assert int(expected[0].sum()) >= 1

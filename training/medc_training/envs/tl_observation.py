@@ -46,6 +46,8 @@ Source estimate (:class:`SourceEstimator`)
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from medc_training.envs.grid import team_windows
@@ -136,6 +138,8 @@ class SourceEstimator:
         self._span = 2 * (g - 1) ** 2 + 1
         lines = torch.arange(g, device=self.device)
         self._square = (lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2  # int64 [G, G]: (i - j)²
+        #: int64 [O,2]: the (row, column) offsets within the success radius, made on first use.
+        self._reach: torch.Tensor | None = None
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -196,7 +200,10 @@ class SourceEstimator:
         out = walls.reshape(k, -1).bool()
         if self.rule_out:
             out = out | self.ruled_out(positions)
-        flat.masked_fill_(out.unsqueeze(1), LOG_FLOOR)
+        # The few ruled-out cells are written by index: a mask broadcast over every level would
+        # pass over the whole [K, L, G²] posterior.
+        episode, cell = out.nonzero(as_tuple=True)
+        flat[episode, :, cell] = LOG_FLOOR
         top = flat.amax((1, 2), keepdim=True)
         flat.sub_(top).clamp_(min=LOG_FLOOR)
 
@@ -225,22 +232,35 @@ class SourceEstimator:
             rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
             self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
         log_rate, factor = self._tables
-        index = (d2 + span * crossed).view(-1)
+        index = d2 + span * crossed  # [K,N,G²]
         cells = d2.shape[-1]
-        logs = log_rate.index_select(0, index).view(k, n, cells, self.levels)  # [K,N,G²,L]
         r = readings.view(k, n, 1, 1)
-        loglik = logs[:, 0] * r[:, 0]
+        # One reading's rows at a time ([K,G²,L]), into one reused buffer.
+        logs = log_rate.index_select(0, index[:, 0].reshape(-1)).view(k, cells, self.levels)
+        loglik = logs * r[:, 0]
         for i in range(1, n):
-            loglik.addcmul_(logs[:, i], r[:, i])
-        fsum = factor.index_select(0, index).view(k, n, -1).sum(1)  # [K,G²]
+            torch.index_select(log_rate, 0, index[:, i].reshape(-1), out=logs.view(-1, self.levels))
+            loglik.addcmul_(logs, r[:, i])
+        fsum = factor.index_select(0, index.view(-1)).view(k, n, -1).sum(1)  # [K,G²]
         loglik.sub_(fsum.unsqueeze(-1) * self.level_strength).sub_(n * self.level_background)
         loglik = loglik.transpose(1, 2)
         return loglik if self.levels > 1 else loglik.squeeze(1)
 
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would
-        have ended the episode there)."""
-        return self.sensing.within_reach(self.dist2(positions)).any(1)
+        have ended the episode there), marked from the few offsets within reach of each agent."""
+        k, g = positions.shape[0], self.grid
+        if self._reach is None:
+            r = int(math.floor(self.sensing.success_radius))
+            offsets = torch.tensor([(dr, dc) for dr in range(-r, r + 1) for dc in range(-r, r + 1)],
+                                   device=self.device)
+            self._reach = offsets[self.sensing.within_reach((offsets * offsets).sum(1))]  # [O,2]
+        cells = positions.unsqueeze(2) + self._reach  # [K,N,O,2]
+        inside = ((cells >= 0) & (cells < g)).all(-1)
+        episode = torch.arange(k, device=self.device).view(k, 1, 1).expand_as(inside)
+        out = torch.zeros((k, g * g), dtype=torch.bool, device=self.device)
+        out[episode[inside], (cells[..., 0] * g + cells[..., 1])[inside]] = True
+        return out
 
     def dist2(self, positions: torch.Tensor) -> torch.Tensor:
         """int64 [K,N,G²]: d² (cells²) from each of ``positions`` (int64 [K,N,2]) to every cell, from
@@ -255,7 +275,8 @@ class SourceEstimator:
         marginalised). Cells below :data:`EXP_FLOOR` get exactly 0: their weight is below float32's
         smallest normal number (no denormals, which are slow) and could not move a sum that holds
         the most probable cell's 1."""
-        p = torch.exp(log_post.clamp(min=EXP_FLOOR)).masked_fill_(log_post <= EXP_FLOOR, 0.0)
+        # exp(-inf) is exactly 0: one pass instead of a clamp, an exp, a comparison and a fill.
+        p = torch.exp(torch.nn.functional.threshold(log_post, EXP_FLOOR, -math.inf))
         if p.dim() == 3:
             p = p.sum(1)
         return p / p.sum(1, keepdim=True)
