@@ -39,10 +39,12 @@ def plot_learning_curve(csv_path: str | Path, png_path: str | Path, title: str =
 
 
 def plot_methods(series: dict[str, tuple[Sequence[float], Sequence[Sequence[float]]]], png_path: str | Path,
-                 title: str, ylabel: str = "mean episode length (greedy eval)") -> Path:
+                 title: str, ylabel: str = "mean episode length (greedy eval)",
+                 references: dict[str, tuple[float, float]] | None = None) -> Path:
     """Several methods' mean curves over seeds with 95% CI bands.
 
-    ``series`` maps a label to (steps, [curve per seed]).
+    ``series`` maps a label to (steps, [curve per seed]); ``references`` a label to (mean, 95% CI
+    half-width) of a fixed policy (a classical controller), drawn as a dashed line with its band.
     """
     fig, ax = plt.subplots(figsize=(6.4, 4))
     for label, (steps, curves) in series.items():
@@ -51,6 +53,10 @@ def plot_methods(series: dict[str, tuple[Sequence[float], Sequence[Sequence[floa
         x = np.asarray(steps[:n])
         ax.plot(x, mean, label=f"{label} (n={len(curves)})")
         ax.fill_between(x, mean - half, mean + half, alpha=0.2)
+    for i, (label, (mean, half)) in enumerate((references or {}).items()):
+        color = f"C{(len(series) + i) % 10}"
+        ax.axhline(mean, linestyle="--", linewidth=1.0, color=color, label=label)
+        ax.axhspan(mean - half, mean + half, color=color, alpha=0.08)
     ax.set_xlabel("training steps")
     ax.set_ylabel(ylabel)
     ax.set_title(title)

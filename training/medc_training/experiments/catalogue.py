@@ -33,12 +33,25 @@ class Scope:
     walls: tuple[int, ...] | None = None
     team: bool = True
     other_apps: bool = True
+    #: The report's rules: seeds the learnability gate needs; random play's fixed episodes in the
+    #: gate (None: the run's own evaluation episodes); the CI half-width above which a "not
+    #: resolved" claim is also "under-powered" (None: no such label); the folder (under OUT) of the
+    #: reference lines (:mod:`.references`; None: none); the protocol file the report includes.
+    gate_min_seeds: int = 3
+    gate_random_episodes: int | None = None
+    underpowered: float | None = None
+    reference: str | None = None
+    protocol: str = "protocol.md"
 
 
 #: The claims protocol (docs/reproduction/claims/PROTOCOL.md): seeds 300-304, the A3W2 panels
-#: only, its own experts and no shipped team, target localization only.
+#: only, its own experts and no shipped team, target localization only; the gate on 5 seeds against
+#: random play on 256 fixed episodes; "under-powered" above a half-width of 5.9 steps; the classical
+#: controllers as reference lines.
 SCOPES = {"cpu": Scope(), "paper": Scope(),
-          "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False)}
+          "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False, gate_min_seeds=5,
+                          gate_random_episodes=256, underpowered=5.9, reference="reference",
+                          protocol="PROTOCOL.md")}
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
 # users A1W0, A3W0, A2W1, A2W2, A2W3, A3W1 plus the "complex" A1W3 of Fig. 6. Two

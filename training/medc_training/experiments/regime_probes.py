@@ -62,23 +62,24 @@ def parse_regime(text: str) -> Regime:
                          "e.g. g40w2t100") from None
 
 
-def play(regime: Regime, policy: str) -> dict:
-    """Play ``policy`` on the regime's fixed episodes; the per-episode results and their summary."""
+def play(regime: Regime, policy: str, episodes: int = EPISODES, eval_seed: int = EVAL_SEED) -> dict:
+    """Play ``policy`` on the regime's ``episodes`` fixed episodes of ``eval_seed``; the per-episode
+    results and their summary."""
     from ..controllers import controller_policy
     from ..envs import make_batched
     from ..evaluate import play_episodes
 
-    env = make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
+    env = make_batched("target_localization", num_envs=episodes, seed=eval_seed, agents=AGENTS,
                        walls=regime.walls, grid=regime.grid, max_steps=regime.max_steps, sensing="realistic",
                        posterior=policy != "random", copy_obs=False, observation="maps")
     start = time.perf_counter()
     net = None if policy == "random" else controller_policy(policy, env)
-    played = play_episodes(env, net, episodes=EPISODES, seed=EVAL_SEED)
+    played = play_episodes(env, net, episodes=episodes, seed=eval_seed)
     lengths = [float(x) for x in played.lengths]
     successes = [float(bool(x)) for x in played.successes]
     return {"regime": regime.name, "policy": policy, "grid": regime.grid, "walls": regime.walls,
-            "max_steps": regime.max_steps, "agents": AGENTS, "sensing": "realistic", "episodes": EPISODES,
-            "eval_seed": EVAL_SEED, "seconds": round(time.perf_counter() - start, 1),
+            "max_steps": regime.max_steps, "agents": AGENTS, "sensing": "realistic", "episodes": episodes,
+            "eval_seed": eval_seed, "seconds": round(time.perf_counter() - start, 1),
             "lengths": lengths, "successes": successes}
 
 
@@ -96,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("docs/reproduction/claims/probes"))
     p.add_argument("--regime", action="append", help="only these regimes, e.g. g40w2t100 (repeatable)")
     p.add_argument("--policy", action="append", choices=POLICIES, help="only these policies (repeatable)")
+    p.add_argument("--episodes", type=int, default=EPISODES, help="fixed episodes per regime and policy")
+    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="seed of the fixed episodes")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                 path = args.out / regime.name / f"{policy}.json"
                 if path.exists():
                     continue
-                record = play(regime, policy)
+                record = play(regime, policy, args.episodes, args.eval_seed)
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(json.dumps(record) + "\n")
                 s = summary(record)

@@ -11,9 +11,10 @@ import math
 from pathlib import Path
 
 from ..stats import compare, learning_score, mean_ci
-from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, long_tags_on_disk, tl_architectures
+from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, Scope, long_tags_on_disk, tl_architectures
 from .figures import FIGURES, TAGGED, Figure, Panel, tag_markers
 from .plan import Plan
+from .references import load_references, reference_text, regime_name, speed_section, versus_best
 
 
 def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
@@ -40,14 +41,15 @@ GATE_MIN_SEEDS = 3
 GATE_RANDOM_EPISODES = 256
 
 
-def random_play_length(out: Path, cfg: dict) -> float:
+def random_play_length(out: Path, cfg: dict, episodes: int | None = None) -> float:
     """Mean episode length of uniformly random valid moves on a run's evaluation episodes (its
     evaluation seed and environment), cached in OUT/random_play.json.
 
     With fixed-episode evaluation these are exactly the run's ``eval_episodes`` episodes, each
     played to its end (:func:`medc_training.evaluate.play_episodes`); a run evaluated with the
     legacy window (``eval_episodes`` 0) gets the legacy baseline it was gated with: the first
-    GATE_RANDOM_EPISODES episodes to finish (:func:`medc_training.evaluate.play`)."""
+    GATE_RANDOM_EPISODES episodes to finish (:func:`medc_training.evaluate.play`). ``episodes``:
+    that many fixed episodes of the run's evaluation seed instead of its own evaluation's."""
     from ..config import TrainConfig
     from ..evaluate import play, play_episodes
     from ..ppo import EVAL_SEED_OFFSET, make_env_for
@@ -56,14 +58,15 @@ def random_play_length(out: Path, cfg: dict) -> float:
     seed = c.seed + EVAL_SEED_OFFSET
     key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
            f"{json.dumps(c.env_options, sort_keys=True)}|seed={seed}")
-    if c.eval_episodes:
-        key += f"|episodes={c.eval_episodes}|envs={c.eval_envs}"
+    fixed = episodes or c.eval_episodes
+    if fixed:
+        key += f"|episodes={fixed}|envs={c.eval_envs}"
     cache_path = out / "random_play.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     if key not in cache:
         env = make_env_for(c, c.eval_envs, seed, False)
-        if c.eval_episodes:
-            played = play_episodes(env, None, episodes=c.eval_episodes, greedy=False, seed=seed)
+        if fixed:
+            played = play_episodes(env, None, episodes=fixed, greedy=False, seed=seed)
         else:
             played = play(env, None, episodes=GATE_RANDOM_EPISODES, greedy=False, seed=seed)
         cache[key] = played.summary()["episode_length"]
@@ -71,11 +74,12 @@ def random_play_length(out: Path, cfg: dict) -> float:
     return float(cache[key])
 
 
-def learnability_gate(out: Path, sparse_run: str) -> dict:
+def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEEDS,
+                      random_episodes: int | None = None) -> dict:
     """Did MDRL-sparse learn in ``sparse_run``'s environment? Per seed, its final evaluation episode
     length (mean of the last three evaluations) minus random play's on the same evaluation
-    episodes; passed when >= GATE_MIN_SEEDS seeds ran and the 95% CI of the mean difference lies
-    entirely below 0. Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
+    episodes (or on ``random_episodes`` fixed episodes of the same seed); passed when >= ``min_seeds``
+    seeds ran and the 95% CI of the mean difference lies entirely below 0. Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
     from ..metrics import read_metrics
 
     finals, randoms = [], []
@@ -85,22 +89,23 @@ def learnability_gate(out: Path, sparse_run: str) -> dict:
         summary = json.loads((seed_dir / "summary.json").read_text())
         rows = read_metrics(seed_dir / "metrics.csv")
         finals.append(sum(r["episode_length"] for r in rows[-3:]) / len(rows[-3:]))
-        randoms.append(random_play_length(out, summary["config"]))
+        randoms.append(random_play_length(out, summary["config"], random_episodes))
     diffs = [f - r for f, r in zip(finals, randoms)]
     m, half = mean_ci(diffs)
-    passed = len(diffs) >= GATE_MIN_SEEDS and m + half < 0
+    passed = len(diffs) >= min_seeds and m + half < 0
     ms, _ = mean_ci(finals)
     mr, _ = mean_ci(randoms)
-    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on the same evaluation "
-            f"episodes: difference {m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
+    where = f"{random_episodes} fixed episodes of each seed" if random_episodes else "the same evaluation episodes"
+    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on {where}: difference {m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
     return {"passed": passed, "n": len(diffs), "sparse": ms, "random": mr, "diff": m, "half": half,
             "text": text}
 
 
-def verdict(better: list[float], worse: list[float]) -> str:
+def verdict(better: list[float], worse: list[float], underpowered: float | None = None) -> str:
     """How the paper's claim "``better`` learns faster than ``worse``" fared (lower learning
     score is better): held / contradicted when the 95% CI of the difference excludes 0, else
-    not resolved, saying which way the means lean."""
+    not resolved, saying which way the means lean (and "under-powered" when the CI's half-width
+    exceeds ``underpowered``)."""
     if not better or not worse:
         return "not run"
     c = compare(better, worse)
@@ -110,16 +115,21 @@ def verdict(better: list[float], worse: list[float]) -> str:
         return "held"
     if c["diff"] - c["half"] > 0:
         return "contradicted (CI excludes 0 the other way)"
+    weak = ", under-powered" if underpowered is not None and c["half"] > underpowered else ""
     if c["diff"] < 0:
-        return "not resolved (means lean the paper's way; CI includes 0)"
-    return "not resolved (means lean against the paper; CI includes 0)"
+        return f"not resolved (means lean the paper's way; CI includes 0{weak})"
+    return f"not resolved (means lean against the paper; CI includes 0{weak})"
 
 
 class Report:
     """Collects figures and claim verdicts into report.md."""
 
-    def __init__(self, out: Path, scale: str, seeds: int, command: str) -> None:
+    def __init__(self, out: Path, scale: str, seeds: int, command: str, scope: Scope | None = None,
+                 base: dict | None = None) -> None:
         self.out, self.scale, self.seeds, self.command = out, scale, seeds, command
+        self.scope = scope or Scope()
+        #: The scale's run configuration (grid and step limit name a panel's reference regime).
+        self.base = base or {}
         self.sections: list[str] = []
         self.scores: dict[str, list[float]] = {}
         #: Learnability gate of each environment, by its MDRL-sparse run name.
@@ -130,7 +140,8 @@ class Report:
     def _gate(self, sparse_run: str) -> dict:
         """:func:`learnability_gate` of ``sparse_run``, computed once per report."""
         if sparse_run not in self.gates:
-            self.gates[sparse_run] = learnability_gate(self.out, sparse_run)
+            self.gates[sparse_run] = learnability_gate(self.out, sparse_run, self.scope.gate_min_seeds,
+                                                       self.scope.gate_random_episodes)
         return self.gates[sparse_run]
 
     def gate(self, sparse_run: str) -> str:
@@ -139,9 +150,15 @@ class Report:
         g = self._gate(sparse_run)
         if g["n"] == 0:
             return "- **Learnability gate** — not run"
-        word = "passed" if g["passed"] else (
-            f"NOT passed (needs >= {GATE_MIN_SEEDS} seeds and a CI below 0): the scale is too small for "
-            "MDRL-sparse to learn here, so this environment's claims are not testable")
+        need = self.scope.gate_min_seeds
+        if g["passed"]:
+            word = "passed"
+        elif g["n"] < need:
+            word = (f"NOT passed yet (needs >= {need} seeds, {g['n']} ran): this environment's claims are not "
+                    "testable until the rest of MDRL-sparse's seeds have run")
+        else:
+            word = (f"NOT passed (needs >= {need} seeds and a CI below 0): the scale is too small for "
+                    "MDRL-sparse to learn here, so this environment's claims are not testable")
         return f"- **Learnability gate** ({sparse_run}) — {word}: {g['text']}"
 
     def _untestable(self, gate: str | None) -> str | None:
@@ -192,7 +209,7 @@ class Report:
         a, b = self.scores.get(better, []), self.scores.get(worse, [])
         c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
         blocked = self._untestable(gate) if a and b else None
-        word = blocked or verdict(a, b)
+        word = blocked or verdict(a, b, self.scope.underpowered)
         self.verdicts.append(word)
         return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
@@ -212,6 +229,14 @@ class Report:
 
     def add(self, text: str) -> None:
         self.sections.append(text)
+
+    def references(self, walls: int) -> dict[str, dict]:
+        """The reference lines (:mod:`.references`) of the regime with ``walls`` obstructions, or
+        {} when this scope has none or they were not played."""
+        if self.scope.reference is None or "grid" not in self.base:
+            return {}
+        regime = regime_name(self.base["grid"], walls, self.base["max_steps"])
+        return load_references(self.out / self.scope.reference / regime)
 
     def verdict_counts(self) -> str:
         """One line counting the claims by verdict (held, contradicted, not resolved, ...)."""
@@ -269,9 +294,19 @@ def panel_section(r: Report, panel: Panel) -> str | None:
         data.update(r.series({s.label: s.run.name}, s.csv))
     if not data:
         return None
-    plot_methods({k: (v[0], v[1]) for k, v in data.items()}, r.out / panel.png, panel.title, panel.ylabel)
+    refs = r.references(panel.gate.walls)
+    plot_methods({k: (v[0], v[1]) for k, v in data.items()}, r.out / panel.png, panel.title, panel.ylabel,
+                 references={k: (v["length"], v["length_ci"]) for k, v in refs.items()} or None)
     table = r.table(data, wall=panel.wall)
     lines = [r.gate(panel.gate.name)]
+    if refs:
+        lines.append(reference_text(refs))
+        finals = [versus_best(label, v[1], refs) for label, v in data.items()]
+        lines.append("- **Final policies against the best classical controller** (difference of mean "
+                     "episode lengths, 95% CI): " + "; ".join(f for f in finals if f))
+        speed = speed_section(data, next(s.label for s in panel.series if s.run == panel.gate))
+        if speed:
+            lines.append(speed)
     for c in panel.claims:
         if c.margin is None:
             lines.append(r.claim(c.text, c.better.key, c.worse.key, gate=panel.gate.name))
@@ -311,7 +346,7 @@ def metric_text(plan: Plan) -> str:
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
     from ..config import SCALES
 
-    r = Report(out, scale, seeds, command)
+    r = Report(out, scale, seeds, command, plan.scope, plan.base)
     budget = plan.budget
     for fig in report_figures(out / "runs"):
         for panel in fig.panels:
@@ -332,7 +367,7 @@ Made by:
 {command}
 ```
 
-Seeds: {seeds} per configuration (0..{seeds - 1}); curves are means over seeds with 95% CI bands
+Seeds: {seeds} per configuration ({plan.scope.first_seed}..{plan.scope.first_seed + seeds - 1}); curves are means over seeds with 95% CI bands
 (Student t). Wall time of the phases run by this invocation:
 {timing or 'none (report rebuilt from existing runs)'}.
 
@@ -371,7 +406,7 @@ matches a run exactly (D_m = 0), and one without attributes (random, biased) cou
 off in one of them.
 
 """
-    protocol = out / "protocol.md"
+    protocol = out / plan.scope.protocol
     if protocol.exists():  # fixed before the runs it governs; see its first line
         header += "## Protocol\n\n" + protocol.read_text().strip() + "\n\n"
     header += f"**Verdicts.** {r.verdict_counts()} (each listed under its figure below).\n\n"
