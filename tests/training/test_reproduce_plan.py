@@ -261,11 +261,12 @@ def test_claims_scale_plans_the_protocol_regime_seeds_and_panels(tmp_path):
     for job in unique.values():
         c = job["config"]
         assert c["seed"] in range(300, 305) and c["walls"] == 2 and c["grid"] == 40
-        assert (c["max_steps"], c["total_steps"], c["eval_every"], c["eval_episodes"]) == (50, 250_000, 16_384, 64)
+        budget = (c["max_steps"], c["total_steps"], c["eval_every"], c["eval_episodes"])
+        assert budget == (50, 250_000, 16_384, 64)
         assert c["env_options"] == {"sensing": "realistic"} and c["observation"] == "ego6+estimate"
     experts = plan.expert_jobs(retrain=False)
-    assert sorted(j["name"] for j in experts) == sorted(f"expert {n}" for n in
-                                                        ("A1W0", "A1W3", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1"))
+    names = ("A1W0", "A1W3", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1")
+    assert sorted(j["name"] for j in experts) == sorted(f"expert {n}" for n in names)
     for job in experts:
         assert job["config"]["env_options"] == {"sensing": "realistic"} and job["config"]["grid"] == 40
         assert job["config"]["total_steps"] == 128_000
@@ -280,8 +281,12 @@ def test_a_wide_unresolved_claim_is_labelled_under_powered():
 
 
 def test_references_compare_final_policies_and_steps_to_sparses_level(tmp_path):
-    from medc_training.experiments.references import (load_references, speed_section, steps_to_level,
-                                                      versus_best)
+    from medc_training.experiments.references import (
+        load_references,
+        speed_section,
+        steps_to_level,
+        versus_best,
+    )
 
     for policy, length in (("random", 48.0), ("greedy", 20.0), ("infotaxis", 18.0)):
         lengths = [length - 1, length + 1] * 256

@@ -251,7 +251,7 @@ class SourceEstimator:
         have ended the episode there), marked from the few offsets within reach of each agent."""
         k, g = positions.shape[0], self.grid
         if self._reach is None:
-            r = int(math.floor(self.sensing.success_radius))
+            r = math.floor(self.sensing.success_radius)
             offsets = torch.tensor([(dr, dc) for dr in range(-r, r + 1) for dc in range(-r, r + 1)],
                                    device=self.device)
             self._reach = offsets[self.sensing.within_reach((offsets * offsets).sum(1))]  # [O,2]

@@ -15,7 +15,16 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
-from .catalogue import BUDGETS, OTHER_APPS, SCOPES, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, TL_EXPERTS, long_tag
+from .catalogue import (
+    BUDGETS,
+    OTHER_APPS,
+    OTHER_EVAL,
+    OTHER_GRID,
+    OTHER_MAX_STEPS,
+    SCOPES,
+    TL_EXPERTS,
+    long_tag,
+)
 from .figures import FIGURES, TAGGED, Figure, Run
 
 
@@ -156,9 +165,9 @@ class Plan:
         limit is already there (bundles made any other way are retrained). The bundle is what
         marks a clone job done: a planned one always runs, and replaces its old training folder."""
         from ..bundle import BundleError, manifest_observation, manifest_sensing, read_manifest
-        from ..envs.tl_sensing import DEFAULT_SENSING, parse_sensing
         from ..dagger import CloneConfig
         from ..envs import core_has_estimate
+        from ..envs.tl_sensing import DEFAULT_SENSING, parse_sensing
 
         target = self.models / folder / f"{name}.safetensors"
         grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]

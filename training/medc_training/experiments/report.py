@@ -79,7 +79,8 @@ def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEED
     """Did MDRL-sparse learn in ``sparse_run``'s environment? Per seed, its final evaluation episode
     length (mean of the last three evaluations) minus random play's on the same evaluation
     episodes (or on ``random_episodes`` fixed episodes of the same seed); passed when >= ``min_seeds``
-    seeds ran and the 95% CI of the mean difference lies entirely below 0. Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
+    seeds ran and the 95% CI of the mean difference lies entirely below 0. Returns {"passed", "n",
+    "sparse", "random", "diff", "half", "text"}."""
     from ..metrics import read_metrics
 
     finals, randoms = [], []
@@ -95,8 +96,10 @@ def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEED
     passed = len(diffs) >= min_seeds and m + half < 0
     ms, _ = mean_ci(finals)
     mr, _ = mean_ci(randoms)
-    where = f"{random_episodes} fixed episodes of each seed" if random_episodes else "the same evaluation episodes"
-    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on {where}: difference {m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
+    where = (f"{random_episodes} fixed episodes of each seed" if random_episodes
+             else "the same evaluation episodes")
+    text = (f"MDRL-sparse final episode length {ms:.2f} vs random play {mr:.2f} on {where}: difference "
+            f"{m:+.2f} ± {half:.2f} (95% CI, n = {len(diffs)} seeds)")
     return {"passed": passed, "n": len(diffs), "sparse": ms, "random": mr, "diff": m, "half": half,
             "text": text}
 
@@ -154,8 +157,8 @@ class Report:
         if g["passed"]:
             word = "passed"
         elif g["n"] < need:
-            word = (f"NOT passed yet (needs >= {need} seeds, {g['n']} ran): this environment's claims are not "
-                    "testable until the rest of MDRL-sparse's seeds have run")
+            word = (f"NOT passed yet (needs >= {need} seeds, {g['n']} ran): this environment's claims "
+                    "are not testable until the rest of MDRL-sparse's seeds have run")
         else:
             word = (f"NOT passed (needs >= {need} seeds and a CI below 0): the scale is too small for "
                     "MDRL-sparse to learn here, so this environment's claims are not testable")
@@ -347,6 +350,7 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
     from ..config import SCALES
 
     r = Report(out, scale, seeds, command, plan.scope, plan.base)
+    first = plan.scope.first_seed
     budget = plan.budget
     for fig in report_figures(out / "runs"):
         for panel in fig.panels:
@@ -367,7 +371,7 @@ Made by:
 {command}
 ```
 
-Seeds: {seeds} per configuration ({plan.scope.first_seed}..{plan.scope.first_seed + seeds - 1}); curves are means over seeds with 95% CI bands
+Seeds: {seeds} per configuration ({first}..{first + seeds - 1}); curves are means over seeds with 95% CI bands
 (Student t). Wall time of the phases run by this invocation:
 {timing or 'none (report rebuilt from existing runs)'}.
 
