@@ -346,6 +346,21 @@ def metric_text(plan: Plan) -> str:
                                   **values)
 
 
+def expert_quality(r: Report, plan: Plan) -> str:
+    """With reference lines (the claims protocol): the experts played on the reference lines' fixed
+    episodes, on their own environment and as the team, beside the controllers; else nothing."""
+    from .expert_eval import EPISODES, evaluate_experts, expert_eval_table
+
+    if plan.scope.reference is None:
+        return ""
+    table = expert_eval_table(evaluate_experts(r.out, plan.models, plan.base), r.references(2))
+    if not table:
+        return ""
+    return (f"\nThe same experts played greedily on the reference lines' {EPISODES} fixed episodes, on their "
+            "own environment and as the A3W2 team the runs train, beside random moves and the classical "
+            f"controllers on the team's episodes:\n\n{table}\n")
+
+
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
     from ..config import SCALES
 
@@ -402,7 +417,7 @@ bundle's own evaluation (128 finished episodes, greedy and sampled, against a ra
 the same episodes; target localization is judged greedy, fleet and maze sampled):
 
 {expert_table(plan.models) or "(no expert bundles found)"}
-
+{expert_quality(r, plan)}
 R_S of each expert follows the Models Manager contract's QoS rule (`medc_training.qos`) with
 equal reputations (0.5): D_m is the mean |ΔE_i| over the environment attributes the expert and
 the run both name (agents, walls, grid, step limit; the last two differ by 0 here), no expert
