@@ -276,9 +276,18 @@ class SourceEstimator:
         smallest normal number (no denormals, which are slow) and could not move a sum that holds
         the most probable cell's 1."""
         # exp(-inf) is exactly 0: one pass instead of a clamp, an exp, a comparison and a fill.
-        p = torch.exp(torch.nn.functional.threshold(log_post, EXP_FLOOR, -math.inf))
-        if p.dim() == 3:
-            p = p.sum(1)
+        if log_post.dim() == 2:
+            p = torch.exp(torch.nn.functional.threshold(log_post, EXP_FLOOR, -math.inf))
+        else:
+            # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
+            # few readings about half of them have none); the others stay exact zeros, and the sum
+            # over the levels runs as over the whole tensor (the same rounding).
+            k, levels, cells = log_post.shape
+            rows = log_post.view(k * levels, cells)
+            alive = (rows.amax(1) > EXP_FLOOR).nonzero().squeeze(1)
+            below = torch.nn.functional.threshold(rows.index_select(0, alive), EXP_FLOOR, -math.inf)
+            weights = torch.exp(below)
+            p = torch.zeros_like(rows).index_copy_(0, alive, weights).view(k, levels, cells).sum(1)
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:
