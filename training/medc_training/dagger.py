@@ -233,8 +233,9 @@ def clone_oracle(
                 csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
             losses.clear()
             if bar is not None:
-                bar.set_postfix(
-                    greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}"
+                bar.set_postfix(  # shown at the next redraw (console.progress_bar's pace in a log)
+                    greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}",
+                    refresh=False,
                 )
     finally:
         if bar is not None:
