@@ -346,3 +346,51 @@ def test_one_printable_text_filter() -> None:
     filters = sorted(path.relative_to(REPO_ROOT).as_posix() for path in _source_files()
                      if '<= "~"' in path.read_text() or "<= '~'" in path.read_text())
     assert filters == ["training/medc_training/untrusted.py"]
+
+
+def test_the_contracts_declare_each_shared_error_and_constant_once():
+    """Errors and constants both contracts use are declared once (contracts/src/MedcShared.sol);
+    a contract may re-export a constant (``ONE = Fixed.ONE``) but not give it a value of its own,
+    and no error is declared twice under one name."""
+    import re
+
+    sources = {p.name: p.read_text() for p in sorted((REPO_ROOT / "contracts" / "src").glob("*.sol"))}
+    errors = [name for text in sources.values() for name in re.findall(r"^\s*error\s+(\w+)\s*\(", text, re.M)]
+    assert sorted(n for n in set(errors) if errors.count(n) > 1) == []
+    assert {"UnregisteredUser", "ReviewOutOfRange"} <= set(errors)
+    for name in ("ONE", "INITIAL_REPUTATION"):
+        valued = [file for file, text in sources.items()
+                  if re.search(rf"\bconstant\s+{name}\s*=\s*[0-9]", text)]
+        assert valued == ["MedcShared.sol"], (name, valued)
+
+
+#: The most lines a class or a function (its decorators, docstring and body) of the house may take.
+MAX_CLASS_LINES, MAX_FUNCTION_LINES = 300, 100
+
+
+def _oversized(tree: ast.AST) -> Iterator[tuple[str, str, int]]:
+    """(kind, qualified name, lines) of every class over MAX_CLASS_LINES and function over
+    MAX_FUNCTION_LINES in ``tree`` (nested ones included)."""
+    for scope, node in _scoped_nodes(tree):
+        if isinstance(node, ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+            lines = node.end_lineno - first + 1
+            limit = MAX_CLASS_LINES if isinstance(node, ast.ClassDef) else MAX_FUNCTION_LINES
+            if lines > limit:
+                yield type(node).__name__, scope, lines
+
+
+def test_the_size_check_finds_a_long_function():
+    lines = [f"x{i} = {i}" for i in range(MAX_FUNCTION_LINES)]
+    method = "class A:\n    def f(self):\n" + "".join(f"        {line}\n" for line in lines)
+    assert list(_oversized(ast.parse(method))) == [("FunctionDef", "A.f", MAX_FUNCTION_LINES + 1)]
+    function = "def g():\n" + "".join(f"    {line}\n" for line in lines[1:])
+    assert list(_oversized(ast.parse(function))) == []
+
+
+def test_no_class_over_300_and_no_function_over_100_lines():
+    """Modules split by job (issue 22): every class of training/, ros_ws/src and scripts/ fits in
+    MAX_CLASS_LINES lines and every function in MAX_FUNCTION_LINES."""
+    found = [f"{path.relative_to(REPO_ROOT)}: {kind} {name} has {lines} lines"
+             for path in _source_files() for kind, name, lines in _oversized(ast.parse(path.read_text()))]
+    assert found == [], "\n".join(found)

@@ -203,14 +203,15 @@ def test_observe_requires_the_estimate_when_the_variant_shows_it():
 @pytest.mark.parametrize(("grid", "walls"), [(5, 0), (5, 1), (13, 3), (22, 4), (30, 5), (33, 2)])
 def test_rates_from_every_cell_equal_the_sensor_model_bit_for_bit(grid, walls):
     """Sampling every line, and the crossing tables (the walls as segments, grids up to 32x32; 33x33
-    falls back to sampling), give exactly the simulator's noise-free readings for every candidate
-    source cell, from sensors on every free cell of several layouts."""
+    has none) with the (walls crossed, d²) rate table the team memory looks up, give exactly the
+    simulator's noise-free readings for every candidate source cell, from sensors on every free cell
+    of several layouts."""
     from medc_training.envs.target_localization import (
         expected_rate_from_sources,
         generate_layouts,
         rates_from_every_cell,
     )
-    from medc_training.envs.tl_sensing import wall_segments
+    from medc_training.envs.tl_sensing import sampled_rate_table, segment_crossings, wall_segments
 
     lay = generate_layouts(6, grid, walls, 3, torch.Generator().manual_seed(grid), torch.device("cpu"))
     idx = torch.arange(grid * grid)
@@ -220,8 +221,14 @@ def test_rates_from_every_cell_equal_the_sensor_model_bit_for_bit(grid, walls):
     segments, ok = wall_segments(lay["walls"], max(1, walls))
     assert bool(ok.all())
     sensors = every[::3].unsqueeze(0).expand(6, -1, -1)  # a third of the cells, walls included
-    assert torch.equal(rates_from_every_cell(sensors, lay["walls"], segments),
-                       expected_rate_from_sources(sensors, every, lay["walls"]))
+    crossed = segment_crossings(sensors, segments, grid)
+    if grid > 32:
+        assert crossed is None
+    else:
+        dist2 = ((sensors.unsqueeze(2) - every) ** 2).sum(-1)  # [B,N,G²]
+        rate = sampled_rate_table(grid, segments.shape[1], torch.device("cpu"))[0]
+        looked_up = rate[crossed * (2 * (grid - 1) ** 2 + 1) + dist2]
+        assert torch.equal(looked_up, expected_rate_from_sources(sensors, every, lay["walls"]))
     # ... and column s is what sensor_reading returns with the source at cell s.
     s = int(lay["target"][0, 0] * grid + lay["target"][0, 1])
     direct = sensor_reading(lay["positions"][:1], lay["target"][:1], lay["walls"][:1])

@@ -1,60 +1,22 @@
 """Payments stay single when runs overlap (issue 20, items 7 and 8), against anvil.
 
-Built here: a loopback HTTP proxy in front of anvil that delays every JSON-RPC call (a slow node),
-and ``medc-registry request`` runs as separate processes sharing one home: a second run started
-while the first still waits on the slow node, and two runs started together. Each must end with
-one allocation and one payment; the later run reports the earlier run's allocation.
+A loopback proxy in front of anvil delays every JSON-RPC call (a slow node,
+``registry_helpers.RpcProxy``), and ``medc-registry request`` runs as separate processes sharing
+one home: a second run started while the first still waits on the slow node, and two runs
+started together. Each must end with one allocation and one payment; the later run reports the
+earlier run's allocation.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
-import threading
 import time
-import urllib.request
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
-from medc_registry import ChainClient
-from medc_registry.cli import main as cli_main
 from medc_registry.nodes import start_anvil
-from registry_helpers import APP, PRICE
-
-
-class DelayingProxy:
-    """Forwards JSON-RPC to ``target`` after ``delay`` seconds per call (a slow node)."""
-
-    def __init__(self, target: str, delay: float = 0.0) -> None:
-        self.target = target
-        self.delay = delay
-        proxy = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # quiet
-                pass
-
-            def do_POST(self):
-                body = self.rfile.read(int(self.headers["Content-Length"]))
-                time.sleep(proxy.delay)
-                req = urllib.request.Request(proxy.target, body, {"Content-Type": "application/json"})
-                with urllib.request.urlopen(req, timeout=30) as resp:
-                    answer = resp.read()
-                self.send_response(200)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(answer)))
-                self.end_headers()
-                self.wfile.write(answer)
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
+from registry_helpers import PRICE, REQUEST, RpcProxy, cli_home, ledger
 
 
 @pytest.fixture
@@ -62,33 +24,14 @@ def slow_home(tmp_path, capsys):
     """(home argv, proxy, ledger()) of a CLI home on anvil behind a delaying proxy; accounts 1
     (owner of one model at 0.001 ETH) and 2 (requester) registered."""
     anvil = start_anvil(tmp_path / "anvil")
-    proxy = DelayingProxy(anvil.url)
+    proxy = RpcProxy(anvil.url)
     try:
         keys = anvil.extra["private_keys"][:3]
-        (tmp_path / "keys.txt").write_text("\n".join(keys) + "\n")
-        home = ["--home", str(tmp_path / "home")]
-        assert cli_main([*home, "deploy", "--rpc", proxy.url, "--key-file", str(tmp_path / "keys.txt")]) == 0
-        for account in ("1", "2"):
-            assert cli_main([*home, "register", "--account", account]) == 0
-        (tmp_path / "expert.bin").write_bytes(b"expert bundle")
-        share = ["share", str(tmp_path / "expert.bin"), "--application", APP, "--env", "agents=1"]
-        assert cli_main([*home, *share, "--env", "walls=3", "--price", "0.001", "--account", "1"]) == 0
-        capsys.readouterr()
-        models = json.loads((tmp_path / "home" / "registry.json").read_text())["models_manager"]
-
-        def ledger():
-            chain = ChainClient.connect(anvil.url, keys)
-            mmc = chain.contract("ModelsManager", models)
-            owed = chain.call(mmc.functions.owed(chain.addresses[1]))
-            return chain.call(mmc.functions.allocationCount()), owed
-
-        yield home, proxy, ledger
+        home, models = cli_home(tmp_path, keys, proxy.url, capsys)
+        yield home, proxy, lambda: ledger(anvil.url, keys, models)
     finally:
         proxy.close()
         anvil.stop()
-
-
-REQUEST = ["request", "--application", APP, "--env", "agents=3", "--env", "walls=2", "--account", "2"]
 
 
 def _start(home: list[str]) -> subprocess.Popen:

@@ -1,10 +1,10 @@
 """Paid requests end to end: a lost answer or a node restart never pays or allocates twice; every
 chain call has one total deadline; amounts the CLI cannot pay say what is allowed.
 
-The faults are built here: an HTTP proxy in front of anvil that forwards a JSON-RPC request and
-then drops the node's answer (the transaction is mined, the client never hears of it), or drops
-the request itself (the node never sees the transaction), and a server that accepts connections
-and never answers.
+The faults: a proxy in front of anvil (``registry_helpers.RpcProxy``) that forwards a JSON-RPC
+request and then drops the node's answer (the transaction is mined, the client never hears of it),
+or drops the request itself (the node never sees the transaction), and a server built here that
+accepts connections and never answers.
 """
 
 from __future__ import annotations
@@ -13,8 +13,6 @@ import json
 import socket
 import threading
 import time
-import urllib.request
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from medc_registry import ChainClient
@@ -22,54 +20,11 @@ from medc_registry.chain import ChainError
 from medc_registry.cli import main as cli_main
 from medc_registry.home import PENDING_FILE
 from medc_registry.nodes import free_port, start_anvil
-from registry_helpers import APP, PRICE
+from registry_helpers import APP, PRICE, REQUEST, RpcProxy, cli_home, ledger
 
 SEND = {"eth_sendRawTransaction"}
 #: What a client uses to learn a transaction's fate (dropping them all = a lost receipt).
 ANSWERS = {"eth_sendRawTransaction", "eth_getTransactionReceipt", "eth_getTransactionByHash"}
-
-
-class FaultyProxy:
-    """Forwards JSON-RPC to ``target``; ``lose_answer`` methods are forwarded but their answer is
-    dropped, ``lose_request`` methods are dropped before reaching the node."""
-
-    def __init__(self, target: str) -> None:
-        self.target = target
-        self.lose_answer: set[str] = set()
-        self.lose_request: set[str] = set()
-        self.seen: list[str] = []
-        proxy = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # quiet
-                pass
-
-            def do_POST(self):
-                body = self.rfile.read(int(self.headers["Content-Length"]))
-                method = json.loads(body).get("method", "")
-                proxy.seen.append(method)
-                if method in proxy.lose_request:
-                    self.close_connection = True
-                    return
-                req = urllib.request.Request(proxy.target, body, {"Content-Type": "application/json"})
-                with urllib.request.urlopen(req, timeout=10) as resp:
-                    answer = resp.read()
-                if method in proxy.lose_answer:
-                    self.close_connection = True
-                    return
-                self.send_response(200)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(answer)))
-                self.end_headers()
-                self.wfile.write(answer)
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
 
 
 @pytest.fixture
@@ -82,7 +37,7 @@ def node(tmp_path):
         nodes[-1].stop()  # anvil writes its state on SIGTERM
         nodes.append(start_anvil(tmp_path / f"n{len(nodes)}", state_file=state, port=port))
 
-    proxy = FaultyProxy(nodes[0].url)
+    proxy = RpcProxy(nodes[0].url)
     yield nodes[0], restart, proxy
     proxy.close()
     nodes[-1].stop()
@@ -90,29 +45,7 @@ def node(tmp_path):
 
 def _setup(tmp_path, anvil, proxy, capsys):
     """A CLI home on the proxy: accounts 1 (owner, one model at 0.001 ETH) and 2 (requester)."""
-    keys = tmp_path / "keys.txt"
-    keys.write_text("\n".join(anvil.extra["private_keys"][:3]) + "\n")
-    home = ["--home", str(tmp_path / "home")]
-    assert cli_main([*home, "deploy", "--rpc", proxy.url, "--key-file", str(keys)]) == 0
-    for account in ("1", "2"):
-        assert cli_main([*home, "register", "--account", account]) == 0
-    model = tmp_path / "expert.bin"
-    model.write_bytes(b"expert bundle")
-    share = ["share", str(model), "--application", APP, "--env", "agents=1", "--env", "walls=3"]
-    assert cli_main([*home, *share, "--price", "0.001", "--account", "1"]) == 0
-    capsys.readouterr()
-    state = json.loads((tmp_path / "home" / "registry.json").read_text())
-    return home, state["models_manager"]
-
-
-REQUEST = ["request", "--application", APP, "--env", "agents=3", "--env", "walls=2", "--account", "2"]
-
-
-def _ledger(url, keys, models):
-    """(allocations, wei owed to the owner) read straight from the node."""
-    chain = ChainClient.connect(url, keys)
-    mmc = chain.contract("ModelsManager", models)
-    return chain.call(mmc.functions.allocationCount()), chain.call(mmc.functions.owed(chain.addresses[1]))
+    return cli_home(tmp_path, anvil.extra["private_keys"][:3], proxy.url, capsys)
 
 
 @pytest.mark.anvil
@@ -127,7 +60,7 @@ def test_lost_receipt_then_node_restart_pays_and_allocates_once(node, tmp_path, 
     assert time.monotonic() - started < 15
     assert "not confirmed" in err and "run the same request again" in err and "cannot pay twice" in err
     assert "eth_sendRawTransaction" in proxy.seen
-    assert _ledger(anvil.url, keys, models) == (1, PRICE)  # it was paid, once
+    assert ledger(anvil.url, keys, models) == (1, PRICE)  # it was paid, once
     pending = json.loads((tmp_path / "home" / PENDING_FILE).read_text())
     assert len(pending) == 1  # recorded before sending
     restart()
@@ -136,14 +69,14 @@ def test_lost_receipt_then_node_restart_pays_and_allocates_once(node, tmp_path, 
     out = capsys.readouterr().out
     assert out.startswith("already paid: request 0x") and "nothing was paid again" in out
     assert "1 model(s) allocated" in out
-    assert _ledger(anvil.url, keys, models) == (1, PRICE)  # still one allocation, one payment
+    assert ledger(anvil.url, keys, models) == (1, PRICE)  # still one allocation, one payment
     records = json.loads((tmp_path / "home" / PENDING_FILE).read_text()).values()
     assert [sorted(r) for r in records] == [["account", "created", "done", "fingerprint", "request_id"]]
     # The request id itself is refused twice too.
     rid = out.split("request ")[1].split(" ")[0]
     assert cli_main([*home, *REQUEST, "--request-id", rid]) == 0
     assert capsys.readouterr().out.startswith("already paid")
-    assert _ledger(anvil.url, keys, models) == (1, PRICE)
+    assert ledger(anvil.url, keys, models) == (1, PRICE)
 
 
 @pytest.mark.anvil
@@ -154,15 +87,15 @@ def test_payment_that_never_reached_the_node_is_sent_again_once(node, tmp_path, 
     proxy.lose_request = set(SEND)
     assert cli_main(["--deadline", "5", *home, *REQUEST]) == 2
     assert "run the same request again" in capsys.readouterr().err
-    assert _ledger(anvil.url, keys, models) == (0, 0)
+    assert ledger(anvil.url, keys, models) == (0, 0)
     restart()  # the node never saw it: the transaction is unknown after the restart
     proxy.lose_request = set()
     assert cli_main([*home, *REQUEST]) == 0
     out = capsys.readouterr().out
     assert "already paid" not in out and "1 model(s) allocated" in out
-    assert _ledger(anvil.url, keys, models) == (1, PRICE)
+    assert ledger(anvil.url, keys, models) == (1, PRICE)
     assert cli_main([*home, *REQUEST]) == 0  # a new request after a confirmed one is a new payment
-    assert _ledger(anvil.url, keys, models) == (2, 2 * PRICE)
+    assert ledger(anvil.url, keys, models) == (2, 2 * PRICE)
 
 
 @pytest.mark.anvil

@@ -99,3 +99,86 @@ def replay_masks(trace, *, seed: int, agents: int, walls: int, grid: int, max_st
         masks.append(mask[0].clone())
         mask = env.step(torch.tensor([actions])).mask
     return masks
+
+
+class DiagnosticsListener:
+    """A test node that records every status published on /diagnostics with the (monotonic) time it
+    came, spun on its own executor; subclasses subscribe to more on ``self.node``."""
+
+    def __init__(self, name: str = "diagnostics_listener") -> None:
+        import time
+
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.node = rclpy.create_node(name)
+        #: (time received, diagnostic_msgs/DiagnosticStatus), in arrival order.
+        self.diagnostics: list[tuple[float, object]] = []
+        self.node.create_subscription(
+            DiagnosticArray, "/diagnostics",
+            lambda m: self.diagnostics.extend((time.monotonic(), s) for s in m.status),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+
+    def spin(self, seconds: float, until=None, procs=()) -> bool:
+        """Spin up to ``seconds``, asserting that every process of ``procs`` stays alive; True as
+        soon as ``until()`` holds (without ``until``: after the time)."""
+        import time
+
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.05)
+            assert all(p.poll() is None for p in procs), "a node died"
+            if until is not None and until():
+                return True
+        return until is None
+
+    def statuses(self) -> list:
+        """Every diagnostic status received."""
+        return [s for _, s in self.diagnostics]
+
+    def warnings(self, since: float, text: str, name_part: str = "") -> list:
+        """The WARN statuses received since ``since`` whose message holds ``text`` and whose name
+        holds ``name_part``."""
+        from diagnostic_msgs.msg import DiagnosticStatus
+
+        return [s for t, s in self.diagnostics if t >= since and s.level == DiagnosticStatus.WARN
+                and text in s.message and name_part in s.name]
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def run_contract_driver(listener: DiagnosticsListener, args: list[str], *, timeout_s: float, procs=(),
+                        logs=(), on_poll=None) -> str:
+    """Run tests/ros/contract_driver.py with ``args`` to its end while ``listener`` spins, asserting
+    that it ends within ``timeout_s`` with success and that every process of ``procs`` stays alive
+    (the tails of ``logs`` say why one died); ``on_poll()`` is called between spins. Returns what
+    the driver printed."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    driver = Path(__file__).resolve().parent / "contract_driver.py"
+    proc = subprocess.Popen([sys.executable, str(driver), *args], env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    start = time.monotonic()
+    try:
+        while proc.poll() is None:
+            listener.executor.spin_once(timeout_sec=0.05)
+            assert time.monotonic() - start < timeout_s, "the team stopped stepping"
+            assert all(p.poll() is None for p in procs), [Path(p).read_text()[-2000:] for p in logs]
+            if on_poll is not None:
+                on_poll()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    text = proc.stdout.read()
+    assert proc.returncode == 0, text[-3000:]
+    return text

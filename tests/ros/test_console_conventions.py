@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import sys
 
 import pytest
 from medc_training.console import QUIET_HELP, HelpFormatter, progress_bar
@@ -94,6 +95,25 @@ def test_a_progress_bar_into_a_file_does_not_redraw_every_update(monkeypatch):
         for _ in range(2000):
             bar.update(1)
     assert flood.getvalue().count("\r") > 100
+
+
+def test_a_training_run_logged_to_a_file_redraws_its_bar_at_the_logs_pace(monkeypatch, tmp_path):
+    """medc-train's and the demo's bar (runner.run_training) into a log file: 20 evaluations in a
+    few seconds give the first and the final line, not a line per evaluation."""
+    from medc_training.config import TrainConfig
+    from medc_training.ppo import Trainer
+    from medc_training.runner import run_training
+
+    monkeypatch.delenv("MEDC_PROGRESS_INTERVAL", raising=False)
+    log = io.StringIO()  # not a terminal
+    monkeypatch.setattr(sys, "stderr", log)
+    cfg = TrainConfig(agents=1, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32, epochs=1,
+                      minibatches=2, eval_every=32, eval_episodes=4, eval_envs=4, total_steps=640, arch="mlp",
+                      seed=3).validate()
+    run_training(Trainer(cfg, []), cfg, tmp_path / "run", progress=True, tensorboard=False)
+    assert (tmp_path / "run" / "metrics.csv").read_text().count("\n") == 22  # header + 21 evaluations
+    assert log.getvalue().count("%|") <= 3, log.getvalue()[:1000]
+    assert "640/640" in log.getvalue() and "ep_len=" in log.getvalue()  # the final line says it all
 
 
 def test_demo_quiet_drops_the_step_lines(capsys):

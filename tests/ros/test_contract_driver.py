@@ -123,31 +123,19 @@ def _replayed_actions(steps: list[dict], policy) -> list[list[int]]:
 
 @pytest.mark.ros
 def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_context, tmp_path):
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from diagnostic_msgs.msg import DiagnosticStatus
     from medc_training.bundle import load_bundle
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from ros_helpers import DiagnosticsListener, run_contract_driver
 
-    diagnostics: list = []
-    listener = rclpy.create_node("diagnostics_listener")
-    listener.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diagnostics.extend(m.status),
-                                 QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    executor = SingleThreadedExecutor()
-    executor.add_node(listener)
+    listener = DiagnosticsListener()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     agents, logs = [], [tmp_path / f"agent_{i}.log" for i in range(3)]
     start = time.monotonic()
 
     def run_driver(name: str, *extra: str) -> list[dict]:
         out = tmp_path / f"{name}.jsonl"
-        proc = subprocess.Popen([sys.executable, str(DRIVER), "--out", str(out), *extra], env=env,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        while proc.poll() is None:  # keep collecting diagnostics meanwhile
-            executor.spin_once(timeout_sec=0.05)
-            assert time.monotonic() - start < 150, "the team stopped stepping"
-            assert all(a.poll() is None for a in agents), [p.read_text()[-2000:] for p in logs]
-        assert proc.returncode == 0, proc.stdout.read()[-3000:]
+        run_contract_driver(listener, ["--out", str(out), *extra], timeout_s=150 - (time.monotonic() - start),
+                            procs=agents, logs=logs)
         return [json.loads(line) for line in out.read_text().splitlines()]
 
     try:
@@ -158,9 +146,7 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
                 stdout=logs[i].open("w"), stderr=subprocess.STDOUT, env=env))
         first = run_driver("first", "--steps", "10", "--seed", "1", "--misstamp-step", "4")
         second = run_driver("second", "--steps", "10", "--seed", "2")  # restarted: episode 0 again
-        end = time.monotonic() + 0.5
-        while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
+        listener.spin(0.5)
     finally:
         for a in agents:
             if a.poll() is None:
@@ -170,7 +156,8 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
                 a.wait(20)
             except subprocess.TimeoutExpired:
                 a.kill()
-        listener.destroy_node()
+        listener.close()
+    diagnostics = listener.statuses()
 
     # The team kept stepping through the restart: both drivers got every step answered.
     assert len(first) == len(second) == 10

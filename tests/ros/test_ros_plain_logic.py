@@ -252,7 +252,7 @@ def test_realistic_observer_takes_only_maps_of_wall_segments():
     """Under the realistic preset a map's walls must be segments the exact line of sight takes as one
     rectangle each, at most as many as the environment places on the grid; the paper-simple rule
     samples the line and takes any map."""
-    from medc_agents.team_state import check_wall_segments
+    from medc_agents.team_messages import check_wall_segments
 
     stamp = Time(sec=1)
     straight = torch.zeros(10, 10, dtype=torch.bool)

@@ -23,11 +23,11 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_helpers import DiagnosticsListener, run_contract_driver
 
 HERE = Path(__file__).resolve().parent
 TEAM = HERE.parents[1] / "models" / "team" / "A3W2.safetensors"
 BIN = Path(sys.executable).parent
-DRIVER = HERE / "contract_driver.py"
 
 
 def _start(cmd: list[str], log: Path) -> subprocess.Popen:
@@ -51,29 +51,19 @@ def _agent(i: int, policy: Path, log: Path, *extra: str) -> subprocess.Popen:
                    "-p", f"policy:={policy}", *extra], log)
 
 
-class Listener:
-    """A test node that records /diagnostics and the team's statuses and publishes hostile messages."""
+class Listener(DiagnosticsListener):
+    """Records /diagnostics and the team's statuses, estimates and declarations; the tests publish
+    hostile messages from its node."""
 
     def __init__(self) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseWithCovarianceStamped
         from medc_common import contract
-        from medc_interfaces.msg import EpisodeStatus
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from medc_interfaces.msg import EpisodeStatus, SourceDeclaration
 
-        self.node = rclpy.create_node("liveness_listener")
-        self.diagnostics: list[tuple[float, object]] = []
+        super().__init__("liveness_listener")
         self.statuses: list = []
-        self.node.create_subscription(
-            DiagnosticArray, "/diagnostics",
-            lambda m: self.diagnostics.extend((time.monotonic(), s) for s in m.status),
-            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self.node.create_subscription(EpisodeStatus, contract.status_topic("/medc"), self.statuses.append,
                                       contract.RELIABLE_QOS)
-        from geometry_msgs.msg import PoseWithCovarianceStamped
-        from medc_interfaces.msg import SourceDeclaration
-
         #: The team's source estimates and declarations (published by agent_0).
         self.estimates: list = []
         self.declarations: list = []
@@ -81,30 +71,9 @@ class Listener:
                                       self.estimates.append, contract.ESTIMATE_QOS)
         self.node.create_subscription(SourceDeclaration, contract.declaration_topic("/medc"),
                                       self.declarations.append, contract.RELIABLE_QOS)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
-
-    def spin(self, seconds: float, until=None, procs=()) -> bool:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.05)
-            assert all(p.poll() is None for p in procs), "a node died"
-            if until is not None and until():
-                return True
-        return until is None
-
-    def warnings(self, since: float, text: str, name_part: str = "") -> list:
-        from diagnostic_msgs.msg import DiagnosticStatus
-
-        return [s for t, s in self.diagnostics if t >= since and s.level == DiagnosticStatus.WARN
-                and text in s.message and name_part in s.name]
 
     def own(self, session: str) -> list:
         return [s for s in self.statuses if s.session == session]
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 @pytest.mark.ros
@@ -231,19 +200,15 @@ def node_publishers(listen: Listener, topic: str) -> int:
     return listen.node.count_publishers(topic)
 
 
-def _run_driver(listen: Listener, agents, name: str, tmp_path: Path, *extra: str, on_step=None):
+def _run_driver(listen: Listener, name: str, tmp_path: Path, *extra: str, on_step=None):
     out, summary = tmp_path / f"{name}.jsonl", tmp_path / f"{name}.summary.json"
-    cmd = [sys.executable, str(DRIVER), "--out", str(out), "--summary", str(summary), *extra]
-    proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    start = time.monotonic()
-    while proc.poll() is None:
-        listen.executor.spin_once(timeout_sec=0.05)
-        assert time.monotonic() - start < 90, "the team stopped stepping"
+
+    def poll() -> None:
         if on_step is not None and out.exists():
             on_step(len(out.read_text().splitlines()))
-    text = proc.stdout.read()
-    assert proc.returncode == 0, text[-3000:]
+
+    text = run_contract_driver(listen, ["--out", str(out), "--summary", str(summary), *extra], timeout_s=90,
+                               on_poll=poll)
     steps = [json.loads(line) for line in out.read_text().splitlines()]
     return steps, json.loads(summary.read_text()), text
 
@@ -260,7 +225,7 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
                            and node_publishers(listen, "/medc/team/source_estimate") >= 1, agents)
         listen.spin(1.0)
         # Every status is re-sent: every agent re-sends its move; the driver executes each once.
-        steps, summary, _ = _run_driver(listen, agents, "resend", tmp_path, "--steps", "8", "--seed", "3",
+        steps, summary, _ = _run_driver(listen, "resend", tmp_path, "--steps", "8", "--seed", "3",
                                         "--resend-always")
         assert len(steps) == 8
         assert all(s["received"] == [1, 1, 1] for s in steps), [s["received"] for s in steps]
@@ -288,7 +253,7 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
         assert listen.spin(40, lambda: node_publishers(listen, "/medc/agent_1/move") >= 2 and all(
             listen.node.count_subscribers(t) >= 4 for t in team_topics), agents)  # it listens to the team
         listen.spin(2.0)  # discovery settles
-        steps, summary, text = _run_driver(listen, agents, "duplicate", tmp_path, "--steps", "8",
+        steps, summary, text = _run_driver(listen, "duplicate", tmp_path, "--steps", "8",
                                            "--seed", "4", "--settle-s", "3")
         assert len(steps) == 8 and all(s["received"] == [1, 1, 1] for s in steps)
         beats = [{kv.key: kv.value for kv in st.values} for _, st in listen.diagnostics
@@ -311,7 +276,7 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
                 killed["done"] = True
 
         t_lost = time.monotonic()
-        steps, summary, _ = _run_driver(listen, agents, "lost", tmp_path, "--steps", "40", "--seed", "5",
+        steps, summary, _ = _run_driver(listen, "lost", tmp_path, "--steps", "40", "--seed", "5",
                                         "--max-steps", "15", "--episodes", "2", "--lose-agent", "2",
                                         "--lose-at-step", "2", on_step=kill_at)
         assert killed["done"]

@@ -76,6 +76,7 @@ def test_clone_beats_a_random_team_and_ships_a_bundle(tmp_path):
         grad_steps=150,
         eval_episodes=96,
         eval_envs=16,
+        eval_every=4 * 16 * 40,  # training steps: every 4th iteration
         seed=3,
     )
     summary = clone_oracle(cfg, tmp_path / "run", bundle_to=tmp_path / "expert.safetensors")
@@ -143,3 +144,54 @@ def test_cli_runs_and_rejects_bad_options(tmp_path, capsys):
     assert "KEY=NUMBER" in capsys.readouterr().err
     assert clone_cli.main(["--beta-decay", "2", "--out", str(tmp_path / "y"), "--quiet"]) == 2
     assert "beta_decay" in capsys.readouterr().err
+
+
+def test_eval_every_counts_training_steps_as_in_medc_train(tmp_path):
+    """One meaning of eval_every (and --eval-every) in TrainConfig and CloneConfig: training steps.
+    A default 128,000-step clone, as the reproduction plans its experts, evaluates after every 4th
+    iteration of 6,400 steps and after the last, as when the field counted iterations."""
+    from pathlib import Path
+
+    from medc_training.config import RunConfig, TrainConfig
+    from medc_training.experiments.plan import Plan
+
+    shared = {f for f in RunConfig.__dataclass_fields__}
+    assert shared <= set(TrainConfig.__dataclass_fields__) and shared <= set(CloneConfig.__dataclass_fields__)
+    default = CloneConfig(total_steps=128_000)
+    assert default.evaluation_points() == [25_600, 51_200, 76_800, 102_400, 128_000]
+    assert CloneConfig(total_steps=70_000, eval_every=30_000).evaluation_points() == [32_000, 64_000, 70_400]
+    assert CloneConfig(total_steps=12_800, eval_every=1).evaluation_points() == [6_400, 12_800]
+    experts = Plan("cpu", 1, tmp_path / "out", Path("models")).expert_jobs(retrain=True)
+    assert experts and all(CloneConfig.from_dict(j["config"]).evaluation_points()
+                           == default.evaluation_points() for j in experts)
+    args = clone_cli.build_parser().parse_args(["--out", "x", "--eval-every", "12800", "--threads", "1"])
+    cfg = clone_cli.config_from_args(args)
+    assert (cfg.eval_every, cfg.torch_threads) == (12_800, 1)
+    assert cfg.evaluation_points()[:2] == [12_800, 25_600]
+
+
+def test_a_clone_config_recorded_when_eval_every_counted_iterations_keeps_its_evaluation_points():
+    """Every committed DAgger summary (docs/reproduction) was written when eval_every counted
+    iterations: read today, its config evaluates at the steps its metrics.csv rows were written."""
+    import csv
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "docs" / "reproduction"
+    checked = 0
+    for summary in sorted(root.rglob("summary.json")):
+        recorded = json.loads(summary.read_text()).get("config", {})
+        if "rollout_len" not in recorded or (summary.parent / "metrics.csv").exists() is False:
+            continue
+        assert "torch_threads" not in recorded and recorded["eval_every"] < 100, summary
+        cfg = CloneConfig.from_dict(recorded).validate()
+        assert cfg.eval_every == recorded["eval_every"] * recorded["num_envs"] * recorded["rollout_len"]
+        with open(summary.parent / "metrics.csv") as f:
+            steps = [int(row["step"]) for row in csv.DictReader(f)]
+        assert cfg.evaluation_points() == steps, summary
+        checked += 1
+    assert checked >= 20
+    # Written today, a config reads back as it is (no conversion), and unknown fields are refused.
+    today = CloneConfig(eval_every=12_800)
+    assert CloneConfig.from_dict(today.to_dict()) == today
+    with pytest.raises(ValueError, match="unknown config fields"):
+        CloneConfig.from_dict({**today.to_dict(), "horizon": 4000})

@@ -22,20 +22,9 @@ from .envs.tl_observation import DEFAULT_OBSERVATION
 METHODS = ("sparse", "medc", "rs", "il", "frl")
 
 
-def check_run_fields(cfg, at_least_one: tuple[str, ...]) -> None:
-    """The checks every run configuration shares (TrainConfig, dagger.CloneConfig): a device
-    torch can name, and the environment's agents, grid and max_steps plus ``at_least_one``
-    all >= 1. Raises ValueError naming the bad field."""
-    if cfg.device not in ("cpu", "cuda") and not cfg.device.startswith("cuda:"):
-        raise ValueError(f"device must be 'cpu' or 'cuda', got {cfg.device!r}")
-    for name in ("agents", "grid", "max_steps", *at_least_one):
-        if getattr(cfg, name) < 1:
-            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
-
-
 @dataclass
 class EnvironmentConfig:
-    """The environment a run plays (shared by TrainConfig and medc_training.dagger.CloneConfig)."""
+    """The environment a run plays (every :class:`RunConfig` holds one)."""
 
     env: str = "target_localization"
     """Application: one of medc_training.envs.ENV_NAMES."""
@@ -88,17 +77,103 @@ class EnvironmentConfig:
         return attrs
 
 
+@dataclass
+class RunConfig(EnvironmentConfig):
+    """What every run configuration shares: :class:`TrainConfig` (PPO and the methods built on it)
+    and :class:`medc_training.dagger.CloneConfig` (DAgger cloning of an oracle). Each field is
+    defined here once; a subclass only gives some of them other defaults.
+    """
+
+    arch: str = "lenet5"
+    """Actor-critic architecture name from medc_training.nets.ARCHITECTURES."""
+    total_steps: int = 20_000_000
+    """Training steps of the whole run (environment steps: one step = the whole team moves once)."""
+    num_envs: int = 16
+    """Environments stepped together by the batched core while training."""
+    lr: float = 3e-4
+    """Adam learning rate."""
+
+    # --- evaluation ----------------------------------------------------------------------
+    eval_every: int = 40_000
+    """E: evaluate every E training steps. PPO (TrainConfig) also evaluates once before training;
+    DAgger (CloneConfig) evaluates after each iteration that reaches a multiple of E."""
+    eval_episodes: int = 64
+    """Episodes per evaluation: a fixed set drawn from the evaluation seed, each played to its end
+    (success or max_steps) by medc_training.evaluate.play_episodes, split over eval_envs
+    environments (ceil(eval_episodes / eval_envs) rounds). Every evaluation of a run, and every
+    method with the same seed, plays the same episodes, and none is left out for being long.
+    TrainConfig only, 0: the legacy *window* (the paper's protocol, which made the committed
+    reproduction): eval_steps test steps and the mean length of the episodes that finished inside
+    them, which leans short (an episode longer than eval_steps / eval_envs is never counted). A
+    TrainConfig recorded before this field existed means 0 (see TrainConfig.from_dict)."""
+    eval_envs: int = 16
+    """Environments for evaluation."""
+    eval_greedy: bool = True
+    """Test actions are the policy's argmax (True) or sampled from it (False); the run's headline
+    curve. A memoryless greedy policy repeats itself forever in coverage tasks (fleet coordination,
+    maze cleaning: the same observation gives the same move), so those are evaluated on sampled
+    actions."""
+
+    # --- run -------------------------------------------------------------------------------
+    seed: int = 0
+    """Seeds torch, numpy and the environments; runs are reproducible on one device."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    torch_threads: int = 0
+    """torch intra-op threads (0 = leave torch's default)."""
+
+    def check_run_fields(self, at_least_one: tuple[str, ...]) -> None:
+        """The checks every run configuration makes: a device torch can name, and the environment's
+        agents, grid and max_steps plus ``at_least_one`` all >= 1. Raises ValueError naming the bad
+        field."""
+        if self.device not in ("cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        for name in ("agents", "grid", "max_steps", *at_least_one):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.torch_threads < 0:
+            raise ValueError(f"torch_threads must be >= 0, got {self.torch_threads}")
+
+    @property
+    def evaluation(self) -> dict:
+        """The evaluator of this config, as recorded in bundle manifests: the fixed episodes,
+        ``{"evaluator": "episodes", "episodes", "envs", "greedy"}``."""
+        return {"evaluator": "episodes", "episodes": self.eval_episodes, "envs": self.eval_envs,
+                "greedy": self.eval_greedy}
+
+    def to_dict(self) -> dict:
+        """JSON-able copy (for checkpoints, manifests and summaries)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict):
+        """Inverse of to_dict; unknown keys are an error, not silently dropped. A dict recorded by
+        an earlier version reads as :meth:`upgrade` says."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown config fields {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**cls.upgrade(dict(data)))
+
+    @classmethod
+    def upgrade(cls, data: dict) -> dict:
+        """The fields of a dict recorded by an earlier version, in today's meaning (none change here)."""
+        return data
+
+
 #: The evaluator every run recorded before ``eval_episodes`` existed used (and the committed
 #: reproduction keeps using, see medc_training.experiments.plan): the window of eval_steps.
 LEGACY_EVAL = {"eval_episodes": 0}
 
 
 @dataclass
-class TrainConfig(EnvironmentConfig):
+class TrainConfig(RunConfig):
     """Everything one training run needs. Field docstrings are the documentation.
 
-    The environment fields (env, agents, walls, grid, max_steps, env_options) come first, from
-    :class:`EnvironmentConfig`.
+    The environment fields (env, agents, walls, grid, max_steps, env_options, observation) come
+    first, from :class:`EnvironmentConfig`, then the fields every run shares (arch, total_steps,
+    num_envs, lr, the evaluation, seed, device, torch_threads), from :class:`RunConfig`, whose
+    defaults here are the paper's.
     """
 
     # --- method ----------------------------------------------------------------------
@@ -109,19 +184,13 @@ class TrainConfig(EnvironmentConfig):
     q_threshold: float = 0.05
     """Q: an expert action is followed only if the agent's own probability of it is >= Q."""
 
-    # --- PPO (paper's hyperparameter table) -------------------------------------------
-    total_steps: int = 20_000_000
-    """Training steps (environment steps) for the whole run."""
-    num_envs: int = 16
-    """Environments stepped together by the batched core."""
+    # --- PPO (paper's hyperparameter table; lr and num_envs are RunConfig's) ------------
     horizon: int = 4000
     """H: training steps collected per PPO update (split over num_envs)."""
     epochs: int = 20
     """Optimisation epochs over each rollout."""
     minibatches: int = 4
     """Minibatches per epoch (over the horizon * agents samples)."""
-    lr: float = 3e-4
-    """Adam learning rate."""
     gamma: float = 0.99
     """Discount factor γ."""
     gae_lambda: float = 0.95
@@ -139,10 +208,6 @@ class TrainConfig(EnvironmentConfig):
     bc_coef: float = 1.0
     """Weight of the behavioural-cloning loss on expert samples (IL-assisted RL)."""
 
-    # --- network -------------------------------------------------------------------------
-    arch: str = "lenet5"
-    """Actor-critic architecture name from medc_training.nets.ARCHITECTURES."""
-
     # --- FRL -----------------------------------------------------------------------------
     frl_users: list = field(default_factory=list)
     """FRL: one dict of environment attributes per user (agents/walls/...); the first user
@@ -150,41 +215,16 @@ class TrainConfig(EnvironmentConfig):
     frl_every: int = 1
     """K: FedAvg of the users' parameters every K updates."""
 
-    # --- evaluation ----------------------------------------------------------------------
-    eval_every: int = 40_000
-    """E: evaluate every E training steps (and once before training)."""
-    eval_episodes: int = 64
-    """Episodes per evaluation: a fixed set drawn from the evaluation seed, each played to its end
-    (success or max_steps) by medc_training.evaluate.play_episodes, split over eval_envs
-    environments (ceil(eval_episodes / eval_envs) rounds). Every evaluation of a run, and every
-    method with the same seed, plays the same episodes, and none is left out for being long.
-    0: the legacy *window* (the paper's protocol, which made the committed reproduction):
-    eval_steps test steps and the mean length of the episodes that finished inside them, which
-    leans short (an episode longer than eval_steps / eval_envs is never counted). A config
-    recorded before this field existed means 0 (see from_dict)."""
+    # --- evaluation (the rest is RunConfig's) ----------------------------------------------
     eval_steps: int = 4_000
     """T: test steps per evaluation (split over eval_envs); used only by the legacy window
     (eval_episodes = 0)."""
-    eval_envs: int = 16
-    """Environments for evaluation."""
-    eval_greedy: bool = True
-    """Test actions are the policy's argmax (True) or sampled from it (False). A memoryless
-    greedy policy repeats itself forever in coverage tasks (fleet coordination, maze cleaning:
-    the same observation gives the same move), so those are evaluated on sampled actions."""
-
-    # --- run -------------------------------------------------------------------------------
-    seed: int = 0
-    """Seeds torch, numpy and the environments; runs are reproducible on one device."""
-    device: str = "cpu"
-    """cpu or cuda."""
-    torch_threads: int = 0
-    """torch intra-op threads (0 = leave torch's default)."""
 
     def validate(self) -> TrainConfig:
         """Raise ValueError naming the bad field; returns self for chaining."""
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
-        check_run_fields(self, ("num_envs", "horizon", "epochs", "minibatches", "eval_envs", "frl_every"))
+        self.check_run_fields(("num_envs", "horizon", "epochs", "minibatches", "eval_envs", "frl_every"))
         if (self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0
                 or self.eval_episodes < 0):
             raise ValueError("walls, total_steps, eval_episodes, eval_steps and eval_every must be >= 0")
@@ -206,31 +246,20 @@ class TrainConfig(EnvironmentConfig):
         """Training steps actually collected per update."""
         return self.rollout_len * self.num_envs
 
-    def to_dict(self) -> dict:
-        """JSON-able copy (for checkpoints and manifests)."""
-        return dataclasses.asdict(self)
-
     @property
     def evaluation(self) -> dict:
         """The evaluator of this config, as recorded in bundle manifests: the fixed episodes
-        (``{"evaluator": "episodes", "episodes", "envs", "greedy"}``) or the legacy window
-        (``{"evaluator": "window", "steps", "envs", "greedy"}``)."""
+        (RunConfig's) or the legacy window (``{"evaluator": "window", "steps", "envs", "greedy"}``)."""
         if self.eval_episodes:
-            return {"evaluator": "episodes", "episodes": self.eval_episodes, "envs": self.eval_envs,
-                    "greedy": self.eval_greedy}
+            return super().evaluation
         return {"evaluator": "window", "steps": self.eval_steps, "envs": self.eval_envs,
                 "greedy": self.eval_greedy}
 
     @classmethod
-    def from_dict(cls, data: dict) -> TrainConfig:
-        """Inverse of to_dict; unknown keys are an error, not silently dropped. A dict without
-        ``eval_episodes`` was recorded before that field existed, with the window evaluator, so
-        it reads as ``eval_episodes = 0`` (LEGACY_EVAL), not as today's default."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown config fields {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**{**LEGACY_EVAL, **data})
+    def upgrade(cls, data: dict) -> dict:
+        """A dict without ``eval_episodes`` was recorded before that field existed, with the window
+        evaluator, so it reads as ``eval_episodes = 0`` (LEGACY_EVAL), not as today's default."""
+        return {**LEGACY_EVAL, **data}
 
 
 # The CPU scale: what changes from the paper so that the whole reproduction runs on a

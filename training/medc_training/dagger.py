@@ -29,13 +29,13 @@ import csv
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from .bundle import save_bundle
-from .config import EnvironmentConfig, check_run_fields
+from .config import RunConfig
 from .evaluate import evaluate_policy, net_policy
 from .nets import make_actor_critic, masked_logits
 from .ppo import EVAL_SEED_OFFSET, make_env_for, seed_everything
@@ -57,21 +57,30 @@ CSV_COLUMNS = (
 )
 
 
-@dataclass
-class CloneConfig(EnvironmentConfig):
-    """One DAgger run. Field docstrings are the documentation; the environment fields come
-    from :class:`medc_training.config.EnvironmentConfig` (defaults: the CPU scale's grid)."""
+#: The field a clone config dict lacks when it was recorded while ``eval_every`` counted DAgger
+#: iterations (the field came in when it started counting training steps): CloneConfig.upgrade.
+_ITERATION_EVAL_MARK = "torch_threads"
 
+
+@dataclass
+class CloneConfig(RunConfig):
+    """One DAgger run. Field docstrings are the documentation: the environment fields come from
+    :class:`medc_training.config.EnvironmentConfig`, the fields every run shares (arch, total_steps,
+    num_envs, lr, eval_every and the other evaluation fields, seed, device, torch_threads) from
+    :class:`medc_training.config.RunConfig`; below, their defaults for cloning (the CPU scale's grid)
+    and the fields of DAgger alone."""
+
+    # RunConfig's fields with cloning's defaults (each field is documented on RunConfig).
     grid: int = 13
-    """Side of the square grid."""
     max_steps: int = 50
-    """Episode step limit."""
-    arch: str = "lenet5"
-    """Architecture from medc_training.nets.ARCHITECTURES."""
     total_steps: int = 64_000
-    """Environment steps of data collection (one step = the whole team moves once)."""
     num_envs: int = 64
-    """Environments stepped together while collecting."""
+    lr: float = 1e-3
+    eval_every: int = 25_600  # every 4 iterations of the default 64 x 100 training steps
+    eval_episodes: int = 128
+    eval_envs: int = 32
+
+    # --- DAgger ----------------------------------------------------------------------------
     rollout_len: int = 100
     """Batched steps collected per iteration (num_envs * rollout_len training steps)."""
     beta_decay: float = 0.5
@@ -80,35 +89,30 @@ class CloneConfig(EnvironmentConfig):
     """Adam minibatches after each iteration."""
     batch_size: int = 256
     """Samples per minibatch."""
-    lr: float = 1e-3
-    """Adam learning rate."""
     max_samples: int = 200_000
     """Dataset cap: the newest samples are kept."""
-    eval_episodes: int = 128
-    """Episodes per evaluation (greedy, sampled, and the random team's at the end): a fixed set
-    from the evaluation seed, each played to its end (medc_training.evaluate.play_episodes),
-    split over eval_envs environments."""
-    eval_every: int = 4
-    """Evaluate after every ``eval_every``-th iteration, and after the last one."""
-    eval_envs: int = 32
-    """Environments for evaluation."""
-    eval_greedy: bool = True
-    """Which evaluation is the run's headline (``episode_length`` column): greedy or sampled.
-    Coverage tasks (fleet, maze) use sampled, as in training (see TrainConfig.eval_greedy)."""
-    seed: int = 0
-    """Seeds torch and the environments."""
-    device: str = "cpu"
-    """cpu or cuda."""
+
+    @property
+    def steps_per_iteration(self) -> int:
+        """Training steps one DAgger iteration collects."""
+        return self.num_envs * self.rollout_len
 
     @property
     def iterations(self) -> int:
         """DAgger iterations the step budget buys (at least one)."""
-        return max(1, math.ceil(self.total_steps / (self.num_envs * self.rollout_len)))
+        return max(1, math.ceil(self.total_steps / self.steps_per_iteration))
+
+    def evaluation_points(self) -> list[int]:
+        """The training steps after which the run evaluates: the end of each iteration that reaches
+        a multiple of ``eval_every``, and the end of the last iteration."""
+        per, last = self.steps_per_iteration, self.iterations
+        return [i * per for i in range(1, last + 1)
+                if i == last or i * per // self.eval_every > (i - 1) * per // self.eval_every]
 
     def validate(self) -> CloneConfig:
         """Raise ValueError naming the bad field; returns self."""
-        check_run_fields(self, ("total_steps", "num_envs", "rollout_len", "batch_size", "max_samples",
-                                "eval_episodes", "eval_envs", "eval_every"))
+        self.check_run_fields(("total_steps", "num_envs", "rollout_len", "batch_size", "max_samples",
+                               "eval_episodes", "eval_envs", "eval_every"))
         if self.grad_steps < 0 or self.walls < 0:
             raise ValueError("grad_steps and walls must be >= 0")
         if not 0.0 <= self.beta_decay <= 1.0:
@@ -116,6 +120,16 @@ class CloneConfig(EnvironmentConfig):
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         return self
+
+    @classmethod
+    def upgrade(cls, data: dict) -> dict:
+        """A clone config recorded while ``eval_every`` counted DAgger iterations (it has no
+        ``torch_threads``) reads with the same evaluation points: ``eval_every`` iterations of
+        ``num_envs * rollout_len`` training steps each."""
+        if _ITERATION_EVAL_MARK in data or "eval_every" not in data:
+            return data
+        per = int(data.get("num_envs", cls.num_envs)) * int(data.get("rollout_len", cls.rollout_len))
+        return {**data, "eval_every": int(data["eval_every"]) * per}
 
 
 def best_moves(mask: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
@@ -165,6 +179,8 @@ def clone_oracle(
     Returns the summary (final greedy / sampled episode lengths, a random team's, timings).
     """
     cfg.validate()
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seed_everything(cfg.seed)
@@ -189,7 +205,8 @@ def clone_oracle(
 
     with open(out / "metrics.csv", "w", newline="") as f:
         csv.DictWriter(f, fieldnames=CSV_COLUMNS).writeheader()
-    per_iteration = env.num_envs * cfg.rollout_len
+    per_iteration = cfg.steps_per_iteration
+    evaluate_after = set(cfg.evaluation_points())
     bar = None
     if progress:
         from .console import progress_bar
@@ -208,7 +225,7 @@ def clone_oracle(
             losses += _fit(net, opt, data, cfg, gen)
             if bar is not None:
                 bar.update(per_iteration)
-            if (it + 1) % cfg.eval_every and it + 1 < cfg.iterations:
+            if steps not in evaluate_after:
                 continue
             greedy, sampled = evaluate(policy, True), evaluate(policy, False)
             row = _metrics_row(cfg, it, steps, data.size, beta, losses, greedy, sampled, start)
@@ -216,8 +233,9 @@ def clone_oracle(
                 csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerow(row)
             losses.clear()
             if bar is not None:
-                bar.set_postfix(
-                    greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}"
+                bar.set_postfix(  # shown at the next redraw (console.progress_bar's pace in a log)
+                    greedy=f"{greedy['episode_length']:.1f}", sampled=f"{sampled['episode_length']:.1f}",
+                    refresh=False,
                 )
     finally:
         if bar is not None:
@@ -312,8 +330,7 @@ def _finish(cfg: CloneConfig, out: Path, env, net, row: dict, rand: dict, steps:
             "iterations": cfg.iterations,
             "grad_steps": cfg.grad_steps,
             "beta_decay": cfg.beta_decay,
-            "evaluation": {"evaluator": "episodes", "episodes": cfg.eval_episodes, "envs": cfg.eval_envs,
-                           "greedy": cfg.eval_greedy},
+            "evaluation": cfg.evaluation,
         },
         "metrics": {k: float(v) for k, v in metrics.items()},
     }
@@ -322,7 +339,7 @@ def _finish(cfg: CloneConfig, out: Path, env, net, row: dict, rand: dict, steps:
         Path(bundle_to).parent.mkdir(parents=True, exist_ok=True)
         save_bundle(bundle_to, net, manifest)
     summary = {
-        "config": asdict(cfg),
+        "config": cfg.to_dict(),
         "steps": steps,
         "iterations": cfg.iterations,
         "train_seconds": row["wall_time"],

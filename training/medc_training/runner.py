@@ -78,7 +78,10 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
                                                 "episode_length": side_ev["episode_length"],
                                                 "success_rate": side_ev["success_rate"]})
                 if bar is not None:
-                    bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}")
+                    # Shown at the bar's next redraw: a forced one per evaluation would put a line per
+                    # evaluation into a log file (console.progress_bar redraws a log once a minute).
+                    bar.set_postfix(ep_len=f"{ev['episode_length']:.1f}", success=f"{ev['success_rate']:.2f}",
+                                    refresh=False)
                 while next_eval <= learner.global_step:
                     next_eval += max(1, cfg.eval_every)
             stop_early = max_updates is not None and updates_done >= max_updates

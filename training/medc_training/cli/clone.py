@@ -70,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-samples", type=int, default=d.max_samples, help="dataset cap (newest kept)")
     p.add_argument("--eval-episodes", type=int, default=d.eval_episodes,
                    help="fixed episodes per evaluation, each played to its end")
-    p.add_argument("--eval-every", type=int, default=d.eval_every, help="evaluate every N iterations")
+    p.add_argument("--eval-every", type=int, default=d.eval_every,
+                   help="evaluate every E training steps (after the iteration that reaches each "
+                        "multiple of E) and after the last iteration")
     p.add_argument(
         "--eval-sampled",
         action="store_true",
@@ -78,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=d.device, help="cpu or cuda")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
+    p.add_argument("--threads", type=int, default=d.torch_threads,
+                   help="torch CPU threads (0 = torch's default)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--bundle", help="also write the trained bundle here")
     p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
@@ -97,18 +100,14 @@ def config_from_args(args: argparse.Namespace):
 
     return CloneConfig(**{name: getattr(args, name) for name in SAME_NAME},
                        env_options=parse_env_options(args.env_option), total_steps=args.steps,
-                       eval_greedy=not args.eval_sampled).validate()
+                       eval_greedy=not args.eval_sampled, torch_threads=args.threads).validate()
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        import torch
-
         from ..dagger import clone_oracle
 
-        if args.threads:
-            torch.set_num_threads(args.threads)
         cfg = config_from_args(args)
         if (Path(args.out) / "summary.json").exists() and not args.overwrite:
             # DAgger has no checkpoint to resume: a folder holds one finished cloning run.

@@ -114,19 +114,18 @@ def expected_rate_from_sources(
 #: Largest grid (cells per side) whose crossing tables (:func:`_crossing_tables`) are kept:
 #: 2 × G⁵ × 2 bytes, 30 -> 93 MiB, 32 -> 128 MiB. Larger grids sample every line each call.
 _CROSSING_TABLE_GRID = 32
-_CROSSING_TABLES: dict[tuple[int, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+_CROSSING_TABLES: dict[tuple[int, torch.device], torch.Tensor] = {}
 
 
-def _crossing_tables(g: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+def _crossing_tables(g: int, device: torch.device) -> torch.Tensor | None:
     """Where the sampled line between two cells runs, per row and per column of a G×G grid.
 
-    (int8 [2, G², G, 2, G²], float32 [G², G²]): entries [0, p, r, :, s] are the (smallest, largest)
-    column among the line's samples that fall on row r, for the line from source cell s to sensor
-    cell p sampled exactly as :func:`expected_rate_from_sources` samples it; entries [1, p, c, :, s] the
+    int8 [2, G², G, 2, G²]: entries [0, p, r, :, s] are the (smallest, largest) column among the
+    line's samples that fall on row r, for the line from source cell s to sensor cell p sampled
+    exactly as :func:`expected_rate_from_sources` samples it; entries [1, p, c, :, s] the
     (smallest, largest) row among the samples in column c; (G, -1) where no sample falls. Every
-    source cell of one (orientation, sensor cell, line) is one contiguous block. The
-    second tensor is d² between the cell centres. Made once per grid (a few seconds at G = 30);
-    None above _CROSSING_TABLE_GRID.
+    source cell of one (orientation, sensor cell, line) is one contiguous block. Made once per
+    grid (a few seconds at G = 30); None above _CROSSING_TABLE_GRID.
 
     Why this is enough (:func:`segment_crossings`): a sample's row and column are rounded values of
     float32 expressions that are monotone in the sample index, so the samples inside one
@@ -161,8 +160,7 @@ def _crossing_tables(g: int, device: torch.device) -> tuple[torch.Tensor, torch.
                 most.scatter_reduce_(2, line, value, reduce="amax")
                 table[orient, lo:hi, :, 0] = least.transpose(1, 2).to(torch.int8)
                 table[orient, lo:hi, :, 1] = most.transpose(1, 2).to(torch.int8)
-        delta = grid_cells.unsqueeze(1) - grid_cells.unsqueeze(0)
-        _CROSSING_TABLES[key] = (table, (delta * delta).sum(-1).to(torch.float32))
+        _CROSSING_TABLES[key] = table
     return _CROSSING_TABLES[key]
 
 
@@ -210,10 +208,9 @@ def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int
     ``positions`` (int64 [B,N,2]) and every cell as a candidate source, from the crossing tables
     (:func:`_crossing_tables`): O(G² · segments) per sensor instead of O(G³). ``segments`` from
     :func:`wall_segments`. None above _CROSSING_TABLE_GRID."""
-    tables = _crossing_tables(grid, positions.device)
-    if tables is None:
+    table = _crossing_tables(grid, positions.device)
+    if table is None:
         return None
-    table = tables[0]
     b, n = positions.shape[:2]
     cell = positions[..., 0] * grid + positions[..., 1]  # [B,N]
     if segments.shape[1] == 0:
@@ -243,21 +240,13 @@ def sampled_rate_table(grid: int, most: int, device: torch.device) -> tuple[torc
     return rate, torch.log(rate)
 
 
-def rates_from_every_cell(positions: torch.Tensor, walls: torch.Tensor,
-                          segments: torch.Tensor | None = None) -> torch.Tensor:
+def rates_from_every_cell(positions: torch.Tensor, walls: torch.Tensor) -> torch.Tensor:
     """float32 [B,N,H·W]: :func:`expected_rate_from_sources` for every cell as a candidate source
-    (cells in row-major order), bit for bit. With the walls' ``segments`` (:func:`wall_segments`)
-    on a square grid up to _CROSSING_TABLE_GRID the walls crossed come from the crossing tables;
-    otherwise every line is sampled."""
+    (cells in row-major order), every line sampled. (Maps made of wall segments take the crossing
+    tables instead: :func:`segment_crossings` and :func:`sampled_rate_table`.)"""
     h, w = walls.shape[-2:]
-    crossed = segment_crossings(positions, segments, h) if segments is not None and h == w else None
-    if crossed is None:
-        idx = torch.arange(h * w, device=positions.device)
-        return expected_rate_from_sources(positions, torch.stack((idx // w, idx % w), dim=-1), walls)
-    dist2 = _crossing_tables(h, positions.device)[1]
-    cell = positions[..., 0] * w + positions[..., 1]
-    attenuated = torch.pow(WALL_ATTENUATION, crossed.to(torch.float32))
-    return SOURCE_STRENGTH * attenuated / (1.0 + dist2[cell]) + BACKGROUND
+    idx = torch.arange(h * w, device=positions.device)
+    return expected_rate_from_sources(positions, torch.stack((idx // w, idx % w), dim=-1), walls)
 
 
 def update_memory(

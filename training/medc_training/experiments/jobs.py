@@ -89,7 +89,7 @@ def run_job(job: dict) -> dict:
         from ..dagger import BUNDLE, CloneConfig, clone_oracle
 
         shutil.rmtree(work, ignore_errors=True)  # DAgger has no checkpoint to resume from
-        summary = clone_oracle(CloneConfig(**job["config"]), work, bundle_to=job["bundle_to"])
+        summary = clone_oracle(CloneConfig.from_dict(job["config"]), work, bundle_to=job["bundle_to"])
         (work / BUNDLE).unlink(missing_ok=True)  # the bundle lives in models/; keep the report folder small
     else:
         summary = _train(job, out, work)

@@ -47,7 +47,8 @@ from medc_agents.policy import (
     shown,
 )
 from medc_agents.policy_swaps import PolicySwaps, refusal_reason
-from medc_agents.team_state import EDGE_TOLERANCE_CELLS, TeamObserver, show_stamp, stamp_key
+from medc_agents.team_messages import EDGE_TOLERANCE_CELLS, show_stamp, stamp_key
+from medc_agents.team_state import TeamObserver
 from medc_agents.team_watch import TeamWatch
 
 #: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
@@ -378,11 +379,10 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         aside and used only when an episode status names it (issue 20)."""
         o = self.observer
         key = stamp_key(msg.info.map_load_time)
-        entry = o.map_entry(key)
-        xys = o.latest_xy()
-        if entry is None or not xys or key in (o.mem_map, o.pending.map_stamp if o.pending else None):
+        geometry = o.maps.geometry(key)
+        xys = o.rounds.latest_xy()
+        if geometry is None or not xys or key in o.clock.maps_in_use():
             return
-        geometry = entry[1]
         on = 0
         for xy in xys:
             try:
@@ -419,7 +419,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             listed = list(msg.agent_ids)[:8]
             self._drop("status", ValueError(f"status lists agents {listed}, this team is {o.ids}"))
             return None
-        verdict, why = self.gate.admit(msg, o.mem_episode, o.mem_map, o.mem_step, stamp_key(msg.map_stamp))
+        c = o.clock
+        verdict, why = self.gate.admit(msg, c.episode, c.map, c.step, stamp_key(msg.map_stamp))
         if verdict == "hold":
             self.dropped_by["held status"] += 1
             if why:

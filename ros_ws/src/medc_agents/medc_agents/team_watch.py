@@ -1,8 +1,8 @@
 """The agent node's watch over its team: stalls, lost teammates, duplicate ids, a second driver.
 
 A mixin of :class:`medc_agents.node.AgentNode` (it uses the node's observer, guards, health and
-slot); the rules themselves live in :mod:`medc_agents.guard` and :mod:`medc_agents.team_state` and
-are tested without a node.
+slot); the rules themselves live in :mod:`medc_agents.guard` and the team-state units
+(:mod:`medc_agents.team_state`) and are tested without a node.
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from medc_common import contract
 from medc_interfaces.msg import AgentMove
 from medc_training.untrusted import printable
 
-from medc_agents.team_state import Tick, show_stamp
+from medc_agents.team_episode import Tick
+from medc_agents.team_messages import show_stamp
 
 
 class TeamWatch:
@@ -29,8 +30,8 @@ class TeamWatch:
 
     def _summary(self) -> dict[str, str]:
         o = self.observer
-        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.mem_episode),
-                "step": str(o.mem_step), "decisions": str(self.decisions), "dropped": str(self.dropped),
+        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.clock.episode),
+                "step": str(o.clock.step), "decisions": str(self.decisions), "dropped": str(self.dropped),
                 "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
                 "policy": self.slot.current.description if self.slot.current is not None else "none"}
 
@@ -59,11 +60,8 @@ class TeamWatch:
         elif self.health.level("driver") != DiagnosticStatus.OK:
             self.health.set("driver", DiagnosticStatus.OK, "one driver session")
         o = self.observer
-        t = o.pending
-        what: object = None
-        if t is not None and not o.answered_tick(t):
-            what = t
-        else:
+        what: object = o.clock.open_tick()
+        if what is None:
             orphan = o.orphan_round()
             if orphan is not None:
                 what = ("orphan", orphan)
@@ -85,8 +83,9 @@ class TeamWatch:
         else:
             head = f"poses and readings of every agent stamped {show_stamp(what[1])}"
             need = [f"an EpisodeStatus with header.stamp {show_stamp(what[1])}"]
-            have = [f"last status answered: episode {o.mem_episode} step {o.mem_step} stamped "
-                    f"{show_stamp(o.mem_stamp)}" if o.mem_step >= 0 else "no status answered yet"]
+            c = o.clock
+            have = [f"last status answered: episode {c.episode} step {c.step} stamped "
+                    f"{show_stamp(c.stamp)}" if c.step >= 0 else "no status answered yet"]
         report = (f"stalled: {head} not decided after {waited:.1f} s; waiting for: {'; '.join(need) or '?'}; "
                   f"have: {'; '.join(have) or 'nothing else'}")
         self._stall_report = (what, report)
@@ -96,13 +95,13 @@ class TeamWatch:
 
     def _check_lost(self) -> None:
         o = self.observer
-        t = o.pending
-        if t is None or o.answered_tick(t):
+        t = o.clock.open_tick()
+        if t is None:
             return
         if self._pending_since[0] != t:
             self._pending_since = (t, time.monotonic())
         fresh = {j for j in range(o.num_agents)
-                 if any(o.latest.get((kind, j), -1) > o.mem_stamp for kind in ("pose", "reading"))}
+                 if any(o.rounds.latest.get((kind, j), -1) > o.clock.stamp for kind in ("pose", "reading"))}
         newly = self.lost_watch.check(o.missing(), self._pending_since[1], fresh)
         for idx, _why in newly:
             o.absent.add(idx)
@@ -125,7 +124,7 @@ class TeamWatch:
         o = self.observer
         idx = contract.agent_index(agent_id, o.num_agents)
         self.lost_watch.seen(kind, idx)
-        if idx in o.absent and o.latest.get(("pose", idx)) == o.latest.get(("reading", idx)):
+        if idx in o.absent and o.rounds.latest.get(("pose", idx)) == o.rounds.latest.get(("reading", idx)):
             o.absent.discard(idx)
             if self.lost_watch.back(idx):
                 self.get_logger().info(f"{agent_id} is heard again: back in the team")
