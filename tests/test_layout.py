@@ -271,7 +271,7 @@ TL = "target_localization"
 #: Comparisons with the application's name that are about its identity, not a capability of its
 #: environment core: (file, enclosing function) -> why it may name the application.
 TL_IDENTITY = {
-    ("training/medc_training/experiments/plan.py", "Plan.jobs"): "the primary application is always planned",
+    ("training/medc_training/experiments/plan.py", "Plan.planned"): "the primary application is planned",
     ("training/medc_training/experiments/plan.py", "Plan.run_config"):
         "the primary application's own config; the others take their catalogue presets",
     ("scripts/observation_probe.py", "main"): "CLI: the other applications' presets and run-name prefix",
