@@ -99,3 +99,15 @@ def replay_masks(trace, *, seed: int, agents: int, walls: int, grid: int, max_st
         masks.append(mask[0].clone())
         mask = env.step(torch.tensor([actions])).mask
     return masks
+
+
+def load_launch_file():
+    """ros_ws/src/medc_bringup/launch/medc.launch.py as a module, loaded as ``ros2 launch`` loads
+    it before calling generate_launch_description (launch/launch_ros are not needed to load it)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[2] / "ros_ws" / "src" / "medc_bringup" / "launch"
+    spec = importlib.util.spec_from_file_location("medc_launch_file", path / "medc.launch.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
