@@ -187,9 +187,14 @@ def connect_registry(
         raise BridgeError(str(exc)) from None
 
 
-def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
-    """Declare the bridge node's parameters: (namespace, :func:`connect_registry` keyword
-    arguments, cache folder or "")."""
+def _declare_parameters(node: Any) -> tuple[tuple[str, str | None], dict[str, Any], str]:
+    """Declare the bridge node's parameters: ((the team's namespace, the one names are built with:
+    None = relative; medc_common.contract.team_namespace), :func:`connect_registry` keyword
+    arguments, cache folder or "").
+
+    Raises:
+        BridgeError: a namespace parameter that is invalid or contradicts the node's namespace.
+    """
     from medc_common import contract
     from medc_common.params import declare
 
@@ -207,7 +212,11 @@ def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
                      "or of the keys in private_key_file", True),
     }
     cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
-    return namespace, connection, cache
+    try:
+        names = contract.team_namespace(node.get_namespace(), namespace)
+    except ValueError as exc:
+        raise BridgeError(str(exc)) from None
+    return names, connection, cache
 
 
 def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
@@ -236,12 +245,7 @@ def bridge_node_class():
         def __init__(self, registry: Any = None, node_name: str = "medc_bridge", **kwargs: Any) -> None:
             kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
             super().__init__(node_name, **kwargs)
-            namespace, connection, cache = _declare_parameters(self)
-            #: The team's namespace (fully qualified) and the one names are built with (None: relative).
-            try:
-                self.namespace_, self.names_ns = contract.team_namespace(self.get_namespace(), namespace)
-            except ValueError as exc:
-                raise BridgeError(str(exc)) from None
+            (self.namespace_, self.names_ns), connection, cache = _declare_parameters(self)
             if registry is None:
                 registry = connect_registry(**connection)
             # No cache_dir: a temporary folder of this node's own, removed again by destroy_node.
