@@ -112,12 +112,14 @@ def _house_target(name: str) -> str | None:
 
 
 def _top_level_imports(pkg: str) -> dict[str, str]:
-    """Top-level names the modules of ROS package ``pkg`` import (stdlib and itself left out),
-    each with one place that imports it."""
+    """Top-level names the modules of ROS package ``pkg`` and its launch files (``launch/*.py``,
+    installed with it) import (stdlib and itself left out), each with one place that imports it."""
     found: dict[str, str] = {}
-    for module, (path, is_package) in MODULES.items():
-        if module.split(".")[0] != pkg:
-            continue
+    sources = [(path, is_package, module) for module, (path, is_package) in MODULES.items()
+               if module.split(".")[0] == pkg]
+    launch_files = sorted((ROS_SRC / pkg).glob("launch/*.py"))
+    sources += [(path, False, f"{pkg}.launch.{path.name}") for path in launch_files]
+    for path, is_package, module in sources:
         for name, line in _imports(path, is_package, module):
             top = name.split(".")[0]
             if top != pkg and top not in sys.stdlib_module_names:
@@ -126,8 +128,8 @@ def _top_level_imports(pkg: str) -> dict[str, str]:
 
 
 def _is_ros_package(name: str) -> bool:
-    return (name in ("rclpy", "ament_index_python") or name.endswith(("_msgs", "_interfaces"))
-            or name.startswith("medc_"))
+    return (name in ("rclpy", "ament_index_python", "launch", "launch_ros")
+            or name.endswith(("_msgs", "_interfaces")) or name.startswith("medc_"))
 
 
 def _exec_depends(pkg: str) -> list[str]:

@@ -182,3 +182,15 @@ def run_contract_driver(listener: DiagnosticsListener, args: list[str], *, timeo
     text = proc.stdout.read()
     assert proc.returncode == 0, text[-3000:]
     return text
+
+
+def load_launch_file():
+    """ros_ws/src/medc_bringup/launch/medc.launch.py as a module, loaded as ``ros2 launch`` loads
+    it before calling generate_launch_description (launch/launch_ros are not needed to load it)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[2] / "ros_ws" / "src" / "medc_bringup" / "launch"
+    spec = importlib.util.spec_from_file_location("medc_launch_file", path / "medc.launch.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

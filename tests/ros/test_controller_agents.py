@@ -166,7 +166,7 @@ def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
     pub.publish(String(data=" greedy"))
     assert spin_until(executor, lambda: all(a.slot.controller == "greedy" for a in agents), 10)
     greedy_at = len(sim.core.trace)
-    client = AsyncParameterClient(operator, "medc_agent_0")
+    client = AsyncParameterClient(operator, "/medc/medc_agent_0")
     assert spin_until(executor, lambda: client.services_are_ready(), 10)
     future = client.set_parameters([Parameter("policy", value="infotaxis")])
     assert spin_until(executor, future.done, 10)

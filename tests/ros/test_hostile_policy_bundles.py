@@ -93,7 +93,7 @@ def test_hostile_bundles_on_topics_and_parameters_leave_the_graph_running(graph,
             assert spin_until(executor, lambda n=n: len(sim.core.trace) >= n + 3, 30), name  # still answering
     assert all(a.slot.current.source == str(bundles["a"]) for a in agents)
 
-    client = AsyncParameterClient(attacker, "medc_agent_0")
+    client = AsyncParameterClient(attacker, "/medc/medc_agent_0")
     assert spin_until(executor, lambda: client.services_are_ready(), 10)
     for name, (path, reason) in hostile.items():
         future = client.set_parameters([Parameter("policy", value=str(path))])
@@ -134,7 +134,7 @@ def test_the_agent_process_survives_and_a_latched_bad_team_policy_does_not_stop_
     try:
         first = _agent_process(bundles["a"], tmp_path / "agent1.log")
         procs.append(first)
-        client = AsyncParameterClient(node, "medc_agent_0")  # medc-agent's node name: medc_<agent_id>
+        client = AsyncParameterClient(node, "/medc/medc_agent_0")  # medc-agent: medc_<agent_id> in /medc
         assert spin_until(executor, lambda: client.services_are_ready(), 60)
         for name in ("deep2000", "deepest", "bomb"):
             own.publish(String(data=str(hostile[name][0])))
@@ -153,7 +153,7 @@ def test_the_agent_process_survives_and_a_latched_bad_team_policy_does_not_stop_
         # The deep bundle is still latched on the team topic: a new agent starts and runs anyway.
         second = _agent_process(bundles["a"], tmp_path / "agent2.log")
         procs.append(second)
-        client = AsyncParameterClient(node, "medc_agent_0")
+        client = AsyncParameterClient(node, "/medc/medc_agent_0")
         time.sleep(1.0)
         assert spin_until(executor, lambda: client.services_are_ready(), 60)
         deadline = time.monotonic() + 5

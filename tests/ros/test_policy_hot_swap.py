@@ -22,7 +22,7 @@ def test_swap_by_parameter_service_and_by_topic(graph, bundles, tmp_path):
     assert spin_until(executor, lambda: len(sim.core.trace) >= 10, 30)
 
     # 1. The parameter service of agent_0, as `ros2 param set` would call it.
-    client = AsyncParameterClient(operator, "medc_agent_0")
+    client = AsyncParameterClient(operator, "/medc/medc_agent_0")
     assert spin_until(executor, lambda: client.services_are_ready(), 10)
 
     def set_policy(path: str):

@@ -18,8 +18,10 @@ def agent_id_from_arguments() -> str | None:
     """The ``agent_id`` parameter given on the command line or in a parameter file, read by a
     short-lived probe node (rclpy must be initialised): the node's default name depends on it."""
     import rclpy
+    from medc_common.contract import DEFAULT_NAMESPACE
 
-    probe = rclpy.create_node("medc_agent", start_parameter_services=False, enable_rosout=False)
+    probe = rclpy.create_node("medc_agent", namespace=DEFAULT_NAMESPACE, start_parameter_services=False,
+                              enable_rosout=False)
     try:
         probe.declare_parameter("agent_id", "agent_0")
         value = probe.get_parameter("agent_id").value

@@ -116,7 +116,7 @@ class StatusGate:
                     f"status from driver session {session or '(none)'!r} (episode {msg.episode} step "
                     f"{msg.step}) while session {self.session or '(none)'!r} is publishing (its last status "
                     f"{now - self.last_seen:.1f} s ago): a second driver or graph on this ROS_DOMAIN_ID and "
-                    "namespace? held; give each graph its own ROS_DOMAIN_ID")
+                    "namespace? held; give each graph its own ROS_DOMAIN_ID or namespace")
             self.foreign.pop(session, None)
             self.session = session  # the old session fell silent: a restarted driver
             self.held = None

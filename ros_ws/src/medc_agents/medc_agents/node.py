@@ -2,7 +2,9 @@
 
 Subscribes (names and QoS: medc_common.contract, docs/ros.md): every team member's pose and
 radiation reading, the walls map, the episode status, and its own and the team's policy topics.
-Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``.
+Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``. Every name is relative to
+the node's namespace (``/medc`` unless ``-r __ns:=/team2`` moves it), the registry bridge's
+service included.
 
 The policy is a bundle path or a classical controller's name (``gradient``, ``greedy``,
 ``infotaxis``: the node then decides its move with the controller's function on its team state,
@@ -131,7 +133,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     agent_id = p(
         "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
     )
-    namespace = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+    namespace = p("namespace", "", contract.NAMESPACE_HELP, True)
     num_agents = p("agents", 0, "Number of agents in the team; 0: the policy bundle's manifest's", True)
     grid = p("grid", 0, "Grid side in cells (an agent-centred observation then follows each map's "
                      "size); 0: the policy bundle's manifest's", True)
@@ -154,8 +156,9 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         raise ValueError(f"sensing must be one of {sorted(SENSING_PRESETS)}, got {str(sensing)[:40]!r}")
     bridge_service = p(
         "bridge_service",
-        "/medc/registry/fetch_bundle",
-        "Registry bridge service that fetches and verifies a bundle by content id",
+        "registry/fetch_bundle",
+        "Registry bridge service that fetches and verifies a bundle by content id (a relative name is "
+        "taken in the team's namespace: /medc/registry/fetch_bundle by default)",
         True,
     )
     application = p(
@@ -266,9 +269,13 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             ValueError: a bad parameter, or no usable policy bundle (PolicyRejected): the node
             refuses to start rather than idle without a policy.
         """
+        kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
         super().__init__(node_name or default_node_name(agent_id), **kwargs)
         prm = declare_agent_parameters(self, agent_id)
-        self.agent_id, self.namespace_, self.bridge_service = prm.agent_id, prm.namespace, prm.bridge_service
+        self.agent_id = prm.agent_id
+        #: The team's namespace (fully qualified) and the one names are built with (None: relative).
+        self.namespace_, self.names_ns = contract.team_namespace(self.get_namespace(), prm.namespace)
+        self.bridge_service = contract.team_name(self.names_ns, prm.bridge_service)
         self.stall_timeout_s = prm.stall_timeout_s
         #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
         self.noise = prm.noise
@@ -319,7 +326,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
 
     def _connect(self, feed: TeamFeed | None, num_agents: int) -> None:
         """Publishers, subscriptions (the team's messages directly or through ``feed``) and timers."""
-        ns = self.namespace_
+        ns = self.names_ns
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
@@ -332,10 +339,10 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
-            if (feed.namespace, feed.num_agents) != (ns, num_agents):
+            if (feed.namespace, feed.num_agents) != (self.namespace_, num_agents):
                 raise ValueError(
                     f"team feed serves {feed.num_agents} agents on {feed.namespace}, "
-                    f"agent {self.agent_id} is one of {num_agents} on {ns}"
+                    f"agent {self.agent_id} is one of {num_agents} on {self.namespace_}"
                 )
             feed.agents.append(self)
         for topic in (contract.policy_topic(ns, self.agent_id), contract.team_policy_topic(ns)):
@@ -502,8 +509,9 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         """Messages dropped as invalid, in all."""
         return sum(self.dropped_by.values())
 
-def subscribe_team(node: Node, namespace: str, num_agents: int, agents: list[AgentNode]) -> None:
-    """Subscribe ``node`` to the team's poses, readings, map and status, for ``agents``.
+def subscribe_team(node: Node, namespace: str | None, num_agents: int, agents: list[AgentNode]) -> None:
+    """Subscribe ``node`` to the team's poses, readings, map and status, for ``agents`` (names under
+    ``namespace``; None: relative to the node's namespace).
 
     Each message is handed to every agent in ``agents`` (the list may grow later).
     """
@@ -572,8 +580,10 @@ class TeamFeed(Node):
     """
 
     def __init__(self, namespace: str, num_agents: int, node_name: str = "medc_team_feed", **kwargs) -> None:
-        super().__init__(node_name, **kwargs)
-        self.namespace = namespace
+        """``namespace``: the team's (the node is created in it; its subscriptions are relative)."""
+        super().__init__(node_name, namespace=contract.check_namespace(namespace), **kwargs)
+        #: The team's namespace, fully qualified (the agents fed must be in the same one).
+        self.namespace = self.get_namespace()
         self.num_agents = num_agents
         self.agents: list[AgentNode] = []
-        subscribe_team(self, namespace, num_agents, self.agents)
+        subscribe_team(self, contract.RELATIVE, num_agents, self.agents)

@@ -30,8 +30,9 @@ class TeamWatch:
 
     def _summary(self) -> dict[str, str]:
         o = self.observer
-        return {"sender": self.sender, "session": self.gate.session or "", "episode": str(o.clock.episode),
-                "step": str(o.clock.step), "decisions": str(self.decisions), "dropped": str(self.dropped),
+        return {"namespace": self.namespace_, "sender": self.sender, "session": self.gate.session or "",
+                "episode": str(o.clock.episode), "step": str(o.clock.step), "decisions": str(self.decisions),
+                "dropped": str(self.dropped),
                 "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
                 "policy": self.slot.current.description if self.slot.current is not None else "none"}
 
@@ -56,7 +57,7 @@ class TeamWatch:
             self.health.set("driver", DiagnosticStatus.WARN, (
                 f"statuses from {len(foreign) + 1} driver sessions on {topic} (following "
                 f"{self.gate.session or '(none)'!r}, held: {', '.join(foreign)}): a second graph shares this "
-                "ROS_DOMAIN_ID and namespace; give each graph its own ROS_DOMAIN_ID"))
+                "ROS_DOMAIN_ID and namespace; give each graph its own ROS_DOMAIN_ID or namespace"))
         elif self.health.level("driver") != DiagnosticStatus.OK:
             self.health.set("driver", DiagnosticStatus.OK, "one driver session")
         o = self.observer

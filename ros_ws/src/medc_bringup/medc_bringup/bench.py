@@ -87,14 +87,15 @@ def run_graph(
     if in_process:
         sim, _, nodes = build_graph(cfg, [str(bundle)] * agents)
     else:
-        sim = SimNode(parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
+        sim = SimNode(namespace=cfg.namespace,
+                      parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
         nodes = [sim]
         bindir = Path(sys.executable).parent
         children = [
             subprocess.Popen(
                 [
                     str(bindir / "medc-agent"),
-                    *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, str(bundle))),
+                    *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, str(bundle)), cfg.namespace),
                 ],
                 env=_child_env(),
                 start_new_session=True,

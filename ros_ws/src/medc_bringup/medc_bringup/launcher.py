@@ -12,6 +12,7 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --policy greedy --episodes 20  # a team of classical controllers (also gradient, infotaxis)
     medc-launch --episodes 5 --record run.mcap # and record every topic (rosbag2's MCAP; medc-record)
     medc-launch --foxglove                    # and watch it live in Foxglove: ws://127.0.0.1:8765
+    medc-launch --namespace /team2            # the whole team under /team2 (each node: -r __ns:=/team2)
 
 A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
 file (e.g. the default ``models/team``) from the repository root.
@@ -93,7 +94,6 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
         ("rate_hz", (int, float)),
         ("resolution", (int, float)),
         ("noise", bool),
-        ("namespace", str),
         ("policy", str),
         ("policies", dict),
         ("registry", dict),
@@ -105,6 +105,11 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
             raise ValueError(
                 f"{name} in {path} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
             )
+    if not isinstance(cfg.namespace, str):
+        raise ValueError(f"namespace in {path} must be str, got {cfg.namespace!r}")
+    from medc_common.contract import check_namespace
+
+    cfg.namespace = check_namespace(cfg.namespace)  # ValueError naming what is wrong with it
     if cfg.mode not in ("stepped", "realtime"):
         raise ValueError(f"mode must be 'stepped' or 'realtime', got {cfg.mode!r}")
     if cfg.end_on not in ("source", "declaration", "either"):
@@ -254,7 +259,6 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
     the agents (e.g. the launcher) that must be there before the first step."""
     return {
         "wait_for_subscribers": cfg.agents + extra_listeners,
-        "namespace": cfg.namespace,
         "agents": cfg.agents,
         "walls": cfg.walls,
         "grid": cfg.grid,
@@ -276,7 +280,6 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
     from medc_common.contract import agent_id
 
     return {
-        "namespace": cfg.namespace,
         "agent_id": agent_id(index),
         "agents": cfg.agents,
         "grid": cfg.grid,
@@ -289,9 +292,12 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
     }
 
 
-def ros_args(node_name: str, params: dict[str, Any]) -> list[str]:
-    """``--ros-args`` command-line arguments that name the node and set ``params``."""
+def ros_args(node_name: str, params: dict[str, Any], namespace: str | None = None) -> list[str]:
+    """``--ros-args`` command-line arguments that name the node, put it in ``namespace`` (the team's:
+    every MEDC name is relative to it; None: the node's default, /medc) and set ``params``."""
     out = ["--ros-args", "-r", f"__node:={node_name}"]
+    if namespace is not None:
+        out += ["-r", f"__ns:={namespace}"]
     for key, value in params.items():
         if isinstance(value, bool):
             text = "true" if value else "false"
@@ -352,13 +358,12 @@ def build_graph(
     params = sim_parameters(cfg, episodes, extra_listeners)
     if shared_feed:
         params["wait_for_subscribers"] = 1 + extra_listeners  # the feed listens for every agent
-    sim = SimNode(parameter_overrides=overrides(params))
+    sim = SimNode(namespace=cfg.namespace, parameter_overrides=overrides(params))
     sim.core.record = record
     feed = TeamFeed(cfg.namespace, cfg.agents) if shared_feed else None
     agents = [
-        AgentNode(
-            node_name=f"medc_agent_{i}", feed=feed, parameter_overrides=overrides(agent_parameters(cfg, i, p))
-        )
+        AgentNode(node_name=f"medc_agent_{i}", feed=feed, namespace=cfg.namespace,
+                  parameter_overrides=overrides(agent_parameters(cfg, i, p)))
         for i, p in enumerate(policies)
     ]
     return sim, agents, [sim, *agents, *([feed] if feed else [])]
@@ -431,7 +436,7 @@ def run_processes(
     from medc_common import contract
     from medc_interfaces.msg import EpisodeStatus
 
-    monitor = rclpy.create_node("medc_launch")
+    monitor = rclpy.create_node("medc_launch", namespace=cfg.namespace)
     seen: set[int] = set()
 
     def on_status(msg: EpisodeStatus) -> None:
@@ -446,14 +451,15 @@ def run_processes(
     bindir = Path(sys.executable).parent
     env = _child_env()
     sim_params = sim_parameters(cfg, episodes, extra_listeners)
-    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params)]]
+    ns = cfg.namespace
+    commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params, ns)]]
     commands += [
-        [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
+        [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p), ns)]
         for i, p in enumerate(policies)
     ]
     if cfg.registry.get("enabled"):
-        params = {"namespace": cfg.namespace, **(cfg.registry.get("params") or {})}
-        commands.append([str(bindir / "medc-bridge"), *ros_args("medc_bridge", params)])
+        params = dict(cfg.registry.get("params") or {})
+        commands.append([str(bindir / "medc-bridge"), *ros_args("medc_bridge", params, ns)])
     # Own sessions: Ctrl-C reaches the launcher only, which then stops the children in order.
     children = [subprocess.Popen(c, env=env, start_new_session=True) for c in commands]
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -513,6 +519,8 @@ def main(argv: list[str] | None = None) -> int:
                         "the current directory, or a classical controller: gradient, greedy, infotaxis)")
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
+    parser.add_argument("--namespace", help="override the config's namespace (/medc): the ROS namespace "
+                        "of every node, so the whole team's topics and services move under it")
     parser.add_argument("--timeout", type=float, help="give up after this many seconds")
     parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     parser.add_argument("--record", metavar="FILE.mcap",
@@ -524,7 +532,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--episodes must be >= 0")
     try:
         cfg = load_config(args.config, seed=args.seed, policy=policy_from_cwd(args.policy),
-                          agents=args.agents, sensing=args.sensing)
+                          agents=args.agents, sensing=args.sensing, namespace=args.namespace)
         policies = resolve_policies(cfg)
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)

@@ -71,6 +71,7 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
     """A node that subscribes (raw CDR) to every MEDC topic and hands each message to
     ``recording`` (a :class:`medc_bringup.recording.McapRecording`) and ``live``
     (a :class:`medc_bringup.live_view.LiveView`); either may be None."""
+    from medc_common import contract
     from rclpy.node import Node
     from rclpy.serialization import deserialize_message
 
@@ -80,7 +81,9 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
         """Subscribes to the graph's topics as they appear (see the module docstring)."""
 
         def __init__(self) -> None:
-            super().__init__(node_name)
+            # In the team's namespace (/team2/medc_recorder): two teams' recorders do not clash. The
+            # topics it subscribes to are fully qualified.
+            super().__init__(node_name, namespace=contract.check_namespace(namespace))
             self.ns = _ns(namespace)
             self.subscribed: dict[str, str] = {}
             self.skipped: set[str] = set()
@@ -239,6 +242,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.output is None and args.foxglove is None:
         parser.error("nothing to do: give -o FILE.mcap, --foxglove [PORT], or both")
+    from medc_common.contract import check_namespace
+
+    try:
+        args.namespace = check_namespace(args.namespace)
+    except ValueError as exc:
+        parser.error(f"--namespace: {exc}")
     output = None
     if args.output is not None:
         output = Path(args.output).expanduser().resolve()

@@ -1,7 +1,11 @@
 """The topic contract between the simulator (or a real UAV driver) and the agent nodes.
 
-Everything a node needs to agree on lives here: topic names, QoS profiles, frames, agent ids,
-and the grid <-> map-frame conversion. docs/ros.md describes the same contract for people.
+Everything a node needs to agree on lives here: topic and service names, QoS profiles, frames,
+agent ids, and the grid <-> map-frame conversion. docs/ros.md describes the same contract for people.
+
+Names are relative to the team's namespace, which is each node's ROS namespace (DEFAULT_NAMESPACE
+unless remapped: ``--ros-args -r __ns:=/team2`` moves a whole team); only names that are global by
+ROS convention (``/diagnostics``) are absolute.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from rclpy.qos import (
 )
 
 MAP_FRAME = "map"
+#: The namespace the team's nodes are created in when nothing remaps it.
 DEFAULT_NAMESPACE = "/medc"
 
 #: Sensor data (poses, readings): best effort, keep last 5, as a real driver publishes them.
@@ -88,62 +93,146 @@ def _ns(namespace: str) -> str:
     return "" if ns == "/" else ns
 
 
-def pose_topic(namespace: str, agent_id: str) -> str:
+def _name(namespace: str | None, relative: str) -> str:
+    """``relative`` as nodes use it (``namespace`` None: resolved by ROS against the node's own
+    namespace, so ``-r __ns:=/team2`` moves it), or its fully-qualified name under ``namespace``."""
+    return relative if namespace is None else f"{_ns(namespace)}/{relative}"
+
+
+# Every name of the contract is relative: a node passes ``None`` (RELATIVE) as the namespace and
+# ROS resolves the name against the node's namespace (DEFAULT_NAMESPACE unless remapped); a tool
+# outside the team (a monitor, a test, a recorder) passes the team's namespace and gets the
+# fully-qualified name, e.g. pose_topic("/medc", "agent_0") == "/medc/agent_0/pose".
+
+#: The namespace argument that gives a relative name (what the team's nodes create).
+RELATIVE = None
+#: The description of the ``namespace`` parameter of the simulator, the agents and the bridge.
+NAMESPACE_HELP = ("Empty: the team's names are relative to the node's namespace (/medc unless "
+                  "-r __ns:=/team2 moves them). A namespace pins them under it instead (an older "
+                  "launch file's way); it must not contradict a remapped node namespace")
+
+
+def pose_topic(namespace: str | None, agent_id: str) -> str:
     """geometry_msgs/PoseStamped, SENSOR_QOS: the agent's position in the map frame."""
-    return f"{_ns(namespace)}/{agent_id}/pose"
+    return _name(namespace, f"{agent_id}/pose")
 
 
-def radiation_topic(namespace: str, agent_id: str) -> str:
+def radiation_topic(namespace: str | None, agent_id: str) -> str:
     """medc_interfaces/RadiationReading, SENSOR_QOS: the agent's latest measurement."""
-    return f"{_ns(namespace)}/{agent_id}/radiation"
+    return _name(namespace, f"{agent_id}/radiation")
 
 
-def move_topic(namespace: str, agent_id: str) -> str:
+def move_topic(namespace: str | None, agent_id: str) -> str:
     """medc_interfaces/AgentMove, RELIABLE_QOS: the move the agent's policy chose."""
-    return f"{_ns(namespace)}/{agent_id}/move"
+    return _name(namespace, f"{agent_id}/move")
 
 
-def policy_topic(namespace: str, agent_id: str) -> str:
+def policy_topic(namespace: str | None, agent_id: str) -> str:
     """std_msgs/String, LATCHED_QOS: a bundle path (or ``ipfs://``/CID via the bridge) to run."""
-    return f"{_ns(namespace)}/{agent_id}/policy"
+    return _name(namespace, f"{agent_id}/policy")
 
 
-def team_policy_topic(namespace: str) -> str:
+def team_policy_topic(namespace: str | None) -> str:
     """std_msgs/String, LATCHED_QOS: a bundle path every agent of the team switches to."""
-    return f"{_ns(namespace)}/team/policy"
+    return _name(namespace, "team/policy")
 
 
-def map_topic(namespace: str) -> str:
+def map_topic(namespace: str | None) -> str:
     """nav_msgs/OccupancyGrid, LATCHED_QOS: the walls of the current episode (>= 50 = wall)."""
-    return f"{_ns(namespace)}/map"
+    return _name(namespace, "map")
 
 
-def status_topic(namespace: str) -> str:
+def status_topic(namespace: str | None) -> str:
     """medc_interfaces/EpisodeStatus, RELIABLE_QOS: one per team step, after poses and readings."""
-    return f"{_ns(namespace)}/episode"
+    return _name(namespace, "episode")
 
 
-def results_topic(namespace: str) -> str:
+def results_topic(namespace: str | None) -> str:
     """medc_interfaces/EpisodeStatus, RESULTS_QOS: the closing status (done) of every episode."""
-    return f"{_ns(namespace)}/episode_result"
+    return _name(namespace, "episode_result")
 
 
-def estimate_topic(namespace: str) -> str:
+def estimate_topic(namespace: str | None) -> str:
     """geometry_msgs/PoseWithCovarianceStamped, ESTIMATE_QOS: the team's source estimate in the map
     frame (posterior mean, covariance of the position), once per team step."""
-    return f"{_ns(namespace)}/team/source_estimate"
+    return _name(namespace, "team/source_estimate")
 
 
-def posterior_topic(namespace: str) -> str:
+def posterior_topic(namespace: str | None) -> str:
     """nav_msgs/OccupancyGrid, LATCHED_QOS: the team's source posterior as a heat map on the walls
     map's grid (100 = the most probable cell), at the publisher's ``estimate_map_rate_hz``."""
-    return f"{_ns(namespace)}/team/source_posterior"
+    return _name(namespace, "team/source_posterior")
 
 
-def declaration_topic(namespace: str) -> str:
+def declaration_topic(namespace: str | None) -> str:
     """medc_interfaces/SourceDeclaration, RELIABLE_QOS: the team declares the source localised (once
     per episode); a driver ends the episode on it."""
-    return f"{_ns(namespace)}/team/source_declared"
+    return _name(namespace, "team/source_declared")
+
+
+def team_name(namespace: str | None, name: str) -> str:
+    """A name a node was given (a parameter): absolute (``/...``) and private (``~...``) names as they
+    are, a relative one under ``namespace`` (None: left relative, for ROS to resolve)."""
+    return name if namespace is None or name.startswith(("/", "~")) else _name(namespace, name)
+
+
+#: The registry bridge's services (medc_interfaces/srv): RequestExperts, FetchBundle, SubmitReview.
+REGISTRY_SERVICES = ("request_experts", "fetch_bundle", "submit_review")
+
+
+def registry_service(namespace: str | None, name: str) -> str:
+    """The registry bridge's service ``name`` (one of REGISTRY_SERVICES): ``registry/<name>``."""
+    if name not in REGISTRY_SERVICES:
+        raise ValueError(f"unknown registry service {name!r}: expected one of {', '.join(REGISTRY_SERVICES)}")
+    return _name(namespace, f"registry/{name}")
+
+
+def check_namespace(namespace: str) -> str:
+    """``namespace`` as a fully-qualified ROS namespace (a leading ``/`` added: ``team2`` ->
+    ``/team2``; a trailing one removed).
+
+    Raises:
+        ValueError: not a valid ROS namespace (letters, digits and ``_`` in ``/``-separated tokens
+        that do not start with a digit), with the reason.
+    """
+    from rclpy.exceptions import InvalidNamespaceException
+    from rclpy.validate_namespace import validate_namespace
+
+    if not isinstance(namespace, str):
+        raise ValueError(f"namespace must be a string, got {namespace!r}")
+    text = namespace.strip()
+    full = "/" + text.strip("/") if text.strip("/") else "/"
+    try:
+        validate_namespace(full)
+    except InvalidNamespaceException as exc:
+        why = str(exc).splitlines()[0].removeprefix("Invalid namespace: ").rstrip(":")
+        raise ValueError(f"namespace {namespace!r} is not a valid ROS namespace: {why}") from None
+    return full
+
+
+def team_namespace(node_namespace: str, parameter: str = "") -> tuple[str, str | None]:
+    """Where a node's team lives: ``(fully-qualified namespace, namespace to build names with)``.
+
+    The team's namespace is the node's own (DEFAULT_NAMESPACE unless ``-r __ns:=/team2`` or a
+    launch file moves it): names are relative (None). A non-empty ``namespace`` parameter (kept for
+    older launch and parameter files) pins the names under itself instead, as absolute names do in
+    ROS; it may not contradict a node namespace that was moved away from the default.
+
+    Raises:
+        ValueError: an invalid namespace parameter, or one that differs from a remapped node
+        namespace (the message names both and what to drop).
+    """
+    if not parameter or not parameter.strip():
+        return node_namespace, RELATIVE
+    pinned = check_namespace(parameter)
+    if pinned == node_namespace:
+        return node_namespace, RELATIVE
+    if node_namespace != DEFAULT_NAMESPACE:
+        raise ValueError(
+            f"the namespace parameter {parameter!r} contradicts the node's namespace {node_namespace} "
+            f"(-r __ns:={node_namespace} or a launch file's namespace): give the team's namespace once, "
+            "preferably as -r __ns:=..., and leave the namespace parameter empty")
+    return pinned, pinned
 
 
 #: The source estimate: reliable, keep last 5, volatile (a monitor wants the latest ones).

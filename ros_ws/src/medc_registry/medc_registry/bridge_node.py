@@ -1,6 +1,7 @@
 """medc-bridge: the registry bridge node. It exposes the MEDC registry to the ROS graph.
 
-Services (medc_interfaces/srv, under ``<namespace>/registry/``):
+Services (medc_interfaces/srv, under ``<namespace>/registry/``; the names are relative to the node's
+namespace, ``/medc`` unless ``-r __ns:=/team2`` moves it):
   request_experts  request experts meeting requirements (the Models Manager allocates them and
                    this bridge's account pays)
   fetch_bundle     fetch a bundle by CID from the content store, verify it (content hash, then
@@ -186,14 +187,19 @@ def connect_registry(
         raise BridgeError(str(exc)) from None
 
 
-def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
-    """Declare the bridge node's parameters: (namespace, :func:`connect_registry` keyword
-    arguments, cache folder or "")."""
-    from medc_common.contract import DEFAULT_NAMESPACE
+def _declare_parameters(node: Any) -> tuple[tuple[str, str | None], dict[str, Any], str]:
+    """Declare the bridge node's parameters: ((the team's namespace, the one names are built with:
+    None = relative; medc_common.contract.team_namespace), :func:`connect_registry` keyword
+    arguments, cache folder or "").
+
+    Raises:
+        BridgeError: a namespace parameter that is invalid or contradicts the node's namespace.
+    """
+    from medc_common import contract
     from medc_common.params import declare
 
     p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
-    namespace = p("namespace", DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+    namespace = p("namespace", "", contract.NAMESPACE_HELP, True)
     connection = {
         "chain": p(
             "chain", "embedded", "'embedded' (in-process test chain) or a JSON-RPC URL on loopback", True
@@ -206,7 +212,11 @@ def _declare_parameters(node: Any) -> tuple[str, dict[str, Any], str]:
                      "or of the keys in private_key_file", True),
     }
     cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
-    return namespace, connection, cache
+    try:
+        names = contract.team_namespace(node.get_namespace(), namespace)
+    except ValueError as exc:
+        raise BridgeError(str(exc)) from None
+    return names, connection, cache
 
 
 def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
@@ -233,8 +243,9 @@ def bridge_node_class():
         """ROS services over a :class:`RegistryBridge` (see the module docstring)."""
 
         def __init__(self, registry: Any = None, node_name: str = "medc_bridge", **kwargs: Any) -> None:
+            kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
             super().__init__(node_name, **kwargs)
-            self.namespace_, connection, cache = _declare_parameters(self)
+            (self.namespace_, self.names_ns), connection, cache = _declare_parameters(self)
             if registry is None:
                 registry = connect_registry(**connection)
             # No cache_dir: a temporary folder of this node's own, removed again by destroy_node.
@@ -245,14 +256,15 @@ def bridge_node_class():
                 if self._own_cache is not None:
                     shutil.rmtree(self._own_cache, ignore_errors=True)
                 raise
-            ns = self.namespace_.rstrip("/")
-            self.create_service(RequestExperts, f"{ns}/registry/request_experts", self._on_request)
-            self.create_service(FetchBundle, f"{ns}/registry/fetch_bundle", self._on_fetch)
-            self.create_service(SubmitReview, f"{ns}/registry/submit_review", self._on_review)
+            for srv_type, name, handler in ((RequestExperts, "request_experts", self._on_request),
+                                            (FetchBundle, "fetch_bundle", self._on_fetch),
+                                            (SubmitReview, "submit_review", self._on_review)):
+                self.create_service(srv_type, contract.registry_service(self.names_ns, name), handler)
             self._policy_pubs: dict[str, Any] = {}
             self._String = String
             self.get_logger().info(
-                f"registry bridge on {ns}/registry/*, caching bundles in {self.bridge.cache_dir}"
+                f"registry bridge on {contract.registry_service(self.namespace_, 'fetch_bundle')} (and "
+                f"request_experts, submit_review), caching bundles in {self.bridge.cache_dir}"
             )
 
         def destroy_node(self) -> None:
@@ -264,7 +276,7 @@ def bridge_node_class():
         def _policy_pub(self, agent_id: str):
             if agent_id not in self._policy_pubs:
                 self._policy_pubs[agent_id] = self.create_publisher(
-                    self._String, contract.policy_topic(self.namespace_, agent_id), contract.LATCHED_QOS
+                    self._String, contract.policy_topic(self.names_ns, agent_id), contract.LATCHED_QOS
                 )
             return self._policy_pubs[agent_id]
 

@@ -4,6 +4,7 @@ Publishes, per agent, its pose (geometry_msgs/PoseStamped, frame "map") and radi
 (medc_interfaces/RadiationReading), both with sensor-data QoS; the walls map (nav_msgs/
 OccupancyGrid, transient local) and one medc_interfaces/EpisodeStatus per team step. Applies each
 agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and docs/ros.md.
+The names are relative to the node's namespace (``/medc`` unless ``-r __ns:=/team2`` moves it).
 
 Modes:
   stepped   waits for every agent's move, then steps (at most ``rate_hz`` steps/s; 0 = no limit).
@@ -43,9 +44,13 @@ class SimNode(MoveWatch, Node):
     """The simulator node (see the module docstring)."""
 
     def __init__(self, node_name: str = "medc_sim", **kwargs) -> None:
+        kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
         super().__init__(node_name, **kwargs)
         p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
-        self.namespace_ = p("namespace", contract.DEFAULT_NAMESPACE, "Topic namespace of the team", True)
+        #: The team's namespace (fully qualified, for messages) and the one names are built with
+        #: (None: relative to the node's namespace; contract.team_namespace).
+        self.namespace_, self.names_ns = contract.team_namespace(self.get_namespace(), p(
+            "namespace", "", contract.NAMESPACE_HELP, True))
         cfg = SimConfig(
             agents=p("agents", 3, "Number of agents in the team", True),
             walls=p("walls", 2, "Number of wall segments", True),
@@ -134,7 +139,7 @@ class SimNode(MoveWatch, Node):
 
     def _connect(self, cfg: SimConfig) -> None:
         """The team's publishers, the move (and declaration) subscriptions, diagnostics."""
-        ns = self.namespace_
+        ns = self.names_ns
         self.pose_pubs = [
             self.create_publisher(PoseStamped, contract.pose_topic(ns, a), contract.SENSOR_QOS)
             for a in self.ids
@@ -212,7 +217,8 @@ class SimNode(MoveWatch, Node):
         return messages.grid_msg(self.core.walls(), self._map_stamp, self.resolution)
 
     def _summary(self) -> dict[str, str]:
-        return {"session": self.session, "episode": str(self.core.episode), "step": str(self.core.step),
+        return {"namespace": self.namespace_, "session": self.session, "episode": str(self.core.episode),
+                "step": str(self.core.step),
                 "episodes_done": str(len(self.core.results)), "resends": str(self.resends),
                 "dropped_moves": str(self.dropped), "resent_moves_ignored": str(self.book.resent),
                 "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none"}

@@ -35,7 +35,7 @@ class GraphWatch:
 
     def __init__(self, sim) -> None:
         self.sim = sim
-        ns = sim.namespace_
+        ns = sim.names_ns
         self.foreign_sessions: dict[str, float] = {}
         self.foreign_maps = 0
         self._own_maps: deque[int] = deque(maxlen=16)
@@ -63,7 +63,7 @@ class GraphWatch:
         self.sim.health.set("graph", DiagnosticStatus.WARN, (
             f"another driver publishes on {contract.status_topic(self.sim.namespace_)} (sessions "
             f"{sessions}; this simulator is {self.sim.session}): a second graph shares this ROS_DOMAIN_ID "
-            "and namespace; give each graph its own ROS_DOMAIN_ID"))
+            "and namespace; give each graph its own ROS_DOMAIN_ID or namespace"))
 
     def on_map(self, msg: OccupancyGrid) -> None:
         if not self.sim.started or _key(msg.info.map_load_time) in self._own_maps:
