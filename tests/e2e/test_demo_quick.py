@@ -78,6 +78,11 @@ def test_graph_runs_trained_policies(demo: tuple[dict, Path]) -> None:
     # A trained team localizes the target in fewer steps than random moves do.
     assert team["mean_length"] < summary["random_policy_episode_length"]
     assert team["success_rate"] > 0.5
+    # The realistic preset's default team (infotaxis) runs in the graph and beats random moves there.
+    realistic = summary["graph_realistic"]
+    assert not realistic["skipped"] and realistic["policy"] == "infotaxis" and realistic["episodes"] == 5
+    assert all(1 <= n <= 100 for n in realistic["episode_lengths"])
+    assert realistic["mean_length"] < realistic["random_episode_length"]
 
 
 def test_training_and_report(demo: tuple[dict, Path]) -> None:

@@ -103,9 +103,10 @@ def test_controller_names_are_policies_without_a_manifest():
 def test_launch_config_takes_a_controller_by_name(bundles):
     cfg = load_config(None, policy="infotaxis", agents=2, noise=True)
     assert resolve_policies(cfg) == ["infotaxis"] * 2
-    assert (cfg.walls, cfg.grid, cfg.max_steps, cfg.sensing) == (2, 30, 100, "paper-simple")
+    # a controller has no manifest: the realistic preset's scenario (launcher.CONTROLLER_DEFAULTS)
+    assert (cfg.walls, cfg.grid, cfg.max_steps, cfg.sensing) == (2, 20, 100, "realistic")
     params = agent_parameters(cfg, 1, "infotaxis")
-    assert (params["policy"], params["agents"], params["grid"], params["noise"]) == ("infotaxis", 2, 30, True)
+    assert (params["policy"], params["agents"], params["grid"], params["noise"]) == ("infotaxis", 2, 20, True)
     # Mixed: a bundle team with one controller agent.
     cfg = load_config(None, policy=str(bundles["a"]), agents=3, policies={"agent_2": "gradient"})
     assert resolve_policies(cfg) == [str(bundles["a"])] * 2 + ["gradient"]
@@ -115,7 +116,7 @@ SCENARIO = {"agents": 3, "walls": 2, "grid": 10, "max_steps": 30, "seed": 11}
 
 
 @pytest.mark.ros
-@pytest.mark.parametrize(("name", "sensing"), [("greedy", None), ("infotaxis", "realistic"),
+@pytest.mark.parametrize(("name", "sensing"), [("greedy", "paper-simple"), ("infotaxis", "realistic"),
                                                ("gradient", "realistic")])
 def test_controller_team_plays_training_episodes_in_the_graph(graph, name, sensing):
     """medc-launch's in-process graph with policy: <controller>: every agent node runs the controller
@@ -204,7 +205,7 @@ def test_medc_launch_runs_a_controller_team_by_name(tmp_path):
     episodes = 5
     lengths, successes, _ = controller_reference_episodes("greedy", episodes, **SCENARIO)
     config = tmp_path / "launch.yaml"
-    config.write_text(json.dumps(SCENARIO))  # JSON is YAML
+    config.write_text(json.dumps({**SCENARIO, "sensing": "paper-simple"}))  # JSON is YAML
     launcher = Path(sys.executable).parent / "medc-launch"
     out = subprocess.run([str(launcher), "--config", str(config), "--policy", "greedy", "--episodes",
                           str(episodes), "--in-process", "--timeout", "100"],

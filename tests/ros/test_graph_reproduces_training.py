@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from ros_helpers import reference_episodes, spin_until
+from ros_helpers import controller_reference_episodes, reference_episodes, spin_until
 
 SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 11}
 EPISODES = 20
@@ -70,11 +70,31 @@ def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
 
 
 @pytest.mark.ros
-def test_default_launch_config_runs_the_shipped_team_as_trained(graph, repo_root):
-    """`medc-launch` with no config: the shipped team, its manifest's scenario, training's episodes."""
+def test_default_launch_config_runs_infotaxis_on_the_realistic_preset(graph):
+    """`medc-launch` with no config: infotaxis (the measured best team on the realistic preset) on
+    RAD-A2C's 20x20 area with 2 walls and 100 steps, playing the evaluator's episodes of infotaxis."""
     from medc_bringup.launcher import load_config, resolve_policies
 
+    episodes = 4
     cfg = load_config(None)
+    assert resolve_policies(cfg) == ["infotaxis"] * 3
+    assert (cfg.sensing, cfg.agents, cfg.walls, cfg.grid, cfg.max_steps) == ("realistic", 3, 2, 20, 100)
+    scenario = {"agents": 3, "walls": 2, "grid": 20, "max_steps": 100, "seed": cfg.seed,
+                "sensing": "realistic"}
+    lengths, successes, trace = controller_reference_episodes("infotaxis", episodes, **scenario)
+    executor, sim, _ = graph("infotaxis", episodes)
+    assert spin_until(executor, lambda: sim.finished, 180)
+    assert [r.length for r in sim.core.results] == lengths
+    assert sim.core.trace == trace
+    assert sum(successes) >= episodes - 1
+
+
+@pytest.mark.ros
+def test_launch_config_with_the_shipped_team_plays_it_as_trained(graph, repo_root):
+    """`medc-launch --policy models/team`: the shipped team, its manifest's scenario, training's episodes."""
+    from medc_bringup.launcher import load_config, resolve_policies
+
+    cfg = load_config(None, policy="models/team")
     team = resolve_policies(cfg)
     assert all(Path(p).parent == repo_root / "models" / "team" for p in team)
     scenario = {

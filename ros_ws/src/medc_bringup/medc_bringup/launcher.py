@@ -15,7 +15,8 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --namespace /team2            # the whole team under /team2 (each node: -r __ns:=/team2)
 
 A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
-file (e.g. the default ``models/team``) from the repository root.
+file (e.g. ``models/team``) from the repository root. Without ``--policy`` the default config runs
+infotaxis on the realistic preset (20x20, 2 walls, 100 steps), the team measured best there.
 """
 
 from __future__ import annotations
@@ -39,6 +40,11 @@ from medc_common.share import config_file
 DEFAULT_CONFIG = config_file("medc_bringup", "launch.yaml")
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
 SCENARIO_DEFAULTS = {"agents": 3, "walls": 2, "grid": 30, "max_steps": 100}
+#: A classical controller's team has no manifest: the keys the config leaves unset take the realistic
+#: preset's scenario (RAD-A2C's 20x20 m area), where the controllers are the measured best teams
+#: (docs/environments.md, "Realistic search results"): config/launch.yaml's default team.
+CONTROLLER_DEFAULTS = {"agents": 3, "walls": 2, "grid": 20, "max_steps": 100}
+CONTROLLER_SENSING = "realistic"
 
 
 @dataclass
@@ -138,7 +144,8 @@ def _controller(policy: object) -> str | None:
 
 def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
     """Fill the scenario keys left unset (and ``sensing``) from the manifest of the bundle at
-    ``base`` (file or folder); None (a controller): the defaults."""
+    ``base`` (file or folder); None (a controller): the realistic preset's scenario
+    (CONTROLLER_DEFAULTS, CONTROLLER_SENSING)."""
     from medc_training.bundle import BundleError, manifest_sensing, read_manifest
 
     missing = [k for k in SCENARIO_DEFAULTS if getattr(cfg, k) is None]
@@ -160,13 +167,14 @@ def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
     if cfg.sensing is None:
         from medc_training.envs.tl_sensing import DEFAULT_SENSING
 
-        cfg.sensing = DEFAULT_SENSING
+        cfg.sensing = CONTROLLER_SENSING if base is None else DEFAULT_SENSING
+    defaults = CONTROLLER_DEFAULTS if base is None else SCENARIO_DEFAULTS
     for key in missing:
         value = env.get(key)
         setattr(
             cfg,
             key,
-            int(value) if isinstance(value, int) and not isinstance(value, bool) else SCENARIO_DEFAULTS[key],
+            int(value) if isinstance(value, int) and not isinstance(value, bool) else defaults[key],
         )
 
 
