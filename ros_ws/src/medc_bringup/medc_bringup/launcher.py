@@ -38,6 +38,10 @@ from medc_common.share import config_file
 DEFAULT_CONFIG = config_file("medc_bringup", "launch.yaml")
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
 SCENARIO_DEFAULTS = {"agents": 3, "walls": 2, "grid": 30, "max_steps": 100}
+#: Seconds the graph stays up after its last episode when a recorder in another process listens:
+#: it gets the last messages (the final moves, the last result) only while their reliable writers
+#: live. medc-sim lingers as long.
+RECORDER_LINGER_S = 1.0
 
 
 @dataclass
@@ -249,11 +253,15 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     return paths
 
 
-def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 0) -> dict[str, Any]:
+def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 0,
+                   results_readers: int = 0) -> dict[str, Any]:
     """Parameters of the simulator node for ``cfg``; ``extra_listeners``: status subscribers besides
-    the agents (e.g. the launcher) that must be there before the first step."""
+    the agents (a recorder) that must be there before the first step; ``results_readers``: readers
+    of the episode results (the launcher's monitor, a recorder) the first step, and the end of a
+    finished simulator, wait for (medc_sim.start_gate)."""
     return {
         "wait_for_subscribers": cfg.agents + extra_listeners,
+        "wait_for_results_readers": results_readers,
         "namespace": cfg.namespace,
         "agents": cfg.agents,
         "walls": cfg.walls,
@@ -349,7 +357,8 @@ def build_graph(
     def overrides(params: dict[str, Any]) -> list[Parameter]:
         return [Parameter(k, value=v) for k, v in params.items()]
 
-    params = sim_parameters(cfg, episodes, extra_listeners)
+    # In one process the launcher hears results from the simulator itself; a recorder reads them.
+    params = sim_parameters(cfg, episodes, extra_listeners, results_readers=extra_listeners)
     if shared_feed:
         params["wait_for_subscribers"] = 1 + extra_listeners  # the feed listens for every agent
     sim = SimNode(parameter_overrides=overrides(params))
@@ -389,7 +398,7 @@ def run_in_process(
         if sim.finished and extra_listeners:
             # A reader in another process (the recorder) gets the last results only while their
             # reliable writers live: linger as medc-sim does before the nodes go.
-            linger = time.monotonic() + 1.0
+            linger = time.monotonic() + RECORDER_LINGER_S
             while rclpy.ok() and time.monotonic() < linger:
                 executor.spin_once(timeout_sec=0.05)
         return sim.finished
@@ -445,7 +454,9 @@ def run_processes(
     )
     bindir = Path(sys.executable).parent
     env = _child_env()
-    sim_params = sim_parameters(cfg, episodes, extra_listeners)
+    # The monitor must be matched before the first step and before the simulator exits: the
+    # recorder, a results reader as well, must not stand in for it (medc_sim.start_gate).
+    sim_params = sim_parameters(cfg, episodes, extra_listeners, results_readers=1 + extra_listeners)
     commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params)]]
     commands += [
         [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p))]
@@ -461,6 +472,10 @@ def run_processes(
         while rclpy.ok():
             rclpy.spin_once(monitor, timeout_sec=0.1)
             if episodes and len(seen) >= episodes:
+                if extra_listeners:  # the recorder: let the last moves reach it (RECORDER_LINGER_S)
+                    linger = time.monotonic() + RECORDER_LINGER_S
+                    while rclpy.ok() and time.monotonic() < linger:
+                        rclpy.spin_once(monitor, timeout_sec=0.05)
                 return True
             if any(c.poll() not in (None, 0) for c in children):
                 failed = [" ".join(c.args[:1]) for c in children if c.poll() not in (None, 0)]
