@@ -194,3 +194,72 @@ def load_launch_file():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (children, their children, ...), read from /proc."""
+    import os
+
+    parents: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                # The name (field 2) may hold spaces; the parent pid is the 2nd field after it.
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        parents.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [pid]
+    while todo:
+        for child in parents.get(todo.pop(), []):
+            out.append(child)
+            todo.append(child)
+    return out
+
+
+def stop_launcher(proc, grace_s: float = 20.0) -> None:
+    """Stop a ``medc-launch`` process ``proc`` started with ``start_new_session=True`` and every node
+    it started, whatever state it is in: SIGINT first (the launcher stops its nodes itself), then
+    SIGKILL to the process group of the launcher and of each process it started (every node runs
+    in a session of its own), so that a hung graph never outlives its test."""
+    import contextlib
+    import os
+    import signal
+    import subprocess
+
+    tree = descendants(proc.pid)
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(grace_s)
+    for pid in [proc.pid, *tree]:
+        # Gone already, or not a group of its own (then its group's leader is in the list).
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(pid, signal.SIGKILL)
+    proc.wait()
+
+
+def run_launcher(args: list[str], cwd: Path, timeout_s: float, stderr_file: Path, env=None):
+    """Run ``python -m medc_bringup.launcher ARGS`` in ``cwd``; its stderr (and every node's) goes to
+    ``stderr_file`` (a file, not a pipe: the nodes' logs can never block). Returns
+    ``(returncode, stdout)``; on timeout stops it and its nodes (:func:`stop_launcher`) and
+    raises ``subprocess.TimeoutExpired``."""
+    import subprocess
+    import sys
+
+    with stderr_file.open("w") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "medc_bringup.launcher", *args],
+                                stdout=subprocess.PIPE, stderr=log, text=True, cwd=cwd, env=env,
+                                start_new_session=True)
+        try:
+            out, _ = proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            stop_launcher(proc)
+            proc.communicate()
+            raise
+        finally:
+            if proc.poll() is None:
+                stop_launcher(proc)
+    return proc.returncode, out

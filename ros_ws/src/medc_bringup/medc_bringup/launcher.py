@@ -45,6 +45,10 @@ SCENARIO_DEFAULTS = {"agents": 3, "walls": 2, "grid": 30, "max_steps": 100}
 #: (docs/environments.md, "Realistic search results"): config/launch.yaml's default team.
 CONTROLLER_DEFAULTS = {"agents": 3, "walls": 2, "grid": 20, "max_steps": 100}
 CONTROLLER_SENSING = "realistic"
+#: Seconds the graph stays up after its last episode when a recorder in another process listens:
+#: it gets the last messages (the final moves, the last result) only while their reliable writers
+#: live. medc-sim lingers as long.
+RECORDER_LINGER_S = 1.0
 
 
 @dataclass
@@ -262,11 +266,15 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     return paths
 
 
-def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 0) -> dict[str, Any]:
+def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 0,
+                   results_readers: int = 0) -> dict[str, Any]:
     """Parameters of the simulator node for ``cfg``; ``extra_listeners``: status subscribers besides
-    the agents (e.g. the launcher) that must be there before the first step."""
+    the agents (a recorder) that must be there before the first step; ``results_readers``: readers
+    of the episode results (the launcher's monitor, a recorder) the first step, and the end of a
+    finished simulator, wait for (medc_sim.start_gate)."""
     return {
         "wait_for_subscribers": cfg.agents + extra_listeners,
+        "wait_for_results_readers": results_readers,
         "agents": cfg.agents,
         "walls": cfg.walls,
         "grid": cfg.grid,
@@ -363,7 +371,8 @@ def build_graph(
     def overrides(params: dict[str, Any]) -> list[Parameter]:
         return [Parameter(k, value=v) for k, v in params.items()]
 
-    params = sim_parameters(cfg, episodes, extra_listeners)
+    # In one process the launcher hears results from the simulator itself; a recorder reads them.
+    params = sim_parameters(cfg, episodes, extra_listeners, results_readers=extra_listeners)
     if shared_feed:
         params["wait_for_subscribers"] = 1 + extra_listeners  # the feed listens for every agent
     sim = SimNode(namespace=cfg.namespace, parameter_overrides=overrides(params))
@@ -402,7 +411,7 @@ def run_in_process(
         if sim.finished and extra_listeners:
             # A reader in another process (the recorder) gets the last results only while their
             # reliable writers live: linger as medc-sim does before the nodes go.
-            linger = time.monotonic() + 1.0
+            linger = time.monotonic() + RECORDER_LINGER_S
             while rclpy.ok() and time.monotonic() < linger:
                 executor.spin_once(timeout_sec=0.05)
         return sim.finished
@@ -458,7 +467,9 @@ def run_processes(
     )
     bindir = Path(sys.executable).parent
     env = _child_env()
-    sim_params = sim_parameters(cfg, episodes, extra_listeners)
+    # The monitor must be matched before the first step and before the simulator exits: the
+    # recorder, a results reader as well, must not stand in for it (medc_sim.start_gate).
+    sim_params = sim_parameters(cfg, episodes, extra_listeners, results_readers=1 + extra_listeners)
     ns = cfg.namespace
     commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params, ns)]]
     commands += [
@@ -475,6 +486,10 @@ def run_processes(
         while rclpy.ok():
             rclpy.spin_once(monitor, timeout_sec=0.1)
             if episodes and len(seen) >= episodes:
+                if extra_listeners:  # the recorder: let the last moves reach it (RECORDER_LINGER_S)
+                    linger = time.monotonic() + RECORDER_LINGER_S
+                    while rclpy.ok() and time.monotonic() < linger:
+                        rclpy.spin_once(monitor, timeout_sec=0.05)
                 return True
             if any(c.poll() not in (None, 0) for c in children):
                 failed = [" ".join(c.args[:1]) for c in children if c.poll() not in (None, 0)]

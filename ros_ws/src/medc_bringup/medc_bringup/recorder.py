@@ -23,6 +23,13 @@ from pathlib import Path
 
 #: Topics outside the namespace that belong to a MEDC graph.
 GLOBAL_TOPICS = ("/diagnostics",)
+#: Seconds the recorder holds its episode-status subscription back waiting for the agents (the
+#: simulator's start gate waits as long: medc_sim.start_gate.START_WAIT_S).
+HOLD_STATUS_S = 30.0
+#: Seconds every needed subscription must have had its publisher before the recorder takes the status
+#: (StatusHold): this reader matching a writer is one half of DDS discovery; the writer matches the
+#: reader (and only then sends to it) when the other half reaches it, as a rule a moment later.
+HOLD_SETTLE_S = 0.5
 
 
 def _ns(namespace: str) -> str:
@@ -66,11 +73,51 @@ def qos_for_publishers(infos):
     )
 
 
+class StatusHold:
+    """When the recorder knows the team (``agents`` > 0), it subscribes to the episode status only
+    once each of its subscriptions to the map and to every agent's pose, reading and move topics is
+    matched with a publisher. The simulator's start gate counts the recorder among the status
+    listeners (medc-launch --record), so the first step then waits until the recorder hears every
+    agent: a reliable, volatile move sent before the writer matched the recorder would never reach
+    it. The publishers must have been there ``settle_s`` (HOLD_SETTLE_S). After ``timeout_s`` it
+    subscribes anyway (the simulator starts anyway after as long)."""
+
+    def __init__(self, namespace: str, agents: int, timeout_s: float = HOLD_STATUS_S,
+                 settle_s: float = HOLD_SETTLE_S) -> None:
+        from medc_common import contract
+
+        self.topic = contract.status_topic(namespace) if agents > 0 else None
+        self.needed = [contract.map_topic(namespace)] + [
+            topic(namespace, a) for a in contract.agent_ids(agents)
+            for topic in (contract.pose_topic, contract.radiation_topic, contract.move_topic)
+        ] if agents > 0 else []
+        self.deadline = time.monotonic() + timeout_s
+        self.settle_s = settle_s
+        self._heard_at: float | None = None
+
+    def silent(self, subscriptions: dict) -> list[str]:
+        """The needed topics whose subscription (in ``subscriptions``, by topic) has no publisher."""
+        return [t for t in self.needed
+                if t not in subscriptions or subscriptions[t].get_publisher_count() == 0]
+
+    def due(self, subscriptions: dict) -> bool:
+        """Whether to subscribe to the status now: every needed topic has had a publisher for
+        ``settle_s``, or the hold expired."""
+        now = time.monotonic()
+        if self.silent(subscriptions):
+            self._heard_at = None
+        elif self._heard_at is None:
+            self._heard_at = now
+        return now > self.deadline or (self._heard_at is not None and now - self._heard_at >= self.settle_s)
+
+
 def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 0,
-                       discover_every_s: float = 0.2, node_name: str = "medc_recorder"):
+                       discover_every_s: float = 0.2, node_name: str = "medc_recorder",
+                       hold_status_s: float = HOLD_STATUS_S):
     """A node that subscribes (raw CDR) to every MEDC topic and hands each message to
     ``recording`` (a :class:`medc_bringup.recording.McapRecording`) and ``live``
-    (a :class:`medc_bringup.live_view.LiveView`); either may be None."""
+    (a :class:`medc_bringup.live_view.LiveView`); either may be None. With ``agents`` > 0 its
+    status subscription waits for the team, ``hold_status_s`` at most (:class:`StatusHold`)."""
     from medc_common import contract
     from rclpy.node import Node
     from rclpy.serialization import deserialize_message
@@ -89,7 +136,12 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
             self.skipped: set[str] = set()
             self.messages = 0
             self.busy_s = 0.0
-            for topic, (type_name, qos) in known_topics(namespace, agents).items():
+            self._subs: dict[str, object] = {}
+            self.hold = StatusHold(namespace, agents, hold_status_s)
+            topics = known_topics(namespace, agents)
+            #: The status subscription held back (StatusHold); None once subscribed.
+            self.held = (self.hold.topic, topics.pop(self.hold.topic)) if self.hold.topic else None
+            for topic, (type_name, qos) in topics.items():
                 self._subscribe(topic, type_name, qos)
             self._discover()
             self.create_timer(discover_every_s, self._discover)
@@ -99,9 +151,25 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
         def _ours(self, topic: str) -> bool:
             return topic.startswith(self.ns + "/") or topic in GLOBAL_TOPICS
 
+        def _release(self) -> None:
+            """Subscribe to the held status topic once the team is heard (StatusHold)."""
+            if not self.hold.due(self._subs):
+                return
+            silent = self.hold.silent(self._subs)
+            if silent:
+                self.get_logger().warning(f"no publisher on {', '.join(silent)} after {hold_status_s:g} s; "
+                                          "recording the episode status anyway")
+            topic, (type_name, qos) = self.held
+            self.held = None
+            self._subscribe(topic, type_name, qos)
+
         def _discover(self) -> None:
+            if self.held is not None:
+                self._release()
             for topic, types in self.get_topic_names_and_types():
                 if topic in self.subscribed or topic in self.skipped or not self._ours(topic) or not types:
+                    continue
+                if self.held is not None and topic == self.held[0]:
                     continue
                 infos = self.get_publishers_info_by_topic(topic)
                 if not infos:
@@ -124,7 +192,7 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
                 if live.wants(topic, type_name):
                     decode = cls
             self.subscribed[topic] = type_name
-            self.create_subscription(
+            self._subs[topic] = self.create_subscription(
                 cls, topic, lambda data, t=topic, n=type_name, d=decode: self._on_message(t, n, d, data),
                 qos, raw=True,
             )

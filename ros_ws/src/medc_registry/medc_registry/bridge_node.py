@@ -232,6 +232,22 @@ def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
     return res
 
 
+class TempFolders:
+    """Temporary folders a bridge node makes for itself (no ``cache_dir``, no ``content``): its
+    bundle cache and its content store, removed when the node is destroyed."""
+
+    def __init__(self) -> None:
+        self.paths: list[str] = []
+
+    def make(self, prefix: str) -> str:
+        self.paths.append(tempfile.mkdtemp(prefix=prefix))
+        return self.paths[-1]
+
+    def remove(self) -> None:
+        while self.paths:
+            shutil.rmtree(self.paths.pop(), ignore_errors=True)
+
+
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
     from medc_common import contract
@@ -246,15 +262,17 @@ def bridge_node_class():
             kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
             super().__init__(node_name, **kwargs)
             (self.namespace_, self.names_ns), connection, cache = _declare_parameters(self)
-            if registry is None:
-                registry = connect_registry(**connection)
-            # No cache_dir: a temporary folder of this node's own, removed again by destroy_node.
-            self._own_cache = None if cache else tempfile.mkdtemp(prefix="medc-bundles-")
+            # No cache_dir (no content store): a temporary folder of this node's own for it,
+            # removed again by destroy_node.
+            self._own_dirs = TempFolders()
             try:
-                self.bridge = RegistryBridge(registry, cache or self._own_cache)
+                if registry is None:
+                    if not connection["content"]:
+                        connection["content"] = self._own_dirs.make("medc-store-")
+                    registry = connect_registry(**connection)
+                self.bridge = RegistryBridge(registry, cache or self._own_dirs.make("medc-bundles-"))
             except BaseException:
-                if self._own_cache is not None:
-                    shutil.rmtree(self._own_cache, ignore_errors=True)
+                self._own_dirs.remove()
                 raise
             for srv_type, name, handler in ((RequestExperts, "request_experts", self._on_request),
                                             (FetchBundle, "fetch_bundle", self._on_fetch),
@@ -269,9 +287,7 @@ def bridge_node_class():
 
         def destroy_node(self) -> None:
             super().destroy_node()
-            if self._own_cache is not None:
-                shutil.rmtree(self._own_cache, ignore_errors=True)
-                self._own_cache = None
+            self._own_dirs.remove()
 
         def _policy_pub(self, agent_id: str):
             if agent_id not in self._policy_pubs:

@@ -37,6 +37,7 @@ from medc_sim.episode_end import declared_cell
 from medc_sim.move_watch import MoveWatch
 from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
+from medc_sim.start_gate import StartGate
 from medc_sim.watch import GraphWatch
 
 
@@ -120,16 +121,16 @@ class SimNode(MoveWatch, Node):
         self.latencies: deque[float] = deque(maxlen=100_000)
 
         self._connect(cfg)
-        self.wait_for = int(
-            p(
-                "wait_for_subscribers",
-                cfg.agents,
-                "Publish the first step once this many nodes "
-                "subscribe to the episode status (the agents; a launcher or recorder adds itself) "
-                "and, when > 0, every agent's move publisher is there (a recorder is no agent)",
-                True,
-            )
-        )
+        wait_for = int(p(
+            "wait_for_subscribers", cfg.agents,
+            "Publish the first step once this many other nodes subscribe to the episode status (the "
+            "agents; a recorder adds itself) and, when > 0, every agent's move publisher is there (a "
+            "recorder is no agent)", True))
+        results_readers = int(p(
+            "wait_for_results_readers", 0,
+            "Also wait before the first step until this many nodes read the episode results (the "
+            "launcher's monitor, a recorder), and before a finished simulator exits (at least 1)", True))
+        self.gate = StartGate(self, wait_for, results_readers)
         self._start_timers()
         self.get_logger().info(
             f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
@@ -179,7 +180,6 @@ class SimNode(MoveWatch, Node):
     def _start_timers(self) -> None:
         """The start gate, and the stepping timers of the mode."""
         self.started = False
-        self._start_deadline = time.monotonic() + 30.0
         self._start_timer = self.create_timer(0.02, self._try_start)
         if self.mode == "realtime":
             self.create_timer(1.0 / self.rate_hz, self._realtime_tick)
@@ -190,17 +190,12 @@ class SimNode(MoveWatch, Node):
 
     # -- publishing ----------------------------------------------------------------------
     def _try_start(self) -> None:
-        """Start once the team listens: a step published before discovery would be lost. Listeners
-        alone could be recorders, so every agent's own move publisher must be matched too."""
-        listeners = self.status_pub.get_subscription_count()
-        movers = sum(1 for sub in self.move_subs if sub.get_publisher_count() > 0) if self.wait_for > 0 else 0
-        ready = listeners >= self.wait_for and movers >= (len(self.move_subs) if self.wait_for > 0 else 0)
-        if not ready and time.monotonic() < self._start_deadline:
+        """Start once the team and the results readers are matched (medc_sim.start_gate)."""
+        missing = self.gate.missing()
+        if missing and not self.gate.expired():
             return
-        if not ready:
-            self.get_logger().warning(
-                f"starting with {listeners} of {self.wait_for} expected subscribers and "
-                f"{movers} of {len(self.move_subs)} agents' move publishers")
+        if missing:
+            self.get_logger().warning(f"starting with {' and '.join(missing)}")
         self._start_timer.cancel()
         self.destroy_timer(self._start_timer)
         self.started = True

@@ -23,9 +23,11 @@ def spin_episodes(node, executor) -> None:
         executor.spin_once(timeout_sec=0.1)
     # The episode results are latched, but only while this process lives: a reader that is
     # still being discovered (a loaded machine can take seconds) would miss them all. Wait
-    # (bounded) for at least one results reader, then linger so reliable resends complete.
+    # (bounded) for the results readers the start gate expects (at least one; a recorder alone
+    # must not end the wait for the launcher's monitor), then linger so reliable resends complete.
+    readers = max(1, node.gate.results_readers)
     deadline = time.monotonic() + RESULTS_READER_WAIT_S
-    while running() and node.results_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    while running() and node.results_pub.get_subscription_count() < readers and time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.1)
     linger = time.monotonic() + 1.0
     while running() and time.monotonic() < linger:
