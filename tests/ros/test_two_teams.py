@@ -155,6 +155,8 @@ def test_two_teams_share_a_domain_under_two_namespaces(rclpy_context, bundles, t
     watch = Watch()
     try:
         summary = run_two_teams(config, tmp_path, watch)
+        # Results team1 published after the watch stopped spinning wait in the watch's reader.
+        watch.spin(5, lambda: len(watch.results["/team1"]) >= len(summary["episode_lengths"]))
     finally:
         watch.node.destroy_node()
 
