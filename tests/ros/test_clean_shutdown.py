@@ -37,12 +37,13 @@ def test_repeated_launch_and_stop_logs_no_fatal_or_traceback(bundles, tmp_path):
     start = time.monotonic()
     for cycle in range(CYCLES):
         err = tmp_path / f"stderr-{cycle}.txt"
-        code, out = run_launcher(["--config", str(config), "--episodes", "1", "--seed", str(cycle), "--quiet"],
-                                 tmp_path, 120, err, env=env)
+        args = ["--config", str(config), "--episodes", "1", "--seed", str(cycle), "--quiet"]
+        code, out = run_launcher(args, tmp_path, 120, err, env=env)
         text = err.read_text()
         assert code == 0, f"cycle {cycle}:\n{text[-3000:]}"
         lines = out.strip().splitlines()
-        assert len(lines) == 1 and json.loads(lines[0])["episodes"] == 1, f"cycle {cycle} stdout:\n{out[-3000:]}"
+        assert len(lines) == 1 and json.loads(lines[0])["episodes"] == 1, \
+            f"cycle {cycle} stdout:\n{out[-3000:]}"
         for name, stream in (("stderr", text), ("stdout", out)):
             bad = [line for line in stream.splitlines() if any(word in line for word in BAD)]
             assert not bad, f"cycle {cycle} {name}:\n" + "\n".join(bad[:20]) + f"\n...\n{stream[-3000:]}"
