@@ -39,19 +39,21 @@ def test_the_lowest_numbered_live_agent_holds_the_role():
         clock.t += 0.1
         assert not role.holds(0, step + 1)
     # agent_0 answers no more: while the team waits for it, it is not gone (the driver has not
-    # stepped without it); once the team steps on without it and 1.5 s passed, it is.
+    # stepped on without it), nor while it is one step behind (its move may be on its way); two
+    # steps behind and silent for 1.5 s, it is.
     clock.t += 3.0
-    assert not role.holds(0, 3)  # agent_0 answered step 2, the step before 3
+    assert not role.holds(0, 3) and not role.holds(0, 4)  # agent_0 answered step 2
     role.moved(1, 0, 3)
-    assert role.gone_ids(0, 4) == [0] and not role.holds(0, 4)  # agent_1 lives: it publishes
+    assert role.gone_ids(0, 5) == [0] and not role.holds(0, 5)  # agent_1 lives: it publishes
     clock.t += 3.0
-    assert role.holds(0, 5) and role.gone_ids(0, 5) == [0, 1]  # agent_1 silent too: agent_2's turn
-    role.moved(0, 0, 5)  # agent_0 is back (a restarted process)
-    assert not role.holds(0, 6)
-    # A new episode: the last step of the one before counts as "the step before".
+    assert role.holds(0, 6) and role.gone_ids(0, 6) == [0, 1]  # agent_1 silent too: agent_2's turn
+    role.moved(0, 0, 6)  # agent_0 is back (a restarted process)
+    assert not role.holds(0, 7)
+    # A new episode: the steps of the one before are not behind its first two.
     clock.t += 3.0
     role.moved(0, 0, 11)
-    assert not role.gone(0, 1, 0)
+    clock.t += 1.6
+    assert not role.gone(0, 1, 0) and not role.gone(0, 1, 1) and role.gone(0, 1, 2)
     # Never heard from: gone 1.5 s after this agent's first step.
     late = EstimateRole(1, 1.5, clock)
     assert not late.holds(0, 0)

@@ -71,12 +71,12 @@ def heat_map_data(posterior: torch.Tensor, grid: int) -> list[int]:
 
 class EstimateRole:
     """Whether agent ``own`` publishes the team's estimate at a team step: when every agent with a
-    lower index is gone. Agent ``j`` is gone when its latest move (:meth:`moved`) is for a step
-    before the one the team stepped last, so the driver stepped without it (it took it out: "A lost
-    UAV"), and none came from it for ``timeout_s``; an agent never heard from is gone ``timeout_s``
-    after this agent's first step. Agent 0 always publishes; when it comes back, its successor
-    stops. ``timeout_s`` <= 0 (the agent's ``lost_timeout_s`` 0: no teammate is ever taken out):
-    the role never passes on."""
+    lower index is gone. Agent ``j`` is gone when its latest move (:meth:`moved`) is two steps or
+    more behind the step this agent decides, so the driver stepped on without it (it took it out:
+    "A lost UAV"; a move still on its way is one step behind at most), and none came from it for
+    ``timeout_s``; an agent never heard from is gone ``timeout_s`` after this agent's first step.
+    Agent 0 always publishes; when it comes back, its successor stops. ``timeout_s`` <= 0 (the
+    agent's ``lost_timeout_s`` 0: no teammate is ever taken out): the role never passes on."""
 
     def __init__(self, own: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.own = own
@@ -99,8 +99,8 @@ class EstimateRole:
         heard = self.last.get(idx)
         if heard is None:
             return now - self._since >= self.timeout_s
-        previous = (episode, step - 1) if step > 0 else (episode - 1, 0)
-        return heard[0] < previous and now - heard[1] >= self.timeout_s
+        behind = (episode, step - 2) if step >= 2 else (episode - 1, 0)
+        return heard[0] < behind and now - heard[1] >= self.timeout_s
 
     def holds(self, episode: int, step: int) -> bool:
         """Whether this agent publishes the estimate of (``episode``, ``step``)."""
