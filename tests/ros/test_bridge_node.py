@@ -3,7 +3,10 @@ agent, review; bad requests are answered with a reason and the node keeps servin
 
 from __future__ import annotations
 
+import time
+
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from medc_common import contract
 from ros_helpers import spin_until
 from std_msgs.msg import String
@@ -43,6 +46,10 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
     for node in (bridge, client_node):
         executor.add_node(node)
     ns = contract.DEFAULT_NAMESPACE
+    beats: list[tuple[float, dict]] = []  # the bridge's heartbeat: (when, values)
+    client_node.create_subscription(DiagnosticArray, contract.DIAGNOSTICS_TOPIC, lambda m: beats.extend(
+        (time.monotonic(), {kv.key: kv.value for kv in st.values}) for st in m.status
+        if st.name == "medc_bridge" and st.hardware_id == "registry"), contract.DIAGNOSTICS_QOS)
 
     def call(srv_type, name, **fields):
         client = client_node.create_client(srv_type, f"{ns}/registry/{name}")
@@ -112,6 +119,19 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
 
         n = len(sim.core.trace)
         assert spin_until(executor, lambda: len(sim.core.trace) >= n + 5, 30)  # the team keeps playing
+
+        # A heartbeat every second, with what the bridge served and refused.
+        t0 = time.monotonic()
+        assert spin_until(executor, lambda: len([t for t, _ in beats if t > t0]) >= 3, 10)
+        assert time.monotonic() - t0 > 1.5
+        last = beats[-1][1]
+        assert {k: last[k] for k in ("request_experts", "fetch_bundle", "submit_review", "allocations",
+                                     "bundles_cached")} == {"request_experts": "1", "fetch_bundle": "2",
+                                                            "submit_review": "1", "allocations": "1",
+                                                            "bundles_cached": "1"}, last
+        assert (last["request_experts_refused"], last["fetch_bundle_refused"],
+                last["submit_review_refused"]) == ("4", "4", "2"), last
+        assert last["cache_dir"] == str(tmp_path / "cache")
     finally:
         executor.remove_node(bridge)
         executor.remove_node(client_node)

@@ -26,7 +26,7 @@ def test_node_help_lists_exactly_the_parameters_the_nodes_declare(rclpy_context)
             assert listed == declared, (modules, listed ^ declared)
             # The defaults shown are the values a node gets when nothing is set (policy aside).
             for name, default, _ in declared_parameters(*modules):
-                if name not in ("policy", "wait_for_subscribers", "publish_estimate"):
+                if name not in ("policy", "wait_for_subscribers"):
                     assert default == repr(node.get_parameter(name).value), (name, default)
     finally:
         for node in nodes.values():

@@ -49,7 +49,9 @@ def test_estimate_converges_and_the_declaration_ends_episodes(graph, end_on):
     executor, sim, agents = graph(TEAM, EPISODES, end_on=end_on, seed=3)
     monitor, seen = _monitor(sim)
     executor.add_node(monitor)
-    assert [a.estimate.enabled for a in agents] == [True, False, False]  # agent_0 publishes for the team
+    # Every agent may publish; agent_0, the lowest-numbered live one, does (EstimateRole).
+    assert [a.estimate.enabled for a in agents] == [True, True, True]
+    assert [a.estimate.publishing for a in agents] == [True, False, False]
     assert agents[0].observer.rule_out == (end_on != "declaration")
     assert spin_until(executor, lambda: sim.finished, 120), f"only {len(sim.core.results)} episodes"
     spin_until(executor, lambda: len(seen["declarations"]) >= EPISODES, 2)
@@ -92,6 +94,7 @@ def test_estimate_converges_and_the_declaration_ends_episodes(graph, end_on):
     heat = seen["heat_maps"][-1]
     assert (heat.info.width, heat.info.height) == (13, 13) and max(heat.data) == 100
     assert sim.dropped == 0 and all(a.dropped == 0 for a in agents)
+    assert [a.estimate.publishing for a in agents] == [True, False, False]  # nobody was lost
 
 
 @pytest.mark.ros

@@ -2,8 +2,9 @@
 
 Every agent keeps the team's posterior over the source cell (``TeamObserver.memory``, the training
 environment's :class:`~medc_training.envs.tl_observation.TeamMemory`); all agents hold the same one.
-One agent publishes it for the team: by default ``agent_0`` (parameter ``publish_estimate``). After
-each team step it has decided, before its move, it publishes (topics: ``medc_common.contract``):
+One agent publishes it for the team: the lowest-numbered live one (:class:`EstimateRole`), agent_0
+while it lives; an agent with ``publish_estimate`` false never does. After each team step it has
+decided, before its move, it publishes (topics: ``medc_common.contract``):
 
 - ``<ns>/team/source_estimate`` (geometry_msgs/PoseWithCovarianceStamped, frame ``map``, stamp =
   the step's): the posterior mean of the source's position and its covariance (x, y block; the
@@ -16,13 +17,15 @@ each team step it has decided, before its move, it publishes (topics: ``medc_com
   posterior mass within ``declare_radius`` cells of the most probable cell reaches
   ``declare_threshold`` (:func:`medc_training.envs.tl_estimate.declare`).
 
-The pure conversions (:func:`estimate_in_map`, :func:`heat_map_data`) take no ROS objects.
+The pure conversions (:func:`estimate_in_map`, :func:`heat_map_data`) and :class:`EstimateRole`
+take no ROS objects.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 
 import torch
 from medc_common import contract
@@ -66,11 +69,55 @@ def heat_map_data(posterior: torch.Tensor, grid: int) -> list[int]:
     return scaled.flip(0).to(torch.int8).flatten().tolist()
 
 
+class EstimateRole:
+    """Whether agent ``own`` publishes the team's estimate at a team step: when every agent with a
+    lower index is gone. Agent ``j`` is gone when its latest move (:meth:`moved`) is two steps or
+    more behind the step this agent decides, so the driver stepped on without it (it took it out:
+    "A lost UAV"; a move still on its way is one step behind at most), and none came from it for
+    ``timeout_s``; an agent never heard from is gone ``timeout_s`` after this agent's first step.
+    Agent 0 always publishes; when it comes back, its successor stops. ``timeout_s`` <= 0 (the
+    agent's ``lost_timeout_s`` 0: no teammate is ever taken out): the role never passes on."""
+
+    def __init__(self, own: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.own = own
+        self.timeout_s = float(timeout_s)
+        self.clock = clock
+        #: Per lower-numbered agent: ((episode, step) of its latest move, when it came).
+        self.last: dict[int, tuple[tuple[int, int], float]] = {}
+        self._since: float | None = None
+
+    def moved(self, idx: int, episode: int, step: int) -> None:
+        """Agent ``idx`` moved for (``episode``, ``step``)."""
+        if 0 <= idx < self.own:  # the latest, not the highest: one forged far-ahead step holds nothing
+            self.last[idx] = ((int(episode), int(step)), self.clock())
+
+    def gone(self, idx: int, episode: int, step: int) -> bool:
+        """Whether agent ``idx`` is out of the team when this agent decides (``episode``, ``step``)."""
+        now = self.clock()
+        if self._since is None:
+            self._since = now
+        heard = self.last.get(idx)
+        if heard is None:
+            return now - self._since >= self.timeout_s
+        behind = (episode, step - 2) if step >= 2 else (episode - 1, 0)
+        return heard[0] < behind and now - heard[1] >= self.timeout_s
+
+    def holds(self, episode: int, step: int) -> bool:
+        """Whether this agent publishes the estimate of (``episode``, ``step``)."""
+        if self.own > 0 and self.timeout_s <= 0:
+            return False
+        return all(self.gone(j, episode, step) for j in range(self.own))
+
+    def gone_ids(self, episode: int, step: int) -> list[int]:
+        return [j for j in range(self.own) if self.gone(j, episode, step)]
+
+
 class TeamEstimate:
     """The agent node's publisher of the team's estimate and declaration (module docstring)."""
 
-    def __init__(self, node, namespace: str, agent_index: int, sensing) -> None:
-        """Declare the parameters on ``node`` and, when it publishes, create its publishers.
+    def __init__(self, node, namespace: str, agent_index: int, sensing, takeover_s: float = 1.5) -> None:
+        """Declare the parameters on ``node`` and, when it may publish, create its publishers and
+        follow the moves of the agents numbered below it (:class:`EstimateRole`, ``takeover_s``).
 
         Raises:
             ValueError: a declaration radius or threshold out of range, a negative rate.
@@ -83,9 +130,10 @@ class TeamEstimate:
         p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
         self.node = node
         self.enabled = bool(p(
-            "publish_estimate", agent_index == 0,
-            "Publish the team's source estimate, posterior heat map and declaration (default: agent_0 "
-            "only; every agent holds the same posterior)", True))
+            "publish_estimate", True,
+            "Publish the team's source estimate, posterior heat map and declaration when this agent is "
+            "the lowest-numbered live one (agent_0 while it lives; every agent holds the same "
+            "posterior); false: never", True))
         radius = float(p(
             "declare_radius", -1.0,
             "Declaration rule: radius in cells around the most probable cell (Euclidean, between cell "
@@ -105,8 +153,12 @@ class TeamEstimate:
         #: Declarations published (tests, monitoring).
         self.declarations = 0
         self.last_estimate: tuple[float, float] | None = None
+        self.role = EstimateRole(agent_index, takeover_s)
+        #: Whether this agent holds the role (published the latest step's estimate; agent_0 from the start).
+        self.publishing = self.enabled and agent_index == 0
         if not self.enabled:
             return
+        self._follow_moves(namespace, agent_index)
         self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, contract.estimate_topic(namespace),
                                               contract.ESTIMATE_QOS)
         self.map_pub = node.create_publisher(OccupancyGrid, contract.posterior_topic(namespace),
@@ -114,10 +166,39 @@ class TeamEstimate:
         self.declaration_pub = node.create_publisher(SourceDeclaration, contract.declaration_topic(namespace),
                                                      contract.RELIABLE_QOS)
 
+    def _follow_moves(self, namespace: str, agent_index: int) -> None:
+        from medc_interfaces.msg import AgentMove
+
+        for j in range(agent_index):
+            agent = contract.agent_id(j)
+
+            def on_move(msg, j=j, agent=agent) -> None:
+                if msg.agent_id == agent:  # a move on another agent's topic says nothing of this one
+                    self.role.moved(j, msg.episode, msg.step)
+
+            self.node.create_subscription(AgentMove, contract.move_topic(namespace, agent), on_move,
+                                          contract.RELIABLE_QOS)
+
+    def _take_role(self, tick) -> bool:
+        """Whether this agent publishes for ``tick``; logs when the role comes to it or leaves it."""
+        holds = self.role.holds(tick.episode, tick.step)
+        if holds != self.publishing and self.role.own > 0:
+            if holds:
+                gone = ", ".join(f"agent_{j}" for j in self.role.gone_ids(tick.episode, tick.step))
+                self.node.get_logger().warning(
+                    f"{gone} gone: {self.node.agent_id} publishes the team's source estimate from episode "
+                    f"{tick.episode} step {tick.step}")
+            else:
+                self.node.get_logger().info(f"a lower-numbered agent moves again: {self.node.agent_id} "
+                                            "stops publishing the team's source estimate")
+        self.publishing = holds
+        return holds
+
     def on_step(self, observer, tick) -> None:
         """Publish the estimate of the step ``observer`` just observed (``tick``), the heat map when
-        due, and the declaration when the rule passes for the first time in the episode."""
-        if not self.enabled or observer.positions is None:
+        due, and the declaration when the rule passes for the first time in the episode, when this
+        agent holds the role (:class:`EstimateRole`)."""
+        if not self.enabled or observer.positions is None or not self._take_role(tick):
             return
         geometry = observer.map_geometry(tick.map_stamp)
         if geometry is None:

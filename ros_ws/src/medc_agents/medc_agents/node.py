@@ -335,7 +335,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self._on_own_move,
                                  contract.RELIABLE_QOS)
         #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
-        self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing)
+        self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing,
+                                     self.lost_watch.timeout_s)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:

@@ -34,7 +34,9 @@ class TeamWatch:
                 "episode": str(o.clock.episode), "step": str(o.clock.step), "decisions": str(self.decisions),
                 "dropped": str(self.dropped),
                 "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
-                "policy": self.slot.current.description if self.slot.current is not None else "none"}
+                "policy": self.slot.current.description if self.slot.current is not None else "none",
+                "estimate": ("publishing" if self.estimate.publishing else "standby") if self.estimate.enabled
+                else "off"}
 
     def _flush_notes(self) -> None:
         """Log each new note of the observer once (a restarted driver, a map with faint cells), at

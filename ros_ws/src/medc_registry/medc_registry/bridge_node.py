@@ -23,6 +23,7 @@ import os
 import shutil
 import sys
 import tempfile
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -248,9 +249,21 @@ class TempFolders:
             shutil.rmtree(self.paths.pop(), ignore_errors=True)
 
 
+def bridge_summary(bridge: RegistryBridge, served: Counter) -> dict[str, str]:
+    """The values of the bridge's heartbeat: where it caches bundles, how many it holds, the
+    allocations it made, and the calls each service served and refused."""
+    services = ("request_experts", "fetch_bundle", "submit_review")
+    return {"cache_dir": str(bridge.cache_dir),
+            "bundles_cached": str(sum(1 for _ in bridge.cache_dir.glob("*.safetensors"))),
+            "allocations": str(len(bridge.allocations)),
+            **{s: str(served[s]) for s in services},
+            **{f"{s}_refused": str(served[f"{s}_refused"]) for s in services}}
+
+
 def bridge_node_class():
     """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
     from medc_common import contract
+    from medc_common.health import Health
     from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
     from rclpy.node import Node
     from std_msgs.msg import String
@@ -280,6 +293,9 @@ def bridge_node_class():
                 self.create_service(srv_type, contract.registry_service(self.names_ns, name), handler)
             self._policy_pubs: dict[str, Any] = {}
             self._String = String
+            #: Calls served and refused, per service (the heartbeat's values).
+            self.served: Counter[str] = Counter()
+            self.health = Health(self, "registry", lambda: bridge_summary(self.bridge, self.served))
             self.get_logger().info(
                 f"registry bridge on {contract.registry_service(self.namespace_, 'fetch_bundle')} (and "
                 f"request_experts, submit_review), caching bundles in {self.bridge.cache_dir}"
@@ -296,6 +312,12 @@ def bridge_node_class():
                 )
             return self._policy_pubs[agent_id]
 
+        def _refuse(self, res, service: str, reason: str):
+            res.ok, res.message = False, printable(reason, 2000)
+            self.served[f"{service}_refused"] += 1
+            self.get_logger().warning(f"{service} refused: {res.message}")
+            return res
+
         def _on_request(self, req, res):
             try:
                 allocs = self.bridge.request(
@@ -307,9 +329,8 @@ def bridge_node_class():
                     req.min_owner_reputation,
                 )
             except BridgeError as exc:
-                res.ok, res.message = False, printable(str(exc), 2000)
-                self.get_logger().warning(f"request_experts refused: {res.message}")
-                return res
+                return self._refuse(res, "request_experts", str(exc))
+            self.served["request_experts"] += 1
             return _allocations_answer(res, allocs)
 
         def _on_fetch(self, req, res):
@@ -320,12 +341,9 @@ def bridge_node_class():
                         raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
                 path, manifest = self.bridge.fetch(req.cid)
             except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
-                reason = (str(exc) if isinstance(exc, BridgeError)
-                          else f"internal error ({type(exc).__name__})")
-                reason = printable(reason, 2000)
-                res.ok, res.message = False, reason
-                self.get_logger().warning(f"fetch_bundle refused: {reason}")
-                return res
+                return self._refuse(res, "fetch_bundle", str(exc) if isinstance(exc, BridgeError)
+                                    else f"internal error ({type(exc).__name__})")
+            self.served["fetch_bundle"] += 1
             for agent_id in ids:
                 self._policy_pub(agent_id).publish(self._String(data=str(path)))
             res.ok, res.path, res.manifest_json = True, str(path), json.dumps(manifest)
@@ -337,9 +355,8 @@ def bridge_node_class():
             try:
                 res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
             except BridgeError as exc:
-                res.ok, res.message = False, printable(str(exc), 2000)
-                self.get_logger().warning(f"submit_review refused: {res.message}")
-                return res
+                return self._refuse(res, "submit_review", str(exc))
+            self.served["submit_review"] += 1
             res.ok, res.message = True, "review recorded"
             return res
 
