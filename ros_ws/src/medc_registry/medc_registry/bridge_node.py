@@ -320,14 +320,8 @@ def bridge_node_class():
 
         def _on_request(self, req, res):
             try:
-                allocs = self.bridge.request(
-                    req.application,
-                    req.requirements_json,
-                    req.weights_json,
-                    req.count,
-                    req.min_model_reputation,
-                    req.min_owner_reputation,
-                )
+                allocs = self.bridge.request(req.application, req.requirements_json, req.weights_json,
+                                             req.count, req.min_model_reputation, req.min_owner_reputation)
             except BridgeError as exc:
                 return self._refuse(res, "request_experts", str(exc))
             self.served["request_experts"] += 1
