@@ -76,6 +76,34 @@ def reference_episodes(
     return _play_traced(env, net_policy(policy.net, policy.device), episodes, seed)
 
 
+def start_node_process(cmd: list[str], log: Path):
+    """Start a node process (``cmd``) writing stdout and stderr to ``log``, unbuffered, in a session
+    of its own (so :func:`stop_node_processes` can kill whatever it started)."""
+    import os
+    import subprocess
+
+    return subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+
+
+def stop_node_processes(procs) -> None:
+    """SIGINT to every process of ``procs`` still running; whichever has not ended 20 s later is
+    killed with its process group."""
+    import os
+    import signal
+    import subprocess
+
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for p in procs:
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
 def spin_until(executor, condition, timeout_s: float) -> bool:
     """Spin ``executor`` until ``condition()`` holds; False on timeout."""
     import time

@@ -4,14 +4,13 @@ agent_0's process killed mid-run."""
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from ros_helpers import start_node_process, stop_node_processes
 
 BIN = Path(sys.executable).parent
 
@@ -65,23 +64,6 @@ def test_the_lowest_numbered_live_agent_holds_the_role():
     role.moved(2, 9, 9)
     role.moved(7, 9, 9)
     assert set(role.last) == {0, 1}
-
-
-def _start(cmd: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs:
-        try:
-            p.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
 
 
 class _Listener:
@@ -143,9 +125,11 @@ def test_the_estimate_goes_on_when_agent_0_is_killed(rclpy_context, bundles, tmp
     logs = {name: tmp_path / f"{name}.log" for name in ("sim", "agent_0", "agent_1", "agent_2")}
     sim = ["agents:=3", "walls:=1", "grid:=10", "max_steps:=30", "seed:=3", "rate_hz:=10.0",
            "move_timeout_s:=1.0", "wait_for_subscribers:=3"]
-    procs = [_start([str(BIN / "medc-sim"), "--ros-args", *[a for p in sim for a in ("-p", p)]], logs["sim"])]
-    procs += [_start([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}", "-p", "agents:=3",
-                      "-p", f"policy:={bundles['a']}"], logs[f"agent_{i}"]) for i in range(3)]
+    procs = [start_node_process([str(BIN / "medc-sim"), "--ros-args", *[a for p in sim for a in ("-p", p)]],
+                                logs["sim"])]
+    procs += [start_node_process([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
+                                  "-p", "agents:=3", "-p", f"policy:={bundles['a']}"], logs[f"agent_{i}"])
+              for i in range(3)]
     try:
         assert listen.spin(90, lambda: len(listen.estimates) >= 10 and {"agent_0", "agent_1", "agent_2"}
                            <= set(listen.roles), procs), "the team did not start publishing its estimate"
@@ -169,7 +153,7 @@ def test_the_estimate_goes_on_when_agent_0_is_killed(rclpy_context, bundles, tmp
         assert len(after) == len(set(after))  # ... one per step: one publisher
         assert listen.role("agent_2", t_kill) == {"standby"}
     finally:
-        _stop(procs)
+        stop_node_processes(procs)
         listen.close()
     text = logs["agent_1"].read_text()
     assert "agent_0 gone: agent_1 publishes the team's source estimate from episode" in text, text[-2000:]

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from ros_helpers import spin_until
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -120,15 +121,6 @@ def test_schema_text_embeds_every_type_it_uses():
         message_definition("no_such_msgs/msg/Thing")
 
 
-def _spin(executor, condition, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-        if condition():
-            return True
-    return False
-
-
 @pytest.mark.ros
 def test_recorder_finds_topics_that_appear_later(rclpy_context, tmp_path):
     """A topic another node adds under the namespace after the recorder started (the team's
@@ -149,18 +141,18 @@ def test_recorder_finds_topics_that_appear_later(rclpy_context, tmp_path):
     executor.add_node(recorder)
     executor.add_node(other)
     try:
-        _spin(executor, lambda: False, 0.3)
+        spin_until(executor, lambda: False, 0.3)
         estimate_pub = other.create_publisher(PoseWithCovarianceStamped, "/rt/team/estimate", 10)
         foreign_pub = other.create_publisher(String, "/elsewhere/chatter", 10)
-        assert _spin(executor, lambda: "/rt/team/estimate" in recorder.subscribed, 10.0)
-        assert _spin(executor, lambda: estimate_pub.get_subscription_count() > 0, 10.0)
+        assert spin_until(executor, lambda: "/rt/team/estimate" in recorder.subscribed, 10.0)
+        assert spin_until(executor, lambda: estimate_pub.get_subscription_count() > 0, 10.0)
         msg = PoseWithCovarianceStamped()
         msg.header.frame_id = "map"
         msg.pose.pose.position.x = 4.5
         for _ in range(3):
             estimate_pub.publish(msg)
             foreign_pub.publish(String(data="not ours"))
-        assert _spin(executor, lambda: recording.counts.get("/rt/team/estimate", 0) >= 3, 10.0)
+        assert spin_until(executor, lambda: recording.counts.get("/rt/team/estimate", 0) >= 3, 10.0)
     finally:
         executor.shutdown()
         recorder.destroy_node()
@@ -193,16 +185,16 @@ def test_a_recorder_does_not_start_the_simulator(rclpy_context):
     executor.add_node(sim)
     executor.add_node(recorders)
     try:
-        assert _spin(executor, lambda: sim.status_pub.get_subscription_count() >= 2, 10.0)
-        _spin(executor, lambda: sim.started, 1.5)
+        assert spin_until(executor, lambda: sim.status_pub.get_subscription_count() >= 2, 10.0)
+        spin_until(executor, lambda: sim.started, 1.5)
         assert not sim.started, "two recorders started the simulator without its agents"
         agents = rclpy.create_node("agents")
         executor.add_node(agents)
         agents.create_publisher(AgentMove, f"{ns}/agent_0/move", 10)
-        _spin(executor, lambda: sim.started, 1.0)
+        spin_until(executor, lambda: sim.started, 1.0)
         assert not sim.started, "one agent of two started the simulator"
         agents.create_publisher(AgentMove, f"{ns}/agent_1/move", 10)
-        assert _spin(executor, lambda: sim.started, 10.0)
+        assert spin_until(executor, lambda: sim.started, 10.0)
         agents.destroy_node()
     finally:
         executor.shutdown()
@@ -238,13 +230,14 @@ def test_the_recorder_listens_to_the_status_once_it_hears_the_team(rclpy_context
             driver.create_publisher(PoseStamped, f"{ns}/{agent}/pose", contract.SENSOR_QOS)
             driver.create_publisher(RadiationReading, f"{ns}/{agent}/radiation", contract.SENSOR_QOS)
         driver.create_publisher(AgentMove, f"{ns}/agent_0/move", contract.RELIABLE_QOS)
-        assert _spin(executor, lambda: recorder.hold.silent(recorder._subs) == [f"{ns}/agent_1/move"], 10.0)
-        _spin(executor, lambda: False, 0.5)  # the status publisher is discovered by now: still held
+        only_agent_1 = [f"{ns}/agent_1/move"]
+        assert spin_until(executor, lambda: recorder.hold.silent(recorder._subs) == only_agent_1, 10.0)
+        spin_until(executor, lambda: False, 0.5)  # the status publisher is discovered by now: still held
         assert f"{ns}/episode" not in recorder.subscribed and recorder.held is not None
         driver.create_publisher(AgentMove, f"{ns}/agent_1/move", contract.RELIABLE_QOS)
-        assert _spin(executor, lambda: recorder.hold.silent(recorder._subs) == [], 10.0)
+        assert spin_until(executor, lambda: recorder.hold.silent(recorder._subs) == [], 10.0)
         heard = time.monotonic()
-        assert _spin(executor, lambda: f"{ns}/episode" in recorder.subscribed, 10.0)
+        assert spin_until(executor, lambda: f"{ns}/episode" in recorder.subscribed, 10.0)
         assert time.monotonic() - heard >= HOLD_SETTLE_S - 0.1  # the writers' half of discovery
 
         # A recorder whose team never comes subscribes after hold_status_s all the same.
@@ -253,7 +246,7 @@ def test_the_recorder_listens_to_the_status_once_it_hears_the_team(rclpy_context
         nodes.append(lonely)
         executor.add_node(lonely)
         start = time.monotonic()
-        assert _spin(executor, lambda: "/hold_nobody/episode" in lonely.subscribed, 10.0)
+        assert spin_until(executor, lambda: "/hold_nobody/episode" in lonely.subscribed, 10.0)
         assert time.monotonic() - start >= 0.9
     finally:
         executor.shutdown()

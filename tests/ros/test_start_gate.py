@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from ros_helpers import spin_until
 
 
 def _sim(ns: str, **params):
@@ -16,15 +17,6 @@ def _sim(ns: str, **params):
 
     base = {"namespace": ns, "agents": 1, "grid": 8, "walls": 0, "max_steps": 5}
     return SimNode(parameter_overrides=[Parameter(k, value=v) for k, v in (base | params).items()])
-
-
-def _spin(executor, condition, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-        if condition():
-            return True
-    return False
 
 
 @pytest.mark.ros
@@ -43,13 +35,13 @@ def test_the_simulators_own_status_watch_is_not_a_listener(rclpy_context):
     executor.add_node(other)
     try:
         other.create_publisher(AgentMove, f"{ns}/agent_0/move", 10)
-        assert _spin(executor, lambda: sim.move_subs[0].get_publisher_count() == 1, 10.0)
+        assert spin_until(executor, lambda: sim.move_subs[0].get_publisher_count() == 1, 10.0)
         assert sim.status_pub.get_subscription_count() == 1  # the watch, matched at once
-        _spin(executor, lambda: sim.started, 1.0)
+        spin_until(executor, lambda: sim.started, 1.0)
         assert not sim.started, "the simulator's own status subscription opened its start gate"
         assert sim.gate.missing() == ["0 of 1 expected status subscribers"]
         other.create_subscription(EpisodeStatus, f"{ns}/episode", lambda m: None, 10)
-        assert _spin(executor, lambda: sim.started, 10.0)
+        assert spin_until(executor, lambda: sim.started, 10.0)
     finally:
         executor.shutdown()
         sim.destroy_node()
@@ -74,13 +66,13 @@ def test_the_first_step_waits_for_every_results_reader(rclpy_context):
     try:
         readers.create_subscription(EpisodeStatus, f"{ns}/episode_result", lambda m: None,
                                     contract.RESULTS_QOS)
-        assert _spin(executor, lambda: sim.results_pub.get_subscription_count() == 1, 10.0)
-        _spin(executor, lambda: sim.started, 1.0)
+        assert spin_until(executor, lambda: sim.results_pub.get_subscription_count() == 1, 10.0)
+        spin_until(executor, lambda: sim.started, 1.0)
         assert not sim.started, "one results reader of two started the simulator"
         assert sim.gate.missing() == ["1 of 2 expected episode-result readers"]
         readers.create_subscription(EpisodeStatus, f"{ns}/episode_result", lambda m: None,
                                     contract.RESULTS_QOS)
-        assert _spin(executor, lambda: sim.started, 10.0)
+        assert spin_until(executor, lambda: sim.started, 10.0)
         assert sim.gate.missing() == []
     finally:
         executor.shutdown()
@@ -108,14 +100,14 @@ def test_a_finished_simulator_waits_for_its_results_readers(rclpy_context, monke
     try:
         readers.create_subscription(EpisodeStatus, f"{ns}/episode_result", lambda m: None,
                                     contract.RESULTS_QOS)
-        assert _spin(executor, lambda: sim.results_pub.get_subscription_count() == 1, 10.0)
+        assert spin_until(executor, lambda: sim.results_pub.get_subscription_count() == 1, 10.0)
         sim.finished = True
         start = time.monotonic()
         sim_node.spin_episodes(sim, executor)
         one = time.monotonic() - start
         readers.create_subscription(EpisodeStatus, f"{ns}/episode_result", lambda m: None,
                                     contract.RESULTS_QOS)
-        assert _spin(executor, lambda: sim.results_pub.get_subscription_count() == 2, 10.0)
+        assert spin_until(executor, lambda: sim.results_pub.get_subscription_count() == 2, 10.0)
         start = time.monotonic()
         sim_node.spin_episodes(sim, executor)
         both = time.monotonic() - start

@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -23,32 +22,16 @@ import time
 from pathlib import Path
 
 import pytest
-from ros_helpers import DiagnosticsListener, run_contract_driver
+from ros_helpers import DiagnosticsListener, run_contract_driver, start_node_process, stop_node_processes
 
 HERE = Path(__file__).resolve().parent
 TEAM = HERE.parents[1] / "models" / "team" / "A3W2.safetensors"
 BIN = Path(sys.executable).parent
 
 
-def _start(cmd: list[str], log: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env)
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    for p in procs:
-        try:
-            p.wait(20)
-        except subprocess.TimeoutExpired:
-            p.kill()
-
-
 def _agent(i: int, policy: Path, log: Path, *extra: str) -> subprocess.Popen:
-    return _start([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
-                   "-p", f"policy:={policy}", *extra], log)
+    return start_node_process([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
+                               "-p", f"policy:={policy}", *extra], log)
 
 
 class Listener(DiagnosticsListener):
@@ -90,10 +73,10 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
     procs: list[subprocess.Popen] = []
     logs = {name: tmp_path / f"{name}.log" for name in ("sim", "agent_0", "agent_1", "agent_2")}
     try:
-        procs.append(_start([str(BIN / "medc-sim"), "--ros-args", "-p", "agents:=3", "-p", "walls:=1",
-                             "-p", "grid:=10", "-p", "max_steps:=20", "-p", "seed:=3", "-p", "rate_hz:=20.0",
-                             "-p", "move_timeout_s:=1.0",
-                             "-p", "wait_for_subscribers:=3"], logs["sim"]))
+        procs.append(start_node_process(
+            [str(BIN / "medc-sim"), "--ros-args", "-p", "agents:=3", "-p", "walls:=1", "-p", "grid:=10",
+             "-p", "max_steps:=20", "-p", "seed:=3", "-p", "rate_hz:=20.0", "-p", "move_timeout_s:=1.0",
+             "-p", "wait_for_subscribers:=3"], logs["sim"]))
         for i in range(3):
             procs.append(_agent(i, bundles["a"], logs[f"agent_{i}"], "-p", "agents:=3"))
         assert listen.spin(60, lambda: len(listen.statuses) >= 5, procs), "the team did not start"
@@ -193,7 +176,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
                            alive), "the team stopped after losing agent_2"
         assert listen.warnings(t_kill, "agent_2 lost", "medc_sim: team")
     finally:
-        _stop(procs)
+        stop_node_processes(procs)
         listen.close()
     texts = {k: p.read_text() for k, p in logs.items()}
     assert not any("Traceback" in t for t in texts.values()), {k: t[-2000:] for k, t in texts.items()}
@@ -271,7 +254,7 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
         # Each of the two processes sees the other's moves on its own topic and says so.
         claims = lambda: {s.name for s in listen.warnings(0, "two processes claim agent_1", ": moves")}  # noqa: E731
         assert listen.spin(3, lambda: len(claims()) == 2), claims()
-        _stop([duplicate])
+        stop_node_processes([duplicate])
 
         # agent_2's UAV is lost at step 2 (its pose and reading stop) and its process is killed:
         # the two others take it out after lost_timeout_s and finish the episode.
@@ -295,7 +278,7 @@ def test_a_documented_driver_executes_each_move_once_and_survives_a_lost_uav(rcl
         lost = listen.warnings(t_lost, "agent_2 lost")
         assert {s.hardware_id for s in lost} == {"agent_0", "agent_1"}, [s.message for s in lost]
     finally:
-        _stop(agents + ([duplicate] if duplicate is not None else []))
+        stop_node_processes(agents + ([duplicate] if duplicate is not None else []))
         listen.close()
     for i in (0, 1):
         text = logs[i].read_text()
