@@ -45,17 +45,20 @@ def evaluate_experts(out: Path, models: Path, base: dict, episodes: int = EPISOD
     import hashlib
 
     from ..bundle import BundleError, read_manifest
+    from ..envs import core_has_estimate
 
     cache_path = out / "expert_eval.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     results = {}
     for path in sorted((models / "experts").glob("*.safetensors")):
         try:
-            env = read_manifest(path)["environment"]
-        except (BundleError, KeyError) as exc:
+            manifest = read_manifest(path)
+            env = manifest["environment"]
+            searches = core_has_estimate(manifest["application"])
+        except (BundleError, KeyError, ValueError) as exc:
             print(f"[expert-eval] {path.name}: not evaluated ({exc})", file=sys.stderr)
             continue
-        if "sensing" not in env and "walls" not in env:
+        if not searches:
             continue  # not a target-localization bundle
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
         own = (int(env["agents"]), int(env.get("walls", 0)))
