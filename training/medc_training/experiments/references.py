@@ -88,11 +88,16 @@ def steps_to_level(steps: Sequence[float], curve: Sequence[float], level: float)
     return None
 
 
+def _reached(steps: Sequence[float], curves: Sequence[Sequence[float]], level: float) -> list[float]:
+    """The steps at which each curve first reaches ``level``, for the curves that do."""
+    return [s for s in (steps_to_level(steps, c, level) for c in curves) if s is not None]
+
+
 def speed_line(label: str, steps: Sequence[float], curves: Sequence[Sequence[float]], level: float,
                sparse_steps: float | None) -> str:
     """``label``'s mean steps to reach ``level`` over the seeds that reach it, and the ratio to
     sparse's own (``sparse_steps``)."""
-    reached = [s for s in (steps_to_level(steps, c, level) for c in curves) if s is not None]
+    reached = _reached(steps, curves, level)
     if not reached:
         return f"{label}: never within the budget (0 of {len(curves)} seeds)"
     mean = sum(reached) / len(reached)
@@ -107,7 +112,7 @@ def speed_section(data: dict, sparse_label: str) -> str | None:
         return None
     s_steps, s_curves = data[sparse_label][0], data[sparse_label][1]
     level = sum(final_level(c) for c in s_curves) / len(s_curves)
-    reached = [s for s in (steps_to_level(s_steps, c, level) for c in s_curves) if s is not None]
+    reached = _reached(s_steps, s_curves, level)
     sparse_steps = sum(reached) / len(reached) if reached else None
     lines = [speed_line(label, v[0], v[1], level, sparse_steps) for label, v in data.items()]
     return (f"- **Steps to reach MDRL-sparse's final level** ({level:.2f} steps per episode; mean over "
