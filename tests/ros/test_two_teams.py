@@ -36,6 +36,11 @@ TEAM_TOPICS = {"map", "episode", "episode_result", "team/policy", "team/source_e
                  for kind in ("pose", "radiation", "move", "policy"))}
 
 
+def team_nodes(ns: str) -> set[tuple[str, str]]:
+    """(node name, namespace) of every node of the team under ``ns``."""
+    return {("medc_sim", ns), *((f"medc_{a}", ns) for a in contract.agent_ids(SCENARIO["agents"]))}
+
+
 def launch_commands(spec_nodes: list[dict]) -> list[list[str]]:
     """The command line of each node of ``team_nodes``, as launch_ros builds it for a Node."""
     from medc_bringup.launcher import ros_args
@@ -95,8 +100,15 @@ class Watch:
         return False
 
     def complete(self) -> bool:
-        """Whether a node of each team was seen at every one of its team's topics."""
-        return all(self.graph.get(f"{ns}/{topic}") for ns in SEEDS for topic in TEAM_TOPICS)
+        """Whether a node of each team was seen at every one of its team's topics and every node of
+        both teams was heard on /diagnostics (nodes beat at 1 Hz: a fast team can finish its episodes
+        before the watch has heard a beat of each)."""
+        return (all(self.graph.get(f"{ns}/{topic}") for ns in SEEDS for topic in TEAM_TOPICS)
+                and all(team_nodes(ns) <= self.beats() for ns in SEEDS))
+
+    def beats(self) -> set[tuple[str, str]]:
+        """(node name, namespace) of every heartbeat heard."""
+        return {(s.name, kv.value) for s in self.diagnostics for kv in s.values if kv.key == "namespace"}
 
     def snapshot(self) -> None:
         """Add the namespaces of the nodes that publish or subscribe to each topic now (this one
@@ -128,7 +140,7 @@ def run_two_teams(config: Path, tmp_path: Path, watch: Watch) -> dict:
                   for name, c in zip(names[1:], team2)]
         done = watch.spin(90, lambda: all(len(r) >= EPISODES for r in watch.results.values())
                           and watch.complete())
-        assert done, ({ns: len(r) for ns, r in watch.results.items()}, watch.graph)
+        assert done, ({ns: len(r) for ns, r in watch.results.items()}, watch.graph, watch.beats())
     finally:
         for proc in procs:  # the launcher stops its own nodes
             if proc.poll() is None:
@@ -187,8 +199,8 @@ def test_two_teams_share_a_domain_under_two_namespaces(rclpy_context, bundles, t
             assert graph[topic] <= {ns}, (topic, graph[topic])
 
     # Heartbeats from every node of both teams, named by namespace; no crosstalk reported.
-    beats = {(s.name, kv.value) for s in watch.diagnostics for kv in s.values if kv.key == "namespace"}
+    beats = watch.beats()
     for ns in SEEDS:
-        assert {("medc_sim", ns), ("medc_agent_0", ns), ("medc_agent_1", ns)} <= beats, beats
+        assert team_nodes(ns) <= beats, beats
     crosstalk = [s.message for s in watch.diagnostics if any(w in s.message for w in CROSSTALK)]
     assert not crosstalk, crosstalk[:3]
