@@ -6,6 +6,8 @@ tensors on any device and contains no Python loop over the batch.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
@@ -101,26 +103,32 @@ def agent_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
     return win.view(b, n, c, side, side)
 
 
-def team_windows(maps: torch.Tensor, positions: torch.Tensor, radius: int,
-                 outside: torch.Tensor | None = None) -> torch.Tensor:
+def team_windows(maps: torch.Tensor | Sequence[torch.Tensor], positions: torch.Tensor, radius: int,
+                 outside: torch.Tensor | None = None, out: torch.Tensor | None = None) -> torch.Tensor:
     """:func:`agent_windows` of maps the whole team shares: float32 [B,N,C,2r+1,2r+1] from maps
-    float [B,C,G,G], equal to ``agent_windows(maps.unsqueeze(1).expand(B, N, C, G, G), ...)`` but
-    padding each episode's maps once instead of once per agent."""
-    b, c, g, _ = maps.shape
-    n = positions.shape[1]
+    float [B,C,G,G] (or a sequence of C maps [B,G,G]), equal to
+    ``agent_windows(maps.unsqueeze(1).expand(B, N, C, G, G), ...)``.
+
+    Each window cell is gathered from its grid cell, clamped onto the grid, and cells off the grid
+    then take ``outside``: O(B·N·C·(2r+1)²) per call, nothing padded or stacked. ``out``: an
+    optional float32 [B,N,C,2r+1,2r+1] tensor to write into.
+    """
+    layers = list(maps.unbind(1)) if isinstance(maps, torch.Tensor) else list(maps)
+    b, g = layers[0].shape[0], layers[0].shape[-1]
+    n, c = positions.shape[1], len(layers)
     r, side = int(radius), 2 * int(radius) + 1
-    padded = F.pad(maps, (r, r, r, r))
-    if outside is not None:
-        border = torch.ones((g + 2 * r, g + 2 * r), dtype=torch.bool, device=maps.device)
-        border[r:r + g, r:r + g] = False
-        padded = padded + border * outside.view(1, c, 1, 1).to(padded.dtype)
-    gp = g + 2 * r
-    offs = torch.arange(side, device=maps.device)
+    offs = torch.arange(-r, r + 1, device=positions.device)
     rows = positions[..., 0:1] + offs  # [B,N,side]
     cols = positions[..., 1:2] + offs
-    idx = (rows.unsqueeze(-1) * gp + cols.unsqueeze(-2)).view(b, 1, n * side * side).expand(b, c, -1)
-    win = padded.view(b, c, gp * gp).gather(2, idx)  # [B,C,N·side²]
-    return win.view(b, c, n, side, side).transpose(1, 2)
+    off_grid = ((rows < 0) | (rows >= g)).unsqueeze(-1) | ((cols < 0) | (cols >= g)).unsqueeze(-2)
+    idx = (rows.clamp(0, g - 1).unsqueeze(-1) * g + cols.clamp(0, g - 1).unsqueeze(-2)).view(b, -1)
+    if out is None:
+        out = torch.empty((b, n, c, side, side), dtype=torch.float32, device=positions.device)
+    fill = torch.zeros(c) if outside is None else outside.to("cpu", torch.float32)
+    for i, layer in enumerate(layers):
+        out[:, :, i] = layer.reshape(b, g * g).gather(1, idx).view(b, n, side, side)
+        out[:, :, i].masked_fill_(off_grid, float(fill[i]))
+    return out
 
 
 def random_free_cells(free: torch.Tensor, count: int, generator: torch.Generator) -> torch.Tensor:
