@@ -50,6 +50,7 @@ import math
 
 import torch
 
+from medc_training.envs.allocator import keep_freed_memory
 from medc_training.envs.grid import team_windows
 from medc_training.envs.observation import (
     EGO_CHANNELS,
@@ -345,6 +346,8 @@ class TeamMemory:
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
         keep = self.spec.estimate or posterior
         self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out) if keep else None
+        if keep and self.estimator.levels > 1 and self.device.type == "cpu":
+            keep_freed_memory()  # its per-step temporaries are B x G² x levels floats
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
         self.log_post = self.estimator.prior(blank) if keep else None
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
