@@ -138,7 +138,7 @@ class SourceEstimator:
         self._sampled: tuple[torch.Tensor, torch.Tensor] | None = None
         self._span = 2 * (g - 1) ** 2 + 1
         lines = torch.arange(g, device=self.device)
-        self._square = (lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2  # int64 [G, G]: (i - j)²
+        self._square = ((lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2).int()  # int32 [G, G]: (i - j)²
         #: int64 [O,2]: the (row, column) offsets within the success radius, made on first use.
         self._reach: torch.Tensor | None = None
 
@@ -265,7 +265,7 @@ class SourceEstimator:
         return out
 
     def dist2(self, positions: torch.Tensor) -> torch.Tensor:
-        """int64 [K,N,G²]: d² (cells²) from each of ``positions`` (int64 [K,N,2]) to every cell, from
+        """int32 [K,N,G²]: d² (cells²) from each of ``positions`` (int64 [K,N,2]) to every cell, from
         two O(G²) tables of squared row and column gaps."""
         k, n = positions.shape[:2]
         rows = self._square.index_select(0, positions[..., 0].reshape(-1)).view(k, n, self.grid, 1)

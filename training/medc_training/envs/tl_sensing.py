@@ -204,7 +204,7 @@ def _segments_are_the_walls(walls: torch.Tensor, segs: torch.Tensor, empty: torc
 
 
 def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int) -> torch.Tensor | None:
-    """int64 [B,N,G²]: the sampled rule's count of walls crossed between each sensor at
+    """int32 [B,N,G²]: the sampled rule's count of walls crossed between each sensor at
     ``positions`` (int64 [B,N,2]) and every cell as a candidate source, from the crossing tables
     (:func:`_crossing_tables`): O(G² · segments) per sensor instead of O(G³). ``segments`` from
     :func:`wall_segments`. None above _CROSSING_TABLE_GRID."""
@@ -214,7 +214,7 @@ def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int
     b, n = positions.shape[:2]
     cell = positions[..., 0] * grid + positions[..., 1]  # [B,N]
     if segments.shape[1] == 0:
-        return torch.zeros((b, n, grid * grid), dtype=torch.long, device=positions.device)
+        return torch.zeros((b, n, grid * grid), dtype=torch.int32, device=positions.device)
     horizontal = segments[..., 0] == segments[..., 2]  # [B,Z] (a 1x1 segment: either test holds)
     orient = (~horizontal).long()
     line = torch.where(horizontal, segments[..., 0], segments[..., 1]).clamp(min=0)
@@ -225,7 +225,7 @@ def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int
     span = table.view(-1, 2 * cells).index_select(0, row.view(-1)).view(b, n, -1, 2, cells)
     met = (span[..., 0, :] <= hi.view(b, 1, -1, 1).to(torch.int8)).logical_and_(
         span[..., 1, :] >= lo.view(b, 1, -1, 1).to(torch.int8))
-    return met.sum(2)
+    return met.sum(2, dtype=torch.int32)
 
 
 def sampled_rate_table(grid: int, most: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
