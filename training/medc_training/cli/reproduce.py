@@ -16,6 +16,10 @@ Phases (``--only`` picks some; default all):
 - ``fig9``: 8 users of which 3 are faulty: MEDC vs FRL vs IL on A3W2.
 - ``fig10``: fleet coordination and maze cleaning, MEDC vs FRL vs IL, truthful (Fig. 10) and
   with 3 faulty experts/users (Fig. 11).
+- ``long``, ``long-other``: the supplementary longer runs (``--long-steps``).
+- ``sweep``: the claims scale only (docs/reproduction/claims/SWEEP.md): MEDC with the six users'
+  experts over area x R_E and over Q against MDRL-sparse, 3 seeds; any other scale plans nothing.
+  ``--scale claims --seeds 3 --only sweep``.
 
 Every run writes OUT/runs/<run>/seed<k>/ (metrics.csv, summary.json), which appears only
 when the run has finished (it trains in a hidden .seed<k>.partial/ beside it); a finished run is

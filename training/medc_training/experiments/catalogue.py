@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other")
+PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other", "sweep")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
 BUDGETS = {
@@ -27,12 +27,15 @@ class Scope:
     """What a scale's reproduction covers: its seeds start at ``first_seed``; only the
     target-localization panels with ``walls`` obstructions (None: all) are run; ``team``: whether
     the shipped team is cloned with the experts; ``other_apps``: whether fleet coordination and
-    maze cleaning are part of it."""
+    maze cleaning are part of it; ``sweep``: whether the when-do-experts-help sweep
+    (docs/reproduction/claims/SWEEP.md, phase "sweep") is planned: it is an amendment of the claims
+    protocol alone, so any other scale plans no run of it."""
 
     first_seed: int = 0
     walls: tuple[int, ...] | None = None
     team: bool = True
     other_apps: bool = True
+    sweep: bool = False
     #: The report's rules: seeds the learnability gate needs; random play's fixed episodes in the
     #: gate (None: the run's own evaluation episodes); the CI half-width above which a "not
     #: resolved" claim is also "under-powered" (None: no such label); the folder (under OUT) of the
@@ -47,10 +50,10 @@ class Scope:
 #: The claims protocol (docs/reproduction/claims/PROTOCOL.md): seeds 300-304, the A3W2 panels
 #: only, its own experts and no shipped team, target localization only; the gate on 5 seeds against
 #: random play on 256 fixed episodes; "under-powered" above a half-width of 5.9 steps; the classical
-#: controllers as reference lines.
+#: controllers as reference lines; and its sweep amendment.
 SCOPES = {"cpu": Scope(), "paper": Scope(),
-          "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False, gate_min_seeds=5,
-                          gate_random_episodes=256, underpowered=5.9, reference="reference",
+          "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False, sweep=True,
+                          gate_min_seeds=5, gate_random_episodes=256, underpowered=5.9, reference="reference",
                           protocol="PROTOCOL.md")}
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
@@ -72,6 +75,19 @@ SIX = ("A1W0", "A3W0", "A2W1", "A2W2", "A2W3", "A3W1")        # paper Section V-
 PROPER5 = ("A1W0", "A3W0", "A2W1", "A2W2", "A3W1")            # Fig. 7 "proper experts"
 FRL_USERS = ((1, 0), (3, 0), (2, 1), (2, 2), (2, 3), (3, 1), (3, 2), (3, 3))
 FAULTY_USERS = {"A2W1": "random", "A2W2": "biased", "A3W1": "malicious"}  # Fig. 9: 3 of the 8
+
+# The when-do-experts-help sweep (docs/reproduction/claims/SWEEP.md): MEDC with the six users'
+# experts over area (grid side) x R_E at Q 0.05, and over Q at the protocol's area and R_E; MDRL-sparse
+# at each area; 3 seeds. Reward gets rarer as the area grows at the protocol's fixed step limit.
+SWEEP_GRIDS = (24, 32, 40)
+SWEEP_RATES = (0.1, 0.3, 0.6)
+SWEEP_QS = (0.01, 0.05, 0.2)
+#: The protocol's own setting (grid, R_E, Q): its cell is Fig. 8's MEDC run, its sparse Fig. 6's.
+SWEEP_PROTOCOL = (40, 0.1, 0.05)
+SWEEP_SEEDS = 3
+#: The Welch CI half-width 3 seeds per arm give at the probes' seed-to-seed SD of 3.4 steps
+#: (4.30 x sqrt(2 x 3.4^2 / 3)): a cell whose CI is wider is labelled under-powered.
+SWEEP_UNDERPOWERED = 11.9
 
 # Fleet coordination and maze cleaning: the paper's 10x10 grid at every scale. The paper gives
 # no step limit; 400 lets a uniformly random team finish some episodes (measured on 64

@@ -4,14 +4,31 @@ Both the job plan (:mod:`.plan`) and the report (:mod:`.report`) are generated f
 declarations, so every run name is written once, in its :class:`Run`. An expert written
 ``@NAME`` is the catalogue bundle ``models/experts/NAME.safetensors`` (``malicious:@NAME``: that
 bundle made malicious); any other spec (``random``, ``biased:A``, ``oracle``) is passed as is.
+A run shared by two figures (the sweep's protocol cell is Fig. 8's MEDC run) is the same
+:class:`Run`, built by the same helper, so that its job is the same and a finished run is not run
+again.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
 
-from .catalogue import FAULTY_USERS, FRL_USERS, OTHER_APPS, PROPER5, SIX
+from .catalogue import (
+    FAULTY_USERS,
+    FRL_USERS,
+    OTHER_APPS,
+    PROPER5,
+    SIX,
+    SWEEP_GRIDS,
+    SWEEP_PROTOCOL,
+    SWEEP_QS,
+    SWEEP_RATES,
+    SWEEP_SEEDS,
+)
+from .sweep_report import SweepCell, sweep_section
 
 GREEDY = "mean episode length (greedy eval)"
 SAMPLED = "mean episode length (sampled eval)"
@@ -34,6 +51,9 @@ class Run:
     #: Evaluate at most this many times per run (None: the scale's interval).
     max_evals: int | None = None
     agents: int = 3
+    #: TrainConfig fields set for this run alone, over the scale's ((name, value) pairs: the
+    #: sweep's grid, R_E ``expert_rate`` and Q ``q_threshold``).
+    options: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -63,7 +83,9 @@ class Claim:
 @dataclass(frozen=True)
 class Panel:
     """One plotted figure and its report section: a table of its series, the learnability gate
-    of its environment (``gate``, the MDRL-sparse run), its claims, and a closing note."""
+    of its environment (``gate``, the MDRL-sparse run), its claims, and a closing note. ``grid``:
+    the grid side of its runs where it is not the scale's (the sweep's areas), which names the
+    regime of its reference lines."""
 
     heading: str
     png: str
@@ -75,20 +97,31 @@ class Panel:
     note: str = ""
     wall: bool = False
     ylabel: str = GREEDY
+    grid: int | None = None
 
 
 @dataclass(frozen=True)
 class Figure:
     """A phase of ``medc-reproduce``: its panels, how many seeds (``seeds``: the plan's "seeds"
     or "other_seeds", at most ``max_seeds``) and which budget (``steps``) its runs get.
-    ``extra(summaries)`` may add a section after the panels from the runs' summaries."""
+    ``extra(report, figure)`` may add a section after the panels (``report``: the
+    :class:`.report.Report` being built, which reads the runs).
+
+    The report's rules for the figure: ``gate_min_seeds``, the seeds its panels' learnability gate
+    needs (None: the scope's); ``planned_seeds_only``, whether the report reads only the seeds the
+    figure plans (the scope's first ``max_seeds``), also of runs it shares with figures that run
+    more seeds; ``borrowed``, the names of its runs that other figures declare: the figure is
+    reported only once a run of its own has finished."""
 
     phase: str
     panels: tuple[Panel, ...]
     steps: str = "steps"
     seeds: str = "seeds"
     max_seeds: int | None = None
-    extra: Callable[[Callable[[Run], list]], str | None] | None = field(default=None, compare=False)
+    extra: Callable[[Any, Figure], str | None] | None = field(default=None, compare=False)
+    gate_min_seeds: int | None = None
+    planned_seeds_only: bool = False
+    borrowed: tuple[str, ...] = ()
 
     def runs(self) -> list[Run]:
         """Every run of the figure, once each (baselines are shared by panels)."""
@@ -101,6 +134,11 @@ class Figure:
 
 def _sparse(w: int) -> Run:
     return Run(f"A3W{w}-sparse", "sparse", walls=w)
+
+
+def _six(w: int) -> Run:
+    """MEDC with the six users' experts (Fig. 8's; the sweep's protocol cell at A3W2)."""
+    return Run(f"A3W{w}-medc-six", "medc", walls=w, experts=_bundles(SIX))
 
 
 def _bundles(names) -> tuple[str, ...]:
@@ -161,7 +199,7 @@ def fig8() -> Figure:
     panels, rs_pairs = [], []
     for w in (2, 3):
         sparse = Series("MDRL-sparse", _sparse(w))
-        six = Series("MEDC (6 experts)", Run(f"A3W{w}-medc-six", "medc", walls=w, experts=_bundles(SIX)))
+        six = Series("MEDC (6 experts)", _six(w))
         rs = Series("RS (BFS shaping)", Run(f"A3W{w}-rs", "rs", walls=w))
         il = Series("IL-assisted RL (6 experts)", Run(f"A3W{w}-il-six", "il", walls=w, experts=_bundles(SIX)))
         # the A3W2 federation's A3W3 user (side user 7) is the A3W3 curve
@@ -175,10 +213,10 @@ def fig8() -> Figure:
                 Claim(f"A3W{w}: MEDC matches or beats RS (paper: slight outperformance)", six, rs)),
             note="FRL wall time is for all 8 users together (they train in one process).", wall=True))
 
-    def rs_overhead(summaries: Callable[[Run], list]) -> str | None:
+    def rs_overhead(report, figure: Figure) -> str | None:
         ratios = []
         for rs, sparse in rs_pairs:
-            s_sparse, s_rs = summaries(sparse), summaries(rs)
+            s_sparse, s_rs = report.summaries(sparse.name), report.summaries(rs.name)
             if s_sparse and s_rs:
                 ratios.append((sum(s["train_seconds"] for s in s_rs) / len(s_rs))
                               / (sum(s["train_seconds"] for s in s_sparse) / len(s_sparse)))
@@ -299,10 +337,48 @@ def long_other(tag: str) -> Figure:
     return Figure("long-other", tuple(panels), steps="long_steps", max_seeds=3)
 
 
+def sweep() -> Figure:
+    """The when-do-experts-help sweep (docs/reproduction/claims/SWEEP.md): per area (grid side),
+    MDRL-sparse and MEDC with the six users' experts at each R_E (Q 0.05); at the protocol's area
+    also each Q (R_E 0.1); 3 seeds. Its panels have no claims (the sweep adds no verdicts to the
+    protocol's): its section (:func:`.sweep_report.sweep_section`) maps the effects. The protocol's
+    own cell is Fig. 8's MEDC run and its area's sparse Fig. 6's, the same runs (not run again)."""
+    grid0, rate0, q0 = SWEEP_PROTOCOL
+
+    def medc(grid: int, rate: float, q: float) -> Run:
+        if (grid, rate, q) == SWEEP_PROTOCOL:
+            return _six(2)
+        setting = f"re{rate:g}" if q == q0 else f"q{q:g}"
+        return Run(f"sweep-g{grid}-A3W2-medc-six-{setting}", "medc", experts=_bundles(SIX),
+                   options=(("grid", grid), ("expert_rate", rate), ("q_threshold", q)))
+
+    panels, cells = [], []
+    for grid in SWEEP_GRIDS:
+        sparse = _sparse(2) if grid == grid0 else Run(f"sweep-g{grid}-A3W2-sparse", "sparse",
+                                                      options=(("grid", grid),))
+        settings = [(rate, q0) for rate in SWEEP_RATES]
+        if grid == grid0:
+            settings += [(rate0, q) for q in SWEEP_QS if q != q0]
+        series = [Series("MDRL-sparse", sparse)]
+        for rate, q in settings:
+            run = medc(grid, rate, q)
+            series.append(Series(f"MEDC R_E {rate:g}" + (f", Q {q:g}" if q != q0 else ""), run))
+            cells.append(SweepCell(grid, rate, q, run.name, sparse.name))
+        note = ("" if grid == grid0 else f"The experts were cloned at {grid0}×{grid0}; their window "
+                f"observation has the same shape here, but their quality on {grid}×{grid} is not measured.")
+        panels.append(Panel(
+            f"### Sweep — learning curves on {grid}×{grid} (A3W2)", f"sweep_g{grid}.png", f"sweep g{grid}",
+            f"Sweep: A3W2, {grid}x{grid}, MEDC (6 experts) by R_E and Q", tuple(series), sparse, (),
+            note=note, grid=grid))
+    return Figure("sweep", tuple(panels), max_seeds=SWEEP_SEEDS, gate_min_seeds=SWEEP_SEEDS,
+                  planned_seeds_only=True, borrowed=(_sparse(2).name, _six(2).name),
+                  extra=partial(sweep_section, tuple(cells)))
+
+
 #: The figures of each phase; the long supplements take the tag of their step count.
 FIGURES: dict[str, Callable[..., Figure]] = {
     "fig6": fig6, "fig7": fig7, "fig8": fig8, "fig9": fig9, "fig10": fig10,
-    "long": long, "long-other": long_other,
+    "long": long, "long-other": long_other, "sweep": sweep,
 }
 #: Phases whose figure is declared per step count (a ``long_tag``).
 TAGGED = ("long", "long-other")

@@ -95,7 +95,10 @@ class Plan:
         return self.scope.walls is None or run.walls in self.scope.walls
 
     def jobs(self, phase: str) -> list[dict]:
-        """One job per run of the phase's figure and seed."""
+        """One job per run of the phase's figure and seed (none of the sweep's outside a scope
+        that plans it: see Scope.sweep)."""
+        if phase == "sweep" and not self.scope.sweep:
+            return []
         fig = self.figure(phase)
         seeds = self.seeds if fig.seeds == "seeds" else self.other_seeds
         if fig.max_seeds is not None:
@@ -111,7 +114,8 @@ class Plan:
                 "side_users": list(run.side_users), "out": str(self.out / "runs" / run.name / f"seed{seed}")}
 
     def run_config(self, run: Run, seed: int, steps: int) -> dict:
-        """The TrainConfig (as a dict) of one seed of ``run`` with ``steps`` training steps."""
+        """The TrainConfig (as a dict) of one seed of ``run`` with ``steps`` training steps, the
+        run's own ``options`` over the scale's (a field the config does not have is refused)."""
         if run.env == "target_localization":
             cfg = self.cfg(env=run.env, agents=run.agents, walls=run.walls, method=run.method,
                            total_steps=steps, seed=seed)
@@ -123,6 +127,10 @@ class Plan:
             cfg["frl_users"] = [dict(u) for u in run.frl_users]
         if run.max_evals:
             cfg["eval_every"] = max(cfg["eval_every"], steps // run.max_evals)
+        unknown = [k for k, _ in run.options if k not in cfg]
+        if unknown:
+            raise ValueError(f"run {run.name}: {unknown} are not TrainConfig fields")
+        cfg.update(run.options)
         return cfg
 
     def other_eval(self) -> dict:

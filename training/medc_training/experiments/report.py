@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Collection
 from pathlib import Path
 
 from ..stats import compare, learning_score, mean_ci
@@ -17,14 +18,23 @@ from .plan import Plan
 from .references import load_references, reference_text, regime_name, speed_section, versus_best
 
 
-def load_curves(out: Path, name: str, csv_name: str = "metrics.csv"
+def seed_dirs(out: Path, name: str, seeds: Collection[int] | None = None) -> list[Path]:
+    """The finished seeds' folders of one run name (``runs/<name>/seed<k>/`` holding its
+    summary.json), in order; ``seeds``: only those seeds (None: all)."""
+    wanted = None if seeds is None else {f"seed{k}" for k in seeds}
+    return [d for d in sorted((out / "runs" / name).glob("seed*"))
+            if (d / "summary.json").exists() and (wanted is None or d.name in wanted)]
+
+
+def load_curves(out: Path, name: str, csv_name: str = "metrics.csv", seeds: Collection[int] | None = None
                 ) -> tuple[list[float], list[list[float]], list]:
-    """(steps, [episode-length curve per seed], [summary per seed]) of one run name."""
+    """(steps, [episode-length curve per seed], [summary per seed]) of one run name (``seeds``:
+    only those seeds)."""
     from ..metrics import read_metrics
 
     curves, summaries, steps = [], [], []
-    for seed_dir in sorted((out / "runs" / name).glob("seed*")):
-        if not (seed_dir / "summary.json").exists() or not (seed_dir / csv_name).exists():
+    for seed_dir in seed_dirs(out, name, seeds):
+        if not (seed_dir / csv_name).exists():
             continue
         rows = read_metrics(seed_dir / csv_name)
         if len(rows) > len(steps):
@@ -41,52 +51,73 @@ GATE_MIN_SEEDS = 3
 GATE_RANDOM_EPISODES = 256
 
 
-def random_play_length(out: Path, cfg: dict, episodes: int | None = None) -> float:
-    """Mean episode length of uniformly random valid moves on a run's evaluation episodes (its
-    evaluation seed and environment), cached in OUT/random_play.json.
+def _random_play_key(cfg: dict, episodes: int | None) -> str:
+    """The OUT/random_play.json key of random play on a run's evaluation episodes."""
+    from ..config import TrainConfig
+    from ..ppo import EVAL_SEED_OFFSET
+
+    c = TrainConfig.from_dict(cfg)
+    key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
+           f"{json.dumps(c.env_options, sort_keys=True)}|seed={c.seed + EVAL_SEED_OFFSET}")
+    fixed = episodes or c.eval_episodes
+    return key + (f"|episodes={fixed}|envs={c.eval_envs}" if fixed else "")
+
+
+def random_play(out: Path, cfg: dict, episodes: int | None = None) -> dict:
+    """{"episode_length", "success_rate"} of uniformly random valid moves on a run's evaluation
+    episodes (its evaluation seed and environment), cached in OUT/random_play.json.
 
     With fixed-episode evaluation these are exactly the run's ``eval_episodes`` episodes, each
     played to its end (:func:`medc_training.evaluate.play_episodes`); a run evaluated with the
     legacy window (``eval_episodes`` 0) gets the legacy baseline it was gated with: the first
     GATE_RANDOM_EPISODES episodes to finish (:func:`medc_training.evaluate.play`). ``episodes``:
-    that many fixed episodes of the run's evaluation seed instead of its own evaluation's."""
+    that many fixed episodes of the run's evaluation seed instead of its own evaluation's. A cache
+    entry written before success rates were kept holds the mean length alone: asked for both, the
+    same episodes are played again (random play is seeded) and the entry holds both from then on."""
     from ..config import TrainConfig
     from ..evaluate import play, play_episodes
     from ..ppo import EVAL_SEED_OFFSET, make_env_for
 
-    c = TrainConfig.from_dict(cfg)
-    seed = c.seed + EVAL_SEED_OFFSET
-    key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
-           f"{json.dumps(c.env_options, sort_keys=True)}|seed={seed}")
-    fixed = episodes or c.eval_episodes
-    if fixed:
-        key += f"|episodes={fixed}|envs={c.eval_envs}"
+    key = _random_play_key(cfg, episodes)
     cache_path = out / "random_play.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
-    if key not in cache:
+    if not isinstance(cache.get(key), dict):
+        c = TrainConfig.from_dict(cfg)
+        seed = c.seed + EVAL_SEED_OFFSET
         env = make_env_for(c, c.eval_envs, seed, False)
+        fixed = episodes or c.eval_episodes
         if fixed:
             played = play_episodes(env, None, episodes=fixed, greedy=False, seed=seed)
         else:
             played = play(env, None, episodes=GATE_RANDOM_EPISODES, greedy=False, seed=seed)
-        cache[key] = played.summary()["episode_length"]
+        summary = played.summary()
+        cache[key] = {"episode_length": summary["episode_length"], "success_rate": summary["success_rate"]}
         cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
-    return float(cache[key])
+    return cache[key]
+
+
+def random_play_length(out: Path, cfg: dict, episodes: int | None = None) -> float:
+    """The mean episode length of :func:`random_play` (an entry cached with the length alone is
+    read as it is: nothing is played again)."""
+    cache_path = out / "random_play.json"
+    cached = (json.loads(cache_path.read_text()) if cache_path.exists() else {}).get(
+        _random_play_key(cfg, episodes))
+    if isinstance(cached, int | float):
+        return float(cached)
+    return float(random_play(out, cfg, episodes)["episode_length"])
 
 
 def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEEDS,
-                      random_episodes: int | None = None) -> dict:
+                      random_episodes: int | None = None, seeds: Collection[int] | None = None) -> dict:
     """Did MDRL-sparse learn in ``sparse_run``'s environment? Per seed, its final evaluation episode
     length (mean of the last three evaluations) minus random play's on the same evaluation
     episodes (or on ``random_episodes`` fixed episodes of the same seed); passed when >= ``min_seeds``
-    seeds ran and the 95% CI of the mean difference lies entirely below 0. Returns {"passed", "n",
-    "sparse", "random", "diff", "half", "text"}."""
+    seeds ran and the 95% CI of the mean difference lies entirely below 0 (``seeds``: only those
+    seeds count). Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
     from ..metrics import read_metrics
 
     finals, randoms = [], []
-    for seed_dir in sorted((out / "runs" / sparse_run).glob("seed*")):
-        if not (seed_dir / "summary.json").exists():
-            continue
+    for seed_dir in seed_dirs(out, sparse_run, seeds):
         summary = json.loads((seed_dir / "summary.json").read_text())
         rows = read_metrics(seed_dir / "metrics.csv")
         finals.append(sum(r["episode_length"] for r in rows[-3:]) / len(rows[-3:]))
@@ -135,25 +166,38 @@ class Report:
         self.base = base or {}
         self.sections: list[str] = []
         self.scores: dict[str, list[float]] = {}
-        #: Learnability gate of each environment, by its MDRL-sparse run name.
-        self.gates: dict[str, dict] = {}
+        #: Learnability gate of each environment, by (its MDRL-sparse run name, the seeds it needs,
+        #: the seeds it reads or None for all).
+        self.gates: dict[tuple, dict] = {}
         #: The verdict word of every claim written, in order (for the counts).
         self.verdicts: list[str] = []
 
-    def _gate(self, sparse_run: str) -> dict:
-        """:func:`learnability_gate` of ``sparse_run``, computed once per report."""
-        if sparse_run not in self.gates:
-            self.gates[sparse_run] = learnability_gate(self.out, sparse_run, self.scope.gate_min_seeds,
-                                                       self.scope.gate_random_episodes)
-        return self.gates[sparse_run]
+    def figure_seeds(self, fig: Figure) -> tuple[int, ...] | None:
+        """The seeds the report reads for ``fig``: those it plans when it reads only those
+        (Figure.planned_seeds_only), else None (all that ran)."""
+        if not fig.planned_seeds_only or fig.max_seeds is None:
+            return None
+        return tuple(range(self.scope.first_seed, self.scope.first_seed + fig.max_seeds))
 
-    def gate(self, sparse_run: str) -> str:
+    def gate_result(self, sparse_run: str, min_seeds: int | None = None,
+                    seeds: tuple[int, ...] | None = None) -> dict:
+        """:func:`learnability_gate` of ``sparse_run`` (needing ``min_seeds``, None: the scope's;
+        reading ``seeds``, None: all), computed once per report."""
+        need = min_seeds or self.scope.gate_min_seeds
+        key = (sparse_run, need, seeds)
+        if key not in self.gates:
+            self.gates[key] = learnability_gate(self.out, sparse_run, need, self.scope.gate_random_episodes,
+                                                seeds)
+        return self.gates[key]
+
+    def gate(self, sparse_run: str, min_seeds: int | None = None,
+             seeds: tuple[int, ...] | None = None) -> str:
         """The gate line for ``sparse_run``'s environment; claims made with ``gate=sparse_run``
         are "not testable" unless it passed."""
-        g = self._gate(sparse_run)
+        g = self.gate_result(sparse_run, min_seeds, seeds)
         if g["n"] == 0:
             return "- **Learnability gate** — not run"
-        need = self.scope.gate_min_seeds
+        need = min_seeds or self.scope.gate_min_seeds
         if g["passed"]:
             word = "passed"
         elif g["n"] < need:
@@ -164,19 +208,21 @@ class Report:
                     "MDRL-sparse to learn here, so this environment's claims are not testable")
         return f"- **Learnability gate** ({sparse_run}) — {word}: {g['text']}"
 
-    def _untestable(self, gate: str | None) -> str | None:
+    def _untestable(self, gate: str | None, min_seeds: int | None = None,
+                    seeds: tuple[int, ...] | None = None) -> str | None:
         if gate is None:
             return None
-        g = self._gate(gate)
+        g = self.gate_result(gate, min_seeds, seeds)
         if g["passed"]:
             return None
         return (f"not testable (MDRL-sparse did not pass the learnability gate: difference to random "
                 f"play {g['diff']:+.2f} ± {g['half']:.2f}, n = {g['n']})")
 
-    def series(self, names: dict[str, str], csv_name: str = "metrics.csv") -> dict:
+    def series(self, names: dict[str, str], csv_name: str = "metrics.csv",
+               seeds: tuple[int, ...] | None = None) -> dict:
         data = {}
         for label, name in names.items():
-            steps, curves, summaries = load_curves(self.out, name, csv_name)
+            steps, curves, summaries = load_curves(self.out, name, csv_name, seeds)
             if curves:
                 data[label] = (steps, curves, summaries)
                 self.scores[name if csv_name == "metrics.csv" else f"{name}:{csv_name}"] = \
@@ -208,24 +254,28 @@ class Report:
             lines.append(line)
         return "\n".join(lines)
 
-    def claim(self, text: str, better: str, worse: str, gate: str | None = None) -> str:
+    def claim(self, text: str, better: str, worse: str, gate: str | None = None, *,
+              min_seeds: int | None = None, seeds: tuple[int, ...] | None = None) -> str:
+        """A claim's verdict line; "not testable" unless ``gate``'s learnability gate passed (with
+        ``min_seeds`` and ``seeds`` as in :meth:`gate_result`)."""
         a, b = self.scores.get(better, []), self.scores.get(worse, [])
         c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
-        blocked = self._untestable(gate) if a and b else None
+        blocked = self._untestable(gate, min_seeds, seeds) if a and b else None
         word = blocked or verdict(a, b, self.scope.underpowered)
         self.verdicts.append(word)
         return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
 
     def claim_no_worse(self, text: str, faulty: str, sparse: str, margin: float,
-                       gate: str | None = None) -> str:
+                       gate: str | None = None, *, min_seeds: int | None = None,
+                       seeds: tuple[int, ...] | None = None) -> str:
         a, b = self.scores.get(faulty, []), self.scores.get(sparse, [])
         if not a or not b:
             return f"- **{text}** — not run"
         c = compare(a, b)
         ok = c["diff"] - c["half"] <= margin
         word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
-        word = self._untestable(gate) or word
+        word = self._untestable(gate, min_seeds, seeds) or word
         self.verdicts.append(word)
         return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
                 f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
@@ -233,13 +283,32 @@ class Report:
     def add(self, text: str) -> None:
         self.sections.append(text)
 
-    def references(self, walls: int) -> dict[str, dict]:
-        """The reference lines (:mod:`.references`) of the regime with ``walls`` obstructions, or
-        {} when this scope has none or they were not played."""
+    def references(self, walls: int, grid: int | None = None) -> dict[str, dict]:
+        """The reference lines (:mod:`.references`) of the regime with ``walls`` obstructions on
+        the ``grid`` (None: the scale's), or {} when this scope has none or they were not played
+        on that regime."""
         if self.scope.reference is None or "grid" not in self.base:
             return {}
-        regime = regime_name(self.base["grid"], walls, self.base["max_steps"])
+        regime = regime_name(grid or self.base["grid"], walls, self.base["max_steps"])
         return load_references(self.out / self.scope.reference / regime)
+
+    def summaries(self, name: str) -> list[dict]:
+        """The summary.json of every finished seed of run ``name``."""
+        return load_curves(self.out, name)[2]
+
+    def seed_rows(self, name: str, seeds: tuple[int, ...] | None = None) -> list[tuple[dict, list[dict]]]:
+        """(summary, metrics.csv rows) of every finished seed of run ``name`` (``seeds``: only those)."""
+        from ..metrics import read_metrics
+
+        return [(json.loads((d / "summary.json").read_text()), read_metrics(d / "metrics.csv"))
+                for d in seed_dirs(self.out, name, seeds) if (d / "metrics.csv").exists()]
+
+    def random_success(self, sparse_run: str, seeds: tuple[int, ...] | None = None) -> float:
+        """Random valid moves' success rate on the learnability gate's episodes of ``sparse_run``'s
+        seeds (their mean; nan when none ran)."""
+        rates = [random_play(self.out, summary["config"], self.scope.gate_random_episodes)["success_rate"]
+                 for summary, _ in self.seed_rows(sparse_run, seeds)]
+        return sum(rates) / len(rates) if rates else math.nan
 
     def verdict_counts(self) -> str:
         """One line counting the claims by verdict (held, contradicted, not resolved, ...)."""
@@ -278,30 +347,36 @@ def expert_table(models: Path) -> str:
 
 
 def report_figures(runs: Path) -> list[Figure]:
-    """The figures of the report: every phase's, the tagged supplements once per step count that ran."""
+    """The figures of the report: every phase's, the tagged supplements once per step count that
+    ran; a figure that borrows runs of others (the sweep) once a run of its own has finished."""
     figures = []
     for phase, make in FIGURES.items():
         if phase in TAGGED:
             figures += [make(tag) for tag in long_tags_on_disk(runs, tag_markers(phase))]
-        else:
-            figures.append(make())
+            continue
+        fig = make()
+        own = [run.name for run in fig.runs() if run.name not in fig.borrowed]
+        if not fig.borrowed or any(seed_dirs(runs.parent, name) for name in own):
+            figures.append(fig)
     return figures
 
 
-def panel_section(r: Report, panel: Panel) -> str | None:
-    """A panel's plot and section (its table, gate and claims), or None when none of its runs exist."""
+def panel_section(r: Report, panel: Panel, seeds: tuple[int, ...] | None = None,
+                  gate_min_seeds: int | None = None) -> str | None:
+    """A panel's plot and section (its table, gate and claims), or None when none of its runs exist
+    (``seeds``: only those seeds are read; ``gate_min_seeds``: the gate's need, None: the scope's)."""
     from ..plots import plot_methods
 
     data: dict = {}
     for s in panel.series:
-        data.update(r.series({s.label: s.run.name}, s.csv))
+        data.update(r.series({s.label: s.run.name}, s.csv, seeds))
     if not data:
         return None
-    refs = r.references(panel.gate.walls)
+    refs = r.references(panel.gate.walls, panel.grid)
     plot_methods({k: (v[0], v[1]) for k, v in data.items()}, r.out / panel.png, panel.title, panel.ylabel,
                  references={k: (v["length"], v["length_ci"]) for k, v in refs.items()} or None)
     table = r.table(data, wall=panel.wall)
-    lines = [r.gate(panel.gate.name)]
+    lines = [r.gate(panel.gate.name, gate_min_seeds, seeds)]
     if refs:
         lines.append(reference_text(refs))
         finals = [versus_best(label, v[1], refs) for label, v in data.items()]
@@ -310,11 +385,13 @@ def panel_section(r: Report, panel: Panel) -> str | None:
         speed = speed_section(data, next(s.label for s in panel.series if s.run == panel.gate))
         if speed:
             lines.append(speed)
+    rules = {"min_seeds": gate_min_seeds, "seeds": seeds}
     for c in panel.claims:
         if c.margin is None:
-            lines.append(r.claim(c.text, c.better.key, c.worse.key, gate=panel.gate.name))
+            lines.append(r.claim(c.text, c.better.key, c.worse.key, gate=panel.gate.name, **rules))
         else:
-            lines.append(r.claim_no_worse(c.text, c.better.key, c.worse.key, c.margin, gate=panel.gate.name))
+            lines.append(r.claim_no_worse(c.text, c.better.key, c.worse.key, c.margin, gate=panel.gate.name,
+                                          **rules))
     text = f"{panel.heading}\n\n![{panel.alt}]({panel.png})\n\n{table}\n\n" + "\n".join(lines)
     return text + (f"\n\n{panel.note}" if panel.note else "")
 
@@ -369,10 +446,10 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
     budget = plan.budget
     for fig in report_figures(out / "runs"):
         for panel in fig.panels:
-            section = panel_section(r, panel)
+            section = panel_section(r, panel, r.figure_seeds(fig), fig.gate_min_seeds)
             if section:
                 r.add(section)
-        extra = fig.extra and fig.extra(lambda run: load_curves(out, run.name)[2])
+        extra = fig.extra and fig.extra(r, fig)
         if extra:
             r.add(extra)
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
