@@ -184,7 +184,7 @@ class TeamEstimate:
         holds = self.role.holds(tick.episode, tick.step)
         if holds != self.publishing and self.role.own > 0:
             if holds:
-                gone = ", ".join(f"agent_{j}" for j in self.role.gone_ids(tick.episode, tick.step))
+                gone = ", ".join(contract.agent_id(j) for j in self.role.gone_ids(tick.episode, tick.step))
                 self.node.get_logger().warning(
                     f"{gone} gone: {self.node.agent_id} publishes the team's source estimate from episode "
                     f"{tick.episode} step {tick.step}")
