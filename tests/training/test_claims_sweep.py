@@ -281,10 +281,10 @@ def test_medc_reproduce_report_adds_the_sweep_after_the_protocols_figures(tmp_pa
     assert main(["--scale", "claims", "--seeds", "5", "--only", "report", "--out", "out",
                  "--models", "models"]) == 0
     report = (plan.out / "report.md").read_text()
-    # the protocol's claims (Figs. 6-9 on A3W2: only sparse and MEDC (6 experts) ran; Fig. 7's three
-    # "at worst match" claims are not counted while not run), none of the sweep's; the sweep's
+    # the protocol's 13 claims (Figs. 6-9 on A3W2: only sparse and MEDC (6 experts) ran, so each is
+    # "not run", Fig. 7's "at worst match" claims included), none of the sweep's; the sweep's
     # section last, after its three panels, on seeds 300-302 (Fig. 6 reads all 5)
-    assert "**Verdicts.** 10 claims: 10 not run " in report
+    assert "**Verdicts.** 13 claims: 13 not run " in report
     assert "final episode length 20.00 vs random play 46.70 on 256 fixed episodes of each seed" in report
     assert "final episode length 30.00 vs random play 46.50 on 256 fixed episodes of each seed" in report
     assert report.index("### Fig. 9") < report.index("### Sweep — learning curves on 24×24 (A3W2)")

@@ -271,6 +271,7 @@ class Report:
                        seeds: tuple[int, ...] | None = None) -> str:
         a, b = self.scores.get(faulty, []), self.scores.get(sparse, [])
         if not a or not b:
+            self.verdicts.append("not run")  # counted with the others, as claim() counts it
             return f"- **{text}** — not run"
         c = compare(a, b)
         ok = c["diff"] - c["half"] <= margin
