@@ -38,7 +38,7 @@ TEAM_TOPICS = {"map", "episode", "episode_result", "team/policy", "team/source_e
 
 def team_nodes(ns: str) -> set[tuple[str, str]]:
     """(node name, namespace) of every node of the team under ``ns``."""
-    return {("medc_sim", ns), *((f"medc_{a}", ns) for a in contract.agent_ids(SCENARIO["agents"]))}
+    return {("medc_sim", ns), *((contract.agent_node_name(i), ns) for i in range(SCENARIO["agents"]))}
 
 
 def launch_commands(spec_nodes: list[dict]) -> list[list[str]]:

@@ -121,8 +121,8 @@ def check_scenario_size(agents: int, grid: int) -> None:
 def default_node_name(agent_id: str | None) -> str:
     """``medc_<agent_id>`` (e.g. medc_agent_1), unique per agent; ``medc_agent`` for an id that is
     not of the form agent_<i>."""
-    if agent_id and contract.AGENT_ID_PATTERN.match(agent_id):
-        return f"medc_{agent_id}"
+    if agent_id and (m := contract.AGENT_ID_PATTERN.match(agent_id)):
+        return contract.agent_node_name(int(m.group(1)))
     return "medc_agent"
 
 

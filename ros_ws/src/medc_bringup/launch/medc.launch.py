@@ -96,6 +96,7 @@ def team_nodes(values: dict[str, str]) -> list[dict]:
         resolve_policies,
         sim_parameters,
     )
+    from medc_common.contract import agent_node_name
 
     values = {name: default for name, (default, _) in LAUNCH_ARGUMENTS.items()} | dict(values)
     episodes = _int_or_none(values, "episodes") or 0
@@ -107,7 +108,7 @@ def team_nodes(values: dict[str, str]) -> list[dict]:
     policies = resolve_policies(cfg, _policy_root())
     sim = _node("medc_sim", "medc_sim", cfg.namespace, sim_parameters(cfg, episodes))
     sim["ends_launch"] = episodes > 0
-    nodes = [sim] + [_node("medc_agents", f"medc_agent_{i}", cfg.namespace, agent_parameters(cfg, i, p))
+    nodes = [sim] + [_node("medc_agents", agent_node_name(i), cfg.namespace, agent_parameters(cfg, i, p))
                      for i, p in enumerate(policies)]
     if _flag(values, "registry"):
         bridge = dict(cfg.registry.get("params") or {})

@@ -65,6 +65,7 @@ def run_graph(
     steps). Returns latencies and throughput."""
     import subprocess
 
+    from medc_common.contract import agent_node_name
     from medc_common.executors import make_executor
     from medc_sim.node import SimNode
     from rclpy.parameter import Parameter
@@ -95,7 +96,7 @@ def run_graph(
             subprocess.Popen(
                 [
                     str(bindir / "medc-agent"),
-                    *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, str(bundle)), cfg.namespace),
+                    *ros_args(agent_node_name(i), agent_parameters(cfg, i, str(bundle)), cfg.namespace),
                 ],
                 env=_child_env(),
                 start_new_session=True,

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from medc_common.contract import agent_node_name
 from medc_common.ros_env import interfaces_env, repo_root, require_interfaces
 from medc_common.share import config_file
 
@@ -379,7 +380,7 @@ def build_graph(
     sim.core.record = record
     feed = TeamFeed(cfg.namespace, cfg.agents) if shared_feed else None
     agents = [
-        AgentNode(node_name=f"medc_agent_{i}", feed=feed, namespace=cfg.namespace,
+        AgentNode(node_name=agent_node_name(i), feed=feed, namespace=cfg.namespace,
                   parameter_overrides=overrides(agent_parameters(cfg, i, p)))
         for i, p in enumerate(policies)
     ]
@@ -473,7 +474,7 @@ def run_processes(
     ns = cfg.namespace
     commands = [[str(bindir / "medc-sim"), *ros_args("medc_sim", sim_params, ns)]]
     commands += [
-        [str(bindir / "medc-agent"), *ros_args(f"medc_agent_{i}", agent_parameters(cfg, i, p), ns)]
+        [str(bindir / "medc-agent"), *ros_args(agent_node_name(i), agent_parameters(cfg, i, p), ns)]
         for i, p in enumerate(policies)
     ]
     if cfg.registry.get("enabled"):

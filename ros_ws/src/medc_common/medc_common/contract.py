@@ -69,6 +69,11 @@ def agent_id(index: int) -> str:
     return f"agent_{index}"
 
 
+def agent_node_name(index: int) -> str:
+    """The default ROS node name of the agent at env index ``index``: ``medc_agent_<index>``."""
+    return f"medc_{agent_id(index)}"
+
+
 def agent_ids(num_agents: int) -> list[str]:
     """The ids of a team of ``num_agents``: ``agent_0`` .. ``agent_{n-1}`` (env agent order)."""
     if num_agents < 1:
