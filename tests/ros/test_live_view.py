@@ -66,6 +66,7 @@ def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
         deadline = time.monotonic() + 90
         with _connect(port, deadline) as ws:
             subscribed: dict[int, str] = {}
+            channel_ids: set[int] = set()
             while time.monotonic() < deadline:
                 # ~3 s of steps at 5 Hz: the agents have moved (tracks) and read (labels).
                 if (all(len(got.get(t, [])) >= 3 for t in wanted - {"/medc/map"}) and got.get("/medc/map")
@@ -81,7 +82,8 @@ def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
                         new = []
                         for c in op["channels"]:
                             channels[c["topic"]] = c
-                            if c["topic"] in wanted and c["id"] not in subscribed.values():
+                            if c["topic"] in wanted and c["id"] not in channel_ids:
+                                channel_ids.add(c["id"])
                                 sub_id = len(subscribed) + 1
                                 subscribed[sub_id] = c["topic"]
                                 new.append({"id": sub_id, "channelId": c["id"]})
@@ -102,7 +104,7 @@ def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["recording"]["foxglove_port"] == port
     missing = {t: len(got.get(t, [])) for t in wanted if len(got.get(t, [])) < 1}
-    assert not missing, f"no messages on {missing}; advertised {sorted(channels)}"
+    assert not missing, f"no messages on {missing}; advertised {sorted(channels)}; log: {log[-2000:]}"
 
     # The raw ROS topics: CDR with their ros2msg schema, decodable by a ROS 2 client.
     status = channels["/medc/episode"]
@@ -171,6 +173,53 @@ def test_scene_places_walls_and_estimate_in_the_map_frame():
     sphere = entities["estimate"].spheres[0]
     assert (sphere.pose.position.x, sphere.pose.position.y, sphere.size.x) == (4.0, 5.0, 4.0)
     assert entities["agent_0"].spheres[0].pose.position.x == 7.0
+
+
+def _subscribe_and_collect(port: int, topics: set[str], seconds: float) -> dict[str, list[bytes]]:
+    """Connect, subscribe to ``topics`` as they are advertised, collect data frames for ``seconds``."""
+    got: dict[str, list[bytes]] = {}
+    subscribed: dict[int, str] = {}
+    deadline = time.monotonic() + seconds
+    with _connect(port, deadline) as ws:
+        while time.monotonic() < deadline:
+            try:
+                frame = ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            if isinstance(frame, str):
+                op = json.loads(frame)
+                if op["op"] == "advertise":
+                    new = []
+                    for c in op["channels"]:
+                        if c["topic"] in topics:
+                            subscribed[len(subscribed) + 1] = c["topic"]
+                            new.append({"id": len(subscribed), "channelId": c["id"]})
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                continue
+            (sub_id,) = struct.unpack_from("<I", frame, 1)
+            got.setdefault(subscribed[sub_id], []).append(bytes(frame[13:]))
+    return got
+
+
+def test_a_client_that_connects_late_gets_the_latched_topics_last_message():
+    """The walls map is published once per episode on a transient-local topic: a client that
+    subscribes mid-episode gets the last map at once (as a late ROS subscriber would), and every
+    later client too; a volatile topic's past messages are not replayed."""
+    from medc_bringup.live_view import LiveView
+
+    live = LiveView("/medc", port=0)
+    try:
+        live.add_topic("/medc/map", "std_msgs/msg/String", "string data", latched=True)
+        live.add_topic("/medc/episode", "std_msgs/msg/String", "string data")
+        for i in range(3):
+            live.on_message("/medc/map", "std_msgs/msg/String", f"map {i}".encode())
+            live.on_message("/medc/episode", "std_msgs/msg/String", f"step {i}".encode())
+        for _ in range(2):
+            got = _subscribe_and_collect(live.port, {"/medc/map", "/medc/episode"}, seconds=1.5)
+            assert got.get("/medc/map") == [b"map 2"]
+            assert "/medc/episode" not in got
+    finally:
+        live.close()
 
 
 def test_a_busy_port_or_a_missing_folder_is_refused_with_what_to_do(tmp_path, capsys):

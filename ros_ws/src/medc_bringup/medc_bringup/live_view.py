@@ -189,29 +189,63 @@ class LiveView:
     """
 
     def __init__(self, namespace: str, port: int = DEFAULT_PORT, host: str = "127.0.0.1") -> None:
+        import threading
+
         import foxglove
         from foxglove.channels import SceneUpdateChannel
+        from foxglove.websocket import ServerListener
+
+        view = self
+
+        class _Resend(ServerListener):
+            """A client that subscribes to a latched topic gets its last message at once (as a
+            late ROS subscriber to a transient-local topic would): the walls map of an episode
+            that began before the client connected."""
+
+            def on_subscribe(self, client, channel) -> None:
+                view._resend_latched(channel.topic)
 
         self._foxglove = foxglove
-        self.server = foxglove.start_server(name="medc", host=host, port=int(port))
+        # A context of its own: this server's channels reach this server only.
+        self.context = foxglove.Context()
+        self.server = foxglove.start_server(name="medc", host=host, port=int(port), server_listener=_Resend(),
+                                            context=self.context)
         self.port = int(self.server.port)
         self.state = SceneState(namespace)
         self.scene_topic = f"{self.state.ns}/scene"
-        self.scene = SceneUpdateChannel(self.scene_topic)
+        self.scene = SceneUpdateChannel(self.scene_topic, context=self.context)
         self.channels: dict[str, object] = {}
+        #: Latched (transient-local) topics and their last message, re-sent to each new subscriber.
+        self.latched: dict[str, tuple[bytes, int | None] | None] = {}
+        self._lock = threading.Lock()
         self._last_scene = 0.0
 
-    def add_topic(self, topic: str, type_name: str, definition: str) -> None:
-        """Serve ``topic`` as a channel (CDR bytes, its ``ros2msg`` schema text)."""
+    def add_topic(self, topic: str, type_name: str, definition: str, latched: bool = False) -> None:
+        """Serve ``topic`` as a channel (CDR bytes, its ``ros2msg`` schema text); ``latched``: the
+        topic is transient local, and a client that subscribes gets its last message at once."""
         if topic not in self.channels:
             schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
-            self.channels[topic] = self._foxglove.Channel(topic, message_encoding="cdr", schema=schema)
+            self.channels[topic] = self._foxglove.Channel(topic, message_encoding="cdr", schema=schema,
+                                                          context=self.context)
+            if latched:
+                with self._lock:
+                    self.latched[topic] = None
+
+    def _resend_latched(self, topic: str) -> None:
+        with self._lock:
+            last = self.latched.get(topic)
+        if last is not None:
+            data, log_time_ns = last
+            self.channels[topic].log(data, log_time=log_time_ns)
 
     def on_message(self, topic: str, type_name: str, data: bytes, msg=None,
                    log_time_ns: int | None = None) -> None:
         """Forward one message (its CDR ``data``; ``msg``: it deserialised, when the scene uses it)."""
         channel = self.channels.get(topic)
         if channel is not None:
+            if topic in self.latched:
+                with self._lock:
+                    self.latched[topic] = (bytes(data), log_time_ns)
             channel.log(data, log_time=log_time_ns)
         if msg is not None:
             self.state.on_message(topic, type_name, msg)

@@ -58,6 +58,13 @@ def known_topics(namespace: str, agents: int = 0) -> dict[str, tuple[str, object
     return topics
 
 
+def _is_latched(qos) -> bool:
+    """Whether a subscription QoS is transient local (the topic keeps its last message)."""
+    from rclpy.qos import DurabilityPolicy
+
+    return qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
 def qos_for_publishers(infos):
     """A subscription QoS that matches every publisher in ``infos`` (rclpy TopicEndpointInfo):
     reliable only if all are, transient local only if all are; keep last 100."""
@@ -188,7 +195,7 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
                 recording.add_topic(topic, type_name, qos)
             decode = None
             if live is not None:
-                live.add_topic(topic, type_name, definition)
+                live.add_topic(topic, type_name, definition, latched=_is_latched(qos))
                 if live.wants(topic, type_name):
                     decode = cls
             self.subscribed[topic] = type_name
