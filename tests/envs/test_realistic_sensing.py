@@ -162,3 +162,30 @@ def test_expected_moves_is_the_chebyshev_expectation() -> None:
         for c in range(grid):
             want = 0.4 * max(abs(r - 1), abs(c - 5)) + 0.6 * max(abs(r - 6), abs(c - 0))
             assert float(e[r, c]) == pytest.approx(want, abs=1e-5)
+
+
+@pytest.mark.parametrize("block_bytes", [1, 200_000, 1 << 30])
+def test_the_posterior_over_levels_is_the_same_in_blocks_of_any_size(monkeypatch, block_bytes) -> None:
+    """The update and the marginal run a block of episodes at a time (BLOCK_BYTES): one episode per
+    block, several, or the whole batch give the same bits, wall and ruled-out cells included."""
+    import medc_training.envs.tl_observation as tlo
+
+    def play(block: int) -> list[torch.Tensor]:
+        monkeypatch.setattr(tlo, "BLOCK_BYTES", block)
+        env = make_batched("target_localization", num_envs=11, seed=5, agents=3, walls=2, grid=16,
+                           max_steps=30, sensing="realistic", observation="ego6+estimate")
+        gen = torch.Generator().manual_seed(2)
+        _, mask = env.reset()
+        seen = []
+        for _ in range(20):
+            b, n, a = mask.shape
+            step = env.step(torch.multinomial(mask.view(-1, a).float(), 1, generator=gen).view(b, n))
+            mask = step.mask
+            seen += [env.memory.log_post.clone(), env.memory.posterior(), step.obs]
+        return seen
+
+    reference = play(1 << 30)
+    assert SourceEstimator(16, "cpu", "realistic").block(11) == 11
+    with_blocks = play(block_bytes)
+    assert all(torch.equal(x, y) for x, y in zip(reference, with_blocks, strict=True))
+    assert tlo.BLOCK_BYTES == block_bytes
