@@ -45,6 +45,41 @@ def _connect(port: int, deadline: float):
             time.sleep(0.3)
 
 
+class _Client:
+    """A Foxglove-protocol client: subscribes to each channel of ``wanted`` once, as advertised,
+    and collects its data frames by topic (``got``); ``channels``: every advertised channel."""
+
+    def __init__(self, ws, wanted: set[str]) -> None:
+        self.ws, self.wanted = ws, wanted
+        self.channels: dict[str, dict] = {}
+        self.got: dict[str, list[bytes]] = {}
+        self._subscribed: dict[int, str] = {}
+        self._channel_ids: set[int] = set()
+
+    def receive(self, timeout: float) -> None:
+        """Handle one frame (if one comes within ``timeout``)."""
+        try:
+            frame = self.ws.recv(timeout=timeout)
+        except TimeoutError:
+            return
+        if isinstance(frame, str):
+            op = json.loads(frame)
+            if op["op"] == "advertise":
+                new = []
+                for c in op["channels"]:
+                    self.channels[c["topic"]] = c
+                    if c["topic"] in self.wanted and c["id"] not in self._channel_ids:
+                        self._channel_ids.add(c["id"])
+                        self._subscribed[len(self._subscribed) + 1] = c["topic"]
+                        new.append({"id": len(self._subscribed), "channelId": c["id"]})
+                if new:
+                    self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+            return
+        assert frame[0] == 0x01  # message data
+        (sub_id,) = struct.unpack_from("<I", frame, 1)
+        self.got.setdefault(self._subscribed[sub_id], []).append(bytes(frame[13:]))
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
@@ -60,39 +95,17 @@ def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
          "--timeout", "120"],
         stdout=subprocess.PIPE, stderr=err, text=True, start_new_session=True, cwd=tmp_path)
     wanted = {"/medc/scene", "/medc/episode", "/medc/agent_0/pose", "/medc/agent_1/radiation", "/medc/map"}
-    channels: dict[str, dict] = {}
-    got: dict[str, list[bytes]] = {}
     try:
         deadline = time.monotonic() + 90
         with _connect(port, deadline) as ws:
-            subscribed: dict[int, str] = {}
-            channel_ids: set[int] = set()
+            client = _Client(ws, wanted)
+            got = client.got
             while time.monotonic() < deadline:
                 # ~3 s of steps at 5 Hz: the agents have moved (tracks) and read (labels).
                 if (all(len(got.get(t, [])) >= 3 for t in wanted - {"/medc/map"}) and got.get("/medc/map")
                         and len(got["/medc/scene"]) >= 15):
                     break
-                try:
-                    frame = ws.recv(timeout=1.0)
-                except TimeoutError:
-                    continue
-                if isinstance(frame, str):
-                    op = json.loads(frame)
-                    if op["op"] == "advertise":
-                        new = []
-                        for c in op["channels"]:
-                            channels[c["topic"]] = c
-                            if c["topic"] in wanted and c["id"] not in channel_ids:
-                                channel_ids.add(c["id"])
-                                sub_id = len(subscribed) + 1
-                                subscribed[sub_id] = c["topic"]
-                                new.append({"id": sub_id, "channelId": c["id"]})
-                        if new:
-                            ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-                    continue
-                assert frame[0] == 0x01  # message data
-                (sub_id,) = struct.unpack_from("<I", frame, 1)
-                got.setdefault(subscribed[sub_id], []).append(bytes(frame[13:]))
+                client.receive(timeout=1.0)
     finally:
         if launcher.poll() is None:
             launcher.send_signal(signal.SIGINT)
@@ -103,6 +116,7 @@ def test_foxglove_client_receives_the_scene_and_the_topics(bundles, tmp_path):
     assert "Traceback" not in log, log[-3000:]
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["recording"]["foxglove_port"] == port
+    channels = client.channels
     missing = {t: len(got.get(t, [])) for t in wanted if len(got.get(t, [])) < 1}
     assert not missing, f"no messages on {missing}; advertised {sorted(channels)}; log: {log[-2000:]}"
 
@@ -177,28 +191,12 @@ def test_scene_places_walls_and_estimate_in_the_map_frame():
 
 def _subscribe_and_collect(port: int, topics: set[str], seconds: float) -> dict[str, list[bytes]]:
     """Connect, subscribe to ``topics`` as they are advertised, collect data frames for ``seconds``."""
-    got: dict[str, list[bytes]] = {}
-    subscribed: dict[int, str] = {}
     deadline = time.monotonic() + seconds
     with _connect(port, deadline) as ws:
+        client = _Client(ws, topics)
         while time.monotonic() < deadline:
-            try:
-                frame = ws.recv(timeout=0.2)
-            except TimeoutError:
-                continue
-            if isinstance(frame, str):
-                op = json.loads(frame)
-                if op["op"] == "advertise":
-                    new = []
-                    for c in op["channels"]:
-                        if c["topic"] in topics:
-                            subscribed[len(subscribed) + 1] = c["topic"]
-                            new.append({"id": len(subscribed), "channelId": c["id"]})
-                    ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-                continue
-            (sub_id,) = struct.unpack_from("<I", frame, 1)
-            got.setdefault(subscribed[sub_id], []).append(bytes(frame[13:]))
-    return got
+            client.receive(timeout=0.2)
+    return client.got
 
 
 def test_a_client_that_connects_late_gets_the_latched_topics_last_message():
