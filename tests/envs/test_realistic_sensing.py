@@ -188,4 +188,3 @@ def test_the_posterior_over_levels_is_the_same_in_blocks_of_any_size(monkeypatch
     assert SourceEstimator(16, "cpu", "realistic").block(11) == 11
     with_blocks = play(block_bytes)
     assert all(torch.equal(x, y) for x, y in zip(reference, with_blocks, strict=True))
-    assert tlo.BLOCK_BYTES == block_bytes
