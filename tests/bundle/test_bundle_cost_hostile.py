@@ -93,11 +93,8 @@ def _slow_bundle() -> bytes:
     return forge(tensors, manifest)
 
 
-def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(tmp_path) -> None:
-    data = _slow_bundle()
-    full = load_bundle(data)
-    blank = torch.zeros((1, *full.obs_shape))
-    allowed = torch.ones((1, 8), dtype=torch.bool)
+def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[float, float, object, float]:
+    """(one warm pass's seconds, the limit = a quarter of it, the TooSlow raised, seconds to raise it)."""
     passes = []
     for _ in range(2):  # warm: the first call of a shape also builds its kernels
         start = time.perf_counter()
@@ -106,12 +103,27 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
         passes.append(time.perf_counter() - start)
     one_pass = min(passes)
     limit = one_pass / 4  # "too slow" here, whatever the machine's speed
-    # The big layer is timed on a 1/16 strip of its output first, and the pass abandoned.
     start = time.perf_counter()
     with pytest.raises(dryrun_mod.TooSlow) as slow:
         dryrun_mod.timed_forward(full.net, blank, allowed, limit)
-    assert slow.value.estimated and slow.value.layer == 3 and slow.value.seconds > limit
-    assert time.perf_counter() - start < one_pass / 2
+    return one_pass, limit, slow.value, time.perf_counter() - start
+
+
+def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(tmp_path) -> None:
+    data = _slow_bundle()
+    full = load_bundle(data)
+    blank = torch.zeros((1, *full.obs_shape))
+    allowed = torch.ones((1, 8), dtype=torch.bool)
+    # The big layer is timed on a 1/16 strip of its output first, and the pass abandoned. On a
+    # shared machine a stall of the process (tens of ms) can push the small layers before it past
+    # a quarter of a pass, or the estimate past half a pass: the bundle is then refused, rightly,
+    # but not in the way this test is about, so that case is measured again (3 tries).
+    for _ in range(3):
+        one_pass, limit, slow, took = _refuse_once(full, blank, allowed)
+        if slow.estimated and took < one_pass / 2:
+            break
+    assert slow.estimated and slow.layer == 3 and slow.seconds > limit, (slow, limit)
+    assert took < one_pass / 2
     first = tmp_path / "slow.safetensors"
     first.write_bytes(data)
     start = time.perf_counter()
