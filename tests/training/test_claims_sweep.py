@@ -11,6 +11,7 @@ from medc_training.experiments.catalogue import PHASES, SCOPES, SIX
 from medc_training.experiments.figures import sweep
 from medc_training.experiments.plan import Plan
 from medc_training.experiments.report import (
+    CONTROLLER_PLAY,
     Report,
     _random_play_key,
     panel_section,
@@ -142,17 +143,28 @@ RANDOM = {"sweep-g24-A3W2-sparse": ((40.0, 0.30), (41.0, 0.25), (39.0, 0.35)),
           SPARSE: ((46.0, 0.10), (46.5, 0.09), (47.0, 0.08))}
 
 
+#: The classical controllers on each run's evaluation episodes (per-episode lengths, repeated over
+#: the 64 episodes), cached as if played: infotaxis 18 steps, greedy 20, gradient 42.
+CONTROLLER_LENGTHS = {"infotaxis": (17, 19), "greedy": (19, 21), "gradient": (40, 44)}
+
+
 def _sweep_folder(tmp_path, names=tuple(RUNS), episodes=16):
     """The sweep's runs of RUNS under tmp_path/out, with their planned configs at a 600-step
     budget; Fig. 6's sparse and Fig. 8's MEDC also have seeds 303 and 304 (far better), which the
     sweep must not read. Random play on ``episodes`` fixed episodes of each gate's seeds is cached
-    (RANDOM; seeds 303 and 304 as seed 302)."""
+    (RANDOM; seeds 303 and 304 as seed 302), and so are the classical controllers on every run's
+    evaluation episodes (CONTROLLER_LENGTHS)."""
     plan = _claims(tmp_path)
     configs = {j["name"].split("/")[0]: j["config"] for j in plan.jobs("sweep")}
-    cache = {}
+    cache, controllers = {}, {}
     for name in names:
         curve, offsets, fractions, follows = RUNS[name]
         config = {**configs[name], "total_steps": STEPS[-1]}
+        for seed in (*SEEDS, 303, 304):
+            evals = config["eval_episodes"]
+            controllers[_random_play_key({**config, "seed": seed}, None)] = {
+                n: {"lengths": list(v) * (evals // 2), "successes": [True] * evals}
+                for n, v in CONTROLLER_LENGTHS.items()}
         for i, (seed, delta) in enumerate(zip(SEEDS, offsets)):
             _write_seed(plan.out, name, seed, config, _curve(curve, delta), fractions, follows)
             for extra in ((seed, 303, 304) if seed == 302 else (seed,)):
@@ -164,6 +176,7 @@ def _sweep_folder(tmp_path, names=tuple(RUNS), episodes=16):
             for seed in (303, 304):
                 _write_seed(plan.out, name, seed, config, [5.0] * 6, FLAT, FLAT)
     (plan.out / "random_play.json").write_text(json.dumps(cache))
+    (plan.out / CONTROLLER_PLAY).write_text(json.dumps(controllers))
     reference = plan.out / "reference" / "g40w2t50"
     reference.mkdir(parents=True)
     (reference / "infotaxis.json").write_text(json.dumps(
@@ -187,6 +200,10 @@ def test_sweep_section_speed_ups_differences_guided_shares_and_hypotheses(tmp_pa
     # the 40x40 panel only; no claim is added to the protocol's verdicts
     assert "(A3W2-sparse) — passed" in panels[2] and "n = 3 seeds" in panels[2]
     assert "Reference lines" in panels[2] and "Reference lines" not in panels[0]
+    # sparse's final levels 29, 30, 31 against infotaxis's 18 steps on the same episodes (SD 1)
+    sd1 = t95(2) / math.sqrt(3)
+    assert (f"MDRL-sparse: final 30.00 ± {sd1:.2f} steps, does not beat infotaxis (18.00 ± 0.00 on the "
+            f"same episodes): +12.00 ± {sd1:.2f} (n = 3 seeds)") in panels[2]
     assert "(sweep-g32-A3W2-sparse) — NOT passed" in panels[1]
     assert r.verdict_counts() == "no claims"
     text = fig.extra(r, fig)

@@ -46,12 +46,14 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def make_env_for(cfg: TrainConfig, num_envs: int, seed: int, reward_shaping: bool):
-    """The batched environment a config describes (:meth:`TrainConfig.make_options`)."""
+def make_env_for(cfg: TrainConfig, num_envs: int, seed: int, reward_shaping: bool, **extra):
+    """The batched environment a config describes (:meth:`TrainConfig.make_options`); ``extra``:
+    further core options over the config's (e.g. ``posterior=True``, which the classical controllers
+    need and which changes no episode)."""
     from .envs import make_batched
 
     return make_batched(cfg.env, num_envs=num_envs, device=cfg.device, seed=seed,
-                        **cfg.make_options(reward_shaping))
+                        **{**cfg.make_options(reward_shaping), **extra})
 
 
 @dataclass

@@ -3,9 +3,11 @@
 - **Reference lines**: random moves and the classical controllers (:mod:`medc_training.controllers`)
   on fixed episodes of the regime, as :mod:`.regime_probes` writes them
   (``<folder>/<regime>/<policy>.json``).
-- **Final policy against the best controller**: a run's final level per seed (the mean of its last
-  three evaluations) against the best classical controller's mean episode length: the difference
-  with a 95% CI that combines the seeds' (Student t) and the controller's episodes' half-widths.
+- **Final policy against the best controller**, on the same episodes: per seed, a run's final level
+  (the mean of its last three evaluations, each on the seed's fixed evaluation episodes) minus a
+  classical controller's mean episode length on those same episodes (as
+  :func:`.report.controller_play` plays them); the mean of these paired differences over the
+  seeds with a 95% Student-t CI, against the controller with the lowest mean length on them.
 - **Steps to sparse's final level**: the training steps at which a run's evaluation first reaches
   MDRL-sparse's final level (the mean over sparse's seeds of their last three evaluations), as a
   ratio to the steps sparse itself needs.
@@ -14,7 +16,6 @@
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -60,24 +61,34 @@ def final_level(curve: Sequence[float]) -> float:
     return sum(tail) / len(tail)
 
 
-def versus_best(label: str, curves: Sequence[Sequence[float]], refs: dict[str, dict]) -> str | None:
+def versus_best(label: str, curves: Sequence[Sequence[float]],
+                played: Sequence[dict[str, float]] | None) -> str | None:
     """How ``label``'s final policies (one curve per seed) compare with the best classical
-    controller in ``refs``; None when no controller was played."""
-    played = {k: v for k, v in refs.items() if k in CONTROLLERS}
-    if not played or not curves:
+    controller on the same episodes; ``played[k]``: each controller's mean episode length on the
+    evaluation episodes of seed k (those of ``curves[k]``). Per seed, the difference of the final
+    level and the controller's length; its mean over the seeds with a 95% Student-t CI, against the
+    controller (of CONTROLLERS, played on every seed) with the lowest mean length over the seeds.
+    None when no controller was played."""
+    if not curves or not played:
         return None
-    name, best = min(played.items(), key=lambda kv: kv[1]["length"])
-    m, h = mean_ci([final_level(c) for c in curves])
-    diff = m - best["length"]
-    half = math.sqrt(h * h + best["length_ci"] ** 2) if math.isfinite(h) else math.inf
+    if len(played) != len(curves):
+        raise ValueError(f"{label}: {len(curves)} curves but controller lengths of {len(played)} seeds")
+    names = [n for n in CONTROLLERS if all(n in p for p in played)]
+    if not names:
+        return None
+    name = min(names, key=lambda n: sum(p[n] for p in played))
+    finals = [final_level(c) for c in curves]
+    m, h = mean_ci(finals)
+    cm, ch = mean_ci([p[name] for p in played])
+    diff, half = mean_ci([f - p[name] for f, p in zip(finals, played)])
     if diff + half < 0:
         word = "beats"
     elif diff - half > 0:
         word = "does not beat"
     else:
         word = "not resolved against"
-    return (f"{label}: final {m:.2f} ± {h:.2f} steps, {word} {name} ({best['length']:.2f} ± "
-            f"{best['length_ci']:.2f}): {diff:+.2f} ± {half:.2f} (n = {len(curves)} seeds)")
+    return (f"{label}: final {m:.2f} ± {h:.2f} steps, {word} {name} ({cm:.2f} ± {ch:.2f} on the same "
+            f"episodes): {diff:+.2f} ± {half:.2f} (n = {len(curves)} seeds)")
 
 
 def steps_to_level(steps: Sequence[float], curve: Sequence[float], level: float) -> float | None:

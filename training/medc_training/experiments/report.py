@@ -8,14 +8,21 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 from ..stats import compare, learning_score, mean_ci
 from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, Scope, long_tags_on_disk, tl_architectures
 from .figures import FIGURES, TAGGED, Figure, Panel, tag_markers
 from .plan import Plan
-from .references import load_references, reference_text, regime_name, speed_section, versus_best
+from .references import (
+    CONTROLLERS,
+    load_references,
+    reference_text,
+    regime_name,
+    speed_section,
+    versus_best,
+)
 
 
 def seed_dirs(out: Path, name: str, seeds: Collection[int] | None = None) -> list[Path]:
@@ -52,7 +59,8 @@ GATE_RANDOM_EPISODES = 256
 
 
 def _random_play_key(cfg: dict, episodes: int | None) -> str:
-    """The OUT/random_play.json key of random play on a run's evaluation episodes."""
+    """The key of a run's evaluation episodes (or of ``episodes`` fixed episodes of its evaluation
+    seed) in OUT/random_play.json and OUT/controller_play.json."""
     from ..config import TrainConfig
     from ..ppo import EVAL_SEED_OFFSET
 
@@ -105,6 +113,89 @@ def random_play_length(out: Path, cfg: dict, episodes: int | None = None) -> flo
     if isinstance(cached, int | float):
         return float(cached)
     return float(random_play(out, cfg, episodes)["episode_length"])
+
+
+#: The classical controllers' play on runs' evaluation episodes (:func:`controller_play`).
+CONTROLLER_PLAY = "controller_play.json"
+
+
+def controller_env(c, seed: int):
+    """The batched core of config ``c`` (a :class:`~medc_training.config.TrainConfig`) on which the
+    classical controllers play its evaluation episodes: the run's own evaluation environment
+    (:func:`medc_training.ppo.make_env_for`, ``eval_envs`` environments, seeded ``seed``) with the
+    team's source posterior kept, which the controllers read and which changes no episode."""
+    from ..ppo import make_env_for
+
+    return make_env_for(c, c.eval_envs, seed, False, posterior=True)
+
+
+def eval_config(cfg: dict, csv_name: str = "metrics.csv") -> dict:
+    """The config whose evaluation episodes a run's ``csv_name`` measured: the run's own for
+    metrics.csv; for an FRL side user's metrics_<AyWz>.csv, the run's with that user's agents, walls
+    and environment options (the user is evaluated on its own environment from the run's evaluation
+    seed, :mod:`medc_training.frl`). Raises ValueError for a side user the run does not have."""
+    if csv_name == "metrics.csv":
+        return cfg
+    name = csv_name.removeprefix("metrics_").removesuffix(".csv")
+    for user in cfg.get("frl_users") or ():
+        agents, walls = user.get("agents", cfg["agents"]), user.get("walls", cfg["walls"])
+        if f"A{agents}W{walls}" == name:
+            return {**cfg, "agents": agents, "walls": walls,
+                    "env_options": user.get("env_options", cfg["env_options"])}
+    raise ValueError(f"{csv_name}: the run has no FRL user {name!r}")
+
+
+def controller_play(out: Path, cfg: dict, controllers: Sequence[str] = CONTROLLERS) -> dict[str, dict]:
+    """{controller: {"lengths", "successes"}} (per episode, in episode order) of each classical
+    controller (:mod:`medc_training.controllers`, played greedily) on a run's evaluation episodes:
+    its ``eval_episodes`` fixed episodes of its evaluation seed and environment
+    (:func:`controller_env`), each played to its end, exactly as the run's evaluations played
+    them (:func:`medc_training.evaluate.play_episodes`). Cached in OUT/controller_play.json by the
+    episodes' key and controller; only what the cache lacks is played. Raises ValueError for a run
+    evaluated with the legacy window (no fixed episodes) or of another application."""
+    from ..config import TrainConfig
+    from ..controllers import controller_policy
+    from ..evaluate import play_episodes
+    from ..ppo import EVAL_SEED_OFFSET
+
+    c = TrainConfig.from_dict(cfg)
+    if not c.eval_episodes:
+        raise ValueError("a run evaluated with the legacy window has no fixed evaluation episodes")
+    if c.env != "target_localization":
+        raise ValueError(f"the classical controllers play target localization, not {c.env!r}")
+    key = _random_play_key(cfg, None)
+    cache_path = out / CONTROLLER_PLAY
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    entry = cache.setdefault(key, {})
+    seed = c.seed + EVAL_SEED_OFFSET
+    env = None
+    for name in controllers:
+        if name in entry:
+            continue
+        env = env or controller_env(c, seed)
+        played = play_episodes(env, controller_policy(name, env), episodes=c.eval_episodes, seed=seed)
+        entry[name] = {"lengths": [int(x) for x in played.lengths],
+                       "successes": [bool(x) for x in played.successes]}
+        cache_path.write_text(json.dumps(cache, indent=1, sort_keys=True) + "\n")
+    return {name: entry[name] for name in controllers}
+
+
+def controller_lengths(out: Path, summaries: Sequence[dict], csv_name: str = "metrics.csv"
+                       ) -> list[dict[str, float]] | None:
+    """Per seed (``summaries``: one summary.json each), each classical controller's mean episode
+    length on the evaluation episodes behind that seed's ``csv_name`` (:func:`controller_play`);
+    None when a seed has no fixed evaluation episodes or is not target localization."""
+    from ..config import TrainConfig
+
+    lengths = []
+    for summary in summaries:
+        cfg = eval_config(summary["config"], csv_name)
+        c = TrainConfig.from_dict(cfg)
+        if not c.eval_episodes or c.env != "target_localization":
+            return None
+        played = controller_play(out, cfg)
+        lengths.append({name: sum(p["lengths"]) / len(p["lengths"]) for name, p in played.items()})
+    return lengths
 
 
 def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEEDS,
@@ -380,9 +471,15 @@ def panel_section(r: Report, panel: Panel, seeds: tuple[int, ...] | None = None,
     lines = [r.gate(panel.gate.name, gate_min_seeds, seeds)]
     if refs:
         lines.append(reference_text(refs))
-        finals = [versus_best(label, v[1], refs) for label, v in data.items()]
-        lines.append("- **Final policies against the best classical controller** (difference of mean "
-                     "episode lengths, 95% CI): " + "; ".join(f for f in finals if f))
+        csvs = {s.label: s.csv for s in panel.series}
+        finals = [versus_best(label, v[1], controller_lengths(r.out, v[2], csvs[label]))
+                  for label, v in data.items()]
+        if any(finals):
+            lines.append("- **Final policies against the best classical controller**, on each seed's own "
+                         "evaluation episodes (per seed, the final level minus the controller's mean "
+                         "episode length on the same episodes; the mean of these differences over the "
+                         "seeds with a 95% CI, Student t; against the controller with the lowest mean "
+                         "length on those episodes): " + "; ".join(f for f in finals if f))
         speed = speed_section(data, next(s.label for s in panel.series if s.run == panel.gate))
         if speed:
             lines.append(speed)
