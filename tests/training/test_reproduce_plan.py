@@ -280,9 +280,13 @@ def test_a_wide_unresolved_claim_is_labelled_under_powered():
     assert verdict([1.0, 1.1, 0.9], [5.0, 5.1, 4.9], underpowered=5.9) == "held"
 
 
-def test_references_and_steps_to_sparses_level(tmp_path):
-    """(The final policies against the controllers: test_controller_play.py.)"""
-    from medc_training.experiments.references import load_references, speed_section, steps_to_level
+def test_references_compare_final_policies_and_steps_to_sparses_level(tmp_path):
+    from medc_training.experiments.references import (
+        load_references,
+        speed_section,
+        steps_to_level,
+        versus_reference,
+    )
 
     for policy, length in (("random", 48.0), ("greedy", 20.0), ("infotaxis", 18.0)):
         lengths = [length - 1, length + 1] * 256
@@ -290,6 +294,11 @@ def test_references_and_steps_to_sparses_level(tmp_path):
             {"policy": policy, "lengths": lengths, "successes": [1.0] * len(lengths)}))
     refs = load_references(tmp_path)
     assert refs["infotaxis"]["episodes"] == 512 and refs["infotaxis"]["length"] == 18.0
+    # final level = mean of the last three evaluations; the best controller is infotaxis, not random
+    good = [[40.0, 12.0, 11.0, 10.0], [40.0, 12.5, 11.5, 10.5], [40.0, 11.5, 10.5, 9.5]]
+    assert "beats infotaxis" in versus_reference("team", good, refs)
+    bad = [[40.0, 30.0, 30.0, 30.0], [40.0, 31.0, 31.0, 31.0], [40.0, 29.0, 29.0, 29.0]]
+    assert "does not beat infotaxis" in versus_reference("team", bad, refs)
     assert steps_to_level([0, 10, 20], [50.0, 30.0, 20.0], 25.0) == 20.0
     assert steps_to_level([0, 10, 20], [50.0, 30.0, 26.0], 25.0) is None
     steps = [0, 100, 200, 300, 400, 500]  # sparse's final level: 20 (its last three evaluations)

@@ -3,11 +3,15 @@
 - **Reference lines**: random moves and the classical controllers (:mod:`medc_training.controllers`)
   on fixed episodes of the regime, as :mod:`.regime_probes` writes them
   (``<folder>/<regime>/<policy>.json``).
-- **Final policy against the best controller**, on the same episodes: per seed, a run's final level
-  (the mean of its last three evaluations, each on the seed's fixed evaluation episodes) minus a
-  classical controller's mean episode length on those same episodes (as
-  :func:`.report.controller_play` plays them); the mean of these paired differences over the
-  seeds with a 95% Student-t CI, against the controller with the lowest mean length on them.
+- **Final policy against the best controller**, as the claims protocol fixed it: a run's final level
+  per seed against the best controller's mean episode length on the reference episodes, the
+  difference with a 95% CI combining the seeds' (Student t) and the controller's episodes'
+  half-widths (:func:`versus_reference`); and, added after the protocol, on the same episodes
+  (:func:`versus_best`): per seed, a run's final level (the mean of its last three evaluations,
+  each on the seed's fixed evaluation episodes) minus a classical controller's mean episode length
+  on those same episodes (as :func:`.report.controller_play` plays them); the mean of these paired
+  differences over the seeds with a 95% Student-t CI, against the controller with the lowest mean
+  length on them.
 - **Steps to sparse's final level**: the training steps at which a run's evaluation first reaches
   MDRL-sparse's final level (the mean over sparse's seeds of their last three evaluations), as a
   ratio to the steps sparse itself needs.
@@ -16,6 +20,7 @@
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -61,6 +66,29 @@ def final_level(curve: Sequence[float]) -> float:
     return sum(tail) / len(tail)
 
 
+def _verdict(diff: float, half: float) -> str:
+    if diff + half < 0:
+        return "beats"
+    if diff - half > 0:
+        return "does not beat"
+    return "not resolved against"
+
+
+def versus_reference(label: str, curves: Sequence[Sequence[float]], refs: dict[str, dict]) -> str | None:
+    """The claims protocol's comparison: ``label``'s final level (one curve per seed) against the
+    best classical controller in ``refs`` (its mean over the reference episodes), the difference
+    with a CI combining the seeds' and the episodes' half-widths; None when no controller was played."""
+    played = {k: v for k, v in refs.items() if k in CONTROLLERS}
+    if not played or not curves:
+        return None
+    name, best = min(played.items(), key=lambda kv: kv[1]["length"])
+    m, h = mean_ci([final_level(c) for c in curves])
+    diff = m - best["length"]
+    half = math.sqrt(h * h + best["length_ci"] ** 2) if math.isfinite(h) else math.inf
+    return (f"{label}: final {m:.2f} ± {h:.2f} steps, {_verdict(diff, half)} {name} ({best['length']:.2f} ± "
+            f"{best['length_ci']:.2f}): {diff:+.2f} ± {half:.2f} (n = {len(curves)} seeds)")
+
+
 def versus_best(label: str, curves: Sequence[Sequence[float]],
                 played: Sequence[dict[str, float]] | None) -> str | None:
     """How ``label``'s final policies (one curve per seed) compare with the best classical
@@ -80,15 +108,9 @@ def versus_best(label: str, curves: Sequence[Sequence[float]],
     finals = [final_level(c) for c in curves]
     m, h = mean_ci(finals)
     cm, ch = mean_ci([p[name] for p in played])
-    diff, half = mean_ci([f - p[name] for f, p in zip(finals, played)])
-    if diff + half < 0:
-        word = "beats"
-    elif diff - half > 0:
-        word = "does not beat"
-    else:
-        word = "not resolved against"
-    return (f"{label}: final {m:.2f} ± {h:.2f} steps, {word} {name} ({cm:.2f} ± {ch:.2f} on the same "
-            f"episodes): {diff:+.2f} ± {half:.2f} (n = {len(curves)} seeds)")
+    diff, half = mean_ci([f - p[name] for f, p in zip(finals, played, strict=True)])
+    return (f"{label}: final {m:.2f} ± {h:.2f} steps, {_verdict(diff, half)} {name} ({cm:.2f} ± {ch:.2f} "
+            f"on the same episodes): {diff:+.2f} ± {half:.2f} (n = {len(curves)} seeds)")
 
 
 def steps_to_level(steps: Sequence[float], curve: Sequence[float], level: float) -> float | None:

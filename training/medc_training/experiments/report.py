@@ -22,6 +22,7 @@ from .references import (
     regime_name,
     speed_section,
     versus_best,
+    versus_reference,
 )
 
 
@@ -471,15 +472,19 @@ def panel_section(r: Report, panel: Panel, seeds: tuple[int, ...] | None = None,
     lines = [r.gate(panel.gate.name, gate_min_seeds, seeds)]
     if refs:
         lines.append(reference_text(refs))
+        finals = [versus_reference(label, v[1], refs) for label, v in data.items()]
+        lines.append("- **Final policies against the best classical controller** (as the protocol fixed "
+                     "it: difference of mean episode lengths, the controller's on the reference episodes, "
+                     "95% CI): " + "; ".join(f for f in finals if f))
         csvs = {s.label: s.csv for s in panel.series}
-        finals = [versus_best(label, v[1], controller_lengths(r.out, v[2], csvs[label]))
+        paired = [versus_best(label, v[1], controller_lengths(r.out, v[2], csvs[label]))
                   for label, v in data.items()]
-        if any(finals):
-            lines.append("- **Final policies against the best classical controller**, on each seed's own "
-                         "evaluation episodes (per seed, the final level minus the controller's mean "
-                         "episode length on the same episodes; the mean of these differences over the "
-                         "seeds with a 95% CI, Student t; against the controller with the lowest mean "
-                         "length on those episodes): " + "; ".join(f for f in finals if f))
+        if any(paired):
+            lines.append("- **The same on each seed's own evaluation episodes** (added after the protocol: "
+                         "per seed, the final level minus the controller's mean episode length on the "
+                         "same episodes; the mean of these differences over the seeds with a 95% CI, "
+                         "Student t; against the controller with the lowest mean length on those "
+                         "episodes): " + "; ".join(f for f in paired if f))
         speed = speed_section(data, next(s.label for s in panel.series if s.run == panel.gate))
         if speed:
             lines.append(speed)
@@ -544,6 +549,8 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
     budget = plan.budget
     for fig in report_figures(out / "runs"):
         for panel in fig.panels:
+            if not plan.planned(panel.gate):
+                continue  # a panel of a team this scope does not train (e.g. an FRL side user's A3W3)
             section = panel_section(r, panel, r.figure_seeds(fig), fig.gate_min_seeds)
             if section:
                 r.add(section)
