@@ -218,12 +218,13 @@ def fig8() -> Figure:
         for rs, sparse in rs_pairs:
             s_sparse, s_rs = report.summaries(sparse.name), report.summaries(rs.name)
             if s_sparse and s_rs:
-                ratios.append((sum(s["train_seconds"] for s in s_rs) / len(s_rs))
-                              / (sum(s["train_seconds"] for s in s_sparse) / len(s_sparse)))
+                ratios.append((f"A3W{rs.walls}", (sum(s["train_seconds"] for s in s_rs) / len(s_rs))
+                               / (sum(s["train_seconds"] for s in s_sparse) / len(s_sparse))))
         if not ratios:
             return None
+        measured = ", ".join(f"{x:.2f} ({team})" for team, x in ratios)
         return ("### RS wall-time overhead\n\n- **The paper: RS needed double the wall time of sparse** — "
-                f"here RS / sparse training wall time = {', '.join(f'{x:.2f}' for x in ratios)} (A3W2, A3W3; "
+                f"here RS / sparse training wall time = {measured} ("
                 "measured in the same worker pool, so it is noisy on a shared machine; `medc-bench train` "
                 "gives a cleaner figure). The BFS distance field is computed once per episode on reset, so "
                 "shaping costs little: the paper's 2x is not expected here, by design.")
