@@ -227,6 +227,19 @@ def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
     assert "not testable (MDRL-sparse did not pass the learnability gate" in blocked
     assert "NOT passed" in r.gate("flat-sparse") and "passed" in r.gate("learned-sparse")
     assert r.verdict_counts() == "2 claims: 1 held, 1 not testable"
+    # A scope that judges a claim only once each side has its seeds: fewer read "incomplete".
+    from medc_training.experiments.catalogue import Scope
+
+    _fake_runs(tmp_path, "medc-two-seeds", [0.5, 0.6], cfg)
+    strict = Report(tmp_path, "cpu", 3, "test", Scope(claim_min_seeds=3))
+    strict.series({"a": "medc", "b": "learned-sparse", "c": "medc-two-seeds"})
+    assert "— held" in strict.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
+    partial = strict.claim("medc beats sparse", "medc-two-seeds", "learned-sparse", gate="learned-sparse")
+    assert "— incomplete (2 and 3 of 3 seeds ran; no verdict yet)" in partial
+    no_worse = strict.claim_no_worse("no worse", "medc-two-seeds", "learned-sparse", 1.0,
+                                     gate="learned-sparse")
+    assert "— incomplete (2 and 3 of 3 seeds ran" in no_worse
+    assert strict.verdict_counts() == "3 claims: 1 held, 2 incomplete"
 
 
 def test_a_reproduction_keeps_the_evaluator_its_runs_were_made_with(tmp_path):

@@ -310,6 +310,14 @@ class Report:
         return (f"not testable (MDRL-sparse did not pass the learnability gate: difference to random "
                 f"play {g['diff']:+.2f} ± {g['half']:.2f}, n = {g['n']})")
 
+    def _incomplete(self, a: list, b: list) -> str | None:
+        """"incomplete ..." when a side of a claim (its seeds' scores ``a``, ``b``) has fewer seeds
+        than the scope's ``claim_min_seeds`` (but at least one: none is "not run")."""
+        need = self.scope.claim_min_seeds
+        if need is None or not a or not b or (len(a) >= need and len(b) >= need):
+            return None
+        return f"incomplete ({len(a)} and {len(b)} of {need} seeds ran; no verdict yet)"
+
     def series(self, names: dict[str, str], csv_name: str = "metrics.csv",
                seeds: tuple[int, ...] | None = None) -> dict:
         data = {}
@@ -353,7 +361,7 @@ class Report:
         a, b = self.scores.get(better, []), self.scores.get(worse, [])
         c = compare(a, b) if a and b else {"diff": math.nan, "half": math.nan}
         blocked = self._untestable(gate, min_seeds, seeds) if a and b else None
-        word = blocked or verdict(a, b, self.scope.underpowered)
+        word = blocked or self._incomplete(a, b) or verdict(a, b, self.scope.underpowered)
         self.verdicts.append(word)
         return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
@@ -368,7 +376,7 @@ class Report:
         c = compare(a, b)
         ok = c["diff"] - c["half"] <= margin
         word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
-        word = self._untestable(gate, min_seeds, seeds) or word
+        word = self._untestable(gate, min_seeds, seeds) or self._incomplete(a, b) or word
         self.verdicts.append(word)
         return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
                 f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
@@ -406,7 +414,7 @@ class Report:
     def verdict_counts(self) -> str:
         """One line counting the claims by verdict (held, contradicted, not resolved, ...)."""
         kinds = ("held", "contradicted", "did not hold", "inconclusive", "not resolved", "not testable",
-                 "no difference", "not run")
+                 "no difference", "incomplete", "not run")
         counts = {k: sum(v.startswith(k) for v in self.verdicts) for k in kinds}
         return (f"{len(self.verdicts)} claims: " + ", ".join(f"{n} {k}" for k, n in counts.items() if n)
                 if self.verdicts else "no claims")
