@@ -156,14 +156,15 @@ def controller_play(out: Path, cfg: dict, controllers: Sequence[str] = CONTROLLE
     evaluated with the legacy window (no fixed episodes) or of another application."""
     from ..config import TrainConfig
     from ..controllers import controller_policy
+    from ..envs import core_has_estimate
     from ..evaluate import play_episodes
     from ..ppo import EVAL_SEED_OFFSET
 
     c = TrainConfig.from_dict(cfg)
     if not c.eval_episodes:
         raise ValueError("a run evaluated with the legacy window has no fixed evaluation episodes")
-    if c.env != "target_localization":
-        raise ValueError(f"the classical controllers play target localization, not {c.env!r}")
+    if not core_has_estimate(c.env):
+        raise ValueError(f"the classical controllers read the team's source estimate; {c.env!r} keeps none")
     key = _random_play_key(cfg, None)
     cache_path = out / CONTROLLER_PLAY
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
@@ -185,14 +186,15 @@ def controller_lengths(out: Path, summaries: Sequence[dict], csv_name: str = "me
                        ) -> list[dict[str, float]] | None:
     """Per seed (``summaries``: one summary.json each), each classical controller's mean episode
     length on the evaluation episodes behind that seed's ``csv_name`` (:func:`controller_play`);
-    None when a seed has no fixed evaluation episodes or is not target localization."""
+    None when a seed has no fixed evaluation episodes or its application keeps no source estimate."""
     from ..config import TrainConfig
+    from ..envs import core_has_estimate
 
     lengths = []
     for summary in summaries:
         cfg = eval_config(summary["config"], csv_name)
         c = TrainConfig.from_dict(cfg)
-        if not c.eval_episodes or c.env != "target_localization":
+        if not c.eval_episodes or not core_has_estimate(c.env):
             return None
         played = controller_play(out, cfg)
         lengths.append({name: sum(p["lengths"]) / len(p["lengths"]) for name, p in played.items()})
