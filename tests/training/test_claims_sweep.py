@@ -13,7 +13,7 @@ from medc_training.experiments.plan import Plan
 from medc_training.experiments.report import (
     CONTROLLER_PLAY,
     Report,
-    _random_play_key,
+    _episodes_key,
     panel_section,
     random_play,
     random_play_length,
@@ -162,7 +162,7 @@ def _sweep_folder(tmp_path, names=tuple(RUNS), episodes=16):
         config = {**configs[name], "total_steps": STEPS[-1]}
         for seed in (*SEEDS, 303, 304):
             evals = config["eval_episodes"]
-            controllers[_random_play_key({**config, "seed": seed}, None)] = {
+            controllers[_episodes_key({**config, "seed": seed}, None)] = {
                 n: {"lengths": list(v) * (evals // 2), "successes": [True] * evals}
                 for n, v in CONTROLLER_LENGTHS.items()}
         for i, (seed, delta) in enumerate(zip(SEEDS, offsets)):
@@ -170,7 +170,7 @@ def _sweep_folder(tmp_path, names=tuple(RUNS), episodes=16):
             for extra in ((seed, 303, 304) if seed == 302 else (seed,)):
                 if name in RANDOM:
                     length, success = RANDOM[name][i]
-                    cache[_random_play_key({**config, "seed": extra}, episodes)] = {
+                    cache[_episodes_key({**config, "seed": extra}, episodes)] = {
                         "episode_length": length, "success_rate": success}
         if name in (SPARSE, MEDC):
             for seed in (303, 304):
@@ -254,7 +254,7 @@ def test_random_play_keeps_the_success_rate_and_reads_old_length_only_entries(tm
 
     config = TrainConfig(agents=1, walls=0, grid=7, max_steps=10, eval_envs=8, eval_episodes=8,
                          observation="maps", seed=3).to_dict()
-    key = _random_play_key(config, None)
+    key = _episodes_key(config, None)
     (tmp_path / "random_play.json").write_text(json.dumps({key: 9.5}))  # written before success rates
     assert random_play_length(tmp_path, config) == 9.5  # read as it is, nothing played
     assert json.loads((tmp_path / "random_play.json").read_text()) == {key: 9.5}

@@ -14,7 +14,7 @@ from medc_training.config import TrainConfig
 from medc_training.experiments.references import CONTROLLERS, versus_best
 from medc_training.experiments.report import (
     CONTROLLER_PLAY,
-    _random_play_key,
+    _episodes_key,
     controller_env,
     controller_lengths,
     controller_play,
@@ -84,7 +84,7 @@ def test_controllers_play_the_runs_own_evaluation_episodes_and_the_cache_is_reus
         assert len(played[name]["lengths"]) == len(played[name]["successes"]) == 6
         assert all(1 <= n <= 12 for n in played[name]["lengths"])
     cache = json.loads((tmp_path / CONTROLLER_PLAY).read_text())
-    assert list(cache) == [_random_play_key(cfg, None)] and cache[_random_play_key(cfg, None)] == played
+    assert list(cache) == [_episodes_key(cfg, None)] and cache[_episodes_key(cfg, None)] == played
 
     # A second time nothing is played: everything comes from the cache.
     def refuse(*args, **kwargs):
@@ -124,7 +124,7 @@ def test_final_policies_are_compared_with_the_controllers_on_each_seeds_own_epis
     for k, curve in curves.items():
         cfg = {**base, "seed": k}
         _fake_seed(tmp_path, "team", cfg, curve)
-        cache[_random_play_key(cfg, None)] = {
+        cache[_episodes_key(cfg, None)] = {
             "infotaxis": {"lengths": infotaxis[k], "successes": [True, True]},
             "greedy": {"lengths": [25, 25], "successes": [True, True]},
             "gradient": {"lengths": [40, 40], "successes": [False, False]}}

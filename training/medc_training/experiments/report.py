@@ -59,7 +59,7 @@ GATE_MIN_SEEDS = 3
 GATE_RANDOM_EPISODES = 256
 
 
-def _random_play_key(cfg: dict, episodes: int | None) -> str:
+def _episodes_key(cfg: dict, episodes: int | None) -> str:
     """The key of a run's evaluation episodes (or of ``episodes`` fixed episodes of its evaluation
     seed) in OUT/random_play.json and OUT/controller_play.json."""
     from ..config import TrainConfig
@@ -87,7 +87,7 @@ def random_play(out: Path, cfg: dict, episodes: int | None = None) -> dict:
     from ..evaluate import play, play_episodes
     from ..ppo import EVAL_SEED_OFFSET, make_env_for
 
-    key = _random_play_key(cfg, episodes)
+    key = _episodes_key(cfg, episodes)
     cache_path = out / "random_play.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     if not isinstance(cache.get(key), dict):
@@ -110,7 +110,7 @@ def random_play_length(out: Path, cfg: dict, episodes: int | None = None) -> flo
     read as it is: nothing is played again)."""
     cache_path = out / "random_play.json"
     cached = (json.loads(cache_path.read_text()) if cache_path.exists() else {}).get(
-        _random_play_key(cfg, episodes))
+        _episodes_key(cfg, episodes))
     if isinstance(cached, int | float):
         return float(cached)
     return float(random_play(out, cfg, episodes)["episode_length"])
@@ -146,6 +146,18 @@ def eval_config(cfg: dict, csv_name: str = "metrics.csv") -> dict:
     raise ValueError(f"{csv_name}: the run has no FRL user {name!r}")
 
 
+def _controllers_refuse(c) -> str | None:
+    """Why the classical controllers cannot play the evaluation episodes of config ``c`` (a
+    :class:`~medc_training.config.TrainConfig`); None when they can."""
+    from ..envs import core_has_estimate
+
+    if not c.eval_episodes:
+        return "a run evaluated with the legacy window has no fixed evaluation episodes"
+    if not core_has_estimate(c.env):
+        return f"the classical controllers read the team's source estimate; {c.env!r} keeps none"
+    return None
+
+
 def controller_play(out: Path, cfg: dict, controllers: Sequence[str] = CONTROLLERS) -> dict[str, dict]:
     """{controller: {"lengths", "successes"}} (per episode, in episode order) of each classical
     controller (:mod:`medc_training.controllers`, played greedily) on a run's evaluation episodes:
@@ -156,16 +168,14 @@ def controller_play(out: Path, cfg: dict, controllers: Sequence[str] = CONTROLLE
     evaluated with the legacy window (no fixed episodes) or of another application."""
     from ..config import TrainConfig
     from ..controllers import controller_policy
-    from ..envs import core_has_estimate
     from ..evaluate import play_episodes
     from ..ppo import EVAL_SEED_OFFSET
 
     c = TrainConfig.from_dict(cfg)
-    if not c.eval_episodes:
-        raise ValueError("a run evaluated with the legacy window has no fixed evaluation episodes")
-    if not core_has_estimate(c.env):
-        raise ValueError(f"the classical controllers read the team's source estimate; {c.env!r} keeps none")
-    key = _random_play_key(cfg, None)
+    refused = _controllers_refuse(c)
+    if refused:
+        raise ValueError(refused)
+    key = _episodes_key(cfg, None)
     cache_path = out / CONTROLLER_PLAY
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     entry = cache.setdefault(key, {})
@@ -188,13 +198,11 @@ def controller_lengths(out: Path, summaries: Sequence[dict], csv_name: str = "me
     length on the evaluation episodes behind that seed's ``csv_name`` (:func:`controller_play`);
     None when a seed has no fixed evaluation episodes or its application keeps no source estimate."""
     from ..config import TrainConfig
-    from ..envs import core_has_estimate
 
     lengths = []
     for summary in summaries:
         cfg = eval_config(summary["config"], csv_name)
-        c = TrainConfig.from_dict(cfg)
-        if not c.eval_episodes or not core_has_estimate(c.env):
+        if _controllers_refuse(TrainConfig.from_dict(cfg)):
             return None
         played = controller_play(out, cfg)
         lengths.append({name: sum(p["lengths"]) / len(p["lengths"]) for name, p in played.items()})
