@@ -151,6 +151,35 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     assert time.perf_counter() - start < 0.05
 
 
+def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch) -> None:
+    # A shared machine can stall the 1/16 strip a big layer is probed on; scaled up by 16, one stall
+    # would refuse a bundle well under the limit. The estimate is taken only if a second strip confirms it.
+    full = load_bundle(_slow_bundle())
+    blank = torch.zeros((1, *full.obs_shape))
+    allowed = torch.ones((1, 8), dtype=torch.bool)
+    passes = []
+    for _ in range(2):  # warm, then one timed pass
+        start = time.perf_counter()
+        dryrun_mod.timed_forward(full.net, blank, allowed, float("inf"))
+        passes.append(time.perf_counter() - start)
+    limit = 4 * passes[-1] + 0.1
+    real_strip, calls = dryrun_mod._run_strip, []
+
+    def stalled_once(module, part, stride):
+        calls.append(part.shape)
+        seconds = real_strip(module, part, stride)
+        return seconds + (limit if len(calls) == 1 else 0.0)  # the first strip "stalls" a whole limit
+
+    monkeypatch.setattr(dryrun_mod, "_run_strip", stalled_once)
+    assert dryrun_mod.timed_forward(full.net, blank, allowed, limit) < limit
+    assert len(calls) == 2  # the stalled strip was run again, and its second run counted
+    calls.clear()
+    monkeypatch.setattr(dryrun_mod, "_run_strip", real_strip)
+    with pytest.raises(dryrun_mod.TooSlow) as slow:  # a limit the layer really passes is still enforced
+        dryrun_mod.timed_forward(full.net, blank, allowed, passes[-1] / 50)
+    assert slow.value.seconds > passes[-1] / 50
+
+
 # --- item 6: the grid a manifest names -----------------------------------------------------------------
 
 @pytest.mark.parametrize("grid", [10**6, 256, MAX_BUNDLE_GRID + 1, 0, 12.5])

@@ -87,9 +87,24 @@ def _layer_operations(module: nn.Module, x: torch.Tensor) -> int:
     return m * per_out * oh * ow
 
 
-def _probe_seconds(module: nn.Module, x: torch.Tensor) -> float | None:
+def _run_strip(module: nn.Module, part: torch.Tensor, stride: int) -> float:
+    """Seconds ``module`` (a conv2d, already padded, or a maxpool2d) takes on the rows ``part``."""
+    start = time.perf_counter()
+    if isinstance(module, nn.Conv2d):
+        F.conv2d(part, module.weight, module.bias, stride=stride)
+    else:
+        F.max_pool2d(part, module.kernel_size, stride=stride)
+    return time.perf_counter() - start
+
+
+def _probe_seconds(module: nn.Module, x: torch.Tensor, budget: float = float("inf")) -> float | None:
     """Estimated seconds of ``module`` (a conv2d or maxpool2d) on ``x``: its time on the first
-    ``PROBE_FRACTION`` of its output rows, scaled up; None when the layer is too small to probe."""
+    ``PROBE_FRACTION`` of its output rows, scaled up; None when the layer is too small to probe.
+
+    An estimate over ``budget`` (the time left before the limit) is taken only if a second run of
+    the strip confirms it (the faster of the two counts): on a shared machine one strip can be
+    stalled for tens of milliseconds, which scaled up by the strip's fraction would refuse a bundle
+    that is not slow. A slow layer pays one more strip (a sixteenth of the layer) to be refused."""
     if _layer_operations(module, x) <= PROBE_OPERATIONS:
         return None
     k, s = module.kernel_size, module.stride
@@ -103,12 +118,10 @@ def _probe_seconds(module: nn.Module, x: torch.Tensor) -> float | None:
     if strip >= rows_out:
         return None
     part = x[:, :, :(strip - 1) * s + k, :]
-    start = time.perf_counter()
-    if isinstance(module, nn.Conv2d):
-        F.conv2d(part, module.weight, module.bias, stride=s)
-    else:
-        F.max_pool2d(part, k, stride=s)
-    return (time.perf_counter() - start) * rows_out / strip
+    seconds = _run_strip(module, part, s)
+    if seconds * rows_out / strip > budget:
+        seconds = min(seconds, _run_strip(module, part, s))
+    return seconds * rows_out / strip
 
 
 def timed_forward(net: nn.Module, obs: torch.Tensor, mask: torch.Tensor, limit_s: float) -> float:
@@ -127,7 +140,7 @@ def timed_forward(net: nn.Module, obs: torch.Tensor, mask: torch.Tensor, limit_s
         for i, module in enumerate(net.trunk):
             if isinstance(module, nn.Conv2d | nn.MaxPool2d):
                 start = time.perf_counter()
-                estimate = _probe_seconds(module, x)
+                estimate = _probe_seconds(module, x, limit_s - spent)
                 spent += time.perf_counter() - start
                 if estimate is not None and spent + estimate > limit_s:
                     raise TooSlow(spent + estimate, True, i)
