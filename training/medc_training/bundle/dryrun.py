@@ -118,10 +118,11 @@ def _probe_seconds(module: nn.Module, x: torch.Tensor, budget: float = float("in
     if strip >= rows_out:
         return None
     part = x[:, :, :(strip - 1) * s + k, :]
+    scale = rows_out / strip
     seconds = _run_strip(module, part, s)
-    if seconds * rows_out / strip > budget:
+    if seconds * (scale + 1) > budget:  # the estimate plus the strip's own time, as the caller counts them
         seconds = min(seconds, _run_strip(module, part, s))
-    return seconds * rows_out / strip
+    return seconds * scale
 
 
 def timed_forward(net: nn.Module, obs: torch.Tensor, mask: torch.Tensor, limit_s: float) -> float:
