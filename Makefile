@@ -4,6 +4,8 @@ VENV := .venv
 PY := $(VENV)/bin/python
 QUICK ?= 0
 PYTEST_ARGS ?=
+# pytest-xdist workers of `make test` (tests/conftest.py keeps the ROS graph tests on one of them).
+TEST_WORKERS ?= 2
 
 .PHONY: setup demo test lint clean reproduce bench
 
@@ -14,7 +16,7 @@ demo: setup
 	@source scripts/env.sh && medc-demo $(if $(filter 1,$(QUICK)),--quick,)
 
 test: setup
-	@source scripts/env.sh && ruff check . && python -m pytest $(PYTEST_ARGS)
+	@source scripts/env.sh && ruff check . && python -m pytest -n $(TEST_WORKERS) --dist loadgroup $(PYTEST_ARGS)
 
 lint: setup
 	@source scripts/env.sh && ruff check .

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections import OrderedDict
 
 import pytest
 import torch
@@ -21,6 +22,7 @@ from medc_training.bundle import (
     read_manifest,
 )
 from medc_training.bundle import dryrun as dryrun_mod
+from medc_training.bundle import policy as policy_mod
 from medc_training.cli.inspect import main as inspect_main
 
 TINY = torch.finfo(torch.float32).tiny
@@ -96,9 +98,10 @@ def _slow_bundle() -> bytes:
 def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[float, float, object, float]:
     """(one warm pass's seconds, the limit, the TooSlow raised, seconds to raise it). The limit is a
     quarter of a pass, or three times the small padding layers before the big one if they take longer (on
-    some machines they are a third of a pass: memory-bound, where the big convolution is not)."""
+    some machines they are a third of a pass: memory-bound, where the big convolution is not). Each
+    layer's time is its fastest of three passes: a stall of a shared machine in one pass is not its cost."""
     times = []
-    for _ in range(2):  # warm: the first call of a shape also builds its kernels
+    for _ in range(3):  # warm: the first call of a shape also builds its kernels
         x, layers = blank, []
         with torch.no_grad():
             for module in full.net.trunk:
@@ -106,7 +109,7 @@ def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[floa
                 x = module(x)
                 layers.append(time.perf_counter() - start)
         times.append(layers)
-    layers = min(times, key=sum)
+    layers = [min(each) for each in zip(*times, strict=True)]
     one_pass = sum(layers)
     limit = max(one_pass / 4, 3 * sum(layers[:3]))  # "too slow" here, whatever the machine's speed
     assert limit < one_pass, layers  # the big layer is what makes the bundle too slow
@@ -116,7 +119,9 @@ def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[floa
     return one_pass, limit, slow.value, time.perf_counter() - start
 
 
-def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(tmp_path) -> None:
+@pytest.mark.timing
+def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(
+        tmp_path, monkeypatch) -> None:
     data = _slow_bundle()
     full = load_bundle(data)
     blank = torch.zeros((1, *full.obs_shape))
@@ -136,21 +141,34 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     # The dry run's observation of the bundle's environment is built once per process (a few
     # random steps of the scenario, ~0.3 s): built here, so that what is timed is the refusal.
     dryrun_mod.dry_run_observations(full.manifest, full.obs_shape)
-    start = time.perf_counter()
-    with pytest.raises(BundleError, match=r"takes .* s to evaluate, over the .* s limit \(too slow") as info:
-        load_untrusted(first, max_forward_s=limit)
-    refused_in = time.perf_counter() - start
+    # Before: a full blank pass, then a second one (a cold start's second chance): >= 2 passes. As
+    # above, a stall can refuse it another way or slowly: measured again (3 tries, each with the
+    # refusals remembered so far forgotten).
+    too_slow = r"takes .* s to evaluate, over the .* s limit \(too slow"
+    for _ in range(3):
+        monkeypatch.setattr(policy_mod, "_REFUSED", OrderedDict())
+        start = time.perf_counter()
+        with pytest.raises(BundleError, match=too_slow) as info:
+            load_untrusted(first, max_forward_s=limit)
+        refused_in = time.perf_counter() - start
+        estimated = "estimated from a part of layer 3" in str(info.value)
+        if estimated and refused_in < one_pass:
+            break
     assert str(info.value).startswith(f"{first}: ")
-    # Before: a full blank pass, then a second one (a cold start's second chance): >= 2 passes.
+    assert estimated, str(info.value)
     assert refused_in < one_pass, (refused_in, one_pass)
     again = tmp_path / "republished.safetensors"
     shutil.copy(first, again)
-    start = time.perf_counter()
+    work = []  # every bundle decoded past its header, every timed pass, from here on
+    real_load, real_forward = policy_mod._load, policy_mod.timed_forward
+    monkeypatch.setattr(policy_mod, "_load", lambda *args: work.append("load") or real_load(*args))
+    monkeypatch.setattr(policy_mod, "timed_forward", lambda *args: work.append("pass") or real_forward(*args))
     with pytest.raises(BundleError, match="refused before; not checked again"):
         load_untrusted(again, max_forward_s=limit)
-    assert time.perf_counter() - start < 0.05
+    assert work == []  # refused by its content's digest: neither loaded nor run
 
 
+@pytest.mark.timing
 def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch) -> None:
     # A shared machine can stall the 1/16 strip a big layer is probed on; scaled up by 16, one stall
     # would refuse a bundle well under the limit. The estimate is taken only if a second strip confirms it.

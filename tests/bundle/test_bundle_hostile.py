@@ -244,6 +244,7 @@ def test_shipped_architectures_pass_the_dry_run_limit() -> None:
         load_untrusted(forge(tensors, manifest))
 
 
+@pytest.mark.timing
 def test_a_slow_forward_pass_is_refused(parts) -> None:
     tensors, manifest = parts
     data = forge(tensors, manifest)

@@ -26,14 +26,17 @@ def revert_of(excinfo: pytest.ExceptionInfo) -> ContractRevert:
 
 class RpcProxy:
     """A loopback HTTP proxy in front of the JSON-RPC node at ``target`` that can be made slow or
-    faulty while a test runs: every call waits ``delay`` seconds first (a slow node); methods in
-    ``lose_request`` never reach the node; methods in ``lose_answer`` reach it but their answer is
-    dropped (the transaction is mined, the client never hears of it). ``seen`` lists every method
-    called, in order."""
+    faulty while a test runs: every call waits ``delay`` seconds first (a slow node); a call for
+    whose request (the JSON-RPC object) ``hold`` is true waits until ``release`` is set (a node that
+    takes as long as the test wants); methods in ``lose_request`` never reach the node; methods in
+    ``lose_answer`` reach it but their answer is dropped (the transaction is mined, the client
+    never hears of it). ``seen`` lists every method called, in order."""
 
     def __init__(self, target: str, delay: float = 0.0) -> None:
         self.target = target
         self.delay = delay
+        self.hold = lambda request: False
+        self.release = threading.Event()
         self.lose_answer: set[str] = set()
         self.lose_request: set[str] = set()
         self.seen: list[str] = []
@@ -50,8 +53,11 @@ class RpcProxy:
 
             def do_POST(self):
                 body = self.rfile.read(int(self.headers["Content-Length"]))
-                method = json.loads(body).get("method", "")
+                request = json.loads(body)
+                method = request.get("method", "")
                 proxy.seen.append(method)
+                if proxy.hold(request):
+                    proxy.release.wait(600)
                 time.sleep(proxy.delay)
                 if method in proxy.lose_request:
                     self.close_connection = True
@@ -71,6 +77,7 @@ class RpcProxy:
         return Handler
 
     def close(self) -> None:
+        self.release.set()
         self.server.shutdown()
         self.server.server_close()
 

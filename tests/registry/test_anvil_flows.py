@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from medc_bringup.gas import APPLICATION, CID, DESCRIPTION
@@ -26,6 +28,7 @@ def anvil(tmp_path_factory):
     node.stop()
 
 
+@pytest.mark.timing
 def test_full_flow_over_json_rpc_with_poa_middleware(anvil, tmp_path):
     chain = ChainClient.connect(anvil.url, anvil.extra["private_keys"], poa=True)
     reg = Registry(chain, LocalContentStore(tmp_path), deploy_contracts(chain))
@@ -46,6 +49,7 @@ def test_full_flow_over_json_rpc_with_poa_middleware(anvil, tmp_path):
     assert chain.balance(reg.deployment.models) == 0
 
 
+@pytest.mark.timing
 def test_resending_the_same_signed_payment_pays_once(anvil, tmp_path):
     chain = ChainClient.connect(anvil.url, anvil.extra["private_keys"])
     reg = Registry(chain, LocalContentStore(tmp_path), deploy_contracts(chain))
@@ -69,13 +73,16 @@ def test_resending_the_same_signed_payment_pays_once(anvil, tmp_path):
     assert chain.call(reg.models.functions.allocationCount()) == 1
 
 
+@pytest.mark.timing
 def test_transaction_survives_a_node_restart(tmp_path):
     port = free_port()
     state = tmp_path / "state.json"
     node = start_anvil(tmp_path / "a", state_file=state, port=port)
     keys = node.extra["private_keys"]
     try:
-        chain = ChainClient.connect(node.url, keys, retries=5, backoff=0.3)
+        # Retries until the node is back, however long a loaded machine takes to restart it (the
+        # backoff doubles: 8 retries outlast the call's 60 s deadline).
+        chain = ChainClient.connect(node.url, keys, retries=8, backoff=0.3)
         reg = Registry(chain, LocalContentStore(tmp_path / "s"), deploy_contracts(chain))
         for i in (1, 2):
             reg.as_user(i).register_user()
@@ -99,6 +106,7 @@ def test_transaction_survives_a_node_restart(tmp_path):
         node.stop()
 
 
+@pytest.mark.timing
 def test_unreachable_node_gives_a_clear_error():
     with pytest.raises(ChainError, match="could not reach the node"):
         ChainClient.connect(f"http://127.0.0.1:{free_port()}", ["0x" + "11" * 32], retries=1, backoff=0.05)
@@ -106,6 +114,16 @@ def test_unreachable_node_gives_a_clear_error():
         ChainClient.connect("ws://127.0.0.1:1", ["0x" + "11" * 32])
 
 
+def _exited(pid: int) -> bool:
+    """Whether process ``pid`` has ended (a zombie its parent has not reaped yet has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return stat.rsplit(")", 1)[1].split()[0] == "Z"
+
+
+@pytest.mark.timing
 def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
     home = ["--home", str(tmp_path / "home")]
     model = tmp_path / "expert.bin"
@@ -121,8 +139,13 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
         args = ["share", str(model), "--application", APP, "--env", "agents=1", "--env", "walls=3"]
         assert cli_main([*home, *args, "--price", "0.001", "--account", "1"]) == 0
         cid = capsys.readouterr().out.split("CID ")[1].split(",")[0]
+        pid = json.loads((tmp_path / "home" / "registry.json").read_text())["node"]["pid"]
         assert cli_main([*home, "stop"]) == 0
-        time.sleep(0.5)
+        # stop signals the node and returns; the node writes its state as it exits.
+        deadline = time.monotonic() + 60
+        while not _exited(pid):
+            assert time.monotonic() < deadline, f"anvil (pid {pid}) still running 60 s after stop"
+            time.sleep(0.05)
         assert cli_main([*home, "start"]) == 0  # same chain state, same contracts
         assert "restarted anvil" in capsys.readouterr().out
         req = ["request", "--application", APP, "--env", "agents=3", "--env", "walls=2", "--count", "2"]
@@ -146,6 +169,7 @@ def test_cli_state_survives_invocations_and_node_restarts(tmp_path, capsys):
         cli_main([*home, "stop"])
 
 
+@pytest.mark.timing
 def test_bridge_opens_a_json_rpc_registry_through_the_home_spec(anvil, tmp_path):
     """The bridge's parameters are a spec of medc_registry.home: key file, contracts, store."""
     from medc_registry.bridge_node import BridgeError, connect_registry
@@ -165,6 +189,7 @@ def test_bridge_opens_a_json_rpc_registry_through_the_home_spec(anvil, tmp_path)
         connect_registry(anvil.url, str(tmp_path / "store"), dep.users, dep.models, str(keys), account=2)
 
 
+@pytest.mark.timing
 def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):
     keys = tmp_path / "keys.txt"
     keys.write_text("\n".join(anvil.extra["private_keys"][5:8]) + "\n")
@@ -180,6 +205,7 @@ def test_cli_deploy_on_an_existing_node(anvil, tmp_path, capsys):
     assert "external chain" in capsys.readouterr().err
 
 
+@pytest.mark.timing
 def test_gas_is_the_same_on_anvil_cancun_and_eth_tester_prague(anvil, embedded_chain):
     tester = embedded_chain[0].w3.provider.ethereum_tester
     snap = tester.take_snapshot()

@@ -41,6 +41,10 @@ from medc_registry.content import (
     LocalContentStore,
 )
 
+#: What a loaded machine may add to a deadline before the failure shows: scheduling, not waiting.
+#: The hostile servers below would hold a fetch far longer (a minute) than deadline + LATE_S.
+LATE_S = 3.0
+
 
 class FakeKubo:
     """``answers[path](arg)`` returns (headers, iterable of body pieces, seconds between pieces)."""
@@ -106,40 +110,46 @@ def test_content_limit_is_the_bundle_loaders_ceiling(tmp_path):
 
 # ----------------------------------------------------------------------------- CID texts
 @pytest.mark.parametrize("prefix", ["z", "b", "Qm", "x"])
-def test_a_huge_cid_text_is_refused_instantly(prefix, tmp_path):
+def test_a_huge_cid_text_is_refused_instantly(prefix, tmp_path, monkeypatch):
+    """Refused on its length, before any decoding (its quadratic base58 decoding took 13.6 s)."""
+    from medc_registry import cid as cid_mod
+
+    def never(text):
+        raise AssertionError(f"decoded a {len(text)}-character text")
+
+    monkeypatch.setattr(cid_mod, "b58decode", never)
+    monkeypatch.setattr(cid_mod, "_b32decode", never)
     text = prefix + "1" * 200_000
-    started = time.perf_counter()
     with pytest.raises(CidError, match=f"at most {MAX_CID_LENGTH} characters"):
         parse_cid(text)
-    assert time.perf_counter() - started < 0.01  # was 13.6 s (quadratic base58)
     local, kubo = LocalContentStore(tmp_path), KuboContentStore("http://127.0.0.1:1")
-    started = time.perf_counter()
     with pytest.raises(ContentStoreError, match="invalid CID"):
         local.fetch(text)
     with pytest.raises(ContentStoreError, match="invalid CID"):
-        kubo.fetch(text)  # refused before any request
-    assert time.perf_counter() - started < 0.05
+        kubo.fetch(text)  # refused before any request (nothing listens on port 1)
 
 
 # ----------------------------------------------------------------------------- deadline
+@pytest.mark.timing
 def test_a_dripping_node_fails_at_the_fetch_deadline(kubo):
     cid = compute_cid(b"x" * 1000)
-    kubo.answers["/api/v0/cat"] = lambda arg: ({}, (b"x" for _ in range(40)), 0.2)  # 5 bytes/s, 8 s
+    kubo.answers["/api/v0/cat"] = lambda arg: ({}, (b"x" for _ in range(300)), 0.2)  # 5 bytes/s, 60 s
     store = KuboContentStore(kubo.url, timeout=30, deadline=1.5)
     started = time.monotonic()
     with pytest.raises(ContentNotFoundError, match=r"within the 1\.5 s fetch deadline"):
         store.fetch(cid)
-    assert time.monotonic() - started < 2.5
+    assert time.monotonic() - started < 1.5 + LATE_S
 
 
+@pytest.mark.timing
 def test_a_silent_node_fails_at_the_deadline_not_the_read_timeout(kubo):
     cid = compute_cid(b"y")
-    kubo.answers["/api/v0/cat"] = lambda arg: ({}, (b"" for _ in range(1)), 6.0)
+    kubo.answers["/api/v0/cat"] = lambda arg: ({}, (b"" for _ in range(1)), 60.0)
     store = KuboContentStore(kubo.url, timeout=30, deadline=1.0)
     started = time.monotonic()
     with pytest.raises(ContentNotFoundError, match="fetch deadline"):
         store.fetch(cid)
-    assert time.monotonic() - started < 2.0
+    assert time.monotonic() - started < 1.0 + LATE_S
 
 
 # ----------------------------------------------------------------------------- size
@@ -203,10 +213,17 @@ def test_a_dag_declaring_more_than_the_limit_is_refused_before_assembling():
 
 def test_a_dag_assembling_more_than_it_declares_is_refused():
     root, blocks = _bomb(2, declared=10_000)  # declares 10 kB, would assemble 124 MB
-    started = time.perf_counter()
+    fetched: list[Cid] = []
+
+    def get(c):
+        fetched.append(c)
+        return blocks[c]
+
     with pytest.raises(ContentTooLargeError, match="more than the 10000 bytes it declares"):
-        assemble(root, blocks.__getitem__)
-    assert time.perf_counter() - started < 1.0
+        assemble(root, get)
+    # As soon as it outgrows its declaration: the root, one inner node and the three 4 KiB leaves
+    # past 10 kB, not the 30,451 blocks of the whole DAG.
+    assert len(fetched) <= 5, len(fetched)
 
 
 def test_the_kubo_store_refuses_a_dag_bomb_through_block_get(kubo):

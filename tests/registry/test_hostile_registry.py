@@ -162,12 +162,16 @@ def serving(answer):
         server.close()
 
 
+#: What a loaded machine may add to a deadline before the failure shows: scheduling, not waiting.
+#: The hostile servers here drip for ever, and the per-read timeouts are far longer than LATE_S.
+LATE_S = 3.0
 DRIP_HEADER = b"HTTP/1.1 200 OK\r\nX-Drip: "  # then one header byte at a time, never ending
 DRIP_BODY = b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 1000000\r\n\r\n{"
 KEY = "0x" + "11" * 32
 
 
 # ----------------------------------------------------------------------------- item 10: deadlines
+@pytest.mark.timing
 @pytest.mark.parametrize("head, byte", [(DRIP_HEADER, b"a"), (DRIP_BODY, b" ")], ids=["header", "body"])
 def test_a_dripping_json_rpc_node_fails_at_the_deadline(head, byte, tmp_path, capsys):
     from medc_registry import ChainClient
@@ -178,7 +182,7 @@ def test_a_dripping_json_rpc_node_fails_at_the_deadline(head, byte, tmp_path, ca
         started = time.monotonic()
         with pytest.raises(ChainError, match=r"within the 1\.5 s deadline"):
             ChainClient.connect(url, [KEY], deadline=1.5)
-        assert time.monotonic() - started < 3.0
+        assert time.monotonic() - started < 1.5 + LATE_S
         home = tmp_path / "home"
         home.mkdir()
         (home / "keys.txt").write_text(KEY + "\n")
@@ -187,11 +191,12 @@ def test_a_dripping_json_rpc_node_fails_at_the_deadline(head, byte, tmp_path, ca
         (home / "registry.json").write_text(json.dumps(state))
         started = time.monotonic()
         assert cli_main(["--home", str(home), "--deadline", "2", "status"]) == 2
-        assert time.monotonic() - started < 4.0
+        assert time.monotonic() - started < 2 + LATE_S
         err = capsys.readouterr().err
         assert "within the 2 s deadline" in err and "Traceback" not in err
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("head, byte", [(DRIP_HEADER, b"a"), (DRIP_BODY, b" ")], ids=["header", "body"])
 def test_a_dripping_ipfs_node_fails_at_the_fetch_and_add_deadlines(head, byte):
     from medc_registry.cid import compute_cid
@@ -204,7 +209,7 @@ def test_a_dripping_ipfs_node_fails_at_the_fetch_and_add_deadlines(head, byte):
             started = time.monotonic()
             with pytest.raises(ContentNotFoundError, match="within"):
                 action()
-            assert time.monotonic() - started < 3.5
+            assert time.monotonic() - started < 2.0 + LATE_S
 
 
 # ----------------------------------------------------------------------------- item 11: malformed answers
@@ -221,6 +226,7 @@ def _rpc(on_call):
     return answer
 
 
+@pytest.mark.timing
 def test_malformed_json_rpc_answers_are_typed_errors():
     from eth_utils import keccak
     from medc_registry import ChainClient
@@ -242,12 +248,13 @@ def test_malformed_json_rpc_answers_are_typed_errors():
     }
     for name, (on_call, error) in cases.items():
         with serving(_rpc(on_call)) as url:
-            chain = ChainClient.connect(url, [KEY], deadline=10)
+            # The answer itself is refused (its type says why), long before the deadline would end the call.
+            chain = ChainClient.connect(url, [KEY], deadline=120)
             mmc = chain.contract("ModelsManager", "0x" + "33" * 20)
             started = time.monotonic()
             with pytest.raises(error) as info:
                 chain.call(mmc.functions.modelCount())
-            assert time.monotonic() - started < 8, name
+            assert time.monotonic() - started < 60, name
             if error is ContractRevert:
                 assert info.value.error == "MalformedRevert", name
     assert decode_error_data(selector + bytes(10)).error == "MalformedRevert"
@@ -272,6 +279,7 @@ def _raw(body: bytes, ctype: bytes = b"text/plain"):
         b"HTTP/1.1 200 OK\r\nContent-Type: %s\r\nContent-Length: %d\r\n\r\n%s" % (ctype, len(body), body))
 
 
+@pytest.mark.timing
 def test_malformed_ipfs_answers_are_typed_errors():
     from medc_registry.cid import Cid, _field_bytes, _unixfs_data, b58encode
     from medc_registry.content import ContentStoreError, KuboContentStore
@@ -282,14 +290,15 @@ def test_malformed_ipfs_answers_are_typed_errors():
     endless = lambda conn, stop: drip(conn, b"HTTP/1.1 200 OK\r\n\r\n", b"x" * 65536, stop, 0)  # noqa: E731
     node = {"/cat": _raw(b"not the content"), "/block/get": _raw(root)}
     with serving(_kubo(node)) as url, pytest.raises(ContentStoreError, match="link without a hash"):
-        KuboContentStore(url, timeout=2, deadline=5).fetch(cid)
+        KuboContentStore(url, timeout=30, deadline=120).fetch(cid)
+    # Each answer is refused for what it is (the message says which), long before the deadline.
     for add_answer, why in ((_raw(b""), "answered nothing"), (endless, "byte limit"),
                             (_raw(b"{\"Name\": 1}"), "names no CID"), (_raw(b"[1"), "malformed")):
         with serving(_kubo({"/add": add_answer})) as url:
             started = time.monotonic()
             with pytest.raises(ContentStoreError, match=why):
-                KuboContentStore(url, timeout=2, deadline=5).add(b"model")
-            assert time.monotonic() - started < 5
+                KuboContentStore(url, timeout=30, deadline=120).add(b"model")
+            assert time.monotonic() - started < 60
 
 
 # ----------------------------------------------------------------------------- item 9: price griefing
@@ -468,7 +477,7 @@ def test_share_and_cid_read_regular_files_only(tmp_path):
         from medc_registry.cli import main
         for argv in {cases!r}:
             print(main(["--home", {str(tmp_path / "h")!r}, *argv]), flush=True)
-    """, timeout=60)
+    """, timeout=180)
     assert proc.stdout.split() == ["2"] * len(cases), proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == len(cases) and all("is not a regular file" in line for line in lines), lines

@@ -23,6 +23,9 @@ from medc_registry.nodes import free_port, start_anvil
 from registry_helpers import APP, PRICE, REQUEST, RpcProxy, cli_home, ledger
 
 SEND = {"eth_sendRawTransaction"}
+#: What a loaded machine may add to a deadline before the failure shows: scheduling, not waiting (a
+#: request to a node that never answers would otherwise wait for its 30 s read timeout).
+LATE_S = 3.0
 #: What a client uses to learn a transaction's fate (dropping them all = a lost receipt).
 ANSWERS = {"eth_sendRawTransaction", "eth_getTransactionReceipt", "eth_getTransactionByHash"}
 
@@ -48,6 +51,7 @@ def _setup(tmp_path, anvil, proxy, capsys):
     return cli_home(tmp_path, anvil.extra["private_keys"][:3], proxy.url, capsys)
 
 
+@pytest.mark.timing
 @pytest.mark.anvil
 def test_lost_receipt_then_node_restart_pays_and_allocates_once(node, tmp_path, capsys):
     anvil, restart, proxy = node
@@ -79,6 +83,7 @@ def test_lost_receipt_then_node_restart_pays_and_allocates_once(node, tmp_path, 
     assert ledger(anvil.url, keys, models) == (1, PRICE)
 
 
+@pytest.mark.timing
 @pytest.mark.anvil
 def test_payment_that_never_reached_the_node_is_sent_again_once(node, tmp_path, capsys):
     anvil, restart, proxy = node
@@ -98,6 +103,7 @@ def test_payment_that_never_reached_the_node_is_sent_again_once(node, tmp_path, 
     assert ledger(anvil.url, keys, models) == (2, 2 * PRICE)
 
 
+@pytest.mark.timing
 @pytest.mark.anvil
 def test_a_stale_record_is_signed_again_with_the_same_id_and_paid_once(node, tmp_path):
     """A pending record whose transaction is unknown and whose nonce went to another transaction
@@ -162,11 +168,12 @@ def silent_node():
     sock.close()
 
 
+@pytest.mark.timing
 def test_a_node_that_never_answers_fails_at_the_deadline(silent_node, tmp_path, capsys):
     started = time.monotonic()
     with pytest.raises(ChainError, match=r"within the 1\.5 s deadline"):
         ChainClient.connect(silent_node, ["0x" + "11" * 32], deadline=1.5)
-    assert time.monotonic() - started < 3.0
+    assert time.monotonic() - started < 1.5 + LATE_S
     home = tmp_path / "home"
     home.mkdir()
     (home / "keys.txt").write_text("0x" + "11" * 32 + "\n")
@@ -175,7 +182,7 @@ def test_a_node_that_never_answers_fails_at_the_deadline(silent_node, tmp_path, 
     (home / "registry.json").write_text(json.dumps(state))
     started = time.monotonic()
     assert cli_main(["--home", str(home), "--deadline", "2", "status"]) == 2
-    assert time.monotonic() - started < 4.0
+    assert time.monotonic() - started < 2 + LATE_S
     assert "within the 2 s deadline" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli_main(["--deadline", "inf", "status"])
@@ -183,6 +190,7 @@ def test_a_node_that_never_answers_fails_at_the_deadline(silent_node, tmp_path, 
 
 
 # ----------------------------------------------------------------------------- amounts
+@pytest.mark.timing
 @pytest.mark.parametrize("value", ["inf", "-inf", "nan", "Infinity", "1e40", "-1", "0.1234567890123456789"])
 @pytest.mark.parametrize("option", ["--price", "--payment"])
 def test_amounts_that_cannot_be_paid_say_what_is_allowed(value, option, tmp_path, capsys):

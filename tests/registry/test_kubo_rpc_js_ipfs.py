@@ -25,6 +25,7 @@ def ipfs(tmp_path_factory):
     node.stop()
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("version", [0, 1])
 def test_daemon_cids_equal_local_cids(ipfs, version):
     for data in (b"", b"hello world\n", bytes(1_048_576), os.urandom(3 * 262_144 + 7)):
@@ -35,6 +36,7 @@ def test_daemon_cids_equal_local_cids(ipfs, version):
         ipfs.pin(cid)
 
 
+@pytest.mark.timing
 @pytest.mark.slow
 @pytest.mark.parametrize("version", [0, 1])
 def test_50_mb_multi_level_dag_matches_the_daemon(ipfs, version):
@@ -44,6 +46,7 @@ def test_50_mb_multi_level_dag_matches_the_daemon(ipfs, version):
     assert ipfs.fetch(cid) == data
 
 
+@pytest.mark.timing
 def test_fetch_of_unknown_content_times_out_clearly(ipfs):
     quick = KuboContentStore(ipfs.api_url, timeout=2)
     try:
@@ -55,6 +58,7 @@ def test_fetch_of_unknown_content_times_out_clearly(ipfs):
         quick.close()
 
 
+@pytest.mark.timing
 def test_registry_flow_with_the_ipfs_store(ipfs, embedded_chain):
     chain, dep = embedded_chain
     tester = chain.w3.provider.ethereum_tester
@@ -73,6 +77,7 @@ def test_registry_flow_with_the_ipfs_store(ipfs, embedded_chain):
         tester.revert_to_snapshot(snap)
 
 
+@pytest.mark.timing
 def test_content_with_another_layout_is_verified_block_by_block(ipfs):
     # Another chunker gives a CID that Kubo's default layout does not reproduce: the store reads
     # the DAG with block/get and checks every block against the CID that links to it.

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import pytest
 
-# A domain of our own (per test session) so that other people's graphs on this machine never
-# talk to ours; set before rclpy or any child process starts.
-os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+# A domain of our own (per test process) so that other people's graphs on this machine never
+# talk to ours; set before rclpy or any child process starts. Under pytest-xdist each worker's
+# differs from the others' (its index is the domain modulo 4).
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+os.environ["ROS_DOMAIN_ID"] = str(100 + 4 * (os.getpid() % 25) + _WORKER % 4)
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 GRID = 10

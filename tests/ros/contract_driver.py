@@ -6,14 +6,19 @@ every UAV's pose and radiation reading and one EpisodeStatus per team step (with
 id); waits for every agent's AgentMove, executes each (agent, episode, step) once (a re-sent move
 from the same sender is ignored, the same agent from another sender is a duplicate, logged) and
 goes on; an agent with no move ``--move-timeout-s`` after the step's first move stays and is not
-waited for until it moves again (docs/ros.md, "A lost UAV", "Moves are executed once"). Used by
-tests/ros/test_contract_driver.py and tests/ros/test_team_liveness.py:
+waited for until it moves again (docs/ros.md, "A lost UAV", "Moves are executed once"). A step
+not answered within ``--resend-s`` is published again (same stamp), well before an agent would
+report a stall or take a teammate out: a best-effort pose or reading lost on a loaded machine is
+sent again, not reported. Used by tests/ros/test_contract_driver.py and
+tests/ros/test_team_liveness.py:
 
     python contract_driver.py --out steps.jsonl --steps 12 --seed 1 [--misstamp-step 4]
         [--resend-always] [--lose-agent 2 --lose-at-step 3] [--episodes 1] [--summary s.json]
+        [--processes 4]
 
-writes one JSON line per applied team step and exits 0 after ``--steps`` steps (or ``--episodes``
-episodes); ``--summary`` writes what it received (moves, re-sends, duplicates, episodes).
+writes one JSON line per applied team step (with the number of times it was re-sent) and exits 0
+after ``--steps`` steps (or ``--episodes`` episodes); ``--summary`` writes what it received
+(moves, re-sends, duplicates, episodes).
 """
 
 from __future__ import annotations
@@ -114,11 +119,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-steps", type=int, default=50)
     ap.add_argument("--resolution", type=float, default=2.0)
     ap.add_argument("--origin", type=float, nargs=2, default=(-13.0, 4.0))
-    ap.add_argument("--resend-s", type=float, default=3.0)
+    ap.add_argument("--resend-s", type=float, default=1.0,
+                    help="a step not answered this long is published again (same stamp)")
     ap.add_argument("--misstamp-step", type=int, default=-1, help="this team step's first reading of "
                     "agent_1 is stamped 1 us after its pose")
+    ap.add_argument("--misstamp-hold-s", type=float, default=6.0,
+                    help="the mis-stamped step is published again (stamped right) only this long after: "
+                    "three times an agent's stall_timeout_s (2 s), so that every agent reports the stall")
     ap.add_argument("--namespace", default="/medc")
-    ap.add_argument("--move-timeout-s", type=float, default=2.5,
+    ap.add_argument("--move-timeout-s", type=float, default=10.0,
                     help="an agent with no move this long after the step's first move stays and is not "
                     "waited for until it moves again")
     ap.add_argument("--resend-always", action="store_true",
@@ -129,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--episodes", type=int, default=0, help="stop after this many episodes (0: --steps only)")
     ap.add_argument("--summary", default="")
     ap.add_argument("--settle-s", type=float, default=1.0, help="discovery settling, s")
+    ap.add_argument("--processes", type=int, default=0,
+                    help="agent processes that listen (default --agents; more when two claim one agent id): "
+                    "the first step waits until every topic published here has this many readers and "
+                    "the move topics together as many writers")
     args = ap.parse_args(argv)
 
     import rclpy
@@ -188,15 +201,17 @@ def main(argv: list[str] | None = None) -> int:
         moves[k] = int(msg.action)
         silent.discard(k)
 
-    for k, a in enumerate(ids):
-        node.create_subscription(AgentMove, f"{ns}/{a}/move", lambda m, k=k: on_move(k, m), qos(20, False))
+    move_subs = [node.create_subscription(AgentMove, f"{ns}/{a}/move", lambda m, k=k: on_move(k, m),
+                                          qos(20, False)) for k, a in enumerate(ids)]
 
     # Discovery (docs/ros.md): before the first step every agent listens to every topic published
     # here and publishes its move, or the first messages are lost (and re-sent after resend_s).
-    deadline = time.monotonic() + 60
+    processes = args.processes or n
+    deadline = time.monotonic() + 120
     while time.monotonic() < deadline and (
-            any(p.get_subscription_count() < n for p in (status_pub, *pose_pubs, *read_pubs))
-            or any(node.count_publishers(f"{ns}/{a}/move") < 1 for a in ids)):
+            any(p.get_subscription_count() < processes for p in (status_pub, *pose_pubs, *read_pubs))
+            or any(s.get_publisher_count() < 1 for s in move_subs)
+            or sum(s.get_publisher_count() for s in move_subs) < processes):
         rclpy.spin_once(node, timeout_sec=0.05)
     # A best-effort reader may match a moment after the writer sees it: let discovery settle.
     settle = time.monotonic() + args.settle_s
@@ -266,10 +281,13 @@ def main(argv: list[str] | None = None) -> int:
             received.clear()
             if args.lose_agent >= 0 and done_steps == args.lose_at_step:
                 silent.add(args.lose_agent)  # the driver knows its UAV is down: no move expected
-            values = publish_state(stamp, map_stamp, done_steps == args.misstamp_step)
+            misstamp = done_steps == args.misstamp_step
+            values = publish_state(stamp, map_stamp, misstamp)
             if args.resend_always:
                 values = publish_state(stamp, map_stamp, False)
             sent = time.monotonic()
+            wait_s = args.misstamp_hold_s if misstamp else args.resend_s  # before the next re-send
+            resends = 0
             first = None  # when the step's first move came
             while len(moves) < n:
                 rclpy.spin_once(node, timeout_sec=0.02)
@@ -282,9 +300,10 @@ def main(argv: list[str] | None = None) -> int:
                     silent.update(waiting)  # they stay; not waited for until they move again
                     summary["lost"].append([state["episode"], state["step"], [ids[k] for k in waiting]])
                     break
-                if time.monotonic() - sent > args.resend_s:  # re-send the step, same stamp
+                if time.monotonic() - sent > wait_s:  # re-send the step, same stamp
                     values = publish_state(stamp, map_stamp, False)
-                    sent = time.monotonic()
+                    sent, wait_s = time.monotonic(), args.resend_s
+                    resends += 1
             actions = [moves.get(k) for k in range(n)]
             before = list(cells)
             valid = []
@@ -301,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
                 "episode": state["episode"], "step": state["step"], "actions": actions, "valid": valid,
                 "readings": [float(v) for v in values], "walls": episode_walls.astype(int).tolist(),
                 "source": source, "cells": before, "received": [received.get(k, 0) for k in range(n)],
+                "resends": resends,
             }) + "\n")
             log.flush()
             done_steps += 1

@@ -144,10 +144,16 @@ class DiagnosticsListener:
         self.node = rclpy.create_node(name)
         #: (time received, diagnostic_msgs/DiagnosticStatus), in arrival order.
         self.diagnostics: list[tuple[float, object]] = []
-        self.node.create_subscription(
-            DiagnosticArray, "/diagnostics",
-            lambda m: self.diagnostics.extend((time.monotonic(), s) for s in m.status),
-            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        #: (when its node published it: the array's header stamp, ROS time in s, status), in arrival order.
+        self.published: list[tuple[float, object]] = []
+
+        def on_diagnostics(msg) -> None:
+            sent = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            self.diagnostics.extend((time.monotonic(), s) for s in msg.status)
+            self.published.extend((sent, s) for s in msg.status)
+
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics,
+                                      QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
 
@@ -167,6 +173,12 @@ class DiagnosticsListener:
     def statuses(self) -> list:
         """Every diagnostic status received."""
         return [s for _, s in self.diagnostics]
+
+    def heartbeats(self, name: str, since: float) -> list[float]:
+        """When node ``name`` published its heartbeats (the status named after the node), as their
+        own stamps (ROS time, s: ``time.time()`` unless a node runs on simulated time), from
+        ``since`` on: the node's pace, whatever this listener's."""
+        return [t for t, s in self.published if t >= since and s.name == name]
 
     def warnings(self, since: float, text: str, name_part: str = "") -> list:
         """The WARN statuses received since ``since`` whose message holds ``text`` and whose name

@@ -46,6 +46,7 @@ def test_a_whole_grid_observer_refuses_another_size_and_says_what_to_do():
         obs.add_map(grid_msg(17))
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_shipped_team_plays_a_17x17_map_started_from_its_bundle_alone(rclpy_context):
     """The documented start (``-p agent_id:=... -p policy:=<bundle>``, nothing else): the agents take

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 @pytest.mark.parametrize("in_process", [True, False])
 def test_bench_measures_team_decision_latency(rclpy_context, bundles, in_process):

@@ -121,6 +121,7 @@ def _replayed_actions(steps: list[dict], policy) -> list[list[int]]:
     return out
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_context, tmp_path):
     from diagnostic_msgs.msg import DiagnosticStatus
@@ -134,7 +135,7 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
 
     def run_driver(name: str, *extra: str) -> list[dict]:
         out = tmp_path / f"{name}.jsonl"
-        run_contract_driver(listener, ["--out", str(out), *extra], timeout_s=150 - (time.monotonic() - start),
+        run_contract_driver(listener, ["--out", str(out), *extra], timeout_s=300 - (time.monotonic() - start),
                             procs=agents, logs=logs)
         return [json.loads(line) for line in out.read_text().splitlines()]
 
@@ -146,7 +147,11 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
                 stdout=logs[i].open("w"), stderr=subprocess.STDOUT, env=env))
         first = run_driver("first", "--steps", "10", "--seed", "1", "--misstamp-step", "4")
         second = run_driver("second", "--steps", "10", "--seed", "2")  # restarted: episode 0 again
-        listener.spin(0.5)
+        # The stall (each agent's, while the mis-stamped step waited) and the restart (each agent's
+        # event, at the second driver's first step) reach this listener.
+        restarted = lambda: {d.hardware_id for d in listener.statuses()  # noqa: E731
+                             if "the driver restarted" in d.message}
+        listener.spin(60, lambda: len(restarted()) == 3, agents)
     finally:
         for a in agents:
             if a.poll() is None:
@@ -187,4 +192,8 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
     restarts = [d for d in diagnostics if "the driver restarted" in d.message]
     assert sorted(d.hardware_id for d in restarts) == ["agent_0", "agent_1", "agent_2"]
     assert all(d.level == DiagnosticStatus.WARN for d in restarts)
-    assert time.monotonic() - start < 60
+    # The team waited on nothing of its own, counted in the driver's re-sends (1 s apart) rather than
+    # in seconds: the mis-stamped step was answered soon after the driver sent it again stamped
+    # right, every other step (the restart's first included) within a few re-sends at most.
+    resends = [s["resends"] for s in steps]
+    assert resends[4] >= 1 and max(resends) <= 3, resends

@@ -118,6 +118,7 @@ SCENARIO = {"agents": 3, "walls": 2, "grid": 10, "max_steps": 30, "seed": 11}
 @pytest.mark.ros
 @pytest.mark.parametrize(("name", "sensing"), [("greedy", "paper-simple"), ("infotaxis", "realistic"),
                                                ("gradient", "realistic")])
+@pytest.mark.timing
 def test_controller_team_plays_training_episodes_in_the_graph(graph, name, sensing):
     """medc-launch's in-process graph with policy: <controller>: every agent node runs the controller
     by name and the graph plays the evaluator's episodes of that controller, move for move, to the
@@ -135,6 +136,7 @@ def test_controller_team_plays_training_episodes_in_the_graph(graph, name, sensi
     assert sum(successes) > 0
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_medc_agent_with_a_controller_needs_agents_and_grid():
     agent = Path(sys.executable).parent / "medc-agent"
@@ -145,6 +147,7 @@ def test_medc_agent_with_a_controller_needs_agents_and_grid():
     assert "-p grid:=<n>" in out.stderr and "Traceback" not in out.stderr
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
     """A running bundle team swaps to a controller by the team policy topic, and one agent to another
@@ -165,12 +168,12 @@ def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
     pub = operator.create_publisher(String, contract.team_policy_topic(contract.DEFAULT_NAMESPACE),
                                     contract.LATCHED_QOS)
     pub.publish(String(data=" greedy"))
-    assert spin_until(executor, lambda: all(a.slot.controller == "greedy" for a in agents), 10)
+    assert spin_until(executor, lambda: all(a.slot.controller == "greedy" for a in agents), 60)
     greedy_at = len(sim.core.trace)
     client = AsyncParameterClient(operator, "/medc/medc_agent_0")
-    assert spin_until(executor, lambda: client.services_are_ready(), 10)
+    assert spin_until(executor, lambda: client.services_are_ready(), 60)
     future = client.set_parameters([Parameter("policy", value="infotaxis")])
-    assert spin_until(executor, future.done, 10)
+    assert spin_until(executor, future.done, 60)
     result = future.result().results[0]
     assert result.successful, result.reason
     infotaxis_at = len(sim.core.trace)
@@ -197,6 +200,7 @@ def test_swap_to_a_controller_by_topic_and_by_parameter(graph, bundles):
     assert checked >= 20
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_medc_launch_runs_a_controller_team_by_name(tmp_path):
     """`medc-launch --policy greedy`: a team of controller agents plays the evaluator's episodes."""
@@ -217,6 +221,7 @@ def test_medc_launch_runs_a_controller_team_by_name(tmp_path):
     assert sum(successes) > 0
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_bench_measures_a_controller_team(rclpy_context):
     from medc_bringup.bench import run_graph

@@ -116,22 +116,24 @@ class _Listener:
         self.node.destroy_node()
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_the_estimate_goes_on_when_agent_0_is_killed(rclpy_context, bundles, tmp_path):
     """agent_0 publishes while it lives (agent_1 and agent_2 stand by); SIGKILL its process: the
-    simulator takes it out after move_timeout_s (1 s), and agent_1 publishes the estimate of
-    the steps after that, one estimate per step (agent_2 stays on standby)."""
+    simulator takes it out after move_timeout_s (its default, 3 s: long enough that no agent busy
+    on a loaded machine is taken out meanwhile), and agent_1 publishes the estimate of the steps
+    after that, one estimate per step (agent_2 stays on standby)."""
     listen = _Listener()
     logs = {name: tmp_path / f"{name}.log" for name in ("sim", "agent_0", "agent_1", "agent_2")}
     sim = ["agents:=3", "walls:=1", "grid:=10", "max_steps:=30", "seed:=3", "rate_hz:=10.0",
-           "move_timeout_s:=1.0", "wait_for_subscribers:=3"]
+           "wait_for_subscribers:=3"]
     procs = [start_node_process([str(BIN / "medc-sim"), "--ros-args", *[a for p in sim for a in ("-p", p)]],
                                 logs["sim"])]
     procs += [start_node_process([str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
                                   "-p", "agents:=3", "-p", f"policy:={bundles['a']}"], logs[f"agent_{i}"])
               for i in range(3)]
     try:
-        assert listen.spin(90, lambda: len(listen.estimates) >= 10 and {"agent_0", "agent_1", "agent_2"}
+        assert listen.spin(180, lambda: len(listen.estimates) >= 10 and {"agent_0", "agent_1", "agent_2"}
                            <= set(listen.roles), procs), "the team did not start publishing its estimate"
         assert listen.role("agent_0") == {"publishing"}
         assert listen.role("agent_1") == listen.role("agent_2") == {"standby"}
@@ -139,17 +141,21 @@ def test_the_estimate_goes_on_when_agent_0_is_killed(rclpy_context, bundles, tmp
         procs[1].send_signal(signal.SIGKILL)
         procs[1].wait(10)
         alive = [procs[0], procs[2], procs[3]]
-        assert listen.spin(30, lambda: "publishing" in listen.role("agent_1", t_kill), alive), \
+        assert listen.spin(90, lambda: "publishing" in listen.role("agent_1", t_kill), alive), \
             f"agent_1 never took the estimate over:\n{logs['agent_1'].read_text()[-2000:]}"
         t_over = time.monotonic()
         count = len(listen.estimates)
-        assert listen.spin(30, lambda: len(listen.estimates) >= count + 10, alive), \
+        assert listen.spin(90, lambda: len(listen.estimates) >= count + 10, alive), \
             f"no estimate after agent_0 was killed:\n{logs['agent_1'].read_text()[-2000:]}"
         t_end = time.monotonic()
-        listen.spin(1.0, lambda: False, alive)  # the statuses of the last estimates come in too
         after = [stamp for t, stamp in listen.estimates if t_over < t <= t_end]
-        steps = {(s.header.stamp.sec, s.header.stamp.nanosec) for s in listen.statuses if not s.done}
-        assert set(after) <= steps  # the estimates of the team's steps ...
+
+        def steps() -> set:
+            return {(s.header.stamp.sec, s.header.stamp.nanosec) for s in listen.statuses if not s.done}
+
+        # The statuses of the last estimates come in too (another publisher's: no order between them).
+        listen.spin(60, lambda: set(after) <= steps(), alive)
+        assert set(after) <= steps()  # the estimates of the team's steps ...
         assert len(after) == len(set(after))  # ... one per step: one publisher
         assert listen.role("agent_2", t_kill) == {"standby"}
     finally:

@@ -14,6 +14,7 @@ SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 11}
 EPISODES = 20
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 @pytest.mark.parametrize("shared_feed", [True, False], ids=["shared-feed", "own-subscriptions"])
 def test_in_process_graph_replays_training_step_for_step(graph, bundles, shared_feed):
@@ -27,6 +28,7 @@ def test_in_process_graph_replays_training_step_for_step(graph, bundles, shared_
     assert len(set(lengths)) > 1  # the check is not trivially satisfied by all-truncated episodes
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_in_process_graph_replays_training_under_realistic_sensing(graph, bundles):
     """The realistic preset end to end: the launcher takes it from the bundle's manifest and gives it
@@ -46,6 +48,7 @@ def test_in_process_graph_replays_training_under_realistic_sensing(graph, bundle
     assert len(set(lengths)) > 1
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 @pytest.mark.parametrize("in_process", [False, True], ids=["processes", "launcher-in-process"])
 def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
@@ -69,6 +72,7 @@ def test_medc_launch_replays_training_episodes(bundles, tmp_path, in_process):
     assert result["in_process"] is in_process
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_default_launch_config_runs_infotaxis_on_the_realistic_preset(graph):
     """`medc-launch` with no config: infotaxis (the measured best team on the realistic preset) on
@@ -89,6 +93,7 @@ def test_default_launch_config_runs_infotaxis_on_the_realistic_preset(graph):
     assert sum(successes) >= episodes - 1
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_launch_config_with_the_shipped_team_plays_it_as_trained(graph, repo_root):
     """`medc-launch --policy models/team`: the shipped team, its manifest's scenario, training's episodes."""

@@ -21,6 +21,7 @@ SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 4}
 EPISODES = 4
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_bad_messages_on_every_topic_are_dropped(graph, bundles, tmp_path):
     import rclpy

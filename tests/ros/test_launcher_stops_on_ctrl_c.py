@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     config = tmp_path / "launch.yaml"
@@ -22,14 +23,16 @@ def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     )
     launcher = Path(sys.executable).parent / "medc-launch"
     log = (tmp_path / "stderr.txt").open("w")  # a file, not a pipe: the nodes' logs can never block
-    proc = subprocess.Popen([str(launcher), "--config", str(config)], stdout=subprocess.PIPE, stderr=log,
-                            text=True)
+    # --timeout: a graph that never plays ends the launcher (and the wait for its first line) by itself.
+    proc = subprocess.Popen([str(launcher), "--config", str(config), "--timeout", "300"],
+                            stdout=subprocess.PIPE, stderr=log, text=True)
     try:
         first = proc.stdout.readline()  # blocks until the first episode ends
         assert first.startswith("episode 0:"), first
         proc.send_signal(signal.SIGINT)
         start = time.monotonic()
-        rest, _ = proc.communicate(timeout=30)
+        rest, _ = proc.communicate(timeout=60)
+        # The launcher gives its nodes 5 s to stop on its SIGINT, then kills them: well within this.
         assert time.monotonic() - start < 15
     finally:
         if proc.poll() is None:

@@ -78,6 +78,7 @@ class _Store:
         return self.files[cid]
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_a_team_and_its_bridge_in_another_namespace(graph, bundles, tmp_path):
     """A launcher team in /team3 plays; its topics are under /team3 and none under /medc; an agent
@@ -112,7 +113,7 @@ def test_a_team_and_its_bridge_in_another_namespace(graph, bundles, tmp_path):
         pub = operator.create_publisher(String, topic, contract.LATCHED_QOS)
         pub.publish(String(data=f"ipfs://{cid}"))
         fetched = str(tmp_path / "cache" / f"{cid}.safetensors")
-        assert spin_until(executor, lambda: agents[1].slot.current.source == fetched, 20)
+        assert spin_until(executor, lambda: agents[1].slot.current.source == fetched, 60)
         assert agents[0].slot.current.source == str(bundles["a"])
         n = len(sim.core.trace)
         assert spin_until(executor, lambda: len(sim.core.trace) >= n + 5, 30)  # the team keeps playing

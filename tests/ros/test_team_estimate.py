@@ -48,6 +48,7 @@ def _monitor(sim):
     return node, seen
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 @pytest.mark.parametrize("end_on", ["declaration", "either"])
 def test_estimate_converges_and_the_declaration_ends_episodes(graph, end_on):
@@ -105,6 +106,7 @@ def test_estimate_converges_and_the_declaration_ends_episodes(graph, end_on):
     assert [a.estimate.publishing for a in agents] == [True, False, False]  # nobody was lost
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_source_rule_is_today_s_and_ignores_declarations(graph):
     """end_on: source (the default): episodes end as in training, whatever the team declares."""
@@ -159,6 +161,7 @@ def test_episode_end_rules_and_judging_a_declaration():
     assert judge((4, 2), (3, 2), 1.1)[1] and not judge((4, 2), (3, 3), 1.1)[1]
 
 
+@pytest.mark.timing
 @pytest.mark.ros
 def test_medc_launch_ends_episodes_on_the_declaration_with_agent_processes(tmp_path):
     """The deployment shape: the simulator and one medc-agent process per UAV, `end_on: declaration`

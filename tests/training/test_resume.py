@@ -76,6 +76,7 @@ def test_resume_rejects_another_evaluator(tmp_path):
     assert run_training(Trainer(window), window, tmp_path, resume=True, tensorboard=False)["steps"] == 64
 
 
+@pytest.mark.timing
 def test_cli_run_killed_with_sigkill_resumes(tmp_path):
     out = tmp_path / "run"
     args = [sys.executable, "-m", "medc_training.cli.train", "--agents", "2", "--walls", "0", "--grid", "6",

@@ -54,6 +54,7 @@ def _results(job: dict) -> tuple:
     return rows, {k: v for k, v in summary.items() if k != "train_seconds"}
 
 
+@pytest.mark.timing
 def test_a_plan_on_local_ray_equals_the_process_pool_runs_and_a_rerun_skips_them(local_ray, tmp_path, capsys):
     pool_jobs, ray_jobs = _plan(tmp_path / "pool"), _plan(tmp_path / "ray")
     assert len(run_jobs(pool_jobs, LocalPool(2), "pool")) == 2
@@ -74,6 +75,7 @@ def test_a_plan_on_local_ray_equals_the_process_pool_runs_and_a_rerun_skips_them
     assert [(Path(j["out"]) / SUMMARY).stat().st_mtime_ns for j in ray_jobs] == stamps
 
 
+@pytest.mark.timing
 def test_medc_train_seed_sweep_on_ray_equals_the_pool_sweep(local_ray, tmp_path, capsys):
     from medc_training.cli.train import main
 
@@ -112,6 +114,7 @@ def _wait_for_checkpoint(proc, ckpt: Path, updates: int = 2, timeout: float = 12
     raise AssertionError(f"no checkpoint with {updates} updates at {ckpt} within {timeout}s")
 
 
+@pytest.mark.timing
 def test_a_killed_job_leaves_no_run_folder_and_the_rerun_resumes_it(tmp_path):
     job = _plan(tmp_path, steps=100_000)[0]
     code = ("import json; from medc_training.experiments.jobs import run_job; "
@@ -133,6 +136,7 @@ def test_a_killed_job_leaves_no_run_folder_and_the_rerun_resumes_it(tmp_path):
     assert steps == sorted(set(steps)) and steps[0] == 0 and steps[-1] == saved + 64  # resumed, not restarted
 
 
+@pytest.mark.timing
 def test_ctrl_c_stops_a_pool_sweep_and_leaves_no_run_folders(tmp_path):
     out = tmp_path / "sweep"
     args = [sys.executable, "-m", "medc_training.cli.train", *TINY_ARGS, "--steps", "100000",
@@ -191,6 +195,7 @@ def _kill_worker_mid_run(job: dict, engine: RayCluster) -> BaseException | None:
     return result.get("error")
 
 
+@pytest.mark.timing
 def test_a_lost_ray_worker_is_retried_or_left_unfinished_for_the_rerun(local_ray, tmp_path):
     job = _plan(tmp_path, steps=2048)[0]
     job["name"] = f"lost-{os.getpid()}/seed0"  # its worker's process title, unique on the machine
@@ -208,6 +213,7 @@ def test_a_lost_ray_worker_is_retried_or_left_unfinished_for_the_rerun(local_ray
     assert json.loads((Path(job["out"]) / SUMMARY).read_text())["steps"] == 2048
 
 
+@pytest.mark.timing
 def test_runs_the_ray_cluster_cannot_schedule_are_refused_not_waited_for(local_ray, tmp_path):
     job = _plan(tmp_path)[0]
     job["config"]["device"] = "cuda"

@@ -7,6 +7,15 @@ when a topic under the namespace whose name holds ``estimate`` carries a pose or
 Open Foxglove, "Open connection", ``ws://127.0.0.1:PORT``, and add a 3D panel showing the scene
 topic. The recorder (``medc_bringup.recorder``) feeds it; ``medc-launch --foxglove`` and
 ``medc-record --foxglove`` start it.
+
+A client may connect at any moment and gets every channel: the scene and the contract's topics
+(``topics``, declared before the server accepts a connection) are advertised in the server's
+greeting, so no subscription races an advertisement. The SDK registers a channel advertised to a
+client that is already connected only after sending the advertisement, and answers "Unknown
+channel ID" to a subscription that arrives in between; a topic outside the declared ones
+(discovered later) is served on a new channel, which such a client subscribes to once it is
+registered: :class:`LiveView` re-advertises a late channel that a connected client left
+unsubscribed (:meth:`LiveView.tick`).
 """
 
 from __future__ import annotations
@@ -185,10 +194,17 @@ def scene_update(state: SceneState, stamp_ns: int | None = None):
 class LiveView:
     """The Foxglove WebSocket server of a recorder: raw ROS topics as channels plus the scene.
 
-    ``port`` 0 picks a free port (``self.port`` tells which). The server binds ``127.0.0.1``.
+    ``topics``: ``(topic, type name, ros2msg definition, latched)`` of every topic known before the
+    server starts (the contract's); their channels and the scene's exist before a client can
+    connect. ``port`` 0 picks a free port (``self.port`` tells which). The server binds ``127.0.0.1``.
     """
 
-    def __init__(self, namespace: str, port: int = DEFAULT_PORT, host: str = "127.0.0.1") -> None:
+    #: Seconds after which a channel created while the server runs, still without a subscriber, is
+    #: advertised once more (a client's subscription may have met the SDK's registration race).
+    READVERTISE_AFTER_S = 1.0
+
+    def __init__(self, namespace: str, port: int = DEFAULT_PORT, host: str = "127.0.0.1",
+                 topics=()) -> None:
         import threading
 
         import foxglove
@@ -206,30 +222,59 @@ class LiveView:
                 view._resend_latched(channel.topic)
 
         self._foxglove = foxglove
+        self._lock = threading.Lock()
+        self._last_scene = 0.0
         # A context of its own: this server's channels reach this server only.
         self.context = foxglove.Context()
-        self.server = foxglove.start_server(name="medc", host=host, port=int(port), server_listener=_Resend(),
-                                            context=self.context)
-        self.port = int(self.server.port)
         self.state = SceneState(namespace)
         self.scene_topic = f"{self.state.ns}/scene"
         self.scene = SceneUpdateChannel(self.scene_topic, context=self.context)
         self.channels: dict[str, object] = {}
+        #: Channel arguments by topic (to create a channel again).
+        self._specs: dict[str, tuple[str, str]] = {}
         #: Latched (transient-local) topics and their last message, re-sent to each new subscriber.
         self.latched: dict[str, tuple[bytes, int | None] | None] = {}
-        self._lock = threading.Lock()
-        self._last_scene = 0.0
+        #: Channels created while serving, not yet confirmed subscribed or re-advertised: topic -> time.
+        self._late: dict[str, float] = {}
+        self.serving = False
+        for topic, type_name, definition, latched in topics:
+            self.add_topic(topic, type_name, definition, latched)
+        self.server = foxglove.start_server(name="medc", host=host, port=int(port), server_listener=_Resend(),
+                                            context=self.context)
+        self.serving = True
+        self.port = int(self.server.port)
+
+    def _channel(self, topic: str):
+        type_name, definition = self._specs[topic]
+        schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
+        return self._foxglove.Channel(topic, message_encoding="cdr", schema=schema, context=self.context)
 
     def add_topic(self, topic: str, type_name: str, definition: str, latched: bool = False) -> None:
         """Serve ``topic`` as a channel (CDR bytes, its ``ros2msg`` schema text); ``latched``: the
         topic is transient local, and a client that subscribes gets its last message at once."""
-        if topic not in self.channels:
-            schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
-            self.channels[topic] = self._foxglove.Channel(topic, message_encoding="cdr", schema=schema,
-                                                          context=self.context)
-            if latched:
-                with self._lock:
-                    self.latched[topic] = None
+        if topic in self.channels:
+            return
+        self._specs[topic] = (type_name, definition)
+        if latched:
+            with self._lock:
+                self.latched[topic] = None
+        self.channels[topic] = self._channel(topic)
+        if self.serving:
+            self._late[topic] = time.monotonic()
+
+    def _readvertise_late(self) -> None:
+        """Advertise again (a new channel id) each late channel that nobody subscribed to within
+        READVERTISE_AFTER_S; a subscribed one is left alone. Once per channel."""
+        now = time.monotonic()
+        for topic, created in list(self._late.items()):
+            if now - created < self.READVERTISE_AFTER_S:
+                continue
+            del self._late[topic]
+            old = self.channels[topic]
+            if old.has_sinks():
+                continue
+            old.close()  # first: the SDK hands out a topic's open channel again
+            self.channels[topic] = self._channel(topic)
 
     def _resend_latched(self, topic: str) -> None:
         with self._lock:
@@ -259,9 +304,11 @@ class LiveView:
 
     def tick(self, every_s: float = 1.0) -> None:
         """Re-send the scene when nothing changed for ``every_s`` (a client that just connected
-        sees the walls of an idle graph)."""
+        sees the walls of an idle graph); advertise unsubscribed late channels once more."""
         if time.monotonic() - self._last_scene >= every_s:
             self.publish_scene()
+        if self._late:
+            self._readvertise_late()
 
     def wants(self, topic: str, type_name: str) -> bool:
         """Whether the scene needs ``topic`` deserialised."""

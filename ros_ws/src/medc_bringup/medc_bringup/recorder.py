@@ -58,6 +58,25 @@ def known_topics(namespace: str, agents: int = 0) -> dict[str, tuple[str, object
     return topics
 
 
+def live_topics(namespace: str, agents: int = 0) -> list[tuple[str, str, str, bool]]:
+    """The topics the live view serves from its start, before any client connects (see
+    :class:`medc_bringup.live_view.LiveView`): :func:`known_topics`, the team estimator's and
+    ``/diagnostics``, as ``(topic, type name, ros2msg definition, latched)``."""
+    from medc_common import contract
+
+    from medc_bringup.recording import message_definition
+
+    topics = dict(known_topics(namespace, agents))
+    topics[contract.estimate_topic(namespace)] = ("geometry_msgs/msg/PoseWithCovarianceStamped",
+                                                  contract.ESTIMATE_QOS)
+    topics[contract.posterior_topic(namespace)] = ("nav_msgs/msg/OccupancyGrid", contract.LATCHED_QOS)
+    topics[contract.declaration_topic(namespace)] = ("medc_interfaces/msg/SourceDeclaration",
+                                                     contract.RELIABLE_QOS)
+    topics[contract.DIAGNOSTICS_TOPIC] = ("diagnostic_msgs/msg/DiagnosticArray", contract.DIAGNOSTICS_QOS)
+    return [(topic, type_name, message_definition(type_name), _is_latched(qos))
+            for topic, (type_name, qos) in topics.items()]
+
+
 def _is_latched(qos) -> bool:
     """Whether a subscription QoS is transient local (the topic keeps its last message)."""
     from rclpy.qos import DurabilityPolicy
@@ -343,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
             from medc_bringup.live_view import LiveView
 
             try:
-                live = LiveView(args.namespace, port=args.foxglove)
+                live = LiveView(args.namespace, port=args.foxglove,
+                                topics=live_topics(args.namespace, args.agents))
             except Exception as exc:  # the SDK raises its own error types for a busy port
                 print(f"medc-record: cannot start the Foxglove server on 127.0.0.1:{args.foxglove}: {exc} "
                       "(pick another port with --foxglove PORT, or 0 for any free one)", file=sys.stderr)
