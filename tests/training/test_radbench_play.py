@@ -1,0 +1,132 @@
+"""Benchmark episodes played through the project's evaluator (medc_training.radbench.play): the
+world's readings follow the episode definition (RAD-A2C's inverse-square law, obstructions that
+block the line of sight, counts from the episode's own noise stream), an episode plays the same
+whatever batch it is in, and ``medc-radbench`` ends with one JSON line naming the sets' hashes."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from medc_training.radbench import BenchCore, BenchSet, Episode, load_sets, paired, play_set, poisson_counts
+from medc_training.radbench.cli import main
+from medc_training.radbench.scenario import noise_uniforms
+from medc_training.radbench.sets import FROZEN, SETS_DIR
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """The benchmark's tensors are small: a second torch thread only waits on a busy 2-core machine
+    (medc-radbench plays on one, ``--threads``)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_poisson_counts_by_inverse_cdf():
+    # Poisson(2): P(X<=0) = 0.1353, P(X<=1) = 0.4060, P(X<=2) = 0.6767, P(X<=4) = 0.9473, P(X<=5) = 0.9834
+    rate = torch.full((5,), 2.0)
+    u = torch.tensor([0.1, 0.2, 0.5, 0.95, 0.9834], dtype=torch.float64)
+    assert poisson_counts(rate, u).tolist() == [0.0, 1.0, 2.0, 5.0, 5.0]
+    assert poisson_counts(torch.tensor([0.0]), torch.tensor([0.999])).item() == 0.0
+    uniform = torch.from_numpy(noise_uniforms(7, 19_999, 1)[:, 0])
+    for lam in (3.7, 850.0):
+        counts = poisson_counts(torch.full((20_000,), lam), uniform).double()
+        assert abs(counts.mean().item() - lam) < 4 * math.sqrt(lam / 20_000)
+        assert counts.var().item() == pytest.approx(lam, rel=0.05)
+    # The same uniform never gives fewer counts at a higher rate (common random numbers).
+    low = poisson_counts(torch.full((20_000,), 40.0), uniform)
+    high = poisson_counts(torch.full((20_000,), 41.0), uniform)
+    assert bool((high >= low).all())
+
+
+def _hand_set(episodes: list[Episode], obstructions: int) -> BenchSet:
+    agents = len(episodes[0].starts)
+    return BenchSet("hand", 20, 1.0, agents, 120, obstructions, "none", tuple(episodes), "0" * 64)
+
+
+def test_world_rates_follow_the_inverse_square_law_and_obstructions_block_it():
+    clear = Episode((0, 0), 800.0, 20, ((10, 0),), ((15, 15, 16, 16),), 11)
+    blocked = Episode((0, 0), 800.0, 20, ((10, 0),), ((4, 0, 5, 3),), 12)
+    on_source = Episode((0, 0), 800.0, 20, ((0, 1),), ((15, 15, 16, 16),), 13)
+    core = BenchCore(_hand_set([clear, blocked, on_source], 1), [0, 1, 2])
+    core.reset(seed=0)
+    lay = core._take_layouts(3)
+    rates = core.world_rates(lay)[:, 0]
+    assert rates.tolist() == pytest.approx([800.0 / 100 + 20, 20.0, 800.0 / 1 + 20])
+    lay["positions"] = lay["target"].unsqueeze(1).clone()  # on the source's own cell: d floored at 1 m
+    assert core.world_rates(lay)[:, 0].tolist() == pytest.approx([820.0] * 3)
+    # The first readings are the episode's own draws: inverse CDF of its noise stream at reading 0.
+    u0 = torch.tensor([noise_uniforms(e.noise_seed, 120, 1)[0, 0] for e in (clear, blocked, on_source)])
+    assert core.readings[:, 0].tolist() == poisson_counts(rates, u0).tolist()
+
+
+def test_seven_obstructions_play_although_the_cores_own_layouts_allow_five():
+    (s,) = load_sets(20, 1, obstructions=[7], snrs=["low"])
+    core = BenchCore(s, [0, 1])
+    core.reset(seed=0)
+    assert core.attributes["walls"] == 7 and core.memory.rects.shape[1] == 7
+    walls = torch.from_numpy(np.stack([s.episodes[i].walls(20) for i in (0, 1)]))
+    assert torch.equal(core.walls, walls)
+    assert core.positions[:, 0].tolist() == [list(s.episodes[i].starts[0]) for i in (0, 1)]
+
+
+def test_an_episode_plays_the_same_in_any_batch_and_policies_pair_up():
+    (s,) = load_sets(20, 3, obstructions=[2], snrs=["medium"])
+    s = s.head(3)
+    alone = play_set(s, "greedy", batch=1)
+    together = play_set(s, "greedy", batch=3)
+    assert together == alone
+    for r in together:
+        assert 1 <= r.length <= 120 and (r.success or r.length == 120)
+        assert r.track_rmse_m is not None and r.track_rmse_m >= 0
+        if r.declared_step is not None:
+            assert 0 <= r.declared_step <= r.length and r.declared_error_m >= 0
+    same = paired(together, alone, 120)
+    assert (same["ties"], same["mean_diff"]) == (3, 0.0)
+    randomly = play_set(s, "random", batch=2)
+    assert [r.index for r in randomly] == [0, 1, 2]
+    calls = []
+
+    def factory(core):
+        calls.append(core.num_envs)
+        return None  # uniformly random moves
+    play_set(s, factory, batch=2)
+    assert calls == [2, 1]
+
+
+def test_play_refuses_what_it_cannot_play():
+    (s,) = load_sets(20, 1, obstructions=[0], snrs=["low"])
+    with pytest.raises(ValueError, match="unknown policy 'nonsense'"):
+        play_set(s, "nonsense", episodes=1)
+    with pytest.raises(Exception, match="paper-simple"):
+        play_set(s, "models/experts/A1W0.safetensors", episodes=1)
+
+
+def test_cli_plays_a_subset_and_ends_with_json_naming_the_hashes(capsys):
+    assert main(["greedy", "random", "--obstructions", "0", "--snr", "low,high", "--episodes", "4"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    result = json.loads(out[-1])
+    assert result["set_file_sha256"] == FROZEN["g20-a1.json"] and result["reference"] == "greedy"
+    sets = {s.id: s for s in load_sets(20, 1, obstructions=[0], snrs=["low", "high"])}
+    assert set(result["sets"]) == {"obs0-low[:4]", "obs0-high[:4]"}
+    for sid, row in result["sets"].items():
+        assert row["sha256"] == sets[sid.split("[")[0]].sha256
+        assert set(row["policies"]) == {"greedy", "random"} and set(row["paired"]) == {"random"}
+    assert set(result["pooled"]) == {"all", "obs0", "low", "high"}
+    assert result["pooled"]["all"]["greedy"]["episodes"] == 8
+    assert any("sha256" in line for line in out[:-1])
+
+
+def test_cli_lists_the_frozen_sets_and_refuses_a_changed_file(tmp_path, capsys):
+    assert main(["--list", "--quiet"]) == 0
+    listed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert {k: v["sha256"] for k, v in listed["files"].items()} == FROZEN
+    changed = tmp_path / "g20-a1.json"
+    changed.write_text((SETS_DIR / "g20-a1.json").read_text().replace('"B":31', '"B":32', 1))
+    assert main(["greedy", "--sets-file", str(changed), "--sha256", FROZEN["g20-a1.json"], "--quiet"]) == 2
+    assert "was changed" in capsys.readouterr().err

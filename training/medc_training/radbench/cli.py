@@ -1,0 +1,293 @@
+"""`medc-radbench`: play the radiation-search field's benchmark (RAD-A2C's test sets on a grid) and
+report what the field reports, per set and pooled, with the sets' SHA-256.
+
+    medc-radbench --quick                                  # a stated subset, about a minute on 2 cores
+    medc-radbench greedy infotaxis --grid 20 --agents 1    # every set of a frozen file, 200 episodes each
+    medc-radbench infotaxis models/my-team.safetensors --agents 3 --obstructions 0,7 --snr low
+    medc-radbench --list                                   # the frozen files and sets, hashes checked
+    medc-radbench --generate /tmp/sets                     # write the set files again from their seed
+
+POLICY is ``random``, a classical controller (gradient, greedy, infotaxis) or a policy bundle trained
+under the realistic sensing preset. Every policy plays the same episodes with the same count noise;
+the first policy (``--reference``) is compared with each other one episode by episode (paired).
+
+``--quick`` plays grid 20, 1 agent, obstruction counts 0, 3 and 7, every SNR bin, the first 8
+episodes of each set (2 per SNR sub-bin: 72 episodes per policy), with random, gradient, greedy and
+infotaxis: under two minutes on the 2-core development machine.
+
+Human-readable lines go to stdout (none with --quiet); the last line is one JSON object: per set its
+SHA-256 and every policy's figures (medc_training.radbench.metrics), pooled by obstruction count, by
+SNR bin and overall, the paired comparisons, the set file's SHA-256 and the time each policy took.
+docs/radbench.md states the scenario and every difference from RAD-A2C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+QUICK = {"grid": 20, "agents": 1, "obstructions": (0, 3, 7), "snrs": ("low", "medium", "high"), "episodes": 8,
+         "policies": ("random", "gradient", "greedy", "infotaxis")}
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(not 0 <= v <= 7 for v in values):
+        raise argparse.ArgumentTypeError(f"obstruction counts are integers in 0..7, got {text!r}")
+    return values
+
+
+def _snr_list(text: str) -> list[str]:
+    from .scenario import SNR_BINS
+
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in values if v not in SNR_BINS]
+    if not values or bad:
+        raise argparse.ArgumentTypeError(f"SNR bins are {', '.join(SNR_BINS)}, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from ..console import QUIET_HELP, HelpFormatter, epilog
+
+    p = argparse.ArgumentParser(prog="medc-radbench", description=__doc__.split("\n\n")[0],
+                                formatter_class=HelpFormatter, epilog=epilog(__doc__))
+    p.add_argument("policies", nargs="*", metavar="POLICY",
+                   help="random, gradient, greedy, infotaxis or a bundle path (default: random gradient "
+                        "greedy infotaxis)")
+    p.add_argument("--quick", action="store_true", help="the stated subset above (overrides the set options)")
+    p.add_argument("--grid", type=int, choices=(20, 30), help="the area: 20 or 30 cells of 1 m (default 20)")
+    p.add_argument("--agents", type=int, choices=(1, 3), help="team size (default 1, RAD-A2C's)")
+    p.add_argument("--obstructions", type=_int_list, help="obstruction counts, e.g. 0,3,7 (default all, 0-7)")
+    p.add_argument("--snr", type=_snr_list, help="SNR bins, e.g. low,high (default all three)")
+    p.add_argument("--episodes", type=int,
+                   help="the first N episodes of each set (default all 200; a multiple of 4 keeps the SNR "
+                        "sub-bins balanced)")
+    p.add_argument("--reference", help="the policy the others are compared with (default the first)")
+    p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
+    p.add_argument("--sha256", help="with --sets-file: the SHA-256 the file must have")
+    p.add_argument("--run", type=int, default=0,
+                   help="Monte Carlo run of the count noise (0: each episode's own stream; another run "
+                        "draws other counts for the same episodes)")
+    p.add_argument("--batch", type=int, default=100, help="episodes played at once")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--out", type=Path, help="write every played episode here (JSON lines)")
+    p.add_argument("--list", action="store_true",
+                   help="list the frozen set files and sets with their SHA-256")
+    p.add_argument("--generate", type=Path, metavar="DIR",
+                   help="write the set files (every grid and team size, or those of --grid/--agents) "
+                        "into DIR")
+    p.add_argument("--seed", type=int,
+                   help="with --generate: the generator's seed (default the frozen sets')")
+    p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
+    return p
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text, flush=True)
+
+
+def _fmt(summary: dict[str, Any]) -> str:
+    def num(x, digits=1):
+        return "-" if x is None else f"{x:.{digits}f}"
+
+    lo, hi = summary["median_ci95"]
+    rate = 100 * (summary["completion_rate"] or 0)
+    return (f"completed {summary['completed']}/{summary['episodes']} ({rate:.0f}%), "
+            f"median {num(summary['median_completed_length'], 0)} [{num(lo, 0)}, {num(hi, 0)}], "
+            f"mean {num(summary['mean_length'])} ± {num(summary['mean_length_ci95'])}, "
+            f"declared {summary['declared']} (error {num(summary['declared_error_m_mean'], 2)} m, "
+            f"step {num(summary['declared_step_mean'])})")
+
+
+def _list(args: argparse.Namespace) -> int:
+    from .sets import FROZEN, SETS_DIR, load_file
+
+    files = {}
+    for name in sorted(FROZEN):
+        sets, digest = load_file(SETS_DIR / name)
+        _say(args, f"{name}  sha256 {digest}  (checked)")
+        for s in sets:
+            _say(args, f"  {s.id:<14} {len(s.episodes)} episodes  sha256 {s.sha256}")
+        files[name] = {"sha256": digest, "grid": sets[0].grid, "agents": sets[0].agents,
+                       "sets": {s.id: s.sha256 for s in sets}}
+    print(json.dumps({"benchmark": "medc-radbench", "files": files}))
+    return 0
+
+
+def _generate(args: argparse.Namespace) -> int:
+    from ..console import progress_bar
+    from .scenario import DEFAULT_SEED, GRIDS, OBSTRUCTION_COUNTS, SNR_BINS
+    from .sets import FROZEN, FROZEN_EPISODES, file_name, generate_file, write_file
+
+    grids = [args.grid] if args.grid else sorted(GRIDS)
+    teams = [args.agents] if args.agents else [1, 3]
+    seed = DEFAULT_SEED if args.seed is None else args.seed
+    episodes = args.episodes or FROZEN_EPISODES
+    args.generate.mkdir(parents=True, exist_ok=True)
+    out = {}
+    total = len(grids) * len(teams) * len(OBSTRUCTION_COUNTS) * len(SNR_BINS)
+    with progress_bar(total, unit="set", disable=args.quiet) as bar:
+        for grid in grids:
+            for agents in teams:
+                start = time.perf_counter()
+                doc = generate_file(grid, agents, episodes, seed, progress=lambda: bar.update(1))
+                name = file_name(grid, agents)
+                digest = write_file(doc, args.generate / name)
+                same = digest == FROZEN.get(name)
+                rates = {s["id"]: s["stats"]["rejection_rate"] for s in doc["sets"]}
+                out[name] = {"sha256": digest, "matches_frozen": same,
+                             "seconds": round(time.perf_counter() - start, 2), "rejection_rate": rates}
+                if not args.quiet:
+                    bar.write(f"{args.generate / name}: sha256 {digest} "
+                              f"({'the frozen file' if same else 'differs from the frozen file'})")
+    print(json.dumps({"benchmark": "medc-radbench", "generated": out, "seed": seed, "episodes": episodes}))
+    return 0
+
+
+def _pool(results: dict[str, dict[str, list]], keys: Sequence[str]) -> dict[str, list]:
+    """policy -> the results of the sets ``keys``, concatenated in set order."""
+    policies = next(iter(results.values())).keys()
+    return {p: [r for k in keys for r in results[k][p]] for p in policies}
+
+
+def _report(args: argparse.Namespace, sets: list, results: dict[str, dict[str, list]], policies: list[str],
+            reference: str) -> tuple[dict, dict, dict]:
+    """(per set, pooled, pooled paired) figures of the played ``results`` (set id -> policy ->
+    EpisodeResult list), printed as they are made (unless --quiet)."""
+    from .metrics import paired, summarize
+
+    max_steps = sets[0].max_steps
+    others = [p for p in policies if p != reference]
+    per_set = {}
+    for s in sets:
+        figures = {p: summarize(results[s.id][p], max_steps) for p in policies}
+        comparisons = {p: paired(results[s.id][p], results[s.id][reference], max_steps) for p in others}
+        per_set[s.id] = {"sha256": s.sha256, "episodes": len(s.episodes), "policies": figures,
+                         "paired": comparisons}
+        _say(args, f"{s.id} (sha256 {s.sha256[:16]}):")
+        for p in policies:
+            _say(args, f"  {p:<12} {_fmt(figures[p])}")
+    groups: dict[str, list[str]] = {"all": [s.id for s in sets]}
+    for count in sorted({s.obstructions for s in sets}):
+        groups[f"obs{count}"] = [s.id for s in sets if s.obstructions == count]
+    for name in [n for n in ("low", "medium", "high") if any(s.snr == n for s in sets)]:
+        groups[name] = [s.id for s in sets if s.snr == name]
+    pooled, pooled_pairs = {}, {}
+    for label, keys in groups.items():
+        pool = _pool(results, keys)
+        pooled[label] = {p: summarize(pool[p], max_steps) for p in policies}
+        pooled_pairs[label] = {p: paired(pool[p], pool[reference], max_steps) for p in others}
+    _say(args, "pooled:")
+    for label in groups:
+        for p in policies:
+            _say(args, f"  {label:<7} {p:<12} {_fmt(pooled[label][p])}")
+    for p in others:
+        c = pooled_pairs["all"][p]
+        half = c["mean_diff_ci95"]
+        _say(args, f"paired, all sets: {p} - {reference}: mean {c['mean_diff']:+.2f} "
+                   f"± {'-' if half is None else f'{half:.2f}'} moves, wins {c['wins']} losses {c['losses']} "
+                   f"ties {c['ties']} (sign test p = {c['sign_test_p']:.3g})")
+    return per_set, pooled, pooled_pairs
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .sets import SetFileError
+
+    try:
+        if args.list:
+            return _list(args)
+        if args.generate is not None:
+            return _generate(args)
+        return _play(args)
+    except (SetFileError, ValueError) as exc:
+        print(f"medc-radbench: {exc}", file=sys.stderr)
+        return 2
+
+
+def _play(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..console import progress_bar
+    from .play import TEAM_SENSING, play_set
+    from .sets import file_name, load_sets
+
+    if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
+        raise ValueError("--threads, --batch and --episodes must be positive")
+    torch.set_num_threads(args.threads)
+    if args.quick:
+        grid, agents, counts, snrs = QUICK["grid"], QUICK["agents"], QUICK["obstructions"], QUICK["snrs"]
+        episodes = QUICK["episodes"]
+        policies = list(args.policies) or list(QUICK["policies"])
+    else:
+        grid, agents = args.grid or 20, args.agents or 1
+        counts, snrs, episodes = args.obstructions, args.snr, args.episodes
+        policies = list(args.policies) or list(QUICK["policies"])
+    if len(set(policies)) != len(policies):
+        raise ValueError("a policy is named twice")
+    reference = args.reference or policies[0]
+    if reference not in policies:
+        raise ValueError(f"--reference {reference!r} is not one of the policies played")
+    if args.sets_file is not None:
+        sets = load_sets(path=args.sets_file, sha256=args.sha256, obstructions=counts, snrs=snrs)
+        source = str(args.sets_file)
+        if (args.grid and args.grid != sets[0].grid) or (args.agents and args.agents != sets[0].agents):
+            raise ValueError(f"--grid/--agents do not match the set file's (grid {sets[0].grid}, "
+                             f"{sets[0].agents} agent(s))")
+        grid, agents = sets[0].grid, sets[0].agents
+    else:
+        sets = load_sets(grid, agents, obstructions=counts, snrs=snrs)
+        source = file_name(grid, agents)
+    file_digest = sets[0].file_sha256
+    if episodes is not None:
+        sets = [s.head(episodes) for s in sets]
+    max_steps = sets[0].max_steps
+    _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
+               f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "
+               f"episodes, policies {', '.join(policies)}")
+    results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
+    seconds = dict.fromkeys(policies, 0.0)
+    total = len(policies) * sum(len(s.episodes) for s in sets)
+    out_file = args.out.open("w") if args.out else None
+    try:
+        with progress_bar(total, unit="episode", disable=args.quiet) as bar:
+            for s in sets:
+                for policy in policies:
+                    start = time.perf_counter()
+                    played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
+                                      progress=bar.update)
+                    seconds[policy] += time.perf_counter() - start
+                    results[s.id][policy] = played
+                    if out_file is not None:
+                        for r in played:
+                            out_file.write(json.dumps({"policy": policy, "grid": grid, "agents": agents,
+                                                       "run": args.run, "set_sha256": s.sha256,
+                                                       **r.to_json()}) + "\n")
+    finally:
+        if out_file is not None:
+            out_file.close()
+    per_set, pooled, pooled_pairs = _report(args, sets, results, policies, reference)
+    print(json.dumps({
+        "benchmark": "medc-radbench", "grid": grid, "cell_m": sets[0].cell_m, "agents": agents,
+        "max_steps": max_steps,
+        "set_file": source, "set_file_sha256": file_digest, "quick": bool(args.quick), "run": args.run,
+        "episodes_per_set": len(sets[0].episodes), "policies": policies, "reference": reference,
+        "team_sensing": TEAM_SENSING.to_dict(), "seconds": {p: round(v, 2) for p, v in seconds.items()},
+        "sets": per_set, "pooled": pooled, "paired_pooled": pooled_pairs,
+    }))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
