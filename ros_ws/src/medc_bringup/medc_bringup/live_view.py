@@ -230,8 +230,6 @@ class LiveView:
         self.scene_topic = f"{self.state.ns}/scene"
         self.scene = SceneUpdateChannel(self.scene_topic, context=self.context)
         self.channels: dict[str, object] = {}
-        #: Channel arguments by topic (to create a channel again).
-        self._specs: dict[str, tuple[str, str]] = {}
         #: Latched (transient-local) topics and their last message, re-sent to each new subscriber.
         self.latched: dict[str, tuple[bytes, int | None] | None] = {}
         #: Channels created while serving, not yet confirmed subscribed or re-advertised: topic -> time.
@@ -244,9 +242,7 @@ class LiveView:
         self.serving = True
         self.port = int(self.server.port)
 
-    def _channel(self, topic: str):
-        type_name, definition = self._specs[topic]
-        schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
+    def _channel(self, topic: str, schema):
         return self._foxglove.Channel(topic, message_encoding="cdr", schema=schema, context=self.context)
 
     def add_topic(self, topic: str, type_name: str, definition: str, latched: bool = False) -> None:
@@ -254,11 +250,11 @@ class LiveView:
         topic is transient local, and a client that subscribes gets its last message at once."""
         if topic in self.channels:
             return
-        self._specs[topic] = (type_name, definition)
         if latched:
             with self._lock:
                 self.latched[topic] = None
-        self.channels[topic] = self._channel(topic)
+        schema = self._foxglove.Schema(name=type_name, encoding="ros2msg", data=definition.encode())
+        self.channels[topic] = self._channel(topic, schema)
         if self.serving:
             self._late[topic] = time.monotonic()
 
@@ -274,7 +270,7 @@ class LiveView:
             if old.has_sinks():
                 continue
             old.close()  # first: the SDK hands out a topic's open channel again
-            self.channels[topic] = self._channel(topic)
+            self.channels[topic] = self._channel(topic, old.schema())
 
     def _resend_latched(self, topic: str) -> None:
         with self._lock:
