@@ -391,7 +391,7 @@ def test_the_size_check_finds_a_long_function():
 
 
 def test_no_class_over_300_and_no_function_over_100_lines():
-    """Modules split by job (issue 22): every class of training/, ros_ws/src and scripts/ fits in
+    """Modules split by job: every class of training/, ros_ws/src and scripts/ fits in
     MAX_CLASS_LINES lines and every function in MAX_FUNCTION_LINES."""
     found = [f"{path.relative_to(REPO_ROOT)}: {kind} {name} has {lines} lines"
              for path in _source_files() for kind, name, lines in _oversized(ast.parse(path.read_text()))]

@@ -1,4 +1,4 @@
-"""Issue 20, items 3, 4 and 6: a bundle's cost is bounded by construction and measured on real
+"""A bundle's cost is bounded by construction and measured on real
 data, a slow bundle is refused after about the limit and remembered, and the grid a manifest
 names is bounded before anything is sized from it. Each test builds its hostile file itself."""
 
@@ -38,7 +38,7 @@ def _subnormal_bundle(arch: str = "convnet-small", grid: int = 30) -> bytes:
     return forge(tensors, manifest)
 
 
-# --- item 3: denormals ---------------------------------------------------------------------------
+# --- denormals ---------------------------------------------------------------------------
 
 def test_subnormal_weights_are_loaded_as_zero_everywhere(tmp_path) -> None:
     data = _subnormal_bundle()
@@ -84,11 +84,11 @@ def test_the_dry_run_uses_observations_with_real_structure(monkeypatch) -> None:
     assert len(seen) == 3 and torch.equal(seen[1], real)
 
 
-# --- item 4: slow bundles --------------------------------------------------------------------------
+# --- slow bundles --------------------------------------------------------------------------
 
 def _slow_bundle() -> bytes:
-    """The issue's slow bundle: 1-channel 64x64 convolutions on a padded-up map, ~418 M operations
-    (just under nets.MAX_OPERATIONS); 0.2 s a pass on this project's 2-core dev machine, idle."""
+    """A slow bundle: 1-channel 64x64 convolutions on a padded-up map, ~418 M operations (just under
+    nets.MAX_OPERATIONS); tens of ms a pass on one core of this project's dev machine."""
     tensors, manifest = spec_parts(bomb_spec(5, 10, 3, 62, [conv(1, 64)]))
     gen = torch.Generator().manual_seed(0)
     tensors = {k: torch.rand(v.shape, generator=gen) * 0.01 for k, v in tensors.items()}
@@ -119,9 +119,25 @@ def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[floa
     return one_pass, limit, slow.value, time.perf_counter() - start
 
 
+#: Tries of a timed refusal, and the pause before each retry: a shared machine's busy spell (the other
+#: test worker starting a ROS graph: seconds of CPU) must be over before the next try.
+TRIES, RETRY_PAUSE_S = 5, 1.5
+
+
+@pytest.fixture
+def one_thread():
+    """Time on one intra-op thread, as an agent node runs (its ``threads`` parameter, default 1):
+    with two threads on two busy cores, a layer waits for its slower thread and the estimate from a
+    strip says little about the full layer."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.mark.timing
 def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(
-        tmp_path, monkeypatch) -> None:
+        tmp_path, monkeypatch, one_thread) -> None:
     data = _slow_bundle()
     full = load_bundle(data)
     blank = torch.zeros((1, *full.obs_shape))
@@ -129,8 +145,9 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     # The big layer (3) is timed on a 1/16 strip of its output first, and the pass abandoned before
     # the layer runs in full. A stall of a shared machine (tens of ms) can refuse the bundle before
     # the estimate, or make the refusal slow: rightly refused, but not the way this test is about,
-    # so that case is measured again (3 tries).
-    for _ in range(3):
+    # so that case is measured again after a pause (TRIES tries).
+    for attempt in range(TRIES):
+        time.sleep(RETRY_PAUSE_S if attempt else 0.0)
         one_pass, limit, slow, took = _refuse_once(full, blank, allowed)
         if slow.estimated and took < one_pass:
             break
@@ -141,11 +158,12 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     # The dry run's observation of the bundle's environment is built once per process (a few
     # random steps of the scenario, ~0.3 s): built here, so that what is timed is the refusal.
     dryrun_mod.dry_run_observations(full.manifest, full.obs_shape)
-    # Before: a full blank pass, then a second one (a cold start's second chance): >= 2 passes. As
-    # above, a stall can refuse it another way or slowly: measured again (3 tries, each with the
-    # refusals remembered so far forgotten).
+    # The dry run refuses it within one pass (no full blank pass first, no second chance). As
+    # above, a stall can refuse it another way or slowly: measured again after a pause (TRIES
+    # tries, each with the refusals remembered so far forgotten).
     too_slow = r"takes .* s to evaluate, over the .* s limit \(too slow"
-    for _ in range(3):
+    for attempt in range(TRIES):
+        time.sleep(RETRY_PAUSE_S if attempt else 0.0)
         monkeypatch.setattr(policy_mod, "_REFUSED", OrderedDict())
         start = time.perf_counter()
         with pytest.raises(BundleError, match=too_slow) as info:
@@ -169,7 +187,7 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
 
 
 @pytest.mark.timing
-def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch) -> None:
+def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch, one_thread) -> None:
     # A shared machine can stall the 1/16 strip a big layer is probed on; scaled up by 16, one stall
     # would refuse a bundle well under the limit. The estimate is taken only if a second strip confirms it.
     full = load_bundle(_slow_bundle())
@@ -180,7 +198,7 @@ def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch) 
         start = time.perf_counter()
         dryrun_mod.timed_forward(full.net, blank, allowed, float("inf"))
         passes.append(time.perf_counter() - start)
-    limit = 4 * passes[-1] + 0.1
+    limit = 4 * passes[-1] + 0.5  # room for a busy machine's stall in the real pass
     real_strip, calls = dryrun_mod._run_strip, []
 
     def stalled_once(module, part, stride):
@@ -197,7 +215,7 @@ def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch) 
     assert slow.value.seconds > passes[-1] / 50
 
 
-# --- item 6: the grid a manifest names -----------------------------------------------------------------
+# --- the grid a manifest names -----------------------------------------------------------------
 
 @pytest.mark.parametrize("grid", [10**6, 256, MAX_BUNDLE_GRID + 1, 0, 12.5])
 def test_a_manifest_grid_beyond_the_bound_is_refused_by_every_reader(grid, tmp_path, capsys) -> None:

@@ -1,4 +1,4 @@
-"""Issue 12: hostile bundles built here, in several sizes and shapes, end in a BundleError that says
+"""Hostile bundles built here, in several sizes and shapes, end in a BundleError that says
 what is wrong and never echoes the file; the same refusal from the agent's and the bridge's
 shared vetting (load_untrusted) and from medc-inspect; nothing else ever escapes."""
 

@@ -18,7 +18,7 @@ from medc_registry.cid import (
     verify,
 )
 
-# Kubo-confirmed vectors (issue 4) plus Kubo's well-known empty-file CIDv0.
+# Kubo-confirmed vectors plus Kubo's well-known empty-file CIDv0.
 VECTORS = [
     (b"", 1, "bafkreihdwdcefgh4dqkjv67uzcmw7ojee6xedzdetojuzjevtenxquvyku"),
     (b"hello world\n", 0, "QmT78zSuBmuS4z925WZfrqQ1qHaJ56DQaTfyMUF7F8ff5o"),

@@ -1,4 +1,4 @@
-"""Payments stay single when runs overlap (issue 20, items 7 and 8), against anvil.
+"""Payments stay single when runs overlap, against anvil.
 
 A loopback proxy in front of anvil delays every JSON-RPC call (a slow node,
 ``registry_helpers.RpcProxy``), and ``medc-registry request`` runs as separate processes sharing
@@ -89,7 +89,7 @@ def _wait_for(condition, procs: list[subprocess.Popen], what: str, timeout_s: fl
 @pytest.mark.anvil
 @pytest.mark.slow
 def test_a_second_run_during_a_slow_first_run_pays_nothing_more(slow_home):
-    """Issue 20, item 7: with a node answering in 0.4 s per call, a second run of the same request
+    """With a node answering in 0.4 s per call, a second run of the same request
     started while the first still waits on the node, its request recorded (held there until the
     second waits for the first's lock), resolves the first run's request."""
     home, proxy, ledger = slow_home
@@ -121,7 +121,7 @@ def test_a_second_run_during_a_slow_first_run_pays_nothing_more(slow_home):
 @pytest.mark.timing
 @pytest.mark.anvil
 def test_two_identical_requests_started_together_pay_once(slow_home):
-    """Issue 20, item 8: two processes started at the same moment on one home: one pays, the
+    """Two processes started at the same moment on one home: one pays, the
     other waits for it (the pending file's lock) and reports that allocation."""
     home, proxy, ledger = slow_home
     proxy.delay = 0.1

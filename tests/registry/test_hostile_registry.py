@@ -1,4 +1,4 @@
-"""Hostile inputs against the registry, second round (issue 20, items 5 and 9-13): JSON from the
+"""Hostile inputs against the registry, second round: JSON from the
 graph and the chain, hostile JSON-RPC and IPFS nodes, other users' on-chain strings and the CLI's
 own arguments and files. Every hostile message, server and file is built here; the tests are fast
 (loopback servers, the embedded chain, subprocesses of a few seconds)."""

@@ -81,8 +81,7 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
             count=1,
         )
         assert not res_bad.ok and "JSON" in res_bad.message
-        # JSON nested 70,000 deep (issue 20, item 5; it crashed this process, whose recursion limit
-        # the embedded chain raised) is refused by the bounded reader before any parser recursion,
+        # JSON nested 70,000 deep is refused by the bounded reader before any parser recursion,
         # in requirements and in weights alike; the node keeps serving.
         deep = "[" * 70_000 + "]" * 70_000
         for field in ("requirements_json", "weights_json"):

@@ -1,4 +1,4 @@
-"""Issue 14: a driver written from docs/ros.md alone (tests/ros/contract_driver.py: its own ENU
+"""A driver written from docs/ros.md alone (tests/ros/contract_driver.py: its own ENU
 world, walls and sensor model) runs the shipped team as three medc-agent processes started from
 the bundle alone. The driver is restarted mid-run and sends one mis-stamped reading: the team
 keeps stepping, every move is the policy's on the driver's world, and the mistake and the

@@ -1,4 +1,4 @@
-"""Issue 20, items 3, 6 and 15 at the agent: a manifest's grid is bounded before the agent
+"""At the agent, a manifest's grid is bounded before the agent
 allocates anything (the process exits with the reason, no traceback), denormal bundles run
 flushed, and the agent's policy cache evicts. Each test builds its hostile bundle itself."""
 

@@ -1,4 +1,4 @@
-"""Issue 12: hostile bundles on the policy topics, the policy parameter and the bridge's fetch are
+"""Hostile bundles on the policy topics, the policy parameter and the bridge's fetch are
 refused with the reason; the agent process and the bridge keep running and keep answering."""
 
 from __future__ import annotations

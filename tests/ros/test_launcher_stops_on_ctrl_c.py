@@ -45,3 +45,28 @@ def test_ctrl_c_stops_the_graph_and_prints_the_summary(bundles, tmp_path):
     for pattern in (str(bundles["a"]), str(cache)):
         leftovers = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout.split()
         assert leftovers == [], pattern
+
+
+class _TakeFails:
+    """An executor whose spin_once fails as rclpy's does when the context is shut down while a message
+    is being taken (pybind11: "Unable to convert call argument '0' to Python object")."""
+
+    def __init__(self, shut_down_first: bool) -> None:
+        self.shut_down_first = shut_down_first
+
+    def spin_once(self, timeout_sec: float) -> None:
+        import rclpy
+
+        if self.shut_down_first:
+            rclpy.try_shutdown()
+        raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+
+@pytest.mark.ros
+def test_a_take_that_fails_because_ctrl_c_shut_rclpy_down_ends_the_spin_quietly(rclpy_context):
+    from medc_common.executors import spin_once_alive
+
+    # With rclpy still up, the same error is a real one and is raised.
+    with pytest.raises(RuntimeError, match="call argument"):
+        spin_once_alive(_TakeFails(shut_down_first=False), 0.01)
+    assert spin_once_alive(_TakeFails(shut_down_first=True), 0.01) is False

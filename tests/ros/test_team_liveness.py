@@ -1,4 +1,4 @@
-"""Issue 21 (a lost UAV, idempotent moves, diagnostics a monitor can use) and issue 20 items 1-2
+"""A lost UAV, idempotent moves, diagnostics a monitor can use, and robustness
 (one map or one status must not freeze a team), with agent processes.
 
 - The simulator and three ``medc-agent`` processes: every node's heartbeat comes at ~1 Hz; a hostile
@@ -104,7 +104,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
         def steps_after(since_count: int) -> int:
             return len([s for s in listen.own(session)[since_count:] if not s.done])
 
-        # Issue 20 item 1: one valid map far away with a new map_load_time.
+        # One valid map far away with a new map_load_time.
         map_pub = node.create_publisher(OccupancyGrid, contract.map_topic(ns), contract.LATCHED_QOS)
         hostile = OccupancyGrid()
         hostile.header.frame_id = "map"
@@ -119,7 +119,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
         assert listen.spin(60, lambda: len(listen.warnings(t_map, "holds none of the team's")) >= 3, procs)
         assert listen.spin(60, lambda: listen.warnings(t_map, "did not publish", "medc_sim: map"), procs)
 
-        # Issue 20 item 2: future-stamped poses and readings and one status with step 10^9, in the
+        # Future-stamped poses and readings and one status with step 10^9, in the
         # driver's own session, episode and map.
         pose_pubs = [node.create_publisher(PoseStamped, contract.pose_topic(ns, a), contract.SENSOR_QOS)
                      for a in contract.agent_ids(3)]

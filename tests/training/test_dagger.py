@@ -135,7 +135,7 @@ def test_cli_runs_and_rejects_bad_options(tmp_path, capsys):
     assert out["iterations"] == 2 and out["steps"] == 256
     manifest = load_bundle(tmp_path / "c" / "policy.safetensors").manifest
     assert manifest["environment"]["complexity"] == 0.5
-    # A folder holds one cloning run: a second one there needs --overwrite (issue 20, item 14).
+    # A folder holds one cloning run: a second one there needs --overwrite.
     before = (tmp_path / "c" / "summary.json").read_text()
     assert clone_cli.main(["--out", str(tmp_path / "c"), "--quiet", "--steps", "64"]) == 2
     assert "already holds a cloning run" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""Issue 20, item 14: a run folder holds one configuration. Resume and "already done" compare all
+"""a run folder holds one configuration. Resume and "already done" compare all
 of it (config and inputs) and refuse a mismatch naming the fields; a finished run is replaced
 only with an explicit --overwrite; the committed docs/reproduction runs still count as done."""
 

@@ -1,4 +1,4 @@
-"""A run folder holds one configuration (issue 20, item 14): what it records, and how a resume or
+"""A run folder holds one configuration: what it records, and how a resume or
 an "already done" check compares it.
 
 A run is its :class:`~medc_training.config.TrainConfig` plus its *inputs*, what else its learner

@@ -1,4 +1,4 @@
-"""What a policy costs on this machine, measured before anyone acts with it (issue 20, items 3-4).
+"""What a policy costs on this machine, measured before anyone acts with it.
 
 The static caps (``nets.MAX_OPERATIONS``, ``nets.MAX_ACTIVATION_BYTES``) bound a network by its
 spec; this module bounds what the arithmetic cannot see:

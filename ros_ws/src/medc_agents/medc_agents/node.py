@@ -384,7 +384,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
 
     def _check_map(self, msg: OccupancyGrid) -> None:
         """Report a map none of the team's latest poses lie on (a map from elsewhere): it is kept
-        aside and used only when an episode status names it (issue 20)."""
+        aside and used only when an episode status names it."""
         o = self.observer
         key = stamp_key(msg.info.map_load_time)
         geometry = o.maps.geometry(key)

@@ -24,7 +24,7 @@ Sentences = tuple[list[str], list[str]]
 class MapStore:
     """The walls maps received: the latest :data:`KEEP_MAPS`, but never letting go of one the
     episode in play or the pending step uses, so a burst of other maps cannot take the team's map
-    away (issue 20)."""
+    away."""
 
     def __init__(self) -> None:
         #: map_load_time key -> (walls bool [H,W], geometry, header stamp key)

@@ -396,7 +396,7 @@ def run_in_process(
     rclpy must be initialised by the caller.
     """
     import rclpy
-    from medc_common.executors import make_executor
+    from medc_common.executors import make_executor, spin_once_alive
 
     sim, _, nodes = build_graph(cfg, policies, episodes, extra_listeners=extra_listeners)
     sim.episode_listeners.append(lambda r: log.add(r.episode, r.length, r.success))
@@ -406,15 +406,16 @@ def run_in_process(
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     try:
         while rclpy.ok() and not sim.finished:
-            executor.spin_once(timeout_sec=0.1)
+            if not spin_once_alive(executor, 0.1):
+                return False
             if deadline is not None and time.monotonic() > deadline:
                 return False
         if sim.finished and extra_listeners:
             # A reader in another process (the recorder) gets the last results only while their
             # reliable writers live: linger as medc-sim does before the nodes go.
             linger = time.monotonic() + RECORDER_LINGER_S
-            while rclpy.ok() and time.monotonic() < linger:
-                executor.spin_once(timeout_sec=0.05)
+            while rclpy.ok() and time.monotonic() < linger and spin_once_alive(executor, 0.05):
+                pass
         return sim.finished
     finally:
         executor.shutdown()
@@ -452,9 +453,13 @@ def run_processes(
     """
     import rclpy
     from medc_common import contract
+    from medc_common.executors import spin_once_alive
     from medc_interfaces.msg import EpisodeStatus
+    from rclpy.executors import SingleThreadedExecutor
 
     monitor = rclpy.create_node("medc_launch", namespace=cfg.namespace)
+    executor = SingleThreadedExecutor()
+    executor.add_node(monitor)
     seen: set[int] = set()
 
     def on_status(msg: EpisodeStatus) -> None:
@@ -485,12 +490,13 @@ def run_processes(
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     try:
         while rclpy.ok():
-            rclpy.spin_once(monitor, timeout_sec=0.1)
+            if not spin_once_alive(executor, 0.1):  # Ctrl-C shut rclpy down while a message was taken
+                return False
             if episodes and len(seen) >= episodes:
                 if extra_listeners:  # the recorder: let the last moves reach it (RECORDER_LINGER_S)
                     linger = time.monotonic() + RECORDER_LINGER_S
-                    while rclpy.ok() and time.monotonic() < linger:
-                        rclpy.spin_once(monitor, timeout_sec=0.05)
+                    while rclpy.ok() and time.monotonic() < linger and spin_once_alive(executor, 0.05):
+                        pass
                 return True
             if any(c.poll() not in (None, 0) for c in children):
                 failed = [" ".join(c.args[:1]) for c in children if c.poll() not in (None, 0)]
@@ -501,6 +507,7 @@ def run_processes(
         return False
     finally:
         _stop(children)
+        executor.shutdown()
         monitor.destroy_node()
 
 

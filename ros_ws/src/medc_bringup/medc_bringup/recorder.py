@@ -298,12 +298,12 @@ def spin_then_drain(drain_s: float):
     messages already on their way (the last episode's result) are still written."""
     def spin(node, executor) -> None:
         import rclpy
-        from medc_common.executors import spin_until_shutdown
+        from medc_common.executors import spin_once_alive, spin_until_shutdown
 
         spin_until_shutdown(node, executor)
         end = time.monotonic() + drain_s
-        while rclpy.ok() and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
+        while rclpy.ok() and time.monotonic() < end and spin_once_alive(executor, 0.05):
+            pass
 
     return spin
 

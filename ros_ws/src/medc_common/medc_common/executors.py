@@ -59,18 +59,29 @@ def install_stop_handlers() -> None:
 def spin_until_shutdown(node, executor) -> None:
     """Spin until a stop is requested or rclpy shuts down; spin_once in a loop (not spin()) so that
     Ctrl-C and the launcher's SIGINT are seen within 0.1 s."""
+    while running():
+        if not spin_once_alive(executor, 0.1):
+            return
+
+
+def spin_once_alive(executor, timeout_sec: float) -> bool:
+    """``executor.spin_once(timeout_sec)``; False when rclpy was shut down during it.
+
+    A SIGINT handled by rclpy's own signal handler (or the launcher's SIGINT to a node) can shut the
+    context down while the executor is inside spin_once: taking a message or converting an event on
+    a handle that has just become invalid then raises ``RuntimeError`` (from pybind11, e.g. "Unable
+    to convert call argument '0' to Python object"). That is a shutdown, not an error; a
+    RuntimeError while rclpy is still up is a real one and is raised.
+    """
     import rclpy
 
-    while running():
-        try:
-            executor.spin_once(timeout_sec=0.1)
-        except RuntimeError:
-            # The launcher's SIGINT can shut the context down while the EventsExecutor is inside
-            # spin_once, which then fails converting its now-invalid handles: that is a shutdown,
-            # not an error. A RuntimeError while rclpy is still up is a real one.
-            if rclpy.ok():
-                raise
-            return
+    try:
+        executor.spin_once(timeout_sec=timeout_sec)
+    except RuntimeError:
+        if rclpy.ok():
+            raise
+        return False
+    return True
 
 
 def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_shutdown,

@@ -1,4 +1,4 @@
-"""What the simulator watches besides the moves: other drivers on its topics (issue 20, 21).
+"""What the simulator watches besides the moves: other drivers on its topics.
 
 A second graph on the same ROS_DOMAIN_ID and namespace publishes statuses with another
 ``EpisodeStatus.session``; a map on the map topic that the simulator did not publish replaces the
