@@ -1,4 +1,4 @@
-"""Classical controllers (gradient, greedy, infotaxis) as an agent node's policy, by name.
+"""Classical controllers (every name of controllers.CONTROLLERS) as an agent node's policy, by name.
 
 Plain logic: an agent's decision from its TeamObserver (messages -> team memory) is the batched
 core's ``controller_scores(name, env)`` argmax for that agent, step by step. Graph: a team of

@@ -75,6 +75,8 @@ from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_
 
 __all__ = [
     "CONTROLLERS",
+    "COORDINATED",
+    "SEARCHERS",
     "controller_policy",
     "controller_scores",
     "expected_chebyshev",
@@ -86,10 +88,21 @@ __all__ = [
     "posterior_mean_levels",
 ]
 
+#: The information-driven searchers of :mod:`medc_training.searchers`: name -> options of
+#: :func:`~medc_training.searchers.searcher_scores`.
+SEARCHERS: dict[str, dict] = {
+    "infotaxis-exact": {"criterion": "entropy"},
+    "space-aware": {"criterion": "space-aware"},
+    "infotaxis-2step": {"criterion": "entropy", "depth": 2},
+    "team-infotaxis": {"criterion": "entropy", "coordinated": True},
+    "team-space-aware": {"criterion": "space-aware", "coordinated": True},
+}
 #: The controllers' names, as :func:`controller_policy` and ``medc-controllers`` take them.
-CONTROLLERS: tuple[str, ...] = ("gradient", "greedy", "infotaxis")
+CONTROLLERS: tuple[str, ...] = ("gradient", "greedy", "infotaxis", *SEARCHERS)
 #: The controllers that read the team's source posterior.
-NEEDS_POSTERIOR: frozenset[str] = frozenset({"greedy", "infotaxis"})
+NEEDS_POSTERIOR: frozenset[str] = frozenset({"greedy", "infotaxis", *SEARCHERS})
+#: The controllers whose agents choose in turn (agent i's move depends on agents 0 .. i-1's).
+COORDINATED: frozenset[str] = frozenset(k for k, v in SEARCHERS.items() if v.get("coordinated"))
 #: chi-squared(2 dof) 95% point: a window's slope below it is not told apart from counting noise.
 WALD_FLAT = 5.99
 #: Elements per chunk of the infotaxis tensors (candidate moves x cells x count values).
@@ -341,6 +354,12 @@ def controller_scores(name: str, env, mask: torch.Tensor | None = None, **option
     _check(name, env)
     mem = env.memory
     mask = env.mask if mask is None else mask
+    if name in SEARCHERS:
+        from medc_training.searchers import searcher_scores
+
+        rects = mem.rects if mem.sensing.line == "exact" else None
+        return searcher_scores(mem.log_post, env.positions, mask, env.walls, mem.sensing, rects=rects,
+                               visit_map=mem.visit_map, **SEARCHERS[name], **options)
     if name == "greedy":
         return greedy_scores(mem.posterior(), env.positions, mask, mem.visit_map, **options)
     if mem.log_post is not None:

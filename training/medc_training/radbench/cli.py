@@ -7,7 +7,8 @@ report what the field reports, per set and pooled, with the sets' SHA-256.
     medc-radbench --list                                   # the frozen files and sets, hashes checked
     medc-radbench --generate /tmp/sets                     # write the set files again from their seed
 
-POLICY is ``random``, a classical controller (gradient, greedy, infotaxis) or a policy bundle trained
+POLICY is ``random``, a classical controller (gradient, greedy, infotaxis, or an information-driven
+searcher: infotaxis-exact, space-aware, infotaxis-2step, team-infotaxis, team-space-aware) or a bundle trained
 under the realistic sensing preset. Every policy plays the same episodes with the same count noise;
 the first policy (``--reference``) is compared with each other one episode by episode (paired).
 
@@ -61,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="medc-radbench", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("policies", nargs="*", metavar="POLICY",
-                   help="random, gradient, greedy, infotaxis or a bundle path (default: random gradient "
+                   help="random, a controller's name or a bundle path (default: random gradient "
                         "greedy infotaxis)")
     p.add_argument("--quick", action="store_true", help="the stated subset above (overrides the set options)")
     p.add_argument("--grid", type=int, choices=(20, 30), help="the area: 20 or 30 cells of 1 m (default 20)")

@@ -1,8 +1,9 @@
 """A classical controller as an agent's policy (no ROS here).
 
 An agent node runs a controller of ``medc_training.controllers`` (``gradient``, ``greedy``,
-``infotaxis``) by name wherever it takes a policy bundle (the ``policy`` parameter, the policy
-topics). It decides its own move with the controller's pure batched function, on the state its
+``infotaxis`` and the information-driven searchers of ``medc_training.searchers``) by name
+wherever it takes a policy bundle (the ``policy`` parameter, the policy topics). It decides its own
+move with the controller's pure batched function, on the state its
 :class:`~medc_agents.team_state.TeamObserver` keeps of the team (the team memory with its source
 posterior, the walls, every agent's position and move mask of the step it observed): the team's
 move scores [1,N,8] are those the batched core's ``controller_scores(name, env)`` gives for the
@@ -14,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from medc_training.controllers import CONTROLLERS, controller_scores
+from medc_training.controllers import CONTROLLERS, COORDINATED, controller_scores
 
 #: The application every controller plays.
 APPLICATION = "target_localization"
@@ -85,12 +86,15 @@ def team_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
 
 
 def own_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
-    """float32 [8]: this agent's row (``observer.index``) of :func:`team_scores`. The controllers
+    """float32 [8]: this agent's row (``observer.index``) of :func:`team_scores`. Most controllers
     decide each agent's move independently, from the same team state, so the row is computed alone
-    (the team's other N - 1 rows, which this agent does not use, are not)."""
+    (the team's other N - 1 rows, which this agent does not use, are not); a coordinated controller
+    (``COORDINATED``: agents choose in turn) computes the rows of the agents before this one too, the
+    same sequence every teammate computes from the same team state."""
     i = observer.index
+    rows = slice(0, i + 1) if name in COORDINATED else slice(i, i + 1)
     with torch.no_grad():
-        return controller_scores(name, team_view(observer, noise, slice(i, i + 1)))[0, 0]
+        return controller_scores(name, team_view(observer, noise, rows))[0, -1]
 
 
 def controller_move(name: str, observer, mask: torch.Tensor | None = None, noise: bool = False) -> int:

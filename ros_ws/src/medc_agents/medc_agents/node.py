@@ -32,6 +32,7 @@ from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
+from medc_training.controllers import CONTROLLERS
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
@@ -216,7 +217,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     initial = p(
         "policy", "",
         "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
-        "(gradient, greedy, infotaxis; needs agents and grid); set it to swap policies")
+        f"({', '.join(CONTROLLERS)}; needs agents and grid); set it to swap policies")
     return AgentParameters(
         agent_id=agent_id, namespace=namespace, agents=int(num_agents), grid=int(grid),
         observation=str(observation), resolution=float(resolution), sensing=sensing,

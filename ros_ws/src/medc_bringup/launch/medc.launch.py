@@ -25,7 +25,8 @@ LAUNCH_ARGUMENTS = {
     "namespace": ("/medc", "ROS namespace of every node of the team (its topics and services move with it)"),
     "config": ("", "launch YAML (default: the installed share/medc_bringup/config/launch.yaml)"),
     "policy": ("", "bundle file or folder (relative to the current directory), or a classical controller: "
-                   "gradient, greedy, infotaxis; empty: the launch config's"),
+                   "gradient, greedy, infotaxis, infotaxis-exact, space-aware, infotaxis-2step, "
+                   "team-infotaxis, team-space-aware; empty: the launch config's"),
     "agents": ("", "number of agents; empty: the launch config's, else the bundle manifest's"),
     "grid": ("", "grid side in cells; empty: the launch config's, else the bundle manifest's"),
     "seed": ("", "environment seed; empty: the launch config's"),

@@ -144,13 +144,14 @@ def run_graph(
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``medc-bench ros``."""
     from medc_training.console import HelpFormatter
+    from medc_training.controllers import CONTROLLERS
 
     parser = argparse.ArgumentParser(prog="medc-bench ros", description=__doc__.split("\n\n")[0],
                                      formatter_class=HelpFormatter)
     parser.add_argument("--steps", type=int, default=500, help="measured steps per latency run")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of the sustained-rate run")
-    parser.add_argument("--policy", help="bundle to run, on its grid, or a classical controller (gradient, "
-                        "greedy, infotaxis) on the 30x30 grid (default: a lenet5 for the 30x30 grid)")
+    parser.add_argument("--policy", help="bundle to run, on its grid, or a classical controller ("
+                        f"{', '.join(CONTROLLERS)}) on the 30x30 grid (default: a lenet5 for the 30x30 grid)")
     parser.add_argument("--quick", action="store_true", help="100 steps and 10 s (a smoke run)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.quick:
@@ -164,7 +165,6 @@ def main(argv: list[str] | None = None) -> int:
     # A domain of its own, unless the caller chose one: no cross-talk with a running graph.
     os.environ.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 50))
     import torch
-    from medc_training.controllers import CONTROLLERS
 
     torch.set_num_threads(1)
     rclpy.init(args=["medc-bench-ros"])

@@ -140,6 +140,13 @@ def _absolute(path: str, root: Path) -> Path:
     return q if q.is_absolute() else root / q
 
 
+def _controllers() -> tuple[str, ...]:
+    """Every classical controller's name (medc_training.controllers.CONTROLLERS)."""
+    from medc_training.controllers import CONTROLLERS
+
+    return CONTROLLERS
+
+
 def _controller(policy: object) -> str | None:
     """The classical controller ``policy`` names (medc_training.controllers.CONTROLLERS), or None."""
     from medc_training.controllers import CONTROLLERS
@@ -529,7 +536,7 @@ def policy_from_cwd(policy: str | None, cwd: Path | None = None) -> str | None:
         )
         raise ValueError(
             f"--policy {policy!r}: {absolute} does not exist{where}; pass a bundle file or folder, "
-            "or a classical controller: gradient, greedy, infotaxis"
+            f"or a classical controller: {', '.join(_controllers())}"
         )
     return str(absolute)
 
@@ -547,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--in-process", action="store_true", help="all nodes in this process, one executor")
     parser.add_argument("--seed", type=int, help="override the config's seed")
     parser.add_argument("--policy", help="override the config's policy (bundle file or folder, relative to "
-                        "the current directory, or a classical controller: gradient, greedy, infotaxis)")
+                        f"the current directory, or a classical controller: {', '.join(_controllers())})")
     parser.add_argument("--agents", type=int, help="override the config's number of agents")
     parser.add_argument("--sensing", help="override the config's sensing preset (paper-simple, realistic)")
     parser.add_argument("--namespace", help="override the config's namespace (/medc): the ROS namespace "
