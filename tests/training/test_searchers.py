@@ -36,19 +36,19 @@ def _by_hand(log_post: torch.Tensor, g: int, x: tuple[int, int], criterion: str,
     p = torch.softmax(log_post.flatten(), 0).view(len(levels), g * g).tolist()
     cells = [(i // g, i % g) for i in range(g * g)]
     xi = x[0] * g + x[1]
-    found = sum(p[l][xi] for l in range(len(levels)))
-    q = [[0.0 if c == xi else p[l][c] / (1 - found) for c in range(g * g)] for l in range(len(levels))]
+    found = sum(p[lv][xi] for lv in range(len(levels)))
+    q = [[0.0 if c == xi else p[lv][c] / (1 - found) for c in range(g * g)] for lv in range(len(levels))]
     total = 0.0
     for k in range(top + 1):
         joint = [[0.0] * (g * g) for _ in levels]
-        for l, (s, b) in enumerate(levels):
+        for lv, (s, b) in enumerate(levels):
             for c, (r, col) in enumerate(cells):
                 lam = s / (1 + (r - x[0]) ** 2 + (col - x[1]) ** 2) + b
-                joint[l][c] = q[l][c] * math.exp(k * math.log(lam) - lam - math.lgamma(k + 1))
+                joint[lv][c] = q[lv][c] * math.exp(k * math.log(lam) - lam - math.lgamma(k + 1))
         pk = sum(map(sum, joint))
         if pk == 0.0:
             continue
-        m = [sum(joint[l][c] for l in range(len(levels))) / pk for c in range(g * g)]
+        m = [sum(joint[lv][c] for lv in range(len(levels))) / pk for c in range(g * g)]
         h = -sum(v * math.log2(v) for v in m if v > 0)
         value = h
         if criterion == "space-aware":
