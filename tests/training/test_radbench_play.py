@@ -130,3 +130,28 @@ def test_cli_lists_the_frozen_sets_and_refuses_a_changed_file(tmp_path, capsys):
     changed.write_text((SETS_DIR / "g20-a1.json").read_text().replace('"B":31', '"B":32', 1))
     assert main(["greedy", "--sets-file", str(changed), "--sha256", FROZEN["g20-a1.json"], "--quiet"]) == 2
     assert "was changed" in capsys.readouterr().err
+
+
+def test_cost_measures_every_kind_of_policy_the_same_way(capsys, tmp_path):
+    """--cost: per policy the batched evaluator at B = 1 and B = --batch, an agent node's decision,
+    and the work per decision (likelihood terms of a posterior searcher, MACs of a bundle)."""
+    from medc_training.bundle import save_bundle
+    from medc_training.nets import make_actor_critic
+    from medc_training.radbench.cost import decision_cost
+
+    (s,) = load_sets(grid=20, agents=3, obstructions=[3], snrs=["medium"])
+    team = decision_cost(s, "team-space-aware", batch=4, steps=1, node_steps=2)
+    alone = decision_cost(s, "space-aware", batch=4, steps=1, node_steps=2)
+    for c in (team, alone):
+        assert c["b1"]["call_ms_p50"] > 0 and c["b4"]["decisions_per_s"] > 0 and c["node_ms_p50"] > 0
+    # The coordinated team weighs its teammates' outcomes: more work per decision.
+    assert team["likelihood_terms_per_decision"] > alone["likelihood_terms_per_decision"] > 0
+    core = BenchCore(s, [0], observation="maps")
+    net = make_actor_critic("lenet5", obs_shape=core.obs_shape, num_actions=8)
+    manifest = {"application": "target_localization", "environment": {"grid": 20, "sensing": "realistic"}}
+    bundle = save_bundle(tmp_path / "b.safetensors", net, manifest)
+    learned = decision_cost(s, bundle, batch=4, steps=1, node_steps=2)
+    assert learned["macs_per_decision"] > 1000 and learned["likelihood_terms_per_decision"] == 0
+    assert main(["--cost", "random", "greedy", "--batch", "4", "--quiet"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(out["cost"]) == {"random", "greedy"} and out["set"] == "obs3-medium"

@@ -72,6 +72,7 @@ import torch
 
 from medc_training.envs.grid import action_deltas
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
+from medc_training.searchers import STATS
 
 __all__ = [
     "CONTROLLERS",
@@ -326,6 +327,7 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
         log_lam = lam.log()
         ll = counts.unsqueeze(-1) * log_lam.unsqueeze(2) - lam.unsqueeze(2)
         ll = ll - torch.lgamma(counts + 1).unsqueeze(-1)
+        STATS["likelihood_terms"] += ll.numel()
         log_q = torch.log(q.clamp(min=1e-38)).masked_fill(q <= 0, float("-inf")).unsqueeze(2)
         joint = ll + log_q  # log q(s) P(r | s)
         log_pr = torch.logsumexp(joint, -1, keepdim=True)  # log predictive P(r_k)

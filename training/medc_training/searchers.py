@@ -72,6 +72,7 @@ __all__ = [
     "CRITERIA",
     "LEVEL_MASS",
     "QUADRATURE",
+    "STATS",
     "TEAM_QUADRATURE",
     "TWO_STEP_BRANCHES",
     "Belief",
@@ -94,6 +95,9 @@ _CHUNK_ELEMENTS = 1 << 22
 #: Bins of the rate's histogram and points of the count grid that place the quadrature's counts.
 _RATE_BINS, _COUNT_GRID = 48, 128
 _LN2 = math.log(2.0)
+#: Work counter: likelihood terms (hypothesis x count value x candidate move) evaluated since the
+#: caller last reset it; ``medc-radbench --cost`` reports it per decision.
+STATS = {"likelihood_terms": 0}
 
 
 class Belief:
@@ -198,6 +202,7 @@ class _Outcomes:
         # log q_h + log Poisson(k; lambda_h), for every count value and hypothesis: [R,M,K,H]
         joint = counts.unsqueeze(-1) * flat_lam.log().unsqueeze(2) - flat_lam.unsqueeze(2)
         joint = joint - torch.lgamma(counts + 1.0).unsqueeze(-1) + flat_q.unsqueeze(2)
+        STATS["likelihood_terms"] += joint.numel()
         log_pk = torch.logsumexp(joint, -1)  # [R,M,K]: log P(k)
         self.logpost = (joint - log_pk.unsqueeze(-1)).view(r, m, k, *logp.shape[1:])
         logw = log_pk + _widths(counts).log()

@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--out", type=Path, help="write every played episode here (JSON lines)")
+    p.add_argument("--cost", action="store_true",
+                   help="measure what one decision costs instead of playing the sets: each policy on the "
+                        "first episodes of obs3-medium of the --grid/--agents file, at B = 1 and "
+                        "B = --batch, and as an agent node decides (medc_training.radbench.cost)")
     p.add_argument("--list", action="store_true",
                    help="list the frozen set files and sets with their SHA-256")
     p.add_argument("--generate", type=Path, metavar="DIR",
@@ -211,10 +215,42 @@ def main(argv: list[str] | None = None) -> int:
             return _list(args)
         if args.generate is not None:
             return _generate(args)
+        if args.cost:
+            return _cost(args)
         return _play(args)
     except (SetFileError, ValueError) as exc:
         print(f"medc-radbench: {exc}", file=sys.stderr)
         return 2
+
+
+def _cost(args: argparse.Namespace) -> int:
+    import torch
+
+    from .cost import decision_cost
+    from .sets import load_sets
+
+    torch.set_num_threads(args.threads)
+    grid, agents = args.grid or 20, args.agents or 1
+    policies = list(args.policies) or list(QUICK["policies"])
+    (bench_set,) = load_sets(grid, agents, obstructions=[3], snrs=["medium"])
+    out = {}
+    big = f"b{args.batch}"
+    _say(args, f"medc-radbench --cost: {bench_set.id} of grid {grid}, {agents} agent(s), one torch thread "
+               f"({args.threads}); ms per call p50/p99, decisions (one agent's move) per second")
+    for policy in policies:
+        c = decision_cost(bench_set, policy, batch=args.batch)
+        out[str(policy)] = c
+        node = f"node {c['node_ms_p50']}/{c['node_ms_p99']} ms, " if "node_ms_p50" in c else ""
+        terms = c["likelihood_terms_per_decision"]
+        work = (f"{terms:,} likelihood terms" if terms
+                else f"{c['macs_per_decision']:,.0f} MACs" if "macs_per_decision" in c else "")
+        _say(args, f"  {str(policy)[-40:]:<40} B=1 {c['b1']['call_ms_p50']}/{c['b1']['call_ms_p99']} ms "
+                   f"({c['b1']['decisions_per_s']:,.0f}/s), B={args.batch} {c[big]['call_ms_p50']} ms "
+                   f"({c[big]['decisions_per_s']:,.0f}/s), {node}{work}")
+    print(json.dumps({"benchmark": "medc-radbench", "cost": out, "set": bench_set.id,
+                      "set_sha256": bench_set.sha256, "grid": grid, "agents": agents,
+                      "threads": args.threads}))
+    return 0
 
 
 def _play(args: argparse.Namespace) -> int:

@@ -43,7 +43,8 @@ from .metrics import EpisodeResult
 from .scenario import noise_uniforms
 from .sets import BenchSet
 
-__all__ = ["TEAM_SENSING", "BenchCore", "play_set", "poisson_counts", "policy_names"]
+__all__ = ["TEAM_SENSING", "BenchCore", "core_policy", "play_set", "poisson_counts", "policy_names",
+           "resolve_policy"]
 
 #: The team's sensor model on the benchmark: the realistic preset (its name, so that bundles trained
 #: under it play) with the benchmark's strength range.
@@ -257,6 +258,36 @@ def _bundle(policy: Any):
     return bundle
 
 
+def resolve_policy(policy: Any) -> tuple[Any, str]:
+    """(the loaded bundle or None, the observation the core must make) for ``policy`` as
+    :func:`play_set` takes it. Raises ValueError for an unknown name or an unusable bundle."""
+    bundle = _bundle(policy)
+    observation = CONTROLLER_OBSERVATION if bundle is None else (bundle.observation or "maps")
+    if bundle is None and not callable(policy) and policy not in policy_names():
+        raise ValueError(f"unknown policy {str(policy)[:80]!r}: give one of {', '.join(policy_names())}, "
+                         "a policy bundle or a factory")
+    return bundle, observation
+
+
+def core_policy(core: BenchCore, policy: Any, bundle: Any = None):
+    """The evaluator's Policy for ``policy`` on ``core`` (None: random moves); ``bundle`` as
+    :func:`resolve_policy` gave it."""
+    from medc_training.controllers import CONTROLLERS, controller_policy
+    from medc_training.evaluate import net_policy
+
+    if bundle is not None:
+        if tuple(bundle.obs_shape) != tuple(core.obs_shape):
+            raise ValueError(f"the bundle takes observations of shape {tuple(bundle.obs_shape)}, but "
+                             f"{core.observation_name!r} on a {core.grid}x{core.grid} grid is "
+                             f"{tuple(core.obs_shape)}")
+        return net_policy(bundle.net, bundle.device)
+    if callable(policy):
+        return policy(core)
+    if policy in CONTROLLERS:
+        return controller_policy(policy, core)
+    return None
+
+
 def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | None = None, batch: int = 100,
              device: str | torch.device = "cpu", sensing: SensingModel | str | dict | None = None,
              threshold: float = DEFAULT_THRESHOLD, seed: int = 12345, run: int = 0,
@@ -271,34 +302,18 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream).
     ``progress(n)`` is called after each chunk with the episodes it played.
     """
-    from medc_training.controllers import CONTROLLERS, controller_policy
-    from medc_training.evaluate import net_policy, play_episodes
+    from medc_training.evaluate import play_episodes
 
     count = len(bench_set.episodes) if episodes is None else min(int(episodes), len(bench_set.episodes))
     if count < 1 or batch < 1:
         raise ValueError("play_set needs at least one episode and a batch of at least one")
-    bundle = _bundle(policy)
-    observation = CONTROLLER_OBSERVATION if bundle is None else (bundle.observation or "maps")
-    if bundle is None and not callable(policy) and policy not in policy_names():
-        raise ValueError(f"unknown policy {str(policy)[:80]!r}: give one of {', '.join(policy_names())}, "
-                         "a policy bundle or a factory")
+    bundle, observation = resolve_policy(policy)
     out: list[EpisodeResult] = []
     for lo in range(0, count, batch):
         chunk = list(range(lo, min(count, lo + batch)))
         core = BenchCore(bench_set, chunk, device=device, observation=observation, sensing=sensing,
                          threshold=threshold, run=run)
-        if bundle is not None:
-            if tuple(bundle.obs_shape) != tuple(core.obs_shape):
-                raise ValueError(f"the bundle takes observations of shape {tuple(bundle.obs_shape)}, but "
-                                 f"{observation!r} on a {core.grid}x{core.grid} grid is "
-                                 f"{tuple(core.obs_shape)}")
-            chosen = net_policy(bundle.net, bundle.device)
-        elif callable(policy):
-            chosen = policy(core)
-        elif policy in CONTROLLERS:
-            chosen = controller_policy(policy, core)
-        else:
-            chosen = None
+        chosen = core_policy(core, policy, bundle)
         played = play_episodes(core, chosen, episodes=len(chunk), seed=seed)
         results = core.results()
         for r, length, success in zip(results, played.lengths, played.successes):
