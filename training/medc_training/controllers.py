@@ -15,7 +15,13 @@ Every controller breaks ties deterministically (the same state always gives the 
 the moves whose main criterion is within a small tolerance of the best, the one onto the cell the
 team visited least, then the lowest action index. The chosen move's score is raised just above the
 rest so that an argmax (the evaluator's greedy play) picks it. The agents of a team decide
-independently, each from the same team state (no agent conditions on another's move this step).
+independently, each from the same team state (no agent conditions on another's move this step),
+except under the coordinated searchers (:data:`COORDINATED`).
+
+Besides the three below, :data:`SEARCHERS` registers the information-driven searchers of
+:mod:`medc_training.searchers` (``infotaxis-exact``, ``space-aware``, ``infotaxis-2step``,
+``team-infotaxis``, ``team-space-aware``): the same criteria on the team's full joint posterior, the
+strength and background summed out instead of plugged in, one or two steps ahead, alone or in turn.
 
 ``gradient`` (:func:`gradient_scores`) -- gradient search on the counts
     Each agent fits a least-squares plane ``I(x) ~ a + g . (x - x0)`` through the team's latest
