@@ -275,6 +275,48 @@ def test_scene_places_walls_and_estimate_in_the_map_frame():
     assert entities["agent_0"].spheres[0].pose.position.x == 7.0
 
 
+def test_scene_ignores_a_map_it_cannot_draw_and_keeps_the_last_one():
+    """A map of width 0 with data (the view divided by it), one of 1500 x 1500 cells (a gigabyte of
+    scene), data that does not match the size, a resolution or origin that is not finite: not drawn,
+    the reason kept, the last good map still shown; non-finite poses, readings and estimates are
+    not drawn either."""
+    os.environ.setdefault("ROS_DOMAIN_ID", "0")
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from medc_bringup.live_view import SceneState
+    from medc_interfaces.msg import RadiationReading
+    from nav_msgs.msg import OccupancyGrid
+
+    def grid(width: int, height: int, cells: int, resolution: float = 1.0, x: float = 0.0) -> OccupancyGrid:
+        msg = OccupancyGrid()
+        msg.info.width, msg.info.height, msg.info.resolution = width, height, resolution
+        msg.info.origin.position.x = x
+        msg.info.origin.orientation.w = 1.0
+        msg.data = [100] * cells
+        return msg
+
+    state = SceneState("/medc")
+    state.on_message("/medc/map", "nav_msgs/msg/OccupancyGrid", grid(2, 1, 2))
+    good = list(state.walls)
+    assert len(good) == 2 and state.map_refused is None
+    state.take_changed()
+    for bad, words in ((grid(0, 3, 3), "0 x 3 map"), (grid(1500, 1500, 1500 * 1500), "1500 x 1500"),
+                       (grid(3, 3, 4), "4 data cells"),
+                       (grid(2, 1, 2, resolution=float("nan")), "resolution"),
+                       (grid(2, 1, 2, x=float("inf")), "origin")):
+        state.on_message("/medc/map", "nav_msgs/msg/OccupancyGrid", bad)
+        assert words in state.map_refused
+        assert state.walls == good and not state.take_changed()
+    pose = PoseStamped()
+    pose.pose.position.x = float("nan")
+    state.on_message("/medc/agent_0/pose", "geometry_msgs/msg/PoseStamped", pose)
+    state.on_message("/medc/agent_0/radiation", "medc_interfaces/msg/RadiationReading",
+                     RadiationReading(value=float("inf")))
+    est = PoseWithCovarianceStamped()
+    est.pose.pose.position.y = float("nan")
+    state.on_message("/medc/team/estimate", "geometry_msgs/msg/PoseWithCovarianceStamped", est)
+    assert state.agents == {} and state.readings == {} and state.estimate is None
+
+
 def _subscribe_and_collect(port: int, topics: set[str], needed: str,
                            then_s: float = 0.5) -> dict[str, list[bytes]]:
     """Connect, subscribe to ``topics`` as they are advertised, collect data frames until ``needed``

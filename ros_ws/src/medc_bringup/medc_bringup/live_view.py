@@ -21,10 +21,15 @@ unsubscribed (:meth:`LiveView.tick`).
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 #: Foxglove's default port.
 DEFAULT_PORT = 8765
+#: The largest map side (cells) the scene draws: the contract's largest area (a team plays 5 to 64
+#: cells a side). A larger map, or one whose data does not match its size, is not drawn (the
+#: recording keeps it as it came).
+MAX_MAP_SIDE = 64
 #: Message types whose pose (or point) a topic named ``*estimate*`` contributes to the scene.
 ESTIMATE_TYPES = (
     "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -54,6 +59,8 @@ class SceneState:
         self.episode = -1
         self.step = -1
         self.changed = False
+        #: Why the last map was not drawn (None: it was).
+        self.map_refused: str | None = None
 
     def on_message(self, topic: str, type_name: str, msg) -> None:
         """Update the state from one message of the graph."""
@@ -67,22 +74,27 @@ class SceneState:
             self._on_status(msg)
         elif len(parts) == 2 and parts[1] == "pose" and type_name == "geometry_msgs/msg/PoseStamped":
             p = msg.pose.position
-            self.agents[parts[0]] = (float(p.x), float(p.y))
+            if math.isfinite(p.x) and math.isfinite(p.y):  # a broken pose is not drawn
+                self.agents[parts[0]] = (float(p.x), float(p.y))
         elif (len(parts) == 2 and parts[1] == "radiation"
               and type_name == "medc_interfaces/msg/RadiationReading"):
-            self.readings[parts[0]] = float(msg.value)
+            if math.isfinite(msg.value):
+                self.readings[parts[0]] = float(msg.value)
         elif "estimate" in parts[-1] and type_name in ESTIMATE_TYPES:
             self._on_estimate(type_name, msg)
 
     def _on_map(self, msg) -> None:
         info = msg.info
-        r = float(info.resolution) or 1.0
         o = info.origin
         q = o.orientation
+        width, height, r = int(info.width), int(info.height), float(info.resolution)
+        self.map_refused = map_problem(width, height, len(msg.data), r,
+                                       (o.position.x, o.position.y, q.x, q.y, q.z, q.w))
+        if self.map_refused is not None:
+            return
         yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
         c, s = math.cos(yaw), math.sin(yaw)
         walls = []
-        width = int(info.width)
         for k, value in enumerate(msg.data):
             if value >= 50:
                 i, j = k % width, k // width
@@ -111,6 +123,8 @@ class SceneState:
             spread = math.sqrt(max(0.0, (float(cov[0]) + float(cov[7])) / 2.0))
         else:
             x, y, spread = msg.pose.position.x, msg.pose.position.y, 0.0
+        if not all(math.isfinite(v) for v in (x, y, spread)):
+            return
         self.estimate = (float(x), float(y), float(spread))
         self.changed = True
 
@@ -118,6 +132,21 @@ class SceneState:
         """True once per change (and clears it)."""
         changed, self.changed = self.changed, False
         return changed
+
+
+def map_problem(width: int, height: int, cells: int, resolution: float,
+                origin: tuple[float, ...]) -> str | None:
+    """Why a map (an OccupancyGrid's width, height, number of data cells, resolution and origin
+    position and orientation) cannot be drawn; None when it can."""
+    if not (1 <= width <= MAX_MAP_SIDE and 1 <= height <= MAX_MAP_SIDE):
+        return f"a {width} x {height} map (the scene draws 1 to {MAX_MAP_SIDE} cells a side)"
+    if cells != width * height:
+        return f"{cells} data cells for a {width} x {height} map"
+    if not (math.isfinite(resolution) and resolution > 0):
+        return f"resolution {resolution} (a positive number of metres per cell)"
+    if not all(math.isfinite(v) for v in origin):
+        return "an origin that is not a finite pose"
+    return None
 
 
 def scene_update(state: SceneState, stamp_ns: int | None = None):
@@ -227,6 +256,7 @@ class LiveView:
         # A context of its own: this server's channels reach this server only.
         self.context = foxglove.Context()
         self.state = SceneState(namespace)
+        self._map_refusal_said: str | None = None  # the map refusal last printed (said once each)
         self.scene_topic = f"{self.state.ns}/scene"
         self.scene = SceneUpdateChannel(self.scene_topic, context=self.context)
         self.channels: dict[str, object] = {}
@@ -290,6 +320,10 @@ class LiveView:
             channel.log(data, log_time=log_time_ns)
         if msg is not None:
             self.state.on_message(topic, type_name, msg)
+            refused = self.state.map_refused
+            if refused is not None and refused != self._map_refusal_said:
+                print(f"live view: not drawing the map on {topic}: {refused}", file=sys.stderr, flush=True)
+            self._map_refusal_said = refused
             if self.state.take_changed():
                 self.publish_scene(log_time_ns)
 
