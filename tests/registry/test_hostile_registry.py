@@ -245,6 +245,8 @@ def test_malformed_json_rpc_answers_are_typed_errors():
             MalformedAnswer),
         "deep answer": (lambda conn, req, stop: conn.sendall(json_answer(
             json.loads("[" * 200 + "]" * 200))), MalformedAnswer),
+        "10,000 headers": (lambda conn, req, stop: conn.sendall(
+            b"HTTP/1.1 200 OK\r\n" + b"X-Padding: 1\r\n" * 10_000 + b"\r\n"), MalformedAnswer),
     }
     for name, (on_call, error) in cases.items():
         with serving(_rpc(on_call)) as url:

@@ -92,6 +92,22 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
         res_deep = call(RequestExperts, "request_experts", application="target_localization",
                         count=1, requirements_json="[" * 2000 + "]" * 2000)
         assert not res_deep.ok and "nests deeper than 16 levels" in res_deep.message, res_deep.message
+        # A fault from outside that no layer typed (a chain node's broken HTTP answer, a dead socket)
+        # is answered as an internal error; the node keeps serving.
+        import http.client
+
+        def broken(*args, **kwargs):
+            raise http.client.HTTPException("got more than 100 headers")
+
+        real_request, real_review = bridge.bridge.request, bridge.bridge.review
+        bridge.bridge.request, bridge.bridge.review = broken, broken
+        try:
+            hurt = call(RequestExperts, "request_experts", application="target_localization",
+                        requirements_json='{"agents": 3, "walls": 1}', count=1)
+            assert not hurt.ok and hurt.message == "internal error (HTTPException)", hurt.message
+            assert not call(SubmitReview, "submit_review", cid=good.cid, score=0.9).ok
+        finally:
+            bridge.bridge.request, bridge.bridge.review = real_request, real_review
         unknown = call(FetchBundle, "fetch_bundle", cid="QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG")
         assert not unknown.ok
         junk = call(FetchBundle, "fetch_bundle", cid=bad.cid, agent_ids=["agent_1"])
@@ -135,7 +151,7 @@ def test_bridge_request_fetch_handover_review(graph, bundles, registry, tmp_path
                                                             "submit_review": "1", "allocations": "1",
                                                             "bundles_cached": "1"}, last
         assert (last["request_experts_refused"], last["fetch_bundle_refused"],
-                last["submit_review_refused"]) == ("4", "4", "2"), last
+                last["submit_review_refused"]) == ("5", "4", "3"), last  # the internal errors counted too
         assert last["cache_dir"] == str(tmp_path / "cache")
     finally:
         executor.remove_node(bridge)

@@ -318,12 +318,18 @@ def bridge_node_class():
             self.get_logger().warning(f"{service} refused: {res.message}")
             return res
 
+        def _failure(self, exc: Exception) -> str:
+            """A refusal's reason: a BridgeError's message; any other exception (a fault of the chain
+            node, the content store or this code) as an internal error, so no answer from outside
+            ends the node."""
+            return str(exc) if isinstance(exc, BridgeError) else f"internal error ({type(exc).__name__})"
+
         def _on_request(self, req, res):
             try:
                 allocs = self.bridge.request(req.application, req.requirements_json, req.weights_json,
                                              req.count, req.min_model_reputation, req.min_owner_reputation)
-            except BridgeError as exc:
-                return self._refuse(res, "request_experts", str(exc))
+            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+                return self._refuse(res, "request_experts", self._failure(exc))
             self.served["request_experts"] += 1
             return _allocations_answer(res, allocs)
 
@@ -335,8 +341,7 @@ def bridge_node_class():
                         raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
                 path, manifest = self.bridge.fetch(req.cid)
             except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
-                return self._refuse(res, "fetch_bundle", str(exc) if isinstance(exc, BridgeError)
-                                    else f"internal error ({type(exc).__name__})")
+                return self._refuse(res, "fetch_bundle", self._failure(exc))
             self.served["fetch_bundle"] += 1
             for agent_id in ids:
                 self._policy_pub(agent_id).publish(self._String(data=str(path)))
@@ -348,8 +353,8 @@ def bridge_node_class():
         def _on_review(self, req, res):
             try:
                 res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
-            except BridgeError as exc:
-                return self._refuse(res, "submit_review", str(exc))
+            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+                return self._refuse(res, "submit_review", self._failure(exc))
             self.served["submit_review"] += 1
             res.ok, res.message = True, "review recorded"
             return res

@@ -19,6 +19,7 @@ HTTP retries are switched off so they never nest inside the client's.
 from __future__ import annotations
 
 import ast
+import http.client
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -281,6 +282,10 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
                                                  what=f"JSON-RPC {method}")
             except bounded_http.BodyTooLarge as exc:
                 raise MalformedAnswer(str(exc)) from None
+            except http.client.HTTPException as exc:  # a status line, header or chunk http.client refuses
+                why = f"{type(exc).__name__}: {printable(str(exc), 200)}"
+                raise MalformedAnswer(f"JSON-RPC {method}: the node at {url} answered with a malformed HTTP "
+                                      f"response ({why})") from None
             if status != 200:
                 raise ConnectionError(f"JSON-RPC {method}: the node at {url} answered HTTP {status}")
             return body
