@@ -48,17 +48,26 @@ class Scope:
     #: Seeds each side of a claim needs before it gets a verdict; with fewer it reads "incomplete"
     #: (the runs still under way of a pre-registered protocol; None: a verdict from what ran).
     claim_min_seeds: int | None = None
+    #: The date of the analysis the report adds after its protocol's verdicts (paired by seed,
+    #: power of the test used, non-inferiority by its bound, censored speed-ups, Holm;
+    #: :mod:`.posthoc`), None: no such section; and the seed-to-seed SD the protocol planned its
+    #: power with (None: it planned none).
+    posthoc: str | None = None
+    planning_sd: float | None = None
 
+
+#: The date of the analysis added after the committed protocols (cpu and claims scales).
+POSTHOC = "2026-12-03"
 
 #: The claims protocol (docs/reproduction/claims/PROTOCOL.md): seeds 300-304, the A3W2 panels
 #: only, its own experts and no shipped team, target localization only; the gate on 5 seeds against
 #: random play on 256 fixed episodes; "under-powered" above a half-width of 5.9 steps; the classical
-#: controllers as reference lines; a claim judged only once both sides have their 5 seeds; and its
-#: sweep amendment.
-SCOPES = {"cpu": Scope(), "paper": Scope(),
+#: controllers as reference lines; a claim judged only once both sides have their 5 seeds; its
+#: sweep amendment; power planned at a seed-to-seed SD of 3.4 steps.
+SCOPES = {"cpu": Scope(posthoc=POSTHOC), "paper": Scope(),
           "claims": Scope(first_seed=300, walls=(2,), team=False, other_apps=False, sweep=True,
                           gate_min_seeds=5, gate_random_episodes=256, underpowered=5.9, reference="reference",
-                          protocol="PROTOCOL.md", claim_min_seeds=5)}
+                          protocol="PROTOCOL.md", claim_min_seeds=5, posthoc=POSTHOC, planning_sd=3.4)}
 
 # Target-localization experts: (name, agents, walls, architecture). The paper's 6 FRL/MEDC
 # users A1W0, A3W0, A2W1, A2W2, A2W3, A3W1 plus the "complex" A1W3 of Fig. 6. Two

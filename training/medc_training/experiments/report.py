@@ -15,6 +15,7 @@ from ..stats import compare, learning_score, mean_ci
 from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, Scope, long_tags_on_disk, tl_architectures
 from .figures import FIGURES, TAGGED, Figure, Panel, tag_markers
 from .plan import Plan
+from .posthoc import posthoc_section
 from .references import (
     CONTROLLERS,
     load_references,
@@ -273,6 +274,14 @@ class Report:
         self.gates: dict[tuple, dict] = {}
         #: The verdict word of every claim written, in order (for the counts).
         self.verdicts: list[str] = []
+        #: Per series key, its learning score by seed (the seed its config names), as last read.
+        self.seed_scores: dict[str, dict[int, float]] = {}
+        #: Every claim written, in order, with what its analysis after the protocol needs
+        #: (:mod:`.posthoc`): its text, the verdict word, the margin (None: "beats") and both sides'
+        #: scores by seed as the claim read them.
+        self.claim_records: list[dict] = []
+        #: The panels with a steps-to-sparse's-level line: (heading, data, sparse's label).
+        self.speeds: list[tuple[str, dict, str]] = []
 
     def figure_seeds(self, fig: Figure) -> tuple[int, ...] | None:
         """The seeds the report reads for ``fig``: those it plans when it reads only those
@@ -335,8 +344,10 @@ class Report:
             steps, curves, summaries = load_curves(self.out, name, csv_name, seeds)
             if curves:
                 data[label] = (steps, curves, summaries)
-                self.scores[name if csv_name == "metrics.csv" else f"{name}:{csv_name}"] = \
-                    [learning_score(c) for c in curves]
+                key = name if csv_name == "metrics.csv" else f"{name}:{csv_name}"
+                self.scores[key] = [learning_score(c) for c in curves]
+                self.seed_scores[key] = {int(s["config"]["seed"]): score
+                                         for s, score in zip(summaries, self.scores[key], strict=True)}
         return data
 
     def figure(self, png: str, title: str, names: dict[str, str], csv_name: str = "metrics.csv",
@@ -373,6 +384,7 @@ class Report:
         blocked = self._untestable(gate, min_seeds, seeds) if a and b else None
         word = blocked or self._incomplete(a, b) or verdict(a, b, self.scope.underpowered)
         self.verdicts.append(word)
+        self._record(text, word, better, worse, None)
         return (f"- **{text}** — {word}: difference of learning scores "
                 f"{c['diff']:+.2f} ± {c['half']:.2f} (negative = first is better; n = {len(a)} vs {len(b)})")
 
@@ -388,8 +400,14 @@ class Report:
         word = "held" if c["diff"] <= margin and ok else ("inconclusive" if ok else "did not hold")
         word = self._untestable(gate, min_seeds, seeds) or self._incomplete(a, b) or word
         self.verdicts.append(word)
+        self._record(text, word, faulty, sparse, margin)
         return (f"- **{text}** — {word}: {c['diff']:+.2f} ± {c['half']:.2f} episode-length steps vs sparse "
                 f"(allowed margin {margin:+.1f}; n = {len(a)} vs {len(b)})")
+
+    def _record(self, text: str, word: str, first: str, second: str, margin: float | None) -> None:
+        self.claim_records.append({"text": text, "word": word, "margin": margin,
+                                   "first": dict(self.seed_scores.get(first, {})),
+                                   "second": dict(self.seed_scores.get(second, {}))})
 
     def add(self, text: str) -> None:
         self.sections.append(text)
@@ -503,9 +521,12 @@ def panel_section(r: Report, panel: Panel, seeds: tuple[int, ...] | None = None,
                          "same episodes; the mean of these differences over the seeds with a 95% CI, "
                          "Student t; against the controller with the lowest mean length on those "
                          "episodes): " + "; ".join(f for f in paired if f))
-        speed = speed_section(data, next(s.label for s in panel.series if s.run == panel.gate))
+        sparse_label = next(s.label for s in panel.series if s.run == panel.gate)
+        speed = speed_section(data, sparse_label)
         if speed:
             lines.append(speed)
+            if panel.claims:
+                r.speeds.append((panel.heading.lstrip("# "), data, sparse_label))
     rules = {"min_seeds": gate_min_seeds, "seeds": seeds}
     for c in panel.claims:
         if c.margin is None:
@@ -575,6 +596,10 @@ def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, el
         extra = fig.extra and fig.extra(r, fig)
         if extra:
             r.add(extra)
+    added = plan.scope.posthoc and posthoc_section(r, plan.scope.posthoc, plan.scope.planning_sd,
+                                                   not plan.window_eval)
+    if added:
+        r.add(added)
     scale_rows = "\n".join(f"| {k} | {v} |" for k, v in SCALES[scale].items())
     timing = ", ".join(f"{k} {v / 60:.1f} min" for k, v in elapsed.items())
     archs = " and ".join(f"`{a}`" for a in tl_architectures())  # as the catalogue mixes them
