@@ -7,5 +7,7 @@
 - :mod:`.engines`: a local process pool or Ray runs the jobs, skipping finished ones.
 - :mod:`.report`: report.md, generated from the same figures; statistics from medc_training.stats.
 - :mod:`.sweep_report`: the claims sweep's section (speed-ups, heat map, hypotheses H1-H3).
+- :mod:`.posthoc`: the analysis a report adds after its protocol's verdicts (paired by seed, power,
+  Holm, non-inferiority by its bound, censored speed-ups).
 - :mod:`.reproduction`: a reproduction's phases run in order (``medc-reproduce``).
 """
