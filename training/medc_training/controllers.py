@@ -78,6 +78,10 @@ import torch
 
 from medc_training.envs.grid import action_deltas
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
+from medc_training.move_scores import at_cells as _at
+from medc_training.move_scores import choose_move as _choose
+from medc_training.move_scores import expected_chebyshev
+from medc_training.move_scores import neighbour_cells as _neighbours
 from medc_training.searchers import STATS
 
 __all__ = [
@@ -119,50 +123,6 @@ _CHUNK_ELEMENTS = 1 << 22
 # ------------------------------------------------------------------------------------------
 # shared pieces
 # ------------------------------------------------------------------------------------------
-
-
-def _neighbours(positions: torch.Tensor, grid: int) -> torch.Tensor:
-    """int64 [B,N,8,2]: the cell after each move, clamped into the grid (invalid moves are masked
-    by the caller)."""
-    cells = positions.unsqueeze(2) + action_deltas(positions.device)
-    return cells.clamp(0, grid - 1)
-
-
-def _at(maps: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
-    """maps [B,G,G] (or [B,G²]) at cells int64 [B,...,2] -> [B,...]."""
-    b = cells.shape[0]
-    g = math.isqrt(maps[0].numel())
-    flat = (cells[..., 0] * g + cells[..., 1]).reshape(b, -1)
-    return maps.reshape(b, -1).gather(1, flat).view(cells.shape[:-1])
-
-
-def _choose(score: torch.Tensor, mask: torch.Tensor,
-            keys: list[tuple[torch.Tensor, float | torch.Tensor]]) -> torch.Tensor:
-    """``score`` [B,N,A] (-inf where ``mask`` is False) with the chosen move raised just above every
-    other: the chosen move is the first, by action index, of those left after filtering the valid
-    moves by each (key, tolerance) in turn (smaller key is better; a move stays while its key is
-    within the tolerance of the best one left; a tolerance is a number or a tensor [B,N,1])."""
-    tied = mask.clone()
-    for key, tol in keys:
-        k = key.masked_fill(~tied, float("inf"))
-        tied &= k <= k.amin(-1, keepdim=True) + tol
-    first = tied.to(torch.int8).argmax(-1, keepdim=True)  # the first True (argmax returns the first max)
-    score = score.masked_fill(~mask, float("-inf"))
-    best = score.amax(-1, keepdim=True)
-    finite = torch.isfinite(best)
-    best = torch.where(finite, best, torch.zeros_like(best))
-    lifted = best + 1e-3 * best.abs().clamp(min=1.0)
-    any_valid = mask.any(-1, keepdim=True)
-    return score.scatter(-1, first, torch.where(any_valid, lifted, score.gather(-1, first)))
-
-
-def expected_chebyshev(posterior: torch.Tensor, grid: int) -> torch.Tensor:
-    """float32 [B,G²]: E(c) = sum_s p(s) max(|c_row - s_row|, |c_col - s_col|) for every cell c, from
-    a posterior float32 [B,G²] (rows summing to 1): the team's estimate map before scaling
-    (:meth:`~medc_training.envs.tl_observation.SourceEstimator.expected_from_posterior`)."""
-    from medc_training.envs.tl_observation import SourceEstimator
-
-    return SourceEstimator(grid, posterior.device).expected_from_posterior(posterior)
 
 
 def posterior_mean_levels(log_post: torch.Tensor,

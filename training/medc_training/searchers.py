@@ -67,6 +67,9 @@ import torch
 from medc_training.envs.grid import action_deltas
 from medc_training.envs.tl_observation import EXP_FLOOR
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
+from medc_training.move_scores import at_cells as _at
+from medc_training.move_scores import choose_move as _choose
+from medc_training.move_scores import expected_chebyshev
 
 __all__ = [
     "CRITERIA",
@@ -318,8 +321,6 @@ def searcher_scores(log_post: torch.Tensor, positions: torch.Tensor, mask: torch
     turn, each conditioning on its teammates' chosen moves; rects the episodes' wall rectangles (the
     exact line rule; made from ``walls`` when None); visit_map float32 [B,G,G] (tie-break).
     """
-    from medc_training.controllers import _at, _choose, expected_chebyshev
-
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
     if depth not in (1, 2) or (depth == 2 and (criterion != "entropy" or coordinated)):
