@@ -42,6 +42,15 @@ def test_cleanrl_tags_and_their_meanings(tmp_path):
         assert value == rol(rows[step]["train_episode_length"])
     assert all(value == rol(3e-4) for _, value in tags["charts/learning_rate"])
     assert all(value <= 1.0 for _, value in tags["losses/explained_variance"])
+    # Before any training episode ended nothing is reported: no placeholder length at step 0.
+    assert math.isnan(rows[0]["train_episode_length"]) and math.isnan(rows[0]["train_success_rate"])
+    assert 0 not in {step for step, _ in tags["charts/episodic_length"]}
+    # charts/SPS as CleanRL's: steps over the whole wall time since training began, evaluations
+    # included, so never above the steps over the time spent in updates alone (wall_time).
+    sps = dict(tags["charts/SPS"])
+    assert 0 not in sps and len(sps) >= 3
+    for step, value in sps.items():
+        assert 0 < value <= step / rows[step]["wall_time"] * 1.001
 
 
 def rol(x: float) -> float:

@@ -3,7 +3,10 @@
 TensorBoard tags mean what they mean in CleanRL: ``charts/episodic_return``,
 ``charts/episodic_length`` and ``charts/success_rate`` are the *training* episodes that finished
 since the last log point (sampled actions, exploration included); ``eval/...`` the fixed-episode
-evaluation (greedy unless ``eval_greedy`` is off); ``charts/learning_rate``, ``charts/SPS``;
+evaluation (greedy unless ``eval_greedy`` is off); ``charts/learning_rate``, ``charts/SPS`` (CleanRL's:
+environment steps this process has taken over its wall time since training began, evaluations
+included); a row with no training episode finished since the last one leaves the training figures
+empty (NaN in the CSV, absent in TensorBoard);
 ``losses/...`` the update's losses and ``losses/explained_variance`` (of the returns by the
 value head, CleanRL's formula). The CSV keeps its plain column names (:data:`CSV_COLUMNS`):
 ``episode_length``/``success_rate`` are the evaluation, ``train_*`` the training episodes.

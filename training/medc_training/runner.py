@@ -66,6 +66,9 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     last_losses: dict = {}
     sps = math.nan
     updates_done = 0
+    # charts/SPS as CleanRL defines it: the steps this process has taken over its wall time since
+    # training began (rollouts, updates, evaluations and checkpoints all included).
+    started, first_step = time.perf_counter(), learner.global_step
     try:
         while True:
             if learner.global_step >= next_eval or learner.global_step >= cfg.total_steps:
@@ -92,7 +95,8 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
             last_losses = learner.train_update()
             elapsed = time.perf_counter() - start
             train_seconds += elapsed
-            sps = (learner.global_step - before) / elapsed if elapsed > 0 else math.nan
+            wall = time.perf_counter() - started
+            sps = (learner.global_step - first_step) / wall if wall > 0 else math.nan
             updates_done += 1
             save_state(ckpt, {"learner": learner.state_dict(), "config": cfg.to_dict(),
                               **({"inputs": inputs} if inputs is not None else {}),
@@ -148,8 +152,9 @@ def _metrics_row(learner, ev: dict, sps: float, train_seconds: float, last_losse
         "step": learner.global_step, "update": focal.updates,
         "episode_length": ev["episode_length"], "success_rate": ev["success_rate"],
         "episode_return": ev.get("episode_return", math.nan),
-        "train_episode_length": tr["episode_length"], "train_success_rate": tr["success_rate"],
-        # No training episode finished since the last row: nothing to report.
+        # No training episode finished since the last row: nothing to report (never a placeholder).
+        "train_episode_length": tr["episode_length"] if tr.get("episodes") else math.nan,
+        "train_success_rate": tr["success_rate"] if tr.get("episodes") else math.nan,
         "train_episode_return": tr["episode_return"] if tr.get("episodes") else math.nan,
         "expert_follow_rate": tr["expert_follow_rate"], "expert_top_rate": tr["expert_top_rate"],
         "expert_step_fraction": tr["expert_step_fraction"],

@@ -83,7 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/environments.md)")
     p.add_argument("--sensing", choices=sorted(SENSING_PRESETS),
                    help="target localization's sensing model (default paper-simple; docs/environments.md)")
-    p.add_argument("--method", choices=METHODS, default="sparse")
+    p.add_argument("--method", choices=METHODS, default="sparse",
+                   help="sparse (MDRL, sparse reward), medc (Multi-Expert Demonstration Cloning), rs (reward "
+                        "shaping), il (imitation), frl (federated averaging); default sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
                         "malicious:oracle | oracle")
@@ -92,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(normalised; default: from the experts' environment attributes by the "
                         "contract's QoS rule, medc_training.qos)")
     p.add_argument("--steps", type=int, default=100_000, help="training steps (environment steps)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the run's seed (default 0)")
     p.add_argument("--seeds", type=int, nargs="+", metavar="SEED",
                    help="a sweep: one run per seed into OUT/seed-SEED (instead of --seed); see --jobs, --ray")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -125,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-option", action="append", default=[], metavar="KEY=VALUE",
                    help="extra numeric environment option (e.g. customers=8, complexity=0.5)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
-    p.add_argument("--no-tensorboard", action="store_true")
+    p.add_argument("--no-tensorboard", action="store_true", help="write metrics.csv only (no tb/ folder)")
     p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     from .reproduce import add_engine_arguments
 
