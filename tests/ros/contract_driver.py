@@ -5,20 +5,27 @@ It plays the part a real team's drivers (with a small coordinator) play: publish
 every UAV's pose and radiation reading and one EpisodeStatus per team step (with its own session
 id); waits for every agent's AgentMove, executes each (agent, episode, step) once (a re-sent move
 from the same sender is ignored, the same agent from another sender is a duplicate, logged) and
-goes on; an agent with no move ``--move-timeout-s`` after the step's first move stays and is not
-waited for until it moves again (docs/ros.md, "A lost UAV", "Moves are executed once"). A step
-not answered within ``--resend-s`` is published again (same stamp), well before an agent would
-report a stall or take a teammate out: a best-effort pose or reading lost on a loaded machine is
-sent again, not reported. Used by tests/ros/test_contract_driver.py and
+goes on; an agent with no move ``--move-timeout-s`` after the step's first move (5 times as long
+for one that has never moved) stays and is not waited for until a move from it is received again,
+for the step being collected or the step just applied (docs/ros.md, "A lost UAV", "Moves are
+executed once"). A step not answered within ``--resend-s`` is published again (same stamp), well
+before an agent would report a stall or take a teammate out: a best-effort pose or reading lost on
+a loaded machine is sent again, not reported.
+
+The loop's order (docs/ros.md, "The driver loop"): every message already received is processed
+(:func:`drain`) before each decision: before publishing a step, before taking an agent out and
+before flying a step's moves. With ``--end-on declaration`` (or ``either``) the team's
+SourceDeclaration for the current episode ends it, so a declaration that came with the step's
+moves ends the episode before they are flown. Used by tests/ros/test_contract_driver.py and
 tests/ros/test_team_liveness.py:
 
     python contract_driver.py --out steps.jsonl --steps 12 --seed 1 [--misstamp-step 4]
         [--resend-always] [--lose-agent 2 --lose-at-step 3] [--episodes 1] [--summary s.json]
-        [--processes 4]
+        [--processes 4] [--end-on source|declaration|either]
 
 writes one JSON line per applied team step (with the number of times it was re-sent) and exits 0
 after ``--steps`` steps (or ``--episodes`` episodes); ``--summary`` writes what it received
-(moves, re-sends, duplicates, episodes).
+(moves, re-sends, duplicates, agents taken out and back, declarations, episodes).
 """
 
 from __future__ import annotations
@@ -35,6 +42,8 @@ import numpy as np
 # docs/ros.md, "Moves": action -> one-cell step (di, dj) in the grid frame (i east, j north).
 MOVES = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1))
 SOURCE_STRENGTH, ATTENUATION, BACKGROUND = 1000.0, 0.5, 1.0
+#: An agent that has never moved (still starting) is taken out only after this many move timeouts.
+STARTUP_FACTOR = 5.0
 
 
 def rate(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray) -> np.ndarray:
@@ -136,6 +145,9 @@ def main(argv: list[str] | None = None) -> int:
                     "its pose and reading stop")
     ap.add_argument("--lose-at-step", type=int, default=0)
     ap.add_argument("--episodes", type=int, default=0, help="stop after this many episodes (0: --steps only)")
+    ap.add_argument("--end-on", choices=("source", "declaration", "either"), default="source",
+                    help="what ends an episode besides --max-steps: a UAV on the source, the team's "
+                    "SourceDeclaration for the episode, or whichever comes first")
     ap.add_argument("--summary", default="")
     ap.add_argument("--settle-s", type=float, default=1.0, help="discovery settling, s")
     ap.add_argument("--processes", type=int, default=0,
@@ -147,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     import rclpy
     from builtin_interfaces.msg import Time
     from geometry_msgs.msg import PoseStamped
-    from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+    from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading, SourceDeclaration
     from nav_msgs.msg import OccupancyGrid
     from rclpy.qos import (
         DurabilityPolicy,
@@ -173,36 +185,79 @@ def main(argv: list[str] | None = None) -> int:
     status_pub = node.create_publisher(EpisodeStatus, f"{ns}/episode", qos(20, False))
     result_pub = node.create_publisher(EpisodeStatus, f"{ns}/episode_result", qos(1000, True))
     moves: dict[int, int] = {}
-    state = {"episode": 0, "step": 0}
+    # The current episode and step; the step being collected ("open") and the one collected before
+    # it ("previous": a move for it is not executed, but one received from an agent taken out brings
+    # it back).
+    state = {"episode": 0, "step": 0, "open": (-1, -1), "previous": (-1, -1)}
     session = secrets.token_hex(8)  # this run's id, on every status
     # Moves are executed once per (agent, episode, step): the first one received; the sender of each.
     executed: dict[tuple[int, int, int], str] = {}
     received: dict[int, int] = {}  # this step's move messages per agent, re-sends included
-    summary = {"moves_received": 0, "resends_ignored": 0, "duplicates": [], "episodes": [], "lost": []}
-    silent: set[int] = set()  # agents not waited for (no move within --move-timeout-s)
+    summary = {"moves_received": 0, "resends_ignored": 0, "duplicates": [], "episodes": [], "lost": [],
+               "back": [], "declarations": []}
+    silent: set[int] = set()  # agents taken out: not waited for (docs/ros.md, "A lost UAV")
+    known: set[int] = set()  # agents that have had a move executed
+    handled = [0]  # messages processed (drain() stops when none is left)
+    declared: list = []  # the current episode's SourceDeclaration, once received
+
+    def back(k: int, episode: int, step: int) -> None:
+        """A move from agent k was received: if it was taken out, it is back in the team."""
+        if k in silent:
+            silent.discard(k)
+            summary["back"].append([state["episode"], state["step"], ids[k], episode, step])
+            print(f"{ids[k]} moved again (its move for episode {episode} step {step}): back in the team",
+                  flush=True)
 
     def on_move(k: int, msg) -> None:
+        handled[0] += 1
         if msg.agent_id != ids[k] or not 0 <= msg.action < 8:
             return
         summary["moves_received"] += 1
-        key = (k, int(msg.episode), int(msg.step))
+        episode, step = int(msg.episode), int(msg.step)
+        key = (k, episode, step)
         if key in executed:
-            if executed[key] == msg.sender:
-                summary["resends_ignored"] += 1  # a re-send: already executed (or collected)
-            else:
+            if executed[key] != msg.sender:
                 summary["duplicates"].append([ids[k], key[1], key[2], executed[key], msg.sender])
                 print(f"duplicate agent id: {ids[k]} answered episode {key[1]} step {key[2]} from senders "
                       f"{executed[key]} and {msg.sender}", flush=True)
+                return
+            summary["resends_ignored"] += 1  # a re-send: already executed (or collected)
+            if (episode, step) == state["previous"]:
+                back(k, episode, step)
             return
-        if (msg.episode, msg.step) != (state["episode"], state["step"]):
+        if (episode, step) == state["previous"]:
+            back(k, episode, step)  # a late answer for the step just applied: not executed
+            return
+        if (episode, step) != (state["episode"], state["step"]):
             return
         executed[key] = msg.sender
         received[k] = received.get(k, 0) + 1
         moves[k] = int(msg.action)
-        silent.discard(k)
+        known.add(k)
+        back(k, episode, step)
+
+    def on_declaration(msg) -> None:
+        handled[0] += 1
+        if args.end_on == "source":
+            return
+        if declared or int(msg.episode) != state["episode"] or int(msg.step) > state["step"] \
+                or (msg.map_stamp.sec, msg.map_stamp.nanosec) != state["map_stamp"]:
+            return  # another episode's (or map's), or a second one
+        declared.append(msg)
+
+    def drain() -> None:
+        """Process every message already received (the moves and declarations waiting in the
+        readers), so that no decision is taken on older news than has arrived."""
+        idle = 0
+        while idle < 3:  # a pass may serve something other than the topics counted here
+            before = handled[0]
+            rclpy.spin_once(node, timeout_sec=0.0)
+            idle = idle + 1 if handled[0] == before else 0
 
     move_subs = [node.create_subscription(AgentMove, f"{ns}/{a}/move", lambda m, k=k: on_move(k, m),
                                           qos(20, False)) for k, a in enumerate(ids)]
+    declaration_sub = node.create_subscription(SourceDeclaration, f"{ns}/team/source_declared",
+                                               on_declaration, qos(20, False))
 
     # Discovery (docs/ros.md): before the first step every agent listens to every topic published
     # here and publishes its move, or the first messages are lost (and re-sent after resend_s).
@@ -211,7 +266,10 @@ def main(argv: list[str] | None = None) -> int:
     while time.monotonic() < deadline and (
             any(p.get_subscription_count() < processes for p in (status_pub, *pose_pubs, *read_pubs))
             or any(s.get_publisher_count() < 1 for s in move_subs)
-            or sum(s.get_publisher_count() for s in move_subs) < processes):
+            or sum(s.get_publisher_count() for s in move_subs) < processes
+            # Ending on the declaration: every agent's declaration writer is matched (a volatile
+            # message sent before would never come).
+            or (args.end_on != "source" and declaration_sub.get_publisher_count() < n)):
         rclpy.spin_once(node, timeout_sec=0.05)
     # A best-effort reader may match a moment after the writer sees it: let discovery settle.
     settle = time.monotonic() + args.settle_s
@@ -272,14 +330,60 @@ def main(argv: list[str] | None = None) -> int:
         status_pub.publish(status)
         return values
 
+    def close_episode(success: bool, truncated: bool) -> None:
+        """Publish the closing EpisodeStatus of the current episode (``state["step"]`` moves
+        applied), and start the next episode on a new world and map."""
+        nonlocal walls, source, cells, episode_walls, map_stamp, world_seed
+        status = EpisodeStatus()
+        status.header.stamp, status.header.frame_id = now(), "map"
+        status.episode, status.step, status.map_stamp = state["episode"], state["step"], map_stamp
+        status.agent_ids = ids
+        status.done, status.success, status.truncated = True, success, truncated
+        status.episode_length = state["step"]
+        status.session = session
+        status_pub.publish(status)
+        summary["episodes"].append({"episode": state["episode"], "success": success, "length": state["step"],
+                                    "declared": bool(declared)})
+        result_pub.publish(status)
+        state["episode"] += 1
+        state["step"] = 0
+        declared.clear()
+        world_seed += 1
+        walls, source, cells = make_world(world_seed, size, n)
+        episode_walls = walls
+        map_stamp = publish_map()
+        state["map_stamp"] = (map_stamp.sec, map_stamp.nanosec)
+
+    def end_on_declaration() -> bool:
+        """The current episode ends on the team's declaration received for it (success: the
+        declared cell is the source's cell; its length: the moves applied)."""
+        if not declared:
+            return False
+        d = declared[0]
+        right = (int(d.cell_i), int(d.cell_j)) == tuple(source)
+        summary["declarations"].append({"episode": state["episode"], "step": int(d.step),
+                                        "length": state["step"], "right": right, "mass": float(d.mass)})
+        print(f"episode {state['episode']} ended by the team's declaration of step {d.step} after "
+              f"{state['step']} moves: {'right' if right else 'wrong'} cell", flush=True)
+        close_episode(right, False)
+        return True
+
     map_stamp = publish_map()
+    state["map_stamp"] = (map_stamp.sec, map_stamp.nanosec)
     episode_walls = walls
     try:
         while done_steps < args.steps and not (args.episodes and len(summary["episodes"]) >= args.episodes):
+            # The driver loop's order: first every message already received (a declaration that came
+            # after the last step was flown ends the episode before another step is published).
+            drain()
+            if end_on_declaration():
+                continue
             stamp = now()
             moves.clear()
             received.clear()
-            if args.lose_agent >= 0 and done_steps == args.lose_at_step:
+            # A new step: the one collected before it becomes the previous step.
+            state["previous"], state["open"] = state["open"], (state["episode"], state["step"])
+            if args.lose_agent >= 0 and done_steps >= args.lose_at_step:
                 silent.add(args.lose_agent)  # the driver knows its UAV is down: no move expected
             misstamp = done_steps == args.misstamp_step
             values = publish_state(stamp, map_stamp, misstamp)
@@ -291,19 +395,36 @@ def main(argv: list[str] | None = None) -> int:
             first = None  # when the step's first move came
             while len(moves) < n:
                 rclpy.spin_once(node, timeout_sec=0.02)
+                drain()  # take no agent out while a move from it waits to be processed
+                if declared:
+                    break  # the episode ends on the declaration: its moves are not flown
                 waiting = [k for k in range(n) if k not in moves]
                 if moves and all(k in silent for k in waiting):
                     break  # every agent still in the team has moved
                 if moves and first is None:
                     first = time.monotonic()
-                if first is not None and time.monotonic() - first > args.move_timeout_s:
-                    silent.update(waiting)  # they stay; not waited for until they move again
-                    summary["lost"].append([state["episode"], state["step"], [ids[k] for k in waiting]])
-                    break
+                waited = time.monotonic() - first if first is not None else 0.0
+                if first is not None and waited > args.move_timeout_s:
+                    # They stay; not waited for until a move from them is received again. One that
+                    # has never moved may still be starting: it is given STARTUP_FACTOR times as long.
+                    newly = [k for k in waiting if k not in silent
+                             and (k in known or waited > STARTUP_FACTOR * args.move_timeout_s)]
+                    if newly:
+                        silent.update(newly)
+                        summary["lost"].append([state["episode"], state["step"], [ids[k] for k in newly]])
+                        print(f"{', '.join(ids[k] for k in newly)} lost: no move within "
+                              f"{args.move_timeout_s:g} s; staying in place", flush=True)
+                    if all(k in silent for k in waiting):
+                        break
                 if time.monotonic() - sent > wait_s:  # re-send the step, same stamp
                     values = publish_state(stamp, map_stamp, False)
                     sent, wait_s = time.monotonic(), args.resend_s
                     resends += 1
+            # Every message already received before the moves are flown: a declaration for this
+            # step (sent before its publisher's move) ends the episode with these moves not flown.
+            drain()
+            if end_on_declaration():
+                continue
             actions = [moves.get(k) for k in range(n)]
             before = list(cells)
             valid = []
@@ -325,25 +446,9 @@ def main(argv: list[str] | None = None) -> int:
             log.flush()
             done_steps += 1
             state["step"] += 1
-            found = any(c == source for c in cells)
+            found = args.end_on != "declaration" and any(c == source for c in cells)
             if found or state["step"] >= args.max_steps:
-                status = EpisodeStatus()
-                status.header.stamp, status.header.frame_id = now(), "map"
-                status.episode, status.step, status.map_stamp = state["episode"], state["step"], map_stamp
-                status.agent_ids = ids
-                status.done, status.success, status.truncated = True, found, not found
-                status.episode_length = state["step"]
-                status.session = session
-                status_pub.publish(status)
-                summary["episodes"].append({"episode": state["episode"], "success": found,
-                                            "length": state["step"]})
-                result_pub.publish(status)
-                state["episode"] += 1
-                state["step"] = 0
-                world_seed += 1
-                walls, source, cells = make_world(world_seed, size, n)
-                episode_walls = walls
-                map_stamp = publish_map()
+                close_episode(found, not found)
         # Let reliable messages go out before the process ends.
         end = time.monotonic() + 0.3
         while time.monotonic() < end:

@@ -197,3 +197,52 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
     # right, every other step (the restart's first included) within a few re-sends at most.
     resends = [s["resends"] for s in steps]
     assert resends[4] >= 1 and max(resends) <= 3, resends
+
+
+@pytest.mark.timing
+@pytest.mark.ros
+def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_its_step(rclpy_context,
+                                                                                      tmp_path):
+    """docs/ros.md, "The driver loop": the driver processes every message already received before
+    it flies a step's moves, so the team's declaration of step S (sent before its publisher's move)
+    ends the episode after S moves, with step S's moves not flown."""
+    from ros_helpers import DiagnosticsListener, run_contract_driver
+
+    listener = DiagnosticsListener()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    logs = [tmp_path / f"agent_{i}.log" for i in range(3)]
+    agents = []
+    out, summary_path = tmp_path / "steps.jsonl", tmp_path / "summary.json"
+    try:
+        for i in range(3):  # a driver that ends episodes only on the declaration: docs/ros.md
+            agents.append(subprocess.Popen(
+                [str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
+                 "-p", f"policy:={TEAM}", "-p", "source_ends_episode:=false"],
+                stdout=logs[i].open("w"), stderr=subprocess.STDOUT, env=env))
+        args = ["--out", str(out), "--summary", str(summary_path), "--seed", "7", "--end-on", "declaration",
+                "--episodes", "4", "--steps", "200", "--max-steps", "30"]
+        text = run_contract_driver(listener, args, timeout_s=240, procs=agents, logs=logs)
+    finally:
+        for a in agents:
+            if a.poll() is None:
+                a.send_signal(signal.SIGINT)
+        for a in agents:
+            try:
+                a.wait(20)
+            except subprocess.TimeoutExpired:
+                a.kill()
+        listener.close()
+    summary = json.loads(summary_path.read_text())
+    steps = [json.loads(line) for line in out.read_text().splitlines()]
+    episodes, declarations = summary["episodes"], summary["declarations"]
+    assert len(episodes) == 4, (episodes, text[-2000:])
+    assert all(e["declared"] and e["success"] for e in episodes), (episodes, text[-2000:])
+    assert [d["episode"] for d in declarations] == [0, 1, 2, 3]
+    assert all(d["right"] and d["mass"] >= 0.95 for d in declarations), declarations
+    for d, e in zip(declarations, episodes, strict=True):
+        # Declared on step S: S moves applied, step S's moves not flown (no extra step).
+        assert d["length"] == d["step"] == e["length"], (d, e)
+        flown = [s["step"] for s in steps if s["episode"] == d["episode"]]
+        assert flown == list(range(d["step"])), (d, flown)
+    for log in logs:
+        assert "Traceback" not in log.read_text()

@@ -5,8 +5,9 @@ The pip-installed ROS has no ``ros2 launch``; this is the project's launcher. By
 node runs as its own process through its console script (``medc-sim``, ``medc-agent``,
 ``medc-bridge``); ``--in-process`` runs them all in this process on one executor.
 
-    medc-launch                               # the shipped trained team, until Ctrl-C
+    medc-launch                               # the default team (infotaxis, realistic 20x20), until Ctrl-C
     medc-launch --episodes 20                 # 20 episodes, one line each, then one JSON line
+    medc-launch --policy models/team          # the shipped trained team (paper-simple, 13x13)
     medc-launch --config my.yaml --seed 3 --policy path/to/bundle.safetensors
     medc-launch --sensing realistic --policy path/to/realistic_bundle.safetensors
     medc-launch --policy greedy --episodes 20  # a team of classical controllers (also gradient, infotaxis)
@@ -226,8 +227,9 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     files (one per agent) or a single bundle, or a classical controller (``gradient``, ``greedy``,
     ``infotaxis``: medc_training.controllers) every agent runs by name; ``policies`` overrides
     single agents (a bundle path or a controller's name). Scenario keys left unset in ``cfg``
-    (agents, walls, grid, max_steps, sensing) are filled in from the bundle's manifest (a
-    controller has none: SCENARIO_DEFAULTS and the default sensing preset). Every bundle must have
+    (agents, walls, grid, max_steps, sensing) are filled in from the bundle's manifest (else
+    SCENARIO_DEFAULTS and the default sensing preset; a controller has none: CONTROLLER_DEFAULTS
+    and CONTROLLER_SENSING). Every bundle must have
     been trained under ``cfg.sensing``.
 
     Raises:

@@ -5,7 +5,10 @@ executed once, with the first move received for it. A second move for the same k
 sender (``AgentMove.sender``, the agent node's per-run id) is a re-send and is ignored; one from
 another sender means two processes claim the same agent id (:class:`DuplicateAgent`). An agent that
 has not moved within the simulator's move timeout is taken out (:meth:`MoveBook.take_out`): later
-steps do not wait for it, and any move from it for the current or the previous step takes it back.
+steps do not wait for it until a move from it is *received after* the take-out: an executed move for
+the step being collected, or a move for the step collected before it (from the sender whose move
+was executed for that step, or any sender if none was). The moves received before the take-out
+never bring it back (docs/ros.md, "A lost UAV", states the rule step by step).
 """
 
 from __future__ import annotations
