@@ -66,6 +66,33 @@ def test_a_silent_agent_is_taken_out_and_comes_back_with_a_move():
     assert book.lost == set() and book.returned == [2]
 
 
+
+def test_only_a_move_received_after_the_take_out_brings_an_agent_back():
+    """docs/ros.md, "A lost UAV", rules 1-5: agent_2 answers step 3 and dies. Its answer to the
+    previous step, received before it was taken out, does not bring it back; at step 4 the team
+    steps without it. A previous-step move received after the take-out does (not executed; the
+    step being collected then waits for its move)."""
+    book = MoveBook(3, 8)
+    book.open(0, 3)
+    for k, sender in enumerate("abc"):
+        book.offer(f"agent_{k}", 0, 3, 1, sender)  # agent_2's last answer
+    assert book.complete
+    book.open(0, 4)
+    book.offer("agent_0", 0, 4, 1, "a")
+    book.offer("agent_1", 0, 4, 1, "b")
+    book.take_out(book.missing)  # move_timeout_s after the first move: agent_2 is out
+    assert book.lost == {2} and book.complete  # its earlier answer does not count
+    book.open(0, 5)
+    book.offer("agent_0", 0, 5, 1, "a")
+    book.offer("agent_1", 0, 5, 1, "b")
+    assert book.complete and book.returned == []  # the team steps on without it
+    book.open(0, 6)
+    assert book.offer("agent_2", 0, 5, 1, "c") is None  # a late answer, received now: not executed
+    assert book.lost == set() and book.returned == [2]
+    book.offer("agent_0", 0, 6, 1, "a")
+    book.offer("agent_1", 0, 6, 1, "b")
+    assert not book.complete and book.missing == [2]  # back in the team: step 6 waits for it
+
 def test_the_status_gate_holds_other_sessions_jumps_and_recovers():
     clock = Clock()
     gate = StatusGate(session_hold_s=1.0, recover_s=2.0, clock=clock)
