@@ -39,6 +39,18 @@ def test_the_driver_uses_only_the_documented_contract():
                         "builtin_interfaces", "geometry_msgs", "nav_msgs", "medc_interfaces"}, imported
 
 
+def _stop(agents) -> None:
+    """SIGINT every agent process still running; kill whichever has not ended 20 s later."""
+    for a in agents:
+        if a.poll() is None:
+            a.send_signal(signal.SIGINT)
+    for a in agents:
+        try:
+            a.wait(20)
+        except subprocess.TimeoutExpired:
+            a.kill()
+
+
 @pytest.mark.parametrize("grid, walls", [(13, 2), (10, 1), (30, 2)])
 def test_the_documented_sensor_model_is_the_environments_bit_for_bit(grid, walls):
     """docs/ros.md's sensor model, as the driver implements it, equals
@@ -153,14 +165,7 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
                              if "the driver restarted" in d.message}
         listener.spin(60, lambda: len(restarted()) == 3, agents)
     finally:
-        for a in agents:
-            if a.poll() is None:
-                a.send_signal(signal.SIGINT)
-        for a in agents:
-            try:
-                a.wait(20)
-            except subprocess.TimeoutExpired:
-                a.kill()
+        _stop(agents)
         listener.close()
     diagnostics = listener.statuses()
 
@@ -223,14 +228,7 @@ def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_
                 "--episodes", "4", "--steps", "200", "--max-steps", "30"]
         text = run_contract_driver(listener, args, timeout_s=240, procs=agents, logs=logs)
     finally:
-        for a in agents:
-            if a.poll() is None:
-                a.send_signal(signal.SIGINT)
-        for a in agents:
-            try:
-                a.wait(20)
-            except subprocess.TimeoutExpired:
-                a.kill()
+        _stop(agents)
         listener.close()
     summary = json.loads(summary_path.read_text())
     steps = [json.loads(line) for line in out.read_text().splitlines()]

@@ -282,7 +282,9 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
                                                  what=f"JSON-RPC {method}")
             except bounded_http.BodyTooLarge as exc:
                 raise MalformedAnswer(str(exc)) from None
-            except http.client.HTTPException as exc:  # a status line, header or chunk http.client refuses
+            except http.client.HTTPException as exc:  # a status line or headers http.client refuses
+                if isinstance(exc, ConnectionError | http.client.IncompleteRead):
+                    raise  # a broken connection (the answer may be lost, not wrong): retried or resumed
                 why = f"{type(exc).__name__}: {printable(str(exc), 200)}"
                 raise MalformedAnswer(f"JSON-RPC {method}: the node at {url} answered with a malformed HTTP "
                                       f"response ({why})") from None
