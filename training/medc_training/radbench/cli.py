@@ -4,6 +4,7 @@ report what the field reports, per set and pooled, with the sets' SHA-256.
     medc-radbench --quick                                  # a stated subset, about a minute on 2 cores
     medc-radbench greedy infotaxis --grid 20 --agents 1    # every set of a frozen file, 200 episodes each
     medc-radbench infotaxis models/my-team.safetensors --agents 3 --obstructions 0,7 --snr low
+    medc-radbench --cost infotaxis space-aware --agents 3 --batch 256   # what one decision costs
     medc-radbench --list                                   # the frozen files and sets, hashes checked
     medc-radbench --generate /tmp/sets                     # write the set files again from their seed
 
