@@ -76,7 +76,7 @@ from collections.abc import Callable
 
 import torch
 
-from medc_training.envs.grid import action_deltas
+from medc_training.envs.grid import action_deltas, grid_cells
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
 from medc_training.move_scores import at_cells as _at
 from medc_training.move_scores import choose_move as _choose
@@ -132,14 +132,11 @@ def posterior_mean_levels(log_post: torch.Tensor,
     :class:`~medc_training.envs.tl_observation.SourceEstimator` keeps it."""
     sensing = parse_sensing(sensing)
     b, dev = log_post.shape[0], log_post.device
-    s_lv = sensing.strength_levels(dev)
-    b_lv = sensing.background_levels(dev)
+    level_s, level_b = sensing.level_values(dev)
     if log_post.dim() == 2:
-        return s_lv[0].expand(b).clone(), b_lv[0].expand(b).clone()
+        return level_s[0].expand(b).clone(), level_b[0].expand(b).clone()
     w = torch.logsumexp(log_post, dim=2)  # [B,L]
     w = torch.softmax(w, dim=1)
-    level_s = s_lv.repeat_interleave(len(b_lv))
-    level_b = b_lv.repeat(len(s_lv))
     return w @ level_s, w @ level_b
 
 
@@ -264,8 +261,7 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
     cells_nb = _neighbours(positions, g)  # [B,N,8,2]
     m = n * 8
     cand = cells_nb.view(b, m, 2)
-    idx = torch.arange(g2, device=dev)
-    grid_cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2]
+    every = grid_cells(g, dev)  # [G²,2]
     k = int(quantiles)
     probs = (torch.arange(k, device=dev, dtype=torch.float32) + 0.5) / k
     out = torch.empty((b, m), device=dev)
@@ -276,9 +272,9 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
     for lo in range(0, b, rows_per):
         sl = slice(lo, min(b, lo + rows_per))
         p = posterior[sl]
-        f = geometric_factor(sensing, cand[sl], grid_cells, walls[sl], None if rects is None else rects[sl])
+        f = geometric_factor(sensing, cand[sl], every, walls[sl], None if rects is None else rects[sl])
         lam = s_est[sl].view(-1, 1, 1) * f + b_est[sl].view(-1, 1, 1)  # [R,M,G²]
-        delta = cand[sl].unsqueeze(2) - grid_cells  # [R,M,G²,2]
+        delta = cand[sl].unsqueeze(2) - every  # [R,M,G²,2]
         near = sensing.within_reach((delta * delta).sum(-1))
         pm = p.unsqueeze(1).expand_as(lam)
         p_found = (pm * near).sum(-1)  # [R,M]

@@ -14,9 +14,9 @@ __all__ = ["at_cells", "choose_move", "expected_chebyshev", "neighbour_cells"]
 
 
 def neighbour_cells(positions: torch.Tensor, grid: int) -> torch.Tensor:
-    """int64 [B,N,8,2]: the cell after each move, clamped into the grid (invalid moves are masked
-    by the caller)."""
-    cells = positions.unsqueeze(2) + action_deltas(positions.device)
+    """int64 [...,8,2]: the cell after each move from ``positions`` int64 [...,2], clamped into the
+    grid (invalid moves are masked by the caller)."""
+    cells = positions.unsqueeze(-2) + action_deltas(positions.device)
     return cells.clamp(0, grid - 1)
 
 

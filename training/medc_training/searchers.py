@@ -64,12 +64,13 @@ import math
 
 import torch
 
-from medc_training.envs.grid import action_deltas
+from medc_training.envs.grid import action_deltas, grid_cells, move_mask, pad_blocked
 from medc_training.envs.tl_observation import EXP_FLOOR
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing
 from medc_training.move_scores import at_cells as _at
 from medc_training.move_scores import choose_move as _choose
 from medc_training.move_scores import expected_chebyshev
+from medc_training.move_scores import neighbour_cells as _neighbours
 
 __all__ = [
     "CRITERIA",
@@ -118,12 +119,9 @@ class Belief:
         """The team's belief from its estimator's log posterior (float32 [B,L,G²], or [B,G²] when
         the strength and background are known), levels pruned (:data:`LEVEL_MASS`)."""
         b, dev = log_post.shape[0], log_post.device
-        s_lv = sensing.strength_levels(dev)
-        b_lv = sensing.background_levels(dev)
-        if log_post.dim() == 2:
+        if log_post.dim() == 2:  # known strength and background: one level
             log_post = log_post.unsqueeze(1)
-        level_s = s_lv.repeat_interleave(len(b_lv))[: log_post.shape[1]]
-        level_b = b_lv.repeat(len(s_lv))[: log_post.shape[1]]
+        level_s, level_b = sensing.level_values(dev)
         logp = log_post.masked_fill(log_post <= EXP_FLOOR, float("-inf"))
         logp = logp - torch.logsumexp(logp.flatten(1), 1).view(b, 1, 1)
         level_mass = torch.logsumexp(logp, 2).exp()  # [B, L]
@@ -135,11 +133,6 @@ class Belief:
         logp = logp.gather(1, top.unsqueeze(-1).expand(-1, -1, logp.shape[2]))
         logp = logp - torch.logsumexp(logp.flatten(1), 1).view(b, 1, 1)
         return Belief(logp, level_s[top], level_b[top], torch.arange(b, device=dev))
-
-
-def _cells(grid: int, device: torch.device) -> torch.Tensor:
-    idx = torch.arange(grid * grid, device=device)
-    return torch.stack((idx // grid, idx % grid), dim=-1)  # [G²,2]
 
 
 def _count_values(lam: torch.Tensor, logq: torch.Tensor, k: int) -> torch.Tensor:
@@ -189,7 +182,7 @@ class _Outcomes:
         logp = belief.logp  # [R,L,G²]
         g2 = logp.shape[2]
         g = math.isqrt(g2)
-        cells = _cells(g, cand.device)
+        cells = grid_cells(g, cand.device)
         rows = belief.row
         f = geometric_factor(sensing, cand, cells, walls[rows], None if rects is None else rects[rows])
         lam = torch.addcmul(belief.background.view(r, 1, -1, 1), f.unsqueeze(2),
@@ -211,13 +204,11 @@ class _Outcomes:
         logw = log_pk + _widths(counts).log()
         self.logw = logw - torch.logsumexp(logw, -1, keepdim=True)
         self.p_found = p_found
-        self.counts = counts
 
 
 def _chebyshev_from(cand: torch.Tensor, grid: int) -> torch.Tensor:
     """float32 [R,M,G²]: moves (Chebyshev distance) from each candidate cell to every cell."""
-    cells = _cells(grid, cand.device)
-    return (cand.unsqueeze(2) - cells).abs().amax(-1).to(torch.float32)
+    return (cand.unsqueeze(2) - grid_cells(grid, cand.device)).abs().amax(-1).to(torch.float32)
 
 
 def _criterion(logpost: torch.Tensor, cand: torch.Tensor, criterion: str) -> torch.Tensor:
@@ -267,21 +258,6 @@ def _outcome_beliefs(belief: Belief, weight: torch.Tensor, cell: torch.Tensor, w
     return Belief(logp, rep(belief.strength), rep(belief.background), rep(belief.row)), w
 
 
-def _neighbours(positions: torch.Tensor, grid: int) -> torch.Tensor:
-    return (positions.unsqueeze(-2) + action_deltas(positions.device)).clamp(0, grid - 1)
-
-
-def _valid_from(cells: torch.Tensor, walls: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """bool [R,M,8]: the moves from ``cells`` [R,M,2] that stay in the grid and off the walls of
-    episode ``rows`` [R]."""
-    g = walls.shape[-1]
-    nxt = cells.unsqueeze(-2) + action_deltas(cells.device)  # [R,M,8,2]
-    inside = ((nxt >= 0) & (nxt < g)).all(-1)
-    flat = (nxt[..., 0].clamp(0, g - 1) * g + nxt[..., 1].clamp(0, g - 1)).reshape(len(rows), -1)
-    blocked = walls.reshape(walls.shape[0], -1)[rows].gather(1, flat).view(inside.shape)
-    return inside & ~blocked
-
-
 def _two_step(belief: Belief, cand: torch.Tensor, valid: torch.Tensor, one: torch.Tensor, walls: torch.Tensor,
               rects: torch.Tensor | None, sensing: SensingModel, quadrature: int) -> torch.Tensor:
     """float32 [R,M]: the two-step expected entropy of the first moves ``cand`` [R,M,2] (valid [R,M]),
@@ -298,7 +274,9 @@ def _two_step(belief: Belief, cand: torch.Tensor, valid: torch.Tensor, one: torc
         first = cand.gather(1, ranked[:, j:j + 1].unsqueeze(-1).expand(-1, -1, 2))[:, 0]  # [R,2]
         after, w = _outcome_beliefs(belief, torch.ones(r, device=dev), first, walls, rects, sensing, k2)
         second = _neighbours(first, g).repeat_interleave(k2, 0)  # [R*K,8,2]
-        ok = _valid_from(first.unsqueeze(1), walls, belief.row)[:, 0].repeat_interleave(k2, 0)  # [R*K,8]
+        # The second moves the environment allows from the first move's cell: [R*K,8]
+        ok = move_mask(first.unsqueeze(1), pad_blocked(walls[belief.row]), action_deltas(dev))[:, 0]
+        ok = ok.repeat_interleave(k2, 0)
         e2 = expected_criterion(after, torch.ones(r * k2, device=dev), second, walls, rects, sensing,
                                 "entropy", quadrature)
         best = e2.masked_fill(~ok, float("inf")).amin(1)  # [R*K]

@@ -28,6 +28,12 @@ def action_deltas(device: torch.device | str) -> torch.Tensor:
     return _DELTA_CACHE[device]
 
 
+def grid_cells(grid: int, device: torch.device | str) -> torch.Tensor:
+    """int64 [G²,2]: the (row, col) of every cell of a ``grid`` x ``grid`` area, in row-major order."""
+    idx = torch.arange(grid * grid, device=device)
+    return torch.stack((idx // grid, idx % grid), dim=-1)
+
+
 def pad_blocked(walls: torch.Tensor) -> torch.Tensor:
     """bool [B,H+2,W+2]: ``walls`` with a one-cell blocked border (off-grid counts as wall)."""
     return F.pad(walls, (1, 1, 1, 1), value=True)

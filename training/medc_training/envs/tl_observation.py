@@ -51,7 +51,7 @@ import math
 import torch
 
 from medc_training.envs.allocator import keep_freed_memory
-from medc_training.envs.grid import team_windows
+from medc_training.envs.grid import grid_cells, team_windows
 from medc_training.envs.observation import (
     EGO_CHANNELS,
     MAP_CHANNELS,
@@ -124,20 +124,16 @@ class SourceEstimator:
         self.device = torch.device(device)
         self.sensing = parse_sensing(sensing)
         g = self.grid
-        idx = torch.arange(g * g, device=self.device)
-        self.cells = torch.stack((idx // g, idx % g), dim=-1)  # [G²,2] (row, col)
+        self.cells = grid_cells(g, self.device)  # [G²,2] (row, col)
         self.scale = 1.0 / max(1, g - 1)
         # Diagonal coordinates of every cell and |i - j| between diagonals, for expected_moves.
         self._u = self.cells[:, 0] + self.cells[:, 1]
         self._v = self.cells[:, 0] - self.cells[:, 1] + (g - 1)
         lines = torch.arange(2 * g - 1, device=self.device, dtype=torch.float32)
         self._gap = (lines.unsqueeze(1) - lines.unsqueeze(0)).abs()
-        s_lv = self.sensing.strength_levels(self.device)
-        b_lv = self.sensing.background_levels(self.device)
         self.levels = self.sensing.levels[0] * self.sensing.levels[1]
         #: [K] strength and background of each level, strength-major.
-        self.level_strength = s_lv.repeat_interleave(len(b_lv))
-        self.level_background = b_lv.repeat(len(s_lv))
+        self.level_strength, self.level_background = self.sensing.level_values(self.device)
         #: (log rate [L, Q], factor [Q]) for Q = (d², walls crossed) pairs, made on first use.
         self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
         #: The paper-simple model's (rate, log rate) by (walls crossed, d²), made on first use.

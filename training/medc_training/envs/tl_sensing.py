@@ -14,6 +14,8 @@ from typing import Any
 
 import torch
 
+from medc_training.envs.grid import grid_cells
+
 __all__ = [
     "BACKGROUND",
     "CHANNELS",
@@ -141,15 +143,14 @@ def _crossing_tables(g: int, device: torch.device) -> torch.Tensor | None:
     if key not in _CROSSING_TABLES:
         cells = g * g
         samples = 2 * g
-        idx = torch.arange(cells, device=device)
-        grid_cells = torch.stack((idx // g, idx % g), dim=-1)
-        src = grid_cells.to(torch.float32).unsqueeze(0)  # [1,M,2]
+        every = grid_cells(g, device)
+        src = every.to(torch.float32).unsqueeze(0)  # [1,M,2]
         t = (torch.arange(samples, device=device, dtype=torch.float32) + 0.5) / samples
         table = torch.empty((2, cells, g, 2, cells), dtype=torch.int8, device=device)
         chunk = max(1, (1 << 21) // (cells * samples))  # sensor cells per chunk (~2M samples)
         for lo in range(0, cells, chunk):
             hi = min(cells, lo + chunk)
-            delta = grid_cells[lo:hi].to(torch.float32).unsqueeze(1) - src  # [P,M,2]
+            delta = every[lo:hi].to(torch.float32).unsqueeze(1) - src  # [P,M,2]
             rows = (src[..., 0:1] + delta[..., 0:1] * t).round_().long()  # [P,M,S]
             cols = (src[..., 1:2] + delta[..., 1:2] * t).round_().long()
             for orient, (line, value) in enumerate(((rows, cols), (cols, rows))):
@@ -393,6 +394,12 @@ class SensingModel:
     def background_levels(self, device: torch.device | str = "cpu") -> torch.Tensor:
         """float32 [nb]: the backgrounds the estimator weighs."""
         return _midpoints(self.background, self.levels[1], device)
+
+    def level_values(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+        """(strength, background) float32 [ns * nb] of each level of the estimator's joint posterior,
+        strength-major (level i: strength i // nb, background i % nb)."""
+        s_lv, b_lv = self.strength_levels(device), self.background_levels(device)
+        return s_lv.repeat_interleave(len(b_lv)), b_lv.repeat(len(s_lv))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (bundle manifests record it; :func:`parse_sensing` reads it back)."""
