@@ -3,7 +3,7 @@
 import math
 
 import pytest
-from medc_training.stats import compare, curve_band, mean_ci, t95
+from medc_training.stats import compare, curve_band, mean_ci, percentile, t95
 
 
 def test_curve_bands_use_student_t_like_the_claims():
@@ -22,3 +22,11 @@ def test_t_quantiles_and_welch_difference():
     c = compare([1.0, 2.0, 3.0], [2.0, 3.0, 4.0])
     assert c["diff"] == pytest.approx(-1.0)
     assert c["half"] == pytest.approx(4.303 * math.sqrt(1 / 3 + 1 / 3))
+
+
+def test_percentile_is_the_nearest_rank_value():
+    assert percentile([3.0, 1.0, 2.0], 50) == 2.0
+    values = [float(v) for v in range(1, 101)]  # rank round(0.99 * 99) = 98 of the sorted values
+    assert percentile(values, 99) == 99.0
+    assert percentile(values, 0) == 1.0 and percentile(values, 100) == 100.0
+    assert percentile([7.0], 99) == 7.0

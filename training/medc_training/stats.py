@@ -43,6 +43,13 @@ def t95(df: int) -> float:
     return T95[keys[-1]] if df <= 30 else 1.96
 
 
+def percentile(values: Sequence[float], q: float) -> float:
+    """The nearest-rank ``q``-th percentile (0-100) of ``values`` (not empty): the value at rank
+    round(q / 100 * (n - 1)) of the sorted values, as latency reports give p50 and p99."""
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * (len(ordered) - 1))))]
+
+
 def mean_ci(values: list[float]) -> tuple[float, float]:
     """(mean, half-width of the Student-t 95% CI); half-width inf for one value, nan for none."""
     n = len(values)

@@ -29,15 +29,11 @@ from typing import Any
 
 import torch
 
+from ..stats import percentile
 from .play import BenchCore, core_policy, resolve_policy
 from .sets import BenchSet
 
 __all__ = ["decision_cost"]
-
-
-def _percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * (len(ordered) - 1))))]
 
 
 def _node_call(policy: Any, bundle: Any, core: BenchCore):
@@ -118,16 +114,16 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
             obs, mask = step.obs, step.mask
         decisions = b * core.num_agents
         out[label] = {
-            "call_ms_p50": round(1000 * _percentile(calls, 50), 3),
-            "call_ms_p99": round(1000 * _percentile(calls, 99), 3),
+            "call_ms_p50": round(1000 * percentile(calls, 50), 3),
+            "call_ms_p99": round(1000 * percentile(calls, 99), 3),
             "decisions_per_s": round(decisions * len(calls) / max(sum(calls), 1e-9), 1),
         }
         if b == 1:
             work = statistics.fmean(terms) / decisions
             out["likelihood_terms_per_decision"] = round(work)
             if nodes:
-                out["node_ms_p50"] = round(1000 * _percentile(nodes, 50), 3)
-                out["node_ms_p99"] = round(1000 * _percentile(nodes, 99), 3)
+                out["node_ms_p50"] = round(1000 * percentile(nodes, 50), 3)
+                out["node_ms_p99"] = round(1000 * percentile(nodes, 99), 3)
             if bundle is not None:
                 out["macs_per_decision"] = _macs(bundle, flat_obs)
     return out

@@ -25,11 +25,6 @@ import time
 from pathlib import Path
 
 
-def _percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * (len(ordered) - 1))))]
-
-
 def _bench_bundle(grid: int, folder: Path) -> Path:
     """A lenet5 bundle for the grid (random weights: the cost of a decision does not depend on them)."""
     import torch
@@ -68,6 +63,7 @@ def run_graph(
     from medc_common.contract import agent_node_name
     from medc_common.executors import make_executor
     from medc_sim.node import SimNode
+    from medc_training.stats import percentile
     from rclpy.parameter import Parameter
 
     from medc_bringup.launcher import (
@@ -128,8 +124,8 @@ def run_graph(
             "steps": len(lat),
             "seconds": round(elapsed, 3),
             "team_steps_per_s": round(len(lat) / elapsed, 2),
-            "latency_ms_p50": round(1000 * _percentile(lat, 50), 3),
-            "latency_ms_p99": round(1000 * _percentile(lat, 99), 3),
+            "latency_ms_p50": round(1000 * percentile(lat, 50), 3),
+            "latency_ms_p99": round(1000 * percentile(lat, 99), 3),
             "latency_ms_mean": round(1000 * statistics.fmean(lat), 3),
             "resends": sim.resends - resends,
             "dropped": sim.dropped,

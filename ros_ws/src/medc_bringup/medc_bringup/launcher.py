@@ -149,10 +149,8 @@ def _controllers() -> tuple[str, ...]:
 
 
 def _controller(policy: object) -> str | None:
-    """The classical controller ``policy`` names (medc_training.controllers.CONTROLLERS), or None."""
-    from medc_training.controllers import CONTROLLERS
-
-    return policy.strip() if isinstance(policy, str) and policy.strip() in CONTROLLERS else None
+    """The classical controller ``policy`` names (:func:`_controllers`), or None."""
+    return policy.strip() if isinstance(policy, str) and policy.strip() in _controllers() else None
 
 
 def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
