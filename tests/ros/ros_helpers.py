@@ -86,9 +86,10 @@ def start_node_process(cmd: list[str], log: Path):
                             env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
 
 
-def stop_node_processes(procs) -> None:
-    """SIGINT to every process of ``procs`` still running; whichever has not ended 20 s later is
-    killed with its process group."""
+def stop_node_processes(procs, wait_s: float = 20.0) -> None:
+    """SIGINT to every process of ``procs`` still running; whichever has not ended ``wait_s`` later
+    is killed, with its process group when it leads one (:func:`start_node_process` starts each in
+    a session of its own)."""
     import os
     import signal
     import subprocess
@@ -98,9 +99,12 @@ def stop_node_processes(procs) -> None:
             p.send_signal(signal.SIGINT)
     for p in procs:
         try:
-            p.wait(20)
+            p.wait(wait_s)
         except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
+            if os.getpgid(p.pid) == p.pid:
+                os.killpg(p.pid, signal.SIGKILL)
+            else:
+                p.kill()
             p.wait()
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -37,18 +36,6 @@ def test_the_driver_uses_only_the_documented_contract():
     # ROS client library, standard messages, the project's message package; nothing of its code.
     assert imported <= {"__future__", "argparse", "json", "math", "secrets", "sys", "time", "numpy", "rclpy",
                         "builtin_interfaces", "geometry_msgs", "nav_msgs", "medc_interfaces"}, imported
-
-
-def _stop(agents) -> None:
-    """SIGINT every agent process still running; kill whichever has not ended 20 s later."""
-    for a in agents:
-        if a.poll() is None:
-            a.send_signal(signal.SIGINT)
-    for a in agents:
-        try:
-            a.wait(20)
-        except subprocess.TimeoutExpired:
-            a.kill()
 
 
 @pytest.mark.parametrize("grid, walls", [(13, 2), (10, 1), (30, 2)])
@@ -138,7 +125,7 @@ def _replayed_actions(steps: list[dict], policy) -> list[list[int]]:
 def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_context, tmp_path):
     from diagnostic_msgs.msg import DiagnosticStatus
     from medc_training.bundle import load_bundle
-    from ros_helpers import DiagnosticsListener, run_contract_driver
+    from ros_helpers import DiagnosticsListener, run_contract_driver, stop_node_processes
 
     listener = DiagnosticsListener()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -165,7 +152,7 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
                              if "the driver restarted" in d.message}
         listener.spin(60, lambda: len(restarted()) == 3, agents)
     finally:
-        _stop(agents)
+        stop_node_processes(agents)
         listener.close()
     diagnostics = listener.statuses()
 
@@ -211,7 +198,7 @@ def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_
     """docs/ros.md, "The driver loop": the driver processes every message already received before
     it flies a step's moves, so the team's declaration of step S (sent before its publisher's move)
     ends the episode after S moves, with step S's moves not flown."""
-    from ros_helpers import DiagnosticsListener, run_contract_driver
+    from ros_helpers import DiagnosticsListener, run_contract_driver, stop_node_processes
 
     listener = DiagnosticsListener()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -228,7 +215,7 @@ def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_
                 "--episodes", "4", "--steps", "200", "--max-steps", "30"]
         text = run_contract_driver(listener, args, timeout_s=240, procs=agents, logs=logs)
     finally:
-        _stop(agents)
+        stop_node_processes(agents)
         listener.close()
     summary = json.loads(summary_path.read_text())
     steps = [json.loads(line) for line in out.read_text().splitlines()]

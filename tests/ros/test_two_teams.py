@@ -12,7 +12,6 @@ both are stopped as Ctrl-C stops them.
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import pytest
 from medc_common import contract
-from ros_helpers import load_launch_file, reference_episodes
+from ros_helpers import load_launch_file, reference_episodes, stop_node_processes
 
 SCENARIO = {"agents": 2, "walls": 1, "grid": 10, "max_steps": 20}
 EPISODES = 3
@@ -144,15 +143,7 @@ def run_two_teams(config: Path, tmp_path: Path, watch: Watch) -> dict:
                           and watch.complete())
         assert done, ({ns: len(r) for ns, r in watch.results.items()}, watch.graph, watch.beats())
     finally:
-        for proc in procs:  # the launcher stops its own nodes
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_node_processes(procs, wait_s=60)  # the launcher stops its own nodes
         for log in logs.values():
             log.close()
     texts = {name: (tmp_path / f"{name}.log").read_text() for name in names}

@@ -55,7 +55,7 @@ def _node_call(policy: Any, bundle: Any, core: BenchCore):
 
         def decide(obs: torch.Tensor, mask: torch.Tensor) -> None:
             view = SimpleNamespace(memory=core.memory, positions=core.positions[:, rows], walls=core.walls,
-                                   mask=core.mask[:, rows], noise=True, name=core.name,
+                                   mask=core.mask[:, rows], noise=core.noise, name=core.name,
                                    observation_name=core.observation_name)
             with torch.no_grad():
                 controller_scores(policy, view)
