@@ -47,7 +47,8 @@ from .home import (
     save_state,
     state_settings,
 )
-from .journal import PendingLockTimeout, PendingRecordsError
+from .journal import LockWaitInterrupted, PendingLockTimeout, PendingRecordsError, process_start_time
+from .ranker import DEFAULT_PRICE_FACTOR
 from .registry import Registry, check_share_text, deploy_contracts, format_eth
 
 #: Default total seconds for one chain call from the CLI (``--deadline``).
@@ -285,7 +286,13 @@ def cmd_request(args: argparse.Namespace) -> int:
     weights = parse_pairs(args.weight, float, "--weight") or None
     payment = parse_eth(args.payment, "--payment") if args.payment else None
     max_price = parse_eth(args.max_price, "--max-price") if args.max_price else None
+    max_total = parse_eth(args.max_total, "--max-total") if args.max_total else None
     reg = open_registry(args)
+
+    def quoted(ranking) -> None:
+        print(f"quote: {len(ranking.model_ids)} model(s) for {format_eth(ranking.price_wei)}; "
+              f"limit {ranking.limit.describe()}", flush=True)
+
     try:
         allocs = reg.request_models(
             args.application,
@@ -297,6 +304,9 @@ def cmd_request(args: argparse.Namespace) -> int:
             payment,
             args.request_id,
             max_price,
+            max_total,
+            same_since=process_start_time(),
+            on_quote=quoted,
         )
     except ChainError as exc:
         raise CliError(str(exc)) from None
@@ -443,8 +453,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--payment", help="amount to send (default: the exact price); excess is refundable")
     sp.add_argument(
         "--max-price",
-        help="the most one model may cost, in ETH or NNNwei (default: the account's balance); "
-        "dearer models are passed over",
+        help="the most one model may cost, in ETH or NNNwei; dearer models are passed over (default: "
+        f"{DEFAULT_PRICE_FACTOR} x the cheapest non-zero price among the models the request could get, "
+        "at most the account's balance; free models only when all are free)",
+    )
+    sp.add_argument(
+        "--max-total",
+        help="the most the whole request may cost, in ETH or NNNwei; a dearer quote is refused before "
+        "anything is paid (default: no limit beyond --max-price per model)",
     )
     sp.add_argument(
         "--request-id",
@@ -477,6 +493,14 @@ def main(argv: list[str] | None = None) -> int:
             PendingLockTimeout, ValueError, OSError) as exc:
         print(f"medc-registry {args.command}: {exc}", file=sys.stderr)
         return 2
+    except LockWaitInterrupted as exc:
+        print(f"medc-registry {args.command}: {exc}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        note = ("; a payment it sent is recorded in the home: run the same request again to resolve it "
+                "(it never pays twice)") if args.command == "request" else ""
+        print(f"medc-registry {args.command}: interrupted{note}", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -26,8 +26,8 @@ from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
-from .ranker import Ranker
-from .records import Allocation, SharedModel
+from .ranker import Ranker, Ranking
+from .records import Allocation, SharedModel, format_eth
 from .request import ModelRequest, request_id_from
 
 #: Most seconds a request waits for another run's request on the same pending file to finish.
@@ -45,6 +45,29 @@ class PendingRecordsError(RuntimeError):
 
 class PendingLockTimeout(RuntimeError):
     """Another run's request on the same pending file did not finish within the wait."""
+
+
+class LockWaitInterrupted(RuntimeError):
+    """Interrupted (Ctrl-C) while waiting for another run's request on the same pending file:
+    this run had sent nothing."""
+
+
+class OverBudget(ChainError):
+    """A request whose price is over what the caller allows in total; refused before signing."""
+
+
+def process_start_time() -> float:
+    """When this process started (seconds since the epoch; Linux ``/proc``, else now): the moment
+    a command-line run began, before its interpreter loaded, for
+    :meth:`PaidRequests.pay`'s ``same_since``."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        with open("/proc/stat", encoding="ascii") as fh:
+            boot = next(int(line.split()[1]) for line in fh if line.startswith("btime "))
+        return boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return time.time()
 
 
 def _is_hex(text: Any, digits: int | None = None) -> bool:
@@ -108,14 +131,19 @@ class PendingRequests:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd = os.open(self.path.with_name(self.path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o600)
             try:
-                while True:
-                    try:
-                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                        break
-                    except BlockingIOError:
-                        if time.monotonic() >= until:
-                            raise PendingLockTimeout(self._busy()) from None
-                        time.sleep(0.05)
+                try:
+                    while True:
+                        try:
+                            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                            break
+                        except BlockingIOError:
+                            if time.monotonic() >= until:
+                                raise PendingLockTimeout(self._busy()) from None
+                            time.sleep(0.05)
+                except KeyboardInterrupt:
+                    raise LockWaitInterrupted(
+                        f"interrupted while waiting for another run's request on {self.path} to finish; "
+                        "this run sent nothing and paid nothing") from None
                 yield
             finally:
                 os.close(fd)  # releases the flock
@@ -251,20 +279,39 @@ class PaidRequests:
         payment: int | None,
         request_id: str | bytes | None,
         max_price: int | None = None,
+        *,
+        max_total: int | None = None,
+        same_since: float | None = None,
+        on_quote: Callable[[Ranking], None] | None = None,
     ) -> list[Allocation]:
         """Request ``request``'s models and pay for them, exactly once (see Registry.request_models).
 
-        Under the pending file's lock, a record of the request (its id and fingerprint) is written
-        before anything else, so a second run of the same request, started while this one waits
-        on a slow node or after it was killed, finds it and resolves the same request id.
+        Under the pending file's lock, from the check of earlier runs to the payment, a record of
+        the request (its id and fingerprint) is written before anything else, so a second run of
+        the same request, started while this one waits on a slow node or after it was killed,
+        finds it and resolves the same request id. The same request confirmed by another run at or
+        after ``same_since`` (seconds since the epoch; default: when this call began) is this
+        one: a command-line run passes the moment its process started, so two runs started
+        together pay once however the machine schedules them.
+
+        The request is quoted first (:class:`~medc_registry.ranker.Ranker`, under ``max_price``
+        per model or its default rule); ``on_quote(ranking)`` sees the quote before anything is
+        signed; a quote (or ``payment``) over ``max_total`` wei is refused with
+        :class:`OverBudget` before anything is signed.
         """
         if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
             raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
+        if max_total is not None and (isinstance(max_total, bool) or not isinstance(max_total, int)
+                                      or max_total < 0):
+            raise ValueError(f"max_total must be a non-negative integer number of wei, got {max_total!r}")
+        if payment is not None and max_total is not None and payment > max_total:
+            raise OverBudget(f"a payment of {format_eth(payment)} is over the {format_eth(max_total)} "
+                             "allowed in total; nothing was signed or sent")
         fingerprint = hashlib.sha256(
             json.dumps([self.account, request.args(), payment, max_price], sort_keys=True).encode()
         ).hexdigest()
         rid = request_id_from(request_id) if request_id is not None else None
-        started = time.time()
+        started = time.time() if same_since is None else same_since
         with self.pending.lock():
             record = self.pending.find(self.account, fingerprint, "0x" + rid.hex() if rid else None)
             if record is not None and "tx_hash" in record:
@@ -293,6 +340,13 @@ class PaidRequests:
                     self.pending.drop(record)
                     return paid
                 ranking = Ranker(self.chain, self.models, self.account).rank(request, max_price)
+                if max_total is not None and ranking.price_wei > max_total:
+                    raise OverBudget(
+                        f"the {len(ranking.model_ids)} best model(s) under the limit cost "
+                        f"{format_eth(ranking.price_wei)} together, over the {format_eth(max_total)} "
+                        "allowed in total; nothing was signed or sent")
+                if on_quote is not None:
+                    on_quote(ranking)
                 if payment is None:
                     payment = ranking.price_wei
                 args = [*request.args(), ranking.positions]

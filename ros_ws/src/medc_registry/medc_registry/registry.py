@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from eth_utils import to_checksum_address
@@ -41,7 +41,7 @@ from .home import (
     spec_settings,
 )
 from .journal import PaidRequests, PendingRequests
-from .ranker import Ranker, models_list
+from .ranker import Ranker, Ranking, models_list
 from .records import Allocation, Deployment, SharedModel, UserInfo, description_features, format_eth
 from .request import (
     MAX_CANDIDATES,
@@ -288,7 +288,8 @@ class Registry:
 
     @takes_request
     def quote(self, request: ModelRequest, max_price: int | None = None) -> tuple[list[int], int]:
-        """Which models a request would get now and their total price in wei (no transaction)."""
+        """Which models a request would get now and their total price in wei (no transaction),
+        under ``max_price`` per model or the default limit (:meth:`request_models`)."""
         ranking = Ranker(self.chain, self.models, self.address).rank(request, max_price)
         return ranking.model_ids, ranking.price_wei
 
@@ -299,11 +300,23 @@ class Registry:
         payment: int | None = None,
         request_id: str | bytes | None = None,
         max_price: int | None = None,
+        max_total: int | None = None,
+        same_since: float | None = None,
+        on_quote: Callable[[Ranking], None] | None = None,
     ) -> list[Allocation]:
         """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once.
 
         ``payment`` (wei) defaults to the exact price of what would be allocated (see :meth:`quote`);
         any overpayment is credited back and can be withdrawn. Returns the allocations best first.
+
+        Money: only models priced at most ``max_price`` wei each are candidates. Without it, the
+        limit is :data:`~medc_registry.ranker.DEFAULT_PRICE_FACTOR` times the cheapest non-zero
+        price among the models this request could get, capped at the account's balance (free
+        models only when every such model is free): a model priced far above the others is
+        passed over unless ``max_price`` covers it. Equal QoS goes to the cheaper model, then
+        the lower id. ``max_total``: the most the whole request may cost; a quote over it is
+        refused (:class:`~medc_registry.journal.OverBudget`) before anything is signed.
+        ``on_quote(ranking)`` sees the quote (models, price, limit) before anything is signed.
 
         Idempotent: the request carries an id (``request_id``: ``0x`` + 64 hex digits, any other
         text is hashed; default random) that the contract records and refuses to pay twice. The
@@ -311,14 +324,15 @@ class Registry:
         node's answer is lost, calling again with the same arguments (or the same ``request_id``)
         resolves that record: the original allocation if it was mined (``replayed=True``), else
         the same request is sent again, which the contract can only pay once. The record is
-        written first, under a lock on the pending file, so a second run of the same request
-        started while the first still waits (a slow node), or two runs started together, pay once.
-
-        ``max_price``: the most wei any one allocated model may cost (default: what the account
-        holds); dearer models are not candidates, so none can block the ranking.
+        written first, under a lock on the pending file held from the check to the payment, so a
+        second run of the same request started while the first still waits (a slow node), or two
+        runs started together, pay once: the same request confirmed by another run at or after
+        ``same_since`` (seconds since the epoch; default: when this call began; the CLI passes
+        its process's start) is this one.
         """
         payer = PaidRequests(self.chain, self.models, self.address, self.pending, self.model)
-        allocations = payer.pay(request, payment, request_id, max_price)
+        allocations = payer.pay(request, payment, request_id, max_price, max_total=max_total,
+                                same_since=same_since, on_quote=on_quote)
         if payer.last_tx is not None:
             self.last_tx = payer.last_tx
         return allocations
