@@ -7,11 +7,14 @@ By default two scenarios, each with its throughput target (B = 256, A3W2, one to
 - ``realistic`` on 20×20: the default observation, target ≥ 50,000.
 
 Each scenario is also measured with the ``maps`` observation (the paper's 5 absolute maps, no
-source estimate) in the same run, interleaved round by round with the default observation, and
-every figure is printed as a ratio to it too: absolute figures on a shared machine move with the
-other jobs' load, the ratio much less. ``--grid``, ``--sensing``, ``--walls``, ``--agents`` or
-``--observation`` measure one custom scenario instead; ``--one-by-one-steps N`` adds B separate
-``make_env`` ParallelEnvs stepped in turn through the PettingZoo API (the batched / one-by-one ratio).
+source estimate) and with the observation on the reference estimator (``reference``: the estimator
+path the fused one replaced, :data:`~medc_training.envs.tl_observation.ESTIMATOR_PATHS`) in the
+same run, interleaved round by round with the default, and every figure is printed as a ratio to
+them too (A/B: fused / reference): absolute figures on a shared machine move with the other jobs'
+load, the ratios much less. ``--no-reference`` skips the reference. ``--grid``, ``--sensing``,
+``--walls``, ``--agents`` or ``--observation`` measure one custom scenario instead;
+``--one-by-one-steps N`` adds B separate ``make_env`` ParallelEnvs stepped in turn through the
+PettingZoo API (the batched / one-by-one ratio).
 
 Every path is stepped with random valid moves sampled from the mask each step (included in the
 time), observations built every step, auto-resets included. Each measurement is time-boxed: a
@@ -33,7 +36,7 @@ import numpy as np
 import torch
 
 from medc_training.envs import make_batched, make_env
-from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
+from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, estimator_path
 
 #: The issue's scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
 SCENARIOS: tuple[tuple[str, int, int], ...] = (("paper-simple", 30, 100_000), ("realistic", 20, 50_000))
@@ -44,9 +47,18 @@ class _Batched:
     """A batched core stepped with random valid moves sampled from its mask."""
 
     def __init__(self, args: argparse.Namespace, sensing: str, grid: int, observation: str,
-                 copy_obs: bool = False) -> None:
+                 copy_obs: bool = False, path: str = "fused") -> None:
         start = time.perf_counter()
-        self.env = make_batched(
+        with estimator_path(path):
+            self.env = self._make(args, sensing, grid, observation, copy_obs)
+        self.gen = torch.Generator(device=self.env.device).manual_seed(args.seed)
+        _, self.mask = self.env.reset()
+        self.setup_s = time.perf_counter() - start
+        self.cuda = self.env.device.type == "cuda"
+
+    @staticmethod
+    def _make(args: argparse.Namespace, sensing: str, grid: int, observation: str, copy_obs: bool):
+        return make_batched(
             "target_localization",
             num_envs=args.num_envs,
             device=args.device,
@@ -59,10 +71,6 @@ class _Batched:
             sensing=sensing,
             copy_obs=copy_obs,
         )
-        self.gen = torch.Generator(device=self.env.device).manual_seed(args.seed)
-        _, self.mask = self.env.reset()
-        self.setup_s = time.perf_counter() - start
-        self.cuda = self.env.device.type == "cuda"
 
     def run(self, seconds: float, min_steps: int = 1, max_steps: int = 0) -> tuple[float, int]:
         """Step for ``seconds`` (at least ``min_steps``, at most ``max_steps`` when > 0):
@@ -115,12 +123,18 @@ class _OneByOne:
 
 
 def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | None) -> dict:
-    """One scenario: ``args.observation`` and the maps baseline (plus one by one when asked),
-    interleaved rounds, medians. Prints a line per round and a summary; returns the figures."""
+    """One scenario: ``args.observation`` on the fused estimator, on the reference estimator (unless
+    ``args.no_reference``) and the maps baseline (plus one by one when asked), interleaved rounds,
+    medians. Prints a line per round and a summary; returns the figures."""
     observation = args.observation
     print(f"\n{sensing}, {grid}x{grid}, A{args.agents}W{args.walls}, B={args.num_envs}, "
-          f"max_steps {args.max_steps}: {observation} vs {BASELINE_OBSERVATION}")
+          f"max_steps {args.max_steps}: {observation} vs {BASELINE_OBSERVATION}"
+          + ("" if args.no_reference else f", and {observation} on the reference estimator"))
     paths = {"default": _Batched(args, sensing, grid, observation)}
+    labels = {"default": observation, "reference": f"{observation} (reference)",
+              "baseline": BASELINE_OBSERVATION}
+    if not args.no_reference:
+        paths["reference"] = _Batched(args, sensing, grid, observation, path="reference")
     if observation != BASELINE_OBSERVATION:
         paths["baseline"] = _Batched(args, sensing, grid, BASELINE_OBSERVATION)
     one = _OneByOne(args, sensing, grid, observation) if args.one_by_one_steps > 0 else None
@@ -129,18 +143,22 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
     if one is not None:
         one.run(1)
     per_round = args.seconds / args.rounds
-    rounds: dict[str, list[float]] = {"default": [], "baseline": [], "one": [], "ratio": [], "ratio_one": []}
-    steps = {"default": 0, "baseline": 0, "one": 0}
+    keys = ("default", "reference", "baseline", "one", "ratio", "ratio_reference", "ratio_one")
+    rounds: dict[str, list[float]] = {k: [] for k in keys}
+    steps = {"default": 0, "reference": 0, "baseline": 0, "one": 0}
     for r in range(args.rounds):
         parts = []
         for key, path in paths.items():
             rate, k = path.run(per_round, max_steps=args.steps)
             rounds[key].append(rate)
             steps[key] += k
-            parts.append(f"{observation if key == 'default' else BASELINE_OBSERVATION} {rate:,.0f}")
+            parts.append(f"{labels[key]} {rate:,.0f}")
+        if "reference" in paths:
+            rounds["ratio_reference"].append(rounds["default"][-1] / rounds["reference"][-1])
+            parts.append(f"fused / reference {rounds['ratio_reference'][-1]:.3f}x")
         if "baseline" in paths:
             rounds["ratio"].append(rounds["default"][-1] / rounds["baseline"][-1])
-            parts.append(f"ratio {rounds['ratio'][-1]:.4f}x")
+            parts.append(f"ratio to maps {rounds['ratio'][-1]:.4f}x")
         if one is not None:
             rate, k = one.run(args.one_by_one_steps)
             rounds["one"].append(rate)
@@ -151,6 +169,9 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
 
     def median(key: str) -> float | None:
         return float(np.median(rounds[key])) if rounds[key] else None
+
+    def ms(rate: float) -> float:
+        return round(1000.0 * args.num_envs * args.agents / rate, 3)
 
     rate = median("default")
     baseline = median("baseline") if "baseline" in paths else rate
@@ -167,16 +188,26 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         "fraction_of_target": None if target is None else round(rate / target, 4),
         "timed_steps": steps["default"], "baseline_timed_steps": steps["baseline"],
         "setup_s": round(paths["default"].setup_s, 3),
-        "ms_per_step": round(1000.0 * args.num_envs * args.agents / rate, 3),
-        "baseline_ms_per_step": round(1000.0 * args.num_envs * args.agents / baseline, 3),
+        "ms_per_step": ms(rate),
+        "baseline_ms_per_step": ms(baseline),
     }
-    print(f"  median of {args.rounds} rounds ({steps['default']} and {steps['baseline']} timed steps):")
-    line = f"  {observation:<16} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
+    if "reference" in paths:
+        reference = median("reference")
+        result.update(reference_agent_steps_per_s=round(reference), reference_ms_per_step=ms(reference),
+                      reference_timed_steps=steps["reference"],
+                      speedup_over_reference=round(median("ratio_reference"), 3))
+    counts = ", ".join(f"{steps[k]} {labels[k]}" for k in paths)
+    print(f"  median of {args.rounds} rounds (timed steps: {counts}):")
+    line = f"  {observation:<28} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
     if target is not None:
         verdict = "met" if result["meets_target"] else f"NOT met ({rate / target:.1%} of it)"
         line += f", target >= {target:,}: {verdict}"
     print(line)
-    print(f"  {BASELINE_OBSERVATION:<16} {baseline:12,.0f} agent-steps/s "
+    if "reference" in paths:
+        print(f"  {labels['reference']:<28} {result['reference_agent_steps_per_s']:12,} agent-steps/s "
+              f"({result['reference_ms_per_step']:.1f} ms/step)")
+        print(f"  A/B fused / reference estimator: {result['speedup_over_reference']:.3f}x")
+    print(f"  {BASELINE_OBSERVATION:<28} {baseline:12,.0f} agent-steps/s "
           f"({result['baseline_ms_per_step']:.1f} ms/step)")
     print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
     if one is not None:
@@ -211,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=0, help="at most this many timed steps per round (0: no cap)")
     p.add_argument("--one-by-one-steps", type=int, default=0,
                    help="also step B ParallelEnvs one by one, this many steps each per round (0: skip)")
+    p.add_argument("--no-reference", action="store_true",
+                   help="skip the reference estimator (the A/B against the path the fused one replaced)")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--device", default="cpu")
     p.add_argument("--seed", type=int, default=0)
@@ -240,8 +273,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in results.items():
         target = "" if r["target_agent_steps_per_s"] is None else (
             f", target {r['target_agent_steps_per_s']:,}: {'met' if r['meets_target'] else 'NOT met'}")
+        ab = "" if "speedup_over_reference" not in r else (
+            f", {r['speedup_over_reference']:.3f}x the reference estimator at "
+            f"{r['reference_agent_steps_per_s']:,}")
         print(f"  {name:<20} {r['agent_steps_per_s']:>10,} ({r['ratio_to_baseline']:.4f}x "
-              f"{BASELINE_OBSERVATION} at {r['baseline_agent_steps_per_s']:,}){target}")
+              f"{BASELINE_OBSERVATION} at {r['baseline_agent_steps_per_s']:,}{ab}){target}")
     print(json.dumps({"scenarios": results, "device": args.device, "threads": args.threads,
                       "seconds_per_path": args.seconds, "rounds": args.rounds, "load_average": _loadavg(),
                       "wall_s": round(wall, 1)}))

@@ -47,6 +47,8 @@ Source estimate (:class:`SourceEstimator`)
 from __future__ import annotations
 
 import math
+import os
+from contextlib import contextmanager
 
 import torch
 
@@ -103,6 +105,32 @@ MAX_READING = 1e6
 #: (20 MB at B = 256, 48 levels, 20×20) would stream through L3 once per step. Every episode's
 #: arithmetic is the same either way.
 BLOCK_BYTES = 1 << 20
+#: The estimator's two implementations of the same posterior (:data:`ESTIMATOR_PATH`).
+ESTIMATOR_PATHS = ("fused", "reference")
+#: Which implementation new estimators take: ``fused`` (the default) keeps a posterior over levels
+#: cells-major and folds a step's readings, the renormalisation and the marginal over the levels into
+#: one pass per block of episodes; ``reference`` is the level-major implementation it replaced, kept
+#: so that ``medc-bench env`` and ``medc-bench train`` measure both in one run. The two agree within
+#: rounding (docs/environments.md, "Speed"). ``MEDC_ESTIMATOR=reference`` in the environment selects
+#: the reference for a whole process; :func:`estimator_path` for the estimators made inside a block.
+ESTIMATOR_PATH = os.environ.get("MEDC_ESTIMATOR", "fused")
+if ESTIMATOR_PATH not in ESTIMATOR_PATHS:
+    raise ValueError(f"MEDC_ESTIMATOR must be one of {ESTIMATOR_PATHS}, got {ESTIMATOR_PATH[:40]!r}")
+_LOG2E = 1.0 / math.log(2.0)
+
+
+@contextmanager
+def estimator_path(path: str):
+    """Make the estimators (and team memories) created inside the block take ``path`` (one of
+    :data:`ESTIMATOR_PATHS`)."""
+    global ESTIMATOR_PATH
+    if path not in ESTIMATOR_PATHS:
+        raise ValueError(f"estimator path must be one of {ESTIMATOR_PATHS}, got {path!r}")
+    before, ESTIMATOR_PATH = ESTIMATOR_PATH, path
+    try:
+        yield
+    finally:
+        ESTIMATOR_PATH = before
 
 
 class SourceEstimator:
@@ -115,10 +143,14 @@ class SourceEstimator:
     """
 
     def __init__(self, grid: int, device: torch.device | str, sensing=DEFAULT_SENSING,
-                 rule_out: bool = True) -> None:
+                 rule_out: bool = True, path: str | None = None) -> None:
         """``rule_out``: a cell some agent has stood within the success radius of is not the source
         (true when an episode ends as soon as an agent finds the source, as in training); False for
-        episodes that a finding does not end (a driver that ends them on the team's declaration)."""
+        episodes that a finding does not end (a driver that ends them on the team's declaration).
+        ``path``: one of :data:`ESTIMATOR_PATHS` (None: :data:`ESTIMATOR_PATH`)."""
+        self.path = ESTIMATOR_PATH if path is None else path
+        if self.path not in ESTIMATOR_PATHS:
+            raise ValueError(f"estimator path must be one of {ESTIMATOR_PATHS}, got {self.path!r}")
         self.grid = int(grid)
         self.rule_out = bool(rule_out)
         self.device = torch.device(device)
@@ -143,17 +175,38 @@ class SourceEstimator:
         self._square = ((lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2).int()  # int32 [G, G]: (i - j)²
         #: int64 [O,2]: the (row, column) offsets within the success radius, made on first use.
         self._reach: torch.Tensor | None = None
+        #: The fused path's [2Q, L] table (log rates, then rates, per (d², walls crossed) pair).
+        self._bag_table: torch.Tensor | None = None
+        #: A cell whose weights summed over the levels are at most this gets exactly 0 from the fused
+        #: path: every level of it is at or below EXP_FLOOR. (The reference writes each such weight as
+        #: 0; the fused path takes exp(EXP_FLOOR) for them, which keeps its exp off float32's slow
+        #: subnormal path, and then clears the cell.)
+        self._dead_cell = 1.0001 * self.levels * math.exp(EXP_FLOOR)
+
+    @property
+    def fused(self) -> bool:
+        """Whether this estimator keeps a posterior over levels cells-major and takes the fused path."""
+        return self.path == "fused" and self.levels > 1
+
+    def cells_major(self, log_post: torch.Tensor) -> bool:
+        """Whether ``log_post`` [K, L, G²] is a view of cells-major memory [K, G², L] (the fused
+        path's layout, :meth:`prior`)."""
+        return (log_post.dim() == 3 and log_post.shape[1] > 1 and log_post.stride(1) == 1
+                and log_post.stride(2) == log_post.shape[1])
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
         k = walls.shape[0]
-        prior = torch.zeros((k, self.levels, self.grid * self.grid), device=self.device)
+        if self.fused:  # [K, L, G²] seen through cells-major memory [K, G², L]
+            prior = torch.zeros((k, self.grid * self.grid, self.levels), device=self.device).transpose(1, 2)
+        else:
+            prior = torch.zeros((k, self.levels, self.grid * self.grid), device=self.device)
         prior.masked_fill_(walls.reshape(k, 1, -1).bool(), LOG_FLOOR)
         return prior if self.levels > 1 else prior.squeeze(1)
 
     def update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
                readings: torch.Tensor, rects: torch.Tensor | None = None,
-               segments: torch.Tensor | None = None) -> None:
+               segments: torch.Tensor | None = None, posterior_out: torch.Tensor | None = None) -> bool:
         """Fold the team's readings at ``positions`` (int64 [K,N,2]) into ``log_post`` in place.
 
         walls bool [K,G,G]; readings float32 [K,N] (counts/s, as the sensor returns them); ``rects``
@@ -163,6 +216,9 @@ class SourceEstimator:
         segments, for the sampled rule's crossing tables. Cost: O(G² · levels) per reading (plus
         O(G² · walls) for the line of sight; O(G³) per reading for the sampled rule without
         ``segments``).
+
+        ``posterior_out`` float32 [K, G²]: on the fused path the updated posterior (:meth:`posterior`)
+        is also written there, each block while it is in cache; returns whether it was.
         """
         k = positions.shape[0]
         # No sensor of this model reads more than MAX_READING; a larger (or infinite) value from a
@@ -188,6 +244,9 @@ class SourceEstimator:
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
         elif (lines := self._sight_lines(positions, walls, rects)) is not None:
             d2, crossed = lines
+            if self.levels > 1 and self.path == "fused" and self.cells_major(log_post):
+                self._fused_update(log_post, walls, positions, readings, d2, crossed, posterior_out)
+                return posterior_out is not None
             if self.levels == 1:
                 loglik = self._loglik_from_tables(d2, crossed, readings)
             else:
@@ -216,7 +275,7 @@ class SourceEstimator:
             flat = log_post.view(k, 1, -1)
             flat[episode, :, cell] = LOG_FLOOR
             flat.sub_(flat.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
-            return
+            return False
         if block_loglik is None:
             def block_loglik(s: int, e: int) -> torch.Tensor:
                 return loglik[s:e]
@@ -231,6 +290,72 @@ class SourceEstimator:
             if hi > lo:
                 block[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
             block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+        return False
+
+    def _fused_update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                      readings: torch.Tensor, d2: torch.Tensor, crossed: torch.Tensor,
+                      posterior_out: torch.Tensor | None) -> None:
+        """:meth:`update` of a cells-major posterior over levels from per-(d², walls crossed) tables.
+
+        A block of episodes at a time (:data:`BLOCK_BYTES`), every step over contiguous memory while
+        the block is in cache: one ``embedding_bag`` makes each (episode, cell)'s row of L
+        log-likelihoods, sum_n r_n log rate_n - rate_n, from 2N table rows (the N readings' log-rate
+        rows weighted by the readings, their rate rows weighted by -1); it is added to the posterior,
+        the ruled-out cells are floored, the block is shifted by its episodes' maxima and floored, and
+        (``posterior_out``) the marginal over the levels is summed from exp2 of the block scaled by
+        log2(e) (float32's exp2 is about 3x faster than its exp here)."""
+        k, n = readings.shape
+        cells, levels = self.grid * self.grid, self.levels
+        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
+        most = int(crossed.max()) if crossed.numel() else 0
+        table = self._bag_table
+        if table is None or table.shape[0] < 2 * span * (most + 1):
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            table = self._bag_table = torch.cat((rate.log().t(), rate.t())).contiguous()  # [2Q, L]
+        rows = table.shape[0] // 2
+        index = d2 + span * crossed  # [K,N,G²]
+        weights = torch.cat((readings, torch.full_like(readings, -1.0)), 1)  # [K,2N]
+        out = walls.reshape(k, -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
+        episode, cell = out.nonzero(as_tuple=True)  # in episode order
+        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
+        step = self.block(k)
+        starts = list(range(0, k, step))
+        cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
+        for i, s in enumerate(starts):
+            e = min(k, s + step)
+            kb = e - s
+            bags = torch.empty((kb, cells, 2 * n), dtype=index.dtype, device=index.device)
+            bags[..., :n] = index[s:e].transpose(1, 2)
+            torch.add(bags[..., :n], rows, out=bags[..., n:])
+            bag_weights = weights[s:e].unsqueeze(1).expand(kb, cells, 2 * n).reshape(kb * cells, 2 * n)
+            loglik = torch.nn.functional.embedding_bag(bags.view(kb * cells, 2 * n), table, mode="sum",
+                                                       per_sample_weights=bag_weights)
+            block = phys[s:e]
+            block.add_(loglik.view(kb, cells, levels))
+            lo, hi = cuts[i], cuts[i + 1]
+            if hi > lo:
+                block[episode[lo:hi] - s, cell[lo:hi]] = LOG_FLOOR
+            block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+            if posterior_out is not None:
+                self._marginal(block, loglik.view(kb, cells, levels), posterior_out[s:e])
+        if posterior_out is not None:
+            self._normalise(posterior_out)
+
+    def _marginal(self, block: torch.Tensor, scratch: torch.Tensor, out: torch.Tensor) -> None:
+        """Sum over the levels of exp(``block``) (cells-major [k, G², L]) into ``out`` [k, G²], through
+        ``scratch`` (same shape, contiguous); entries at or below EXP_FLOOR weigh exp(EXP_FLOOR)."""
+        weights = torch.clamp(block, min=EXP_FLOOR, out=scratch).mul_(_LOG2E).exp2_()
+        torch.sum(weights, 2, out=out)
+
+    def _normalise(self, p: torch.Tensor) -> torch.Tensor:
+        """``p`` [K, G²] of :meth:`_marginal`, in place: dead cells exactly 0, rows summing to 1."""
+        p.masked_fill_(p <= self._dead_cell, 0.0)
+        return p.div_(p.sum(1, keepdim=True))
 
     def block(self, k: int) -> int:
         """Episodes per block of a posterior over levels (:data:`BLOCK_BYTES`), for a batch of ``k``."""
@@ -309,6 +434,16 @@ class SourceEstimator:
         # exp(-inf), and exp near float32's underflow, take a slow path (3-30x a plain exp).
         if log_post.dim() == 2:
             p = log_post.clamp(min=EXP_FLOOR).exp_().masked_fill_(log_post <= EXP_FLOOR, 0.0)
+        elif self.path == "fused" and self.cells_major(log_post):
+            k, levels, cells = log_post.shape
+            phys = log_post.transpose(1, 2)
+            p = torch.empty((k, cells), device=log_post.device)
+            step = self.block(k)
+            scratch = torch.empty((min(k, step), cells, levels), device=log_post.device)
+            for s in range(0, k, step):
+                e = min(k, s + step)
+                self._marginal(phys[s:e], scratch[:e - s], p[s:e])
+            return self._normalise(p)
         else:
             # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
             # few readings about half of them have none); the others stay exact zeros, and the sum
@@ -363,12 +498,16 @@ class TeamMemory:
     :class:`SourceEstimator`; kept when the observation shows the estimate or ``posterior`` is
     True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact line-of-sight
     rule). The batched core, the PettingZoo env and the ROS agent node hold one each and feed it the
-    same readings, under the same ``sensing`` model. ``rule_out``: :class:`SourceEstimator`'s.
+    same readings, under the same ``sensing`` model. ``rule_out``, ``path``: :class:`SourceEstimator`'s.
+
+    A posterior over levels is, on the fused path, a [B, L, G²] view of cells-major memory; readers
+    index it as [B, L, G²] either way. The fused path also keeps the marginal posterior it made with
+    the last update (:meth:`posterior`), while ``log_post`` is unchanged since.
     """
 
     def __init__(self, spec: ObservationSpec, batch: int, grid: int, device: torch.device | str,
                  sensing=DEFAULT_SENSING, posterior: bool = False, max_walls: int = 1,
-                 rule_out: bool = True) -> None:
+                 rule_out: bool = True, path: str | None = None) -> None:
         self.spec = parse_observation(spec)
         self.sensing = parse_sensing(sensing)
         self.grid = int(grid)
@@ -378,7 +517,11 @@ class TeamMemory:
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
         keep = self.spec.estimate or posterior
-        self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out) if keep else None
+        self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out, path) if keep else None
+        #: The fused path's marginal posterior [B, G²] of ``log_post`` as it was at (data pointer,
+        #: version) ``_post_key``.
+        self._post: torch.Tensor | None = None
+        self._post_key: tuple[int, int] | None = None
         if keep and self.estimator.levels > 1 and self.device.type == "cpu":
             keep_freed_memory()  # its per-step temporaries are B x G² x levels floats
         blank = torch.zeros((batch, g, g), dtype=torch.bool, device=self.device)
@@ -404,11 +547,15 @@ class TeamMemory:
                 segments, segments_ok = wall_segments(walls, self.max_walls)
         elif rects is None:
             rects = wall_rectangles(walls, self.max_walls)
-        log_post = None
+        log_post = post = None
         if self.estimator is not None:
             log_post = self.estimator.prior(walls)
-            self.estimator.update(log_post, walls, positions, readings, rects,
-                                  segments if segments_ok is not None and bool(segments_ok.all()) else None)
+            post = self._posterior_buffer(positions.shape[0])
+            whole = segments_ok is not None and bool(segments_ok.all())
+            if not self.estimator.update(log_post, walls, positions, readings, rects,
+                                         segments if whole else None, posterior_out=post):
+                post = None
+        cached = self._cached_posterior()
         if rows is None:
             self.reading_map, self.visit_map = reading_map, visit_map
             if log_post is not None:
@@ -425,25 +572,66 @@ class TeamMemory:
                 self.rects[rows] = rects
             if segments is not None:
                 self.segments[rows], self.segments_ok[rows] = segments, segments_ok
+        if post is not None and rows is not None:
+            if cached is None:
+                post = None
+            else:  # a fresh tensor: one posterior() handed out stays as it was
+                cached = cached.clone()
+                cached[rows] = post
+                post = cached
+        self._keep_posterior(post)
+
+    def _posterior_buffer(self, k: int) -> torch.Tensor | None:
+        return torch.empty((k, self.grid * self.grid), device=self.device) if self.estimator.fused else None
+
+    def _keep_posterior(self, post: torch.Tensor | None) -> None:
+        self._post = post
+        self._post_key = None if post is None else (self.log_post.data_ptr(), self.log_post._version)
+
+    def _cached_posterior(self) -> torch.Tensor | None:
+        """The kept marginal posterior while ``log_post`` is unchanged since, else None."""
+        if self._post is None or self.log_post is None:
+            return None
+        if self._post_key != (self.log_post.data_ptr(), self.log_post._version):
+            return None
+        return self._post
 
     def record(self, walls: torch.Tensor, positions: torch.Tensor, readings: torch.Tensor) -> None:
         """Record one team step's readings (every episode of the batch)."""
         update_memory(self.reading_map, self.visit_map, positions, readings, self.sensing.max_rate)
         if self.estimator is None:
             return
+        post = self._posterior_buffer(positions.shape[0])
         if self.sensing.line == "exact":
-            self.estimator.update(self.log_post, walls, positions, readings, self.rects)
+            done = self.estimator.update(self.log_post, walls, positions, readings, self.rects,
+                                         posterior_out=post)
         else:
             segments = self.segments if bool(self.segments_ok.all()) else None
-            self.estimator.update(self.log_post, walls, positions, readings, segments=segments)
+            done = self.estimator.update(self.log_post, walls, positions, readings, segments=segments,
+                                         posterior_out=post)
+        self._keep_posterior(post if done else None)
 
     def posterior(self) -> torch.Tensor | None:
-        """float32 [B,G²] the source posterior, or None when this memory keeps none."""
-        return None if self.estimator is None else self.estimator.posterior(self.log_post)
+        """float32 [B,G²] the source posterior (a fresh tensor), or None when this memory keeps none."""
+        if self.estimator is None:
+            return None
+        cached = self._cached_posterior()
+        return self.estimator.posterior(self.log_post) if cached is None else cached.clone()
+
+    def _posterior(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        cached = self._cached_posterior()
+        if cached is not None:
+            return cached if rows is None else cached[rows]
+        return self.estimator.posterior(self.log_post if rows is None else self.log_post[rows])
 
     def estimate_map(self) -> torch.Tensor | None:
         """float32 [B,G,G] source-estimate map, or None when the observation has none."""
-        return None if self.estimator is None else self.estimator.estimate_map(self.log_post)
+        return None if self.estimator is None else self._estimate_map()
+
+    def _estimate_map(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+        est = self.estimator
+        e = (1.0 - est.expected_from_posterior(self._posterior(rows)) * est.scale).clamp_(0.0, 1.0)
+        return e.view(-1, self.grid, self.grid)
 
     def observe(self, positions: torch.Tensor, walls: torch.Tensor, out: torch.Tensor | None = None,
                 rows: torch.Tensor | None = None) -> torch.Tensor:
@@ -452,7 +640,7 @@ class TeamMemory:
         if rows is None:
             return observe(self.spec, positions, self.reading_map, self.visit_map, walls,
                            self.estimate_map(), out=out)
-        est = None if self.estimator is None else self.estimator.estimate_map(self.log_post[rows])
+        est = None if self.estimator is None else self._estimate_map(rows)
         return observe(self.spec, positions[rows], self.reading_map[rows], self.visit_map[rows], walls[rows],
                        est, out=out)
 
