@@ -29,6 +29,7 @@ import os
 import signal
 import stat
 import sys
+import time
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
@@ -305,7 +306,7 @@ def cmd_request(args: argparse.Namespace) -> int:
             args.request_id,
             max_price,
             max_total,
-            same_since=process_start_time(),
+            same_since=args.started,
             on_quote=quoted,
         )
     except ChainError as exc:
@@ -485,8 +486,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``medc-registry``."""
+    """Entry point of ``medc-registry``. Run as a program (``argv`` None), its run began when its
+    process started (before the interpreter loaded): an identical request another run confirmed
+    since then is this one. Called with ``argv``, the run begins at the call."""
+    started = process_start_time() if argv is None else time.time()
     args = build_parser().parse_args(argv)
+    args.started = started
     try:
         return args.func(args)
     except (CliError, RegistryHomeError, ChainError, ContentStoreError, PendingRecordsError,
