@@ -175,3 +175,73 @@ def test_agent_memory_follows_the_maps_grid_and_builds_the_observation():
 
 def test_stamp_keys_are_integer_nanoseconds():
     assert stamp_key(Time(sec=3, nanosec=7)) == 3 * S + 7
+
+
+# ---------------------------------------------------------------- faults the stall report and the checks name
+def test_a_refused_maps_stall_report_says_why_it_was_refused():
+    from medc_agents.team_state import TeamObserver
+
+    o = TeamObserver("agent_0", 3, 10)
+    walls = torch.zeros((10, 10), dtype=torch.bool)
+    for sec in (1, 2, 3):  # older maps held
+        o.add_map(messages.grid_msg(walls, Time(sec=sec), 1.0))
+    with pytest.raises(ValueError, match="8x8"):
+        o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), Time(sec=9), 1.0))
+    o.add_status(_status(1, 0, 20, 9))  # the step names the refused map
+    need, have = o.waiting_for()
+    assert need[0] == "the map with info.map_load_time 9.000000000 (the status's map_stamp)"
+    assert have[0] == ("that map was refused: map is 8x8, but this agent's observation 'maps' shows the "
+                       "whole 10x10 grid its policy was trained on: publish a map of that size, or run a "
+                       "policy with an agent-centred observation (egoR), which plays any size"), have
+    assert not any("maps with info.map_load_time" in h for h in have)  # not a list of older maps
+    o.add_map(messages.grid_msg(walls, Time(sec=9), 1.0))  # sent again, right: the step has its map
+    assert not any("map" in n for n in o.waiting_for()[0])
+
+
+def _play_step(o, episode: int, step: int, sec: int, map_sec: int, geo, cells, map_msg=None,
+               map_first: bool = True):
+    """Feed one team step to observer ``o`` as a driver does (map first at step 0 unless
+    ``map_first`` is False, poses and readings, then the status); returns the drops it raised."""
+    raised = []
+    if map_msg is not None and map_first:
+        o.add_map(map_msg)
+    for j, cell in enumerate(cells):
+        try:
+            o.add_pose(IDS[j], messages.pose_msg(cell, Time(sec=sec), geo))
+        except ValueError as exc:
+            raised.append(str(exc))
+        o.add_reading(IDS[j], messages.reading_msg(IDS[j], 2.0, 0.0, Time(sec=sec)))
+    if map_msg is not None and not map_first:
+        o.add_map(map_msg)
+    o.add_status(_status(episode, step, sec, map_sec))
+    return raised
+
+
+@pytest.mark.parametrize("map_first", [True, False])
+def test_the_first_poses_on_a_new_area_are_checked_against_its_map(map_first):
+    from medc_agents.team_state import TeamObserver
+
+    o = TeamObserver("agent_0", 3, 10, observation="ego6")
+    here = messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), Time(sec=1), 1.0)
+    assert _play_step(o, 0, 0, 10, 1, GEO, [(1, 1), (2, 2), (3, 3)], here) == []
+    assert o.ready() and o.observe()[2].step == 0
+    # The next episode flies a new area: 12x12 cells of 2 m, 500 m away. Its map comes with (or,
+    # map_first False, just after) the first poses on it: none is dropped, the step is decided.
+    far = GridGeometry(12, 12, 2.0, 500.0, 500.0)
+    new_map = messages.grid_msg(torch.zeros((12, 12), dtype=torch.bool), Time(sec=30), 2.0)
+    new_map.info.origin.position.x = new_map.info.origin.position.y = 500.0
+    raised = _play_step(o, 1, 0, 31, 30, far, [(0, 0), (5, 5), (11, 11)], new_map, map_first)
+    assert raised == [] and o.late_drops == []
+    assert o.ready() and o.late_drops == []
+    _, _, tick = o.observe()
+    assert (tick.episode, tick.step) == (1, 0) and o.positions[0].tolist() == [[0, 0], [5, 5], [11, 11]]
+    # A pose off the map of its step is still dropped, with the reason: at once when its status
+    # came first, else once the status names the map.
+    pose = messages.pose_msg((0, 0), Time(sec=32), GEO)  # on the old area
+    o.add_pose("agent_1", pose)  # its step is not known yet: held unchecked
+    o.add_status(_status(1, 1, 32, 30))
+    assert not o.ready() and len(o.late_drops) == 1 and "pose of agent_1" in o.late_drops[0]
+    assert "outside" in o.late_drops[0] or "off" in o.late_drops[0]
+    with pytest.raises(ValueError, match="pose of agent_2"):
+        o.add_pose("agent_2", pose)  # its status is here: checked against its map at once
+    assert "pose" in o.missing()[1]  # the dropped pose is missing, not used

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 
 import torch
@@ -34,6 +35,11 @@ from medc_common.params import declare
 
 #: Parameter defaults (docs/ros.md, "The team's source estimate").
 DEFAULT_MAP_RATE_HZ = 1.0
+#: A teammate never heard from is silent this many times ``lost_timeout_s`` after an agent's first
+#: step (the simulator likewise gives an agent that never moved 5 x its move timeout).
+NEVER_HEARD_FACTOR = 5.0
+#: Steps whose estimate an agent keeps to publish when the role comes to it.
+RECENT_STEPS = 8
 
 
 def estimate_in_map(mean_rc: tuple[float, float], cov_rc, geometry: GridGeometry
@@ -70,54 +76,84 @@ def heat_map_data(posterior: torch.Tensor, grid: int) -> list[int]:
 
 
 class EstimateRole:
-    """Whether agent ``own`` publishes the team's estimate at a team step: when every agent with a
-    lower index is gone. Agent ``j`` is gone when its latest move (:meth:`moved`) is two steps or
-    more behind the step this agent decides, so the driver stepped on without it (it took it out:
-    "A lost UAV"; a move still on its way is one step behind at most), and none came from it for
-    ``timeout_s``; an agent never heard from is gone ``timeout_s`` after this agent's first step.
-    Agent 0 always publishes; when it comes back, its successor stops. ``timeout_s`` <= 0 (the
-    agent's ``lost_timeout_s`` 0: no teammate is ever taken out): the role never passes on."""
+    """Which teammates have stopped moving, and whether agent ``own`` publishes the team's estimate.
 
-    def __init__(self, own: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+    Every agent follows its teammates' moves (:meth:`moved`) and the steps it decides itself
+    (:meth:`decided`). Teammate ``j`` is *silent* at the step this agent decides when its latest move
+    is neither for that step nor for the step this agent decided before it (the driver collects every
+    move of a step before it publishes the next, so a teammate with no move for the previous step was
+    stepped on without: taken out, "A lost UAV"), and no move came from it for ``timeout_s`` (a move
+    still on its way is for the previous step, and comes within milliseconds); a teammate never heard
+    from is silent :data:`NEVER_HEARD_FACTOR` x ``timeout_s`` after this agent's first step (its
+    process may still be starting, or its move topic not yet matched). Across an episode's end the previous
+    step is the last step of the episode before, so the first steps of an episode follow the same rule.
+
+    Agent ``own`` holds the role (publishes the estimate) when every agent numbered below it is
+    silent; agent 0 always holds it; when a lower-numbered agent moves again, it hands it back.
+    ``timeout_s`` <= 0 (the agent's ``lost_timeout_s`` 0: no teammate is ever taken out): nobody is
+    ever silent and the role never passes on."""
+
+    def __init__(self, own: int, timeout_s: float, clock: Callable[[], float] = time.monotonic,
+                 num_agents: int = 0) -> None:
+        """``num_agents``: the team's size (0: only the agents numbered below ``own`` are followed)."""
         self.own = own
         self.timeout_s = float(timeout_s)
         self.clock = clock
-        #: Per lower-numbered agent: ((episode, step) of its latest move, when it came).
+        self.num_agents = max(int(num_agents), own + 1)
+        #: Per teammate: ((episode, step) of its latest move, when it came).
         self.last: dict[int, tuple[tuple[int, int], float]] = {}
         self._since: float | None = None
+        #: The steps this agent decided: the latest and the one before it.
+        self.current: tuple[int, int] | None = None
+        self.previous: tuple[int, int] | None = None
 
     def moved(self, idx: int, episode: int, step: int) -> None:
-        """Agent ``idx`` moved for (``episode``, ``step``)."""
-        if 0 <= idx < self.own:  # the latest, not the highest: one forged far-ahead step holds nothing
+        """Teammate ``idx`` moved for (``episode``, ``step``)."""
+        # The latest, not the highest: one forged far-ahead step holds nothing.
+        if idx != self.own and 0 <= idx < self.num_agents:
             self.last[idx] = ((int(episode), int(step)), self.clock())
 
-    def gone(self, idx: int, episode: int, step: int) -> bool:
-        """Whether agent ``idx`` is out of the team when this agent decides (``episode``, ``step``)."""
-        now = self.clock()
+    def decided(self, episode: int, step: int) -> None:
+        """This agent decides (``episode``, ``step``) (again: nothing changes)."""
+        tick = (int(episode), int(step))
         if self._since is None:
-            self._since = now
+            self._since = self.clock()
+        if tick != self.current:
+            self.previous, self.current = self.current, tick
+
+    def gone(self, idx: int, episode: int, step: int) -> bool:
+        """Whether teammate ``idx`` is silent when this agent decides (``episode``, ``step``)."""
+        if self.timeout_s <= 0:
+            return False
+        self.decided(episode, step)
+        now = self.clock()
         heard = self.last.get(idx)
-        if heard is None:
-            return now - self._since >= self.timeout_s
-        behind = (episode, step - 2) if step >= 2 else (episode - 1, 0)
-        return heard[0] < behind and now - heard[1] >= self.timeout_s
+        if heard is None:  # not started yet, or its move topic not matched yet (discovery takes seconds)
+            return now - self._since >= NEVER_HEARD_FACTOR * self.timeout_s
+        if heard[0] in (self.current, self.previous):
+            return False
+        return now - heard[1] >= self.timeout_s
 
     def holds(self, episode: int, step: int) -> bool:
         """Whether this agent publishes the estimate of (``episode``, ``step``)."""
+        self.decided(episode, step)
         if self.own > 0 and self.timeout_s <= 0:
             return False
         return all(self.gone(j, episode, step) for j in range(self.own))
 
-    def gone_ids(self, episode: int, step: int) -> list[int]:
-        return [j for j in range(self.own) if self.gone(j, episode, step)]
+    def gone_ids(self, episode: int, step: int, below: bool = True) -> list[int]:
+        """The silent teammates at (``episode``, ``step``); ``below``: only those below this agent."""
+        team = range(self.own) if below else (j for j in range(self.num_agents) if j != self.own)
+        return [j for j in team if self.gone(j, episode, step)]
 
 
 class TeamEstimate:
     """The agent node's publisher of the team's estimate and declaration (module docstring)."""
 
-    def __init__(self, node, namespace: str, agent_index: int, sensing, takeover_s: float = 1.5) -> None:
-        """Declare the parameters on ``node`` and, when it may publish, create its publishers and
-        follow the moves of the agents numbered below it (:class:`EstimateRole`, ``takeover_s``).
+    def __init__(self, node, namespace: str, agent_index: int, sensing, takeover_s: float = 1.5,
+                 num_agents: int = 0) -> None:
+        """Declare the parameters on ``node``, follow the moves of every teammate (:class:`EstimateRole`,
+        ``takeover_s``; ``num_agents``: the team's size) and, when it may publish, create its publishers.
 
         Raises:
             ValueError: a declaration radius or threshold out of range, a negative rate.
@@ -153,12 +189,17 @@ class TeamEstimate:
         #: Declarations published (tests, monitoring).
         self.declarations = 0
         self.last_estimate: tuple[float, float] | None = None
-        self.role = EstimateRole(agent_index, takeover_s)
+        #: Estimates published, the ones of steps taken over included (tests, monitoring).
+        self.published = 0
+        self.role = EstimateRole(agent_index, takeover_s, num_agents=num_agents)
+        #: The estimate of each of the latest steps this agent decided: (tick, estimate message),
+        #: published when the role comes to it for the steps no teammate published.
+        self.recent: deque[tuple[object, object]] = deque(maxlen=RECENT_STEPS)
         #: Whether this agent holds the role (published the latest step's estimate; agent_0 from the start).
         self.publishing = self.enabled and agent_index == 0
+        self._follow_moves(namespace, agent_index, num_agents)
         if not self.enabled:
             return
-        self._follow_moves(namespace, agent_index)
         self.pose_pub = node.create_publisher(PoseWithCovarianceStamped, contract.estimate_topic(namespace),
                                               contract.ESTIMATE_QOS)
         self.map_pub = node.create_publisher(OccupancyGrid, contract.posterior_topic(namespace),
@@ -166,10 +207,12 @@ class TeamEstimate:
         self.declaration_pub = node.create_publisher(SourceDeclaration, contract.declaration_topic(namespace),
                                                      contract.RELIABLE_QOS)
 
-    def _follow_moves(self, namespace: str, agent_index: int) -> None:
+    def _follow_moves(self, namespace: str, agent_index: int, num_agents: int) -> None:
         from medc_interfaces.msg import AgentMove
 
-        for j in range(agent_index):
+        for j in range(max(num_agents, agent_index)):
+            if j == agent_index:
+                continue
             agent = contract.agent_id(j)
 
             def on_move(msg, j=j, agent=agent) -> None:
@@ -179,9 +222,13 @@ class TeamEstimate:
             self.node.create_subscription(AgentMove, contract.move_topic(namespace, agent), on_move,
                                           contract.RELIABLE_QOS)
 
+    def silent(self, tick) -> list[int]:
+        """The teammates that have stopped moving at ``tick`` (:class:`EstimateRole`)."""
+        return self.role.gone_ids(tick.episode, tick.step, below=False)
+
     def _take_role(self, tick) -> bool:
         """Whether this agent publishes for ``tick``; logs when the role comes to it or leaves it."""
-        holds = self.role.holds(tick.episode, tick.step)
+        holds = self.enabled and self.role.holds(tick.episode, tick.step)
         if holds != self.publishing and self.role.own > 0:
             if holds:
                 gone = ", ".join(contract.agent_id(j) for j in self.role.gone_ids(tick.episode, tick.step))
@@ -191,17 +238,36 @@ class TeamEstimate:
             else:
                 self.node.get_logger().info(f"a lower-numbered agent moves again: {self.node.agent_id} "
                                             "stops publishing the team's source estimate")
+        taken_over = holds and not self.publishing and self.role.own > 0
         self.publishing = holds
+        if taken_over:
+            self._publish_missed(tick)
         return holds
 
+    def _publish_missed(self, tick) -> None:
+        """The role has just come to this agent at ``tick``: publish the estimates of the steps it
+        decided since the latest move of the teammates it takes over from (they published up to that
+        step; the steps after it have had no estimate)."""
+        heard = {self.role.last[j][0] for j in range(self.role.own) if j in self.role.last}
+        missed = []
+        for t, msg in reversed(self.recent):
+            if (t.episode, t.step) in heard:
+                break
+            if t != tick:
+                missed.append(msg)
+        for msg in reversed(missed):
+            self.pose_pub.publish(msg)
+            self.published += 1
+
     def on_step(self, observer, tick) -> None:
-        """Publish the estimate of the step ``observer`` just observed (``tick``), the heat map when
-        due, and the declaration when the rule passes for the first time in the episode, when this
-        agent holds the role (:class:`EstimateRole`)."""
-        if not self.enabled or observer.positions is None or not self._take_role(tick):
+        """Keep the estimate of the step ``observer`` just observed (``tick``), and, when this agent
+        holds the role (:class:`EstimateRole`), publish it, the heat map when due, and the declaration
+        when the rule passes for the first time in the episode."""
+        if observer.positions is None:
             return
         geometry = observer.map_geometry(tick.map_stamp)
         if geometry is None:
+            self.role.decided(tick.episode, tick.step)
             return
         from medc_training.envs.tl_estimate import declare as rule
         from medc_training.envs.tl_estimate import mean_and_covariance
@@ -212,7 +278,13 @@ class TeamEstimate:
         mean, cov = mean_and_covariance(posterior, grid)
         (x, y), c = estimate_in_map(mean[0].tolist(), cov[0].tolist(), geometry)
         self.last_estimate = (x, y)
-        self.pose_pub.publish(self._pose_msg(stamp, x, y, c))
+        pose = self._pose_msg(stamp, x, y, c)
+        if not self._take_role(tick):
+            self.recent.append((tick, pose))
+            return
+        self.recent.append((tick, pose))
+        self.pose_pub.publish(pose)
+        self.published += 1
         now = time.monotonic()
         if self.map_period is not None and now - self._last_map_at >= self.map_period:
             self._last_map_at = now

@@ -337,7 +337,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
                                  contract.RELIABLE_QOS)
         #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
         self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing,
-                                     self.lost_watch.timeout_s)
+                                     self.lost_watch.timeout_s, num_agents)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
@@ -458,14 +458,23 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
                 self._decide(*self._unanswered)
             return None
         if defer:
-            if self.slot.current is None or not self.observer.ready():
+            if not self._ready():
                 return None
             return self.observer.observe()
         self._maybe_decide()
         return None
 
+    def _ready(self) -> bool:
+        """Whether the pending step can be decided now (the poses the observer dropped on the way,
+        held before their map was known, are logged and counted)."""
+        ready = self.slot.current is not None and self.observer.ready()
+        drops, self.observer.late_drops[:] = list(self.observer.late_drops), []
+        for reason in drops:
+            self._drop("pose", ValueError(reason))
+        return ready
+
     def _maybe_decide(self) -> None:
-        if self.slot.current is None or not self.observer.ready():
+        if not self._ready():
             return
         self._decide(*self.observer.observe())
 
@@ -496,6 +505,10 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         except Exception as exc:  # never let the estimate cost the team its move
             self.get_logger().error(f"team estimate not published for episode {tick.episode} step "
                                     f"{tick.step}: {type(exc).__name__}: {printable(str(exc), 300)}")
+        try:
+            self._report_silent(tick)
+        except Exception as exc:  # a report must never cost the team its move
+            self.get_logger().error(f"silent teammates not checked: {type(exc).__name__}")
         move = AgentMove()
         move.header.stamp = self.get_clock().now().to_msg()
         move.header.frame_id = contract.MAP_FRAME

@@ -33,6 +33,11 @@ class MapStore:
         self.latest: GridGeometry | None = None
         #: Why the last map was dropped (for the stall report), if one was.
         self.last_drop = ""
+        #: Why each of the latest maps refused was refused, by ``info.map_load_time``.
+        self.refused: OrderedDict[int, str] = OrderedDict()
+        #: Maps offered so far (taken or refused); the count when each held map came.
+        self.offered = 0
+        self._arrival: dict[int, int] = {}
 
     def __contains__(self, load: int) -> bool:
         return load in self._maps
@@ -46,9 +51,27 @@ class MapStore:
         self._maps[load] = (walls, geometry, header)
         self._maps.move_to_end(load)
         self.latest = geometry
+        self.offered += 1
+        self._arrival[load] = self.offered
+        self.refused.pop(load, None)
         keep = set(keep)
         for old in [k for k in self._maps if k not in keep][:max(0, len(self._maps) - KEEP_MAPS)]:
             del self._maps[old]
+            del self._arrival[old]
+
+    def refuse(self, load: int, reason: str) -> None:
+        """The map with ``info.map_load_time`` ``load`` was refused for ``reason`` (kept for the stall
+        report of a step that names it)."""
+        self.offered += 1
+        self.last_drop = f"map with map_load_time {show_stamp(load)}: {reason}"
+        self.refused[load] = reason
+        self.refused.move_to_end(load)
+        while len(self.refused) > STAMP_HISTORY:
+            self.refused.popitem(last=False)
+
+    def arrival(self, load: int) -> int | None:
+        """When the held map ``load`` came, as the count of maps offered by then (None: not held)."""
+        return self._arrival.get(load)
 
     def entry(self, load: int) -> tuple[torch.Tensor, GridGeometry, int] | None:
         """(walls, geometry, header stamp) of the map with ``info.map_load_time`` ``load``, if held."""
@@ -64,6 +87,8 @@ class MapStore:
         if load in self._maps:
             return [], []
         need = [f"the map with info.map_load_time {show_stamp(load)} (the status's map_stamp)"]
+        if load in self.refused:
+            return need, [f"that map was refused: {self.refused[load]}"]
         have = []
         if self._maps:
             have.append("maps with info.map_load_time " + ", ".join(show_stamp(k) for k in self._maps))
@@ -97,21 +122,49 @@ class TeamRounds:
         self.absent: set[int] = set()
         self._last_xy: list[tuple[float, float] | None] = [None] * num_agents
         self._last_cells: list[tuple[int, int] | None] = [None] * num_agents
+        #: Poses held before the map of their step was known, not yet checked against it: (stamp, agent).
+        self.unverified: set[tuple[int, int]] = set()
 
     def _of(self, kind: str, key: int) -> list:
         return self._stores[kind].get(key) or [None] * self.num_agents
 
-    def add(self, kind: str, idx: int, key: int, value) -> None:
-        """Hold agent ``idx``'s ``kind`` ('pose': (x, y); 'reading': a value) stamped ``key``."""
+    def add(self, kind: str, idx: int, key: int, value, verified: bool = True) -> None:
+        """Hold agent ``idx``'s ``kind`` ('pose': (x, y); 'reading': a value) stamped ``key``;
+        ``verified`` False: a pose not yet checked against the map of its step (:meth:`verify`)."""
         store = self._stores[kind]
         if key not in store:
             store[key] = [None] * self.num_agents
             while len(store) > STAMP_HISTORY:
-                store.popitem(last=False)
+                old, _ = store.popitem(last=False)
+                self.unverified = {u for u in self.unverified if u[0] != old}
         store[key][idx] = value
+        if kind == "pose":
+            (self.unverified.discard if verified else self.unverified.add)((key, idx))
         self.latest[(kind, idx)] = key
         if kind == "pose":
             self._last_xy[idx] = value
+
+    def has_verified_pose(self, idx: int, key: int) -> bool:
+        """Whether a pose of agent ``idx`` stamped ``key`` is held and lies on the map it was checked on."""
+        xys = self._stores["pose"].get(key)
+        return xys is not None and xys[idx] is not None and (key, idx) not in self.unverified
+
+    def verify(self, key: int, geometry: GridGeometry, tolerance_m: float) -> list[tuple[int, str]]:
+        """Check the unverified poses stamped ``key`` against ``geometry`` (the map of their step):
+        those on it are kept, the others dropped. Returns (agent, reason) of each pose dropped."""
+        dropped = []
+        xys = self._stores["pose"].get(key)
+        for k, idx in sorted(u for u in self.unverified if u[0] == key):
+            self.unverified.discard((k, idx))
+            if xys is None or xys[idx] is None:
+                continue
+            try:
+                geometry.xy_to_cell(*xys[idx], tolerance_m)
+            except ValueError as exc:
+                xys[idx] = None
+                self.drop("pose", idx, str(exc))
+                dropped.append((idx, str(exc)))
+        return dropped
 
     def drop(self, kind: str, idx: int, reason: str) -> None:
         """Remember why agent ``idx``'s last ``kind`` was dropped."""
@@ -216,3 +269,4 @@ class TeamRounds:
         for store in self._stores.values():
             for old in [k for k in store if k <= key]:
                 del store[old]
+        self.unverified = {u for u in self.unverified if u[0] > key}

@@ -70,6 +70,8 @@ class TeamObserver:
         self.edge_tolerance = max(0.0, float(edge_tolerance))
         #: Things worth one log line each (a restarted driver, a suspicious map); the node drains it.
         self.notes: list[str] = []
+        #: Poses held unchecked and dropped once their step's map was known (the node logs and counts them).
+        self.late_drops: list[str] = []
         #: The observation variant :meth:`observe` builds (set it when a policy swap needs another).
         self.observation = parse_observation(observation)
         self.sensing = parse_sensing(sensing)
@@ -158,7 +160,7 @@ class TeamObserver:
             walls, geometry = map_from_message(msg, self.height, self.any_grid, self.observation.name,
                                                self.sensing.line == "exact", self.resolution)
         except ValueError as exc:
-            self.maps.last_drop = f"map with map_load_time {show_stamp(load)}: {exc}"
+            self.maps.refuse(load, str(exc))
             raise
         faint = faint_cells(msg)
         if faint:
@@ -169,16 +171,37 @@ class TeamObserver:
         self.maps.put(load, walls, geometry, stamp_key(msg.header.stamp), keep=self.clock.maps_in_use())
 
     def add_pose(self, agent_id: str, msg) -> None:
+        """Hold a pose. It is checked against the map of its step: the pending step's when its status
+        came first; else the episode's or the latest map received (a new episode's, which comes
+        before its first poses). A pose on none of them whose step is not known yet is held
+        unchecked (its area's map may be on its way) and checked once its status names the map
+        (:meth:`ready`), unless a pose of that agent and stamp already lies on a map."""
         idx = agent_index(agent_id, self.num_agents)
+        key = stamp_key(msg.header.stamp)
+        verified = True
         try:
             xy = xy_from_pose(msg)
-            geometry = self.episode_geometry()
-            if geometry is not None:  # off the grid of the episode's map: drop it now
-                geometry.xy_to_cell(*xy, self.tolerance_m(geometry))
+            t = self.clock.pending
+            if t is not None and t.stamp == key:
+                geometries = [self.maps.geometry(t.map_stamp)]
+            else:
+                geometries = [self.episode_geometry(), self.maps.latest]
+            geometries = [g for g in geometries if g is not None]
+            errors = []
+            for geometry in geometries:
+                try:
+                    geometry.xy_to_cell(*xy, self.tolerance_m(geometry))
+                    break
+                except ValueError as exc:
+                    errors.append(exc)
+            else:
+                if errors and ((t is not None and t.stamp == key) or self.rounds.has_verified_pose(idx, key)):
+                    raise errors[0]
+                verified = False
         except ValueError as exc:
             self.rounds.drop("pose", idx, str(exc))
             raise ValueError(f"pose of {agent_id}: {exc}") from None
-        self.rounds.add("pose", idx, stamp_key(msg.header.stamp), xy)
+        self.rounds.add("pose", idx, key, xy, verified)
 
     def add_reading(self, agent_id: str, msg) -> None:
         idx = agent_index(agent_id, self.num_agents)
@@ -215,9 +238,16 @@ class TeamObserver:
         return {} if t is None else self.rounds.missing(t.stamp)
 
     def ready(self) -> bool:
-        """The pending tick has everything it needs and has not been applied yet."""
+        """The pending tick has everything it needs and has not been applied yet (poses held
+        unchecked are checked against its map first: :attr:`late_drops` lists those dropped)."""
         t = self.clock.open_tick()
-        return t is not None and self.rounds.readings_complete(t.stamp) and self._cells(t) is not None
+        if t is None:
+            return False
+        geometry = self.maps.geometry(t.map_stamp)
+        if geometry is not None and self.rounds.unverified:
+            for idx, reason in self.rounds.verify(t.stamp, geometry, self.tolerance_m(geometry)):
+                self.late_drops.append(f"pose of {self.ids[idx]}: {reason}")
+        return self.rounds.readings_complete(t.stamp) and self._cells(t) is not None
 
     def waiting_for(self) -> tuple[list[str], list[str]]:
         """(what the pending tick still lacks, what the agent has instead), as sentences."""

@@ -123,6 +123,29 @@ class TeamWatch:
         else:
             self.health.set("team", DiagnosticStatus.OK, f"all {o.num_agents} agents heard")
 
+    def _report_silent(self, tick) -> None:
+        """Report, once per change, the teammates that have stopped moving while their UAVs still
+        report (the driver steps on without their moves: a dead or cut-off agent process); OK again
+        when every teammate moves (a teammate whose UAV is lost too is the ``team`` condition's)."""
+        o, role = self.observer, self.estimate.role
+        silent = [j for j in self.estimate.silent(tick) if j not in o.absent]
+        if not silent:
+            if self.health.level("agents") != DiagnosticStatus.OK:
+                self.health.set("agents", DiagnosticStatus.OK, f"every teammate of {self.agent_id} moves")
+            return
+        parts = []
+        for j in silent:
+            heard = role.last.get(j)
+            last = "no move heard" if heard is None else \
+                f"last move for episode {heard[0][0]} step {heard[0][1]}"
+            parts.append(f"{o.ids[j]} ({last})")
+        names = ", ".join(o.ids[j] for j in silent)
+        takes = f"; {self.agent_id} publishes the team's source estimate" \
+            if self.estimate.publishing and role.own > 0 else ""
+        self.health.set("agents", DiagnosticStatus.WARN, (
+            f"{', '.join(parts)}: no move while its UAV still reports; the driver steps on without it "
+            f"(its agent process died or lost its link?){takes}"), {"silent": names})
+
     def _heard(self, kind: str, agent_id: str) -> None:
         o = self.observer
         idx = contract.agent_index(agent_id, o.num_agents)
