@@ -1,9 +1,9 @@
 """The one protection that works with the pinned wheels: a mission in a network namespace of its
 own with a private /dev/shm (docs/security.md, "How to run secured"). A node outside it, on the
 same ROS_DOMAIN_ID and namespace, neither sees the team nor reaches it: its forged statuses,
-poses, readings, moves and declarations match no reader, it reads nothing, and the team plays the
-training environment's episodes move for move; a node inside the mission's namespaces sees the
-team (the control that the outside view is not empty by mistake)."""
+poses, readings, moves and declarations match no reader, it reads nothing, and every episode of the
+team finds the source; a node inside the mission's namespaces sees the team (the control that the
+outside view is not empty by mistake)."""
 
 from __future__ import annotations
 
@@ -15,10 +15,13 @@ import sys
 import time
 
 import pytest
-from ros_helpers import controller_reference_episodes, stop_launcher
+from ros_helpers import stop_launcher
 
 SCENARIO = {"agents": 3, "walls": 2, "grid": 10, "max_steps": 30, "seed": 5}
 EPISODES = 3
+#: What ends an episode besides max_steps: the source reached or the team's declaration, so that the
+#: driver reads declarations (under end_on: source nothing does) and a forged one would end an episode.
+END_ON = "either"
 #: A namespace of its own, so that other graphs on this domain (other tests) cannot be taken for the team.
 NS = f"/isolated_{os.getpid()}"
 
@@ -29,14 +32,15 @@ FORGED_NANOSEC = 424242
 ISOLATE = ["unshare", "--net", "--mount", "--propagation", "private", "sh", "-c",
            'ip link set lo up && mount -t tmpfs -o mode=1777 tmpfs /dev/shm && exec "$@"', "isolate"]
 
-#: Run inside the mission's namespaces: exits 0 once the team's episode status has a publisher.
+#: Run inside the mission's namespaces: exits 0 once the team's episode status has a publisher and
+#: its declaration topic a reader (the driver's, under end_on: either).
 INSIDER = """
 import sys, time, rclpy
 rclpy.init()
 node = rclpy.create_node("insider")
 deadline = time.monotonic() + float(sys.argv[1])
 while time.monotonic() < deadline:
-    if node.count_publishers(sys.argv[2]) > 0:
+    if node.count_publishers(sys.argv[2]) > 0 and node.count_subscribers(sys.argv[3]) > 0:
         print("SEES THE TEAM", flush=True)
         sys.exit(0)
     rclpy.spin_once(node, timeout_sec=0.2)
@@ -108,9 +112,6 @@ class Intruder:
         status = EpisodeStatus(episode=0, step=10**9 + self.step, session="intruder", agent_ids=self.agents)
         status.header.stamp = stamp
         self.pubs["status"].publish(status)
-        declaration = SourceDeclaration(agent_id="agent_0", episode=0, step=0, cell_i=0, cell_j=0, mass=1.0)
-        declaration.header.stamp = stamp
-        self.pubs["declaration"].publish(declaration)
         self.pubs["team_policy"].publish(String(data="/etc/passwd"))
         for a in self.agents:
             pose = PoseStamped()
@@ -124,6 +125,11 @@ class Intruder:
                     move = AgentMove(agent_id=a, episode=episode, step=step, sender="intruder", action=0)
                     move.header.stamp = stamp
                     self.pubs[f"move {a}"].publish(move)
+                    if a == "agent_0":  # a declaration of cell (0, 0) for every step of every episode
+                        declaration = SourceDeclaration(agent_id=a, episode=episode, step=step, cell_i=0,
+                                                        cell_j=0, mass=1.0)
+                        declaration.header.stamp = stamp
+                        self.pubs["declaration"].publish(declaration)
 
     # The intruder's own readers and writers on these topics are not counted (it reads what it forges).
     def matched_readers(self) -> dict[str, int]:
@@ -144,14 +150,13 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     from medc_common import contract
     from rclpy.executors import SingleThreadedExecutor
 
-    lengths, successes, _ = controller_reference_episodes("greedy", EPISODES, **SCENARIO)
     config = tmp_path / "launch.yaml"
-    config.write_text(json.dumps({**SCENARIO, "sensing": "paper-simple", "namespace": NS}))
+    config.write_text(json.dumps({**SCENARIO, "sensing": "paper-simple", "namespace": NS, "end_on": END_ON}))
     node = rclpy.create_node("intruder")
     intruder = Intruder(node, contract.agent_ids(SCENARIO["agents"]))
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    node.create_timer(0.1, intruder.forge)
+    node.create_timer(0.2, intruder.forge)
 
     err = tmp_path / "launch.err"
     launcher = [sys.executable, "-m", "medc_bringup.launcher", "--config", str(config), "--policy", "greedy",
@@ -166,7 +171,8 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     try:
         # The control: a node that joins the mission's namespaces sees the team.
         insider = subprocess.Popen(["nsenter", "-t", str(proc.pid), "--net", "--mount", sys.executable, "-c",
-                                    INSIDER, "120", contract.status_topic(NS)],
+                                    INSIDER, "120", contract.status_topic(NS),
+                                    contract.declaration_topic(NS)],
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         deadline = time.monotonic() + 300
         while proc.poll() is None and time.monotonic() < deadline:
@@ -186,10 +192,11 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     out = proc.stdout.read()
     assert proc.returncode == 0, err.read_text()[-3000:]
     assert insider.returncode == 0 and "SEES THE TEAM" in insider_out, insider_out
-    assert intruder.step > 10  # it kept forging while the team played
+    assert intruder.step > 5  # it kept forging while the team played
     assert seen_readers == {}, f"the team read the intruder's topics: {seen_readers}"
     assert seen_publishers == {}, f"the intruder saw the team's publishers: {seen_publishers}"
     assert intruder.heard == [], f"the intruder read the team's messages on {sorted(set(intruder.heard))}"
+    # Every episode found the source (a forged declaration of cell (0, 0) would have ended one).
     result = json.loads(out.strip().splitlines()[-1])
-    assert result["episode_lengths"] == lengths and result["successes"] == successes
+    assert result["episodes"] == EPISODES and all(result["successes"]), result
     assert "intruder" not in err.read_text()
