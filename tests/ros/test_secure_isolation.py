@@ -58,8 +58,6 @@ def _can_isolate() -> bool:
     return out.returncode == 0
 
 
-pytestmark = pytest.mark.skipif(not _can_isolate(),
-                                reason="needs unshare --net --mount (root or user namespaces), ip, nsenter")
 
 
 class Intruder:
@@ -150,6 +148,8 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     from medc_common import contract
     from rclpy.executors import SingleThreadedExecutor
 
+    if not _can_isolate():
+        pytest.skip("needs unshare --net --mount (root or user namespaces), ip and nsenter")
     config = tmp_path / "launch.yaml"
     config.write_text(json.dumps({**SCENARIO, "sensing": "paper-simple", "namespace": NS, "end_on": END_ON}))
     node = rclpy.create_node("intruder")
@@ -169,7 +169,11 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     seen_readers: dict[str, int] = {}
     seen_publishers: dict[str, int] = {}
     try:
-        # The control: a node that joins the mission's namespaces sees the team.
+        # The control: a node that joins the mission's namespaces (once the launcher is in them) sees it.
+        own_net, deadline = os.readlink("/proc/self/ns/net"), time.monotonic() + 60
+        while os.readlink(f"/proc/{proc.pid}/ns/net") == own_net:
+            assert proc.poll() is None and time.monotonic() < deadline, err.read_text()[-3000:]
+            executor.spin_once(timeout_sec=0.05)
         insider = subprocess.Popen(["nsenter", "-t", str(proc.pid), "--net", "--mount", sys.executable, "-c",
                                     INSIDER, "120", contract.status_topic(NS),
                                     contract.declaration_topic(NS)],
