@@ -47,6 +47,24 @@ def test_a_move_is_executed_once_and_a_second_sender_is_a_duplicate():
         book.offer("agent_1", 7, 0, 2, "cccc")  # an unknown sender for a step this driver never had
 
 
+def test_two_moves_of_one_sender_with_different_actions_are_a_conflict_and_the_first_stands():
+    from medc_sim.moves import ConflictingMove
+
+    book = MoveBook(3, 8)
+    book.open(0, 4)
+    assert book.offer("agent_1", 0, 4, 2, "aaaa") == 1
+    with pytest.raises(ConflictingMove, match=r"agent_1 \(sender aaaa\) sent two moves for episode 0 "
+                       r"step 4 with different actions \(2, then 5\): the first \(2\) is executed, the "
+                       r"second ignored"):
+        book.offer("agent_1", 0, 4, 5, "aaaa")
+    assert book.actions()[1] == 2 and book.conflicts == 1 and book.resent == 0
+    assert book.offer("agent_1", 0, 4, 2, "aaaa") is None and book.resent == 1  # the same move: a re-send
+    book.open(0, 5)
+    with pytest.raises(ConflictingMove, match=r"the first \(2\) was executed"):
+        book.offer("agent_1", 0, 4, 7, "aaaa")  # a late second answer to the step just flown
+    assert book.conflicts == 2
+
+
 def test_a_silent_agent_is_taken_out_and_comes_back_with_a_move():
     book = MoveBook(3, 8)
     book.open(0, 0)

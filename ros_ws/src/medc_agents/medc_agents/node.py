@@ -20,6 +20,7 @@ RecursionError or MemoryError from a hostile file included) ends as a logged ref
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -59,6 +60,8 @@ NUM_ACTIONS = len(ACTIONS)
 #: Default of the agent's ``stall_timeout_s`` (docs/ros.md): longer than a driver's re-send period
 #: (the simulator's resend_s is 0.5 s), so one lost best-effort message is not reported.
 STALL_TIMEOUT_S = 2.0
+#: Statuses below the step answered are summed up in one log line at most this often (seconds).
+OLD_STATUS_SUMMARY_S = 10.0
 
 
 def scenario_from_bundle(policy: str, agents: int, grid: int, observation: str,
@@ -311,6 +314,12 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self._stall_since: tuple[object, float] | None = None  # (what, since when)
         self._stall_report: tuple[object, str] | None = None  # (what, report) once logged
         self._noted: set[str] = set()
+        #: The map fault reported (the count of maps offered when it came), until a step is decided
+        #: on that map or one received after it.
+        self._map_fault: int | None = None
+        self._map_check: tuple[int, float] | None = None  # (map_load_time, when it came)
+        self._old_statuses = 0  # statuses below the step answered since the last summary
+        self._old_since = 0.0
 
         try:
             self.slot.swap(str(initial))
@@ -376,18 +385,25 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
-        self._guard("map", self.observer.add_map, msg)
-        self._flush_notes()
-        try:
-            self._check_map(msg)
-        except Exception as exc:  # a report must never take the node down
-            self.get_logger().error(f"map check failed: {type(exc).__name__}")
-
-    def _check_map(self, msg: OccupancyGrid) -> None:
-        """Report a map none of the team's latest poses lie on (a map from elsewhere): it is kept
-        aside and used only when an episode status names it."""
-        o = self.observer
         key = stamp_key(msg.info.map_load_time)
+        try:
+            self.observer.add_map(msg)
+        except ValueError as exc:  # refused: a fault on /diagnostics (once per map and reason)
+            self.dropped_by["map"] += 1
+            self._map_fault = self.observer.maps.offered
+            self.health.set("map", DiagnosticStatus.WARN, f"map with map_load_time {show_stamp(key)} "
+                            f"refused: {exc}; a step that names it waits for a map it can take")
+            return
+        self._flush_notes()
+        # A map no status names yet is checked against the team's poses a moment later: a new area's
+        # first poses come just after its map.
+        self._map_check = (key, time.monotonic())
+        self._maybe_decide()
+
+    def _check_map(self, key: int) -> None:
+        """Report a map none of the team's latest poses lie on (a map from elsewhere) that no status
+        names: it is kept aside and used only when an episode status names it."""
+        o = self.observer
         geometry = o.maps.geometry(key)
         xys = o.rounds.latest_xy()
         if geometry is None or not xys or key in o.clock.maps_in_use():
@@ -400,6 +416,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             except ValueError:
                 pass
         if on == 0:
+            self._map_fault = o.maps.arrival(key)
             self.health.set("map", DiagnosticStatus.WARN, (
                 f"map with map_load_time {show_stamp(key)} (origin ({geometry.origin_x:g}, "
                 f"{geometry.origin_y:g}) m) holds none of the team's {len(xys)} latest poses: held; the "
@@ -409,13 +426,34 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.dropped_by[what] += 1
         self.get_logger().warning(f"dropped {what} message: {exc}")
 
-    def _guard(self, what: str, fn, *args) -> None:
-        try:
-            fn(*args)
-        except ValueError as exc:
-            self._drop(what, exc)
+    def _map_fault_over(self, tick) -> None:
+        """A step decided on a map received since the map reported (or on that very map): the map
+        fault is over."""
+        if self._map_fault is None:
             return
-        self._maybe_decide()
+        arrival = self.observer.maps.arrival(tick.map_stamp)
+        if arrival is not None and arrival >= self._map_fault:
+            self._map_fault = None
+            self.health.set("map", DiagnosticStatus.OK, f"deciding on the map with map_load_time "
+                            f"{show_stamp(tick.map_stamp)}, which the episode status names")
+
+    def _old_status(self, why: str) -> None:
+        """A status below the step answered (normal: a re-send that crossed the next step): logged
+        at DEBUG, counted, and summed up at most every OLD_STATUS_SUMMARY_S seconds."""
+        self.dropped_by["old status"] += 1
+        self._old_statuses += 1
+        self.get_logger().debug(f"dropped status: {why}")
+
+    def _sum_old_statuses(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if self._old_statuses and (force or now - self._old_since >= OLD_STATUS_SUMMARY_S):
+            self.get_logger().info(
+                f"{self._old_statuses} statuses below the step answered dropped in the last "
+                f"{now - self._old_since:.0f} s (a driver's re-sends that crossed its next step: normal; "
+                f"{self.dropped_by['old status']} in all)")
+            self._old_statuses = 0
+        if not self._old_statuses:
+            self._old_since = now
 
     def on_status(self, msg: EpisodeStatus, defer: bool = False):
         """Take an episode status; decide if everything for the step is there.
@@ -436,7 +474,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
                 self.health.set("status", DiagnosticStatus.WARN, why)
             return None
         if verdict == "drop":
-            self._drop("status", ValueError(why))
+            self._old_status(why)
             return None
         if verdict == "restart":
             self.health.event("status", DiagnosticStatus.WARN, why)
@@ -499,6 +537,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
         self._unanswered = None
         self._stall_over(tick)
+        self._map_fault_over(tick)
         self._flush_notes()
         try:  # the estimate goes out before the move: a driver ending on the declaration sees it first
             self.estimate.on_step(self.observer, tick)

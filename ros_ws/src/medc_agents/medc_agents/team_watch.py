@@ -17,13 +17,22 @@ from medc_training.untrusted import printable
 from medc_agents.team_episode import Tick
 from medc_agents.team_messages import show_stamp
 
+#: Seconds without a repeat after which a fault that came from outside (another process moving as
+#: this agent) is over: its condition is OK again.
+CLEAR_S = 10.0
+#: Seconds after a map no status names before it is checked against the team's poses.
+MAP_CHECK_S = 1.0
+
 
 class TeamWatch:
     """Stall reports, lost and returning teammates, and the heartbeat's summary of an agent node."""
 
+    _claimed_at: float | None = None  # when another process last moved as this agent
+
     def _on_own_move(self, msg: AgentMove) -> None:
         if msg.sender == self.sender:
             return
+        self._claimed_at = time.monotonic()
         self.health.set("moves", DiagnosticStatus.WARN, (
             f"another process publishes moves as {self.agent_id} (sender {printable(str(msg.sender), 40)!r}; "
             f"this node is {self.sender}): two processes claim {self.agent_id}; stop one of them"))
@@ -32,7 +41,7 @@ class TeamWatch:
         o = self.observer
         return {"namespace": self.namespace_, "sender": self.sender, "session": self.gate.session or "",
                 "episode": str(o.clock.episode), "step": str(o.clock.step), "decisions": str(self.decisions),
-                "dropped": str(self.dropped),
+                "dropped": str(self.dropped), "old_statuses": str(self.dropped_by["old status"]),
                 "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
                 "policy": self.slot.current.description if self.slot.current is not None else "none",
                 "estimate": ("publishing" if self.estimate.publishing else "standby") if self.estimate.enabled
@@ -53,6 +62,17 @@ class TeamWatch:
         decide for stall_timeout_s."""
         self._flush_notes()
         self._check_lost()
+        self._sum_old_statuses()
+        if self._map_check is not None and time.monotonic() - self._map_check[1] >= MAP_CHECK_S:
+            key, self._map_check = self._map_check[0], None
+            try:
+                self._check_map(key)
+            except Exception as exc:  # a report must never take the node down
+                self.get_logger().error(f"map check failed: {type(exc).__name__}")
+        if self._claimed_at is not None and time.monotonic() - self._claimed_at >= CLEAR_S:
+            self._claimed_at = None
+            self.health.set("moves", DiagnosticStatus.OK, f"no other process has moved as {self.agent_id} "
+                            f"for {CLEAR_S:g} s")
         foreign = self.gate.foreign_now()
         if foreign:
             topic = contract.status_topic(self.namespace_)

@@ -13,10 +13,48 @@ from diagnostic_msgs.msg import DiagnosticStatus
 
 #: An agent that has never moved is taken out only after this many times move_timeout_s.
 STARTUP_FACTOR = 5.0
+#: Seconds: a move fault (duplicate agent id, conflicting moves) of one kind is logged once per this
+#: period, its repeats meanwhile summed up in one line; with no fault for this long, ``moves`` is OK.
+FAULT_REPEAT_S = 10.0
 
 
 class MoveWatch:
-    """Stepped-mode move watching of a simulator node."""
+    """Stepped-mode move watching of a simulator node, and the ``moves`` faults of any mode."""
+
+    #: Per fault kind (e.g. 'conflict agent_1'): [when it was last logged, repeats since then].
+    _faults: dict[str, list] | None = None
+    _last_fault = 0.0
+
+    def _move_fault(self, kind: str, message: str, log: bool = True) -> None:
+        """Report a move fault: WARN on /diagnostics (part ``moves``) with the latest message, logged
+        (``log``) once per kind every FAULT_REPEAT_S; repeats meanwhile are counted and summed up in
+        one line."""
+        if self._faults is None:
+            self._faults = {}
+            self.create_timer(1.0, self._faults_tick)
+        now = time.monotonic()
+        self._last_fault = now
+        seen = self._faults.get(kind)
+        if seen is None or now - seen[0] >= FAULT_REPEAT_S:
+            self._faults[kind] = [now, 0]
+            self.health.set("moves", DiagnosticStatus.WARN, message, log=log)
+        else:
+            seen[1] += 1
+            self.health.set("moves", DiagnosticStatus.WARN, message, log=False)
+
+    def _faults_tick(self) -> None:
+        now = time.monotonic()
+        for kind, seen in list(self._faults.items()):
+            if now - seen[0] >= FAULT_REPEAT_S:
+                if seen[1] and not kind.startswith("foreign"):
+                    self.get_logger().warning(f"{kind}: {seen[1]} more in the last {now - seen[0]:.0f} s "
+                                              "(logged once per period; the latest on /diagnostics)")
+                del self._faults[kind]
+        if self._last_fault and now - self._last_fault >= FAULT_REPEAT_S:
+            self._last_fault = 0.0
+            if self.health.level("moves") != DiagnosticStatus.OK:
+                self.health.set("moves", DiagnosticStatus.OK, f"no duplicate or conflicting move for "
+                                f"{FAULT_REPEAT_S:g} s")
 
     def _resend_tick(self) -> None:
         if self.started and not self.finished and time.monotonic() - self._published_at >= self.resend_s:

@@ -2,8 +2,9 @@
 
 Moves are idempotent (docs/ros.md, "Moves are executed once"): each (agent, episode, step) is
 executed once, with the first move received for it. A second move for the same key from the same
-sender (``AgentMove.sender``, the agent node's per-run id) is a re-send and is ignored; one from
-another sender means two processes claim the same agent id (:class:`DuplicateAgent`). An agent that
+sender (``AgentMove.sender``, the agent node's per-run id) is a re-send and is ignored (with another
+action it is reported: :class:`ConflictingMove`); one from another sender means two processes claim
+the same agent id (:class:`DuplicateAgent`). An agent that
 has not moved within the simulator's move timeout is taken out (:meth:`MoveBook.take_out`): later
 steps do not wait for it until a move from it is *received after* the take-out: an executed move for
 the step being collected, or a move for the step collected before it (from the sender whose move
@@ -26,6 +27,11 @@ class DuplicateAgent(MoveRejected):
     """Two senders answered the same (agent, episode, step): two processes claim one agent id."""
 
 
+class ConflictingMove(MoveRejected):
+    """One sender answered the same (agent, episode, step) twice with different actions: the first is
+    executed, the second ignored (an agent's re-send is the same message)."""
+
+
 class MoveBook:
     """The moves received for the step that is waiting for them."""
 
@@ -38,6 +44,7 @@ class MoveBook:
         self._moves: list[int | None] = [None] * num_agents
         self._senders: list[str | None] = [None] * num_agents
         self._previous_senders: list[str | None] = [None] * num_agents
+        self._previous_moves: list[int | None] = [None] * num_agents
         #: Agents taken out (no move within the move timeout): steps do not wait for them.
         self.lost: set[int] = set()
         #: Every sender that has had a move executed, per agent index.
@@ -46,12 +53,15 @@ class MoveBook:
         self.returned: list[int] = []
         #: Re-sent moves ignored (same sender, same key).
         self.resent = 0
+        #: Second moves of one sender for one key with another action, ignored.
+        self.conflicts = 0
 
     def open(self, episode: int, step: int) -> None:
         """Start collecting moves for (``episode``, ``step``); earlier moves are forgotten."""
         self.previous = (self.episode, self.step)
         self.episode, self.step = episode, step
         self._previous_senders = self._senders
+        self._previous_moves = self._moves
         self._moves = [None] * self.num_agents
         self._senders = [None] * self.num_agents
 
@@ -77,6 +87,7 @@ class MoveBook:
                 raise DuplicateAgent(
                     f"{agent_id} answered episode {episode} step {step} from two senders ({first}, "
                     f"{sender or '(none)'}): two processes claim {agent_id}; the first move was executed")
+            self._conflict(idx, agent_id, episode, step, action, sender, self._previous_moves[idx], "was")
             self._came_back(idx)
             return None
         if (episode, step) != (self.episode, self.step):
@@ -95,6 +106,7 @@ class MoveBook:
                 raise DuplicateAgent(
                     f"{agent_id} answered episode {episode} step {step} from two senders ({first}, "
                     f"{sender or '(none)'}): two processes claim {agent_id}; the first move is executed")
+            self._conflict(idx, agent_id, episode, step, action, sender, self._moves[idx], "is")
             self.resent += 1
             return None  # a re-send: executed once
         self._moves[idx] = int(action)
@@ -102,6 +114,17 @@ class MoveBook:
         self.known[idx].add(sender)
         self._came_back(idx)
         return idx
+
+    def _conflict(self, idx: int, agent_id: str, episode: int, step: int, action, sender: str,
+                  first: int | None, tense: str) -> None:
+        """Raise ConflictingMove when ``action`` differs from the ``first`` one of the same sender."""
+        if first is None or action == first:
+            return
+        self.conflicts += 1
+        raise ConflictingMove(
+            f"{agent_id} (sender {sender or '(none)'}) sent two moves for episode {episode} step {step} with "
+            f"different actions ({first}, then {action}): the first ({first}) {tense} "
+            "executed, the second ignored; an agent must re-send the same move")
 
     def _came_back(self, idx: int) -> None:
         if idx in self.lost:

@@ -35,7 +35,7 @@ from rclpy.node import Node
 from medc_sim import messages
 from medc_sim.episode_end import declared_cell
 from medc_sim.move_watch import MoveWatch
-from medc_sim.moves import DuplicateAgent, MoveBook, MoveRejected
+from medc_sim.moves import ConflictingMove, DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.start_gate import StartGate
 from medc_sim.watch import GraphWatch
@@ -216,6 +216,7 @@ class SimNode(MoveWatch, Node):
                 "step": str(self.core.step),
                 "episodes_done": str(len(self.core.results)), "resends": str(self.resends),
                 "dropped_moves": str(self.dropped), "resent_moves_ignored": str(self.book.resent),
+                "conflicting_moves": str(self.book.conflicts),
                 "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none"}
 
     def _publish_step(self) -> None:
@@ -264,13 +265,16 @@ class SimNode(MoveWatch, Node):
                 return  # a re-sent move, or one for the step just applied: executed once already
         except DuplicateAgent as exc:
             self.dropped += 1
-            self.health.set("moves", DiagnosticStatus.WARN, f"duplicate agent id: {exc}")
+            self._move_fault(f"duplicate {msg.agent_id}", f"duplicate agent id: {exc}")
+            return
+        except ConflictingMove as exc:
+            self._move_fault(f"conflict {msg.agent_id}", f"conflicting moves: {exc}")
             return
         except MoveRejected as exc:
             self.dropped += 1
             self.get_logger().warning(f"dropped move: {exc}")
             if "another graph" in str(exc):
-                self.health.set("moves", DiagnosticStatus.WARN, f"foreign move: {exc}", log=False)
+                self._move_fault(f"foreign {msg.agent_id}", f"foreign move: {exc}", log=False)
             return
         if self.book.complete and self._step_t0 is not None:
             # Team decision latency: this step's state published -> the last move received.
