@@ -13,6 +13,14 @@ The registry logic lives in :class:`RegistryBridge` (plain Python, tested withou
 only translates services. Connection parameters: ``chain`` ("embedded" or a JSON-RPC URL on
 loopback), ``users_manager``/``models_manager`` contract addresses, ``private_key_file``,
 ``content`` (a local store folder or an IPFS API URL on loopback), ``cache_dir``.
+
+Money: any node of the graph may call request_experts, so the bridge pays only under two limits.
+Per expert, the call's ``max_price_wei``, or by default 10 times the cheapest non-zero price among
+the experts the request could get (medc_registry.ranker); in all, the ``budget`` parameter (ETH,
+or NNNwei; :data:`DEFAULT_BUDGET`) over the node's life: a request whose quote is over what is left
+of it is refused before anything is signed. Text parameters (the contract addresses above all)
+are read as the text given: ``-p users_manager:=0x5FbD…`` is an address, not the number ROS's
+parameter parser makes of it.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -30,9 +39,14 @@ from typing import Any
 from medc_common.ros_env import require_interfaces
 from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 
+from medc_registry.records import format_eth
+
 #: Longest ``requirements_json`` / ``weights_json`` a service call may carry (8 features of a
 #: short name each fit in a few hundred characters).
 MAX_REQUEST_JSON_CHARS = 4096
+#: The most a bridge pays for experts in all, over its life, unless its ``budget`` parameter
+#: says otherwise (ETH, or NNNwei).
+DEFAULT_BUDGET = "0.01"
 
 
 class BridgeError(ValueError):
@@ -42,12 +56,18 @@ class BridgeError(ValueError):
 class RegistryBridge:
     """The registry operations the bridge serves, over one :class:`medc_registry.Registry`."""
 
-    def __init__(self, registry: Any, cache_dir: str | os.PathLike[str]) -> None:
+    def __init__(
+        self, registry: Any, cache_dir: str | os.PathLike[str], budget_wei: int | None = None
+    ) -> None:
         self.registry = registry
         self.cache_dir = Path(cache_dir)
         self.cache_dir.mkdir(parents=True, exist_ok=True)
         #: Latest allocation id per CID requested through this bridge (for reviews by CID).
         self.allocations: dict[str, int] = {}
+        #: The most this bridge pays in all (wei), and what it has paid or may have paid so far.
+        self.budget_wei = parse_budget(DEFAULT_BUDGET) if budget_wei is None else budget_wei
+        self.spent_wei = 0
+        self._money = threading.Lock()
 
     @staticmethod
     def _json_object(text: str, what: str) -> dict[str, Any] | None:
@@ -74,27 +94,55 @@ class RegistryBridge:
         count: int = 1,
         min_model_rep: float = 0.0,
         min_owner_rep: float = 0.0,
+        max_price_wei: str = "",
     ) -> list[Any]:
         """Request up to ``count`` experts; returns the registry's allocations, best first.
 
+        Each expert costs at most ``max_price_wei`` (decimal wei; "" = the registry's default
+        limit), and the request at most what is left of :attr:`budget_wei`: a dearer quote is
+        refused before anything is signed. One request at a time, so two calls can never both
+        spend what is left.
+
         Raises:
-            BridgeError: malformed requirements or weights, or the registry refused.
+            BridgeError: malformed requirements, weights or price limit, a quote over the budget,
+            or the registry refused.
         """
+        from medc_registry.chain import ContractRevert
+        from medc_registry.journal import OverBudget
+
         requirements = self._json_object(requirements_json, "requirements_json")
         if requirements is None:
             raise BridgeError('requirements_json is required, e.g. {"agents": 3, "walls": 2}')
         weights = self._json_object(weights_json, "weights_json")
-        try:
-            allocs = self.registry.request_models(
-                application,
-                requirements,
-                weights,
-                count=max(1, int(count)),
-                min_model_rep=min_model_rep,
-                min_owner_rep=min_owner_rep,
-            )
-        except (ValueError, RuntimeError) as exc:  # ChainError and ContractRevert are RuntimeErrors
-            raise BridgeError(f"registry refused the request: {exc}") from exc
+        max_price = parse_wei_text(max_price_wei, "max_price_wei")
+        with self._money:
+            left = self.budget_wei - self.spent_wei
+            quoted: list[int] = []
+            try:
+                allocs = self.registry.request_models(
+                    application,
+                    requirements,
+                    weights,
+                    count=max(1, int(count)),
+                    min_model_rep=min_model_rep,
+                    min_owner_rep=min_owner_rep,
+                    max_price=max_price,
+                    max_total=left,
+                    on_quote=lambda ranking: quoted.append(ranking.price_wei),
+                )
+            except OverBudget as exc:
+                raise BridgeError(
+                    f"over this bridge's budget: {format_eth(left)} left of {format_eth(self.budget_wei)} "
+                    f"(parameter budget); {exc}") from exc
+            except (ValueError, ContractRevert) as exc:  # refused, or reverted: nothing was paid
+                raise BridgeError(f"registry refused the request: {exc}") from exc
+            except BaseException as exc:
+                # A payment may have gone out (an answer lost after sending): counted as spent.
+                self.spent_wei += sum(quoted)
+                if isinstance(exc, RuntimeError):  # ChainError
+                    raise BridgeError(f"registry refused the request: {exc}") from exc
+                raise
+            self.spent_wei += sum(int(a.price_wei) for a in allocs if not a.replayed)
         for a in allocs:
             self.allocations[a.cid] = a.allocation_id
         return allocs
@@ -157,6 +205,73 @@ class RegistryBridge:
         return str(result.tx_hash)
 
 
+def parse_wei_text(text: str, what: str) -> int | None:
+    """A whole number of wei written in decimal digits (as a service field carries it), None for
+    ""; BridgeError for anything else."""
+    if not isinstance(text, str) or not text.strip():
+        return None
+    value = text.strip()
+    if len(value) > 40 or not value.isascii() or not value.isdigit() or int(value) >= 2**128:
+        raise BridgeError(f"{what} must be a whole number of wei in decimal digits below 2**128, e.g. "
+                          '"1000000000000000" for 0.001 ETH, or "" for the default; got '
+                          f"{printable(value, 60)!r}")
+    return int(value)
+
+
+def parse_budget(text: str) -> int:
+    """The ``budget`` parameter (ETH, e.g. ``0.01``, or ``NNNwei``) in wei; BridgeError if it is
+    not an amount."""
+    from medc_registry.cli import CliError, parse_eth
+
+    try:
+        return parse_eth(str(text), "budget")
+    except CliError as exc:
+        raise BridgeError(str(exc)) from None
+
+
+def command_line_value(command_line: list[str], node_name: str, name: str) -> str | None:
+    """The text given for parameter ``name`` on a ROS command line (``--ros-args -p name:=TEXT``,
+    or ``-p node_name:name:=TEXT``), the last one given; None when none is."""
+    found = None
+    in_ros = False
+    tokens = list(command_line)
+    for i, token in enumerate(tokens):
+        if token == "--ros-args":
+            in_ros = True
+        elif token == "--":
+            in_ros = False
+        elif in_ros and token in ("-p", "--param") and i + 1 < len(tokens):
+            key, sep, value = tokens[i + 1].partition(":=")
+            if not sep:
+                continue
+            target, _, key = key.rpartition(":")
+            if key == name and target.rsplit("/", 1)[-1] in ("", node_name):
+                found = value
+    return found
+
+
+def declare_text(node: Any, name: str, default: str, description: str,
+                 command_line: list[str] | None) -> str:
+    """Declare a text parameter and return it as the text given. ROS's parameter parser reads
+    ``0x5FbD…`` (an address) as a number and ``true`` as a boolean; such a value is taken back as
+    it was written on ``command_line`` (``-p name:=TEXT``), and refused clearly when it came from
+    elsewhere (a params file: quote it there)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    node.declare_parameter(name, default, ParameterDescriptor(
+        description=description, read_only=True, dynamic_typing=True))
+    value = node.get_parameter(name).value
+    if isinstance(value, str):
+        return value
+    text = command_line_value(command_line or [], node.get_name(), name)
+    if text is not None:
+        return text
+    raise BridgeError(
+        f"parameter {name} must be text, but ROS read it as the {type(value).__name__} {value!r} (it reads "
+        f"0x..., digits and true/false so): quote it, e.g. {name}: \"0x5FbD...\" in a params file"
+    )
+
+
 def connect_registry(
     chain: str,
     content: str,
@@ -188,18 +303,27 @@ def connect_registry(
         raise BridgeError(str(exc)) from None
 
 
-def _declare_parameters(node: Any) -> tuple[tuple[str, str | None], dict[str, Any], str]:
+def _declare_parameters(
+    node: Any, command_line: list[str] | None = None
+) -> tuple[tuple[str, str | None], dict[str, Any], str, int]:
     """Declare the bridge node's parameters: ((the team's namespace, the one names are built with:
     None = relative; medc_common.contract.team_namespace), :func:`connect_registry` keyword
-    arguments, cache folder or "").
+    arguments, cache folder or "", budget in wei). Text parameters are read as the text given on
+    ``command_line`` (:func:`declare_text`).
 
     Raises:
-        BridgeError: a namespace parameter that is invalid or contradicts the node's namespace.
+        BridgeError: a namespace parameter that is invalid or contradicts the node's namespace, a
+        text parameter ROS read as a number and no command line gives, or a budget that is not
+        an amount.
     """
     from medc_common import contract
     from medc_common.params import declare
 
-    p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
+    def p(name: str, default: Any, description: str, read_only: bool = False) -> Any:
+        if isinstance(default, str):
+            return declare_text(node, name, default, description, command_line)
+        return declare(node, name, default, description, read_only)
+
     namespace = p("namespace", "", contract.NAMESPACE_HELP, True)
     connection = {
         "chain": p(
@@ -213,11 +337,14 @@ def _declare_parameters(node: Any) -> tuple[tuple[str, str | None], dict[str, An
                      "or of the keys in private_key_file", True),
     }
     cache = p("cache_dir", "", "Folder for verified bundles (default: a new temporary folder)", True)
+    budget = parse_budget(p("budget", DEFAULT_BUDGET, "The most the bridge pays for experts in all, over "
+                            "its life, in ETH (e.g. 0.01) or NNNwei; a request whose quote is over what "
+                            "is left is refused before anything is paid", True))
     try:
         names = contract.team_namespace(node.get_namespace(), namespace)
     except ValueError as exc:
         raise BridgeError(str(exc)) from None
-    return names, connection, cache
+    return names, connection, cache, budget
 
 
 def _allocations_answer(res: Any, allocs: list[Any]) -> Any:
@@ -251,11 +378,13 @@ class TempFolders:
 
 def bridge_summary(bridge: RegistryBridge, served: Counter) -> dict[str, str]:
     """The values of the bridge's heartbeat: where it caches bundles, how many it holds, the
-    allocations it made, and the calls each service served and refused."""
+    allocations it made, its budget and what it spent (wei), and the calls each service served
+    and refused."""
     services = ("request_experts", "fetch_bundle", "submit_review")
     return {"cache_dir": str(bridge.cache_dir),
             "bundles_cached": str(sum(1 for _ in bridge.cache_dir.glob("*.safetensors"))),
             "allocations": str(len(bridge.allocations)),
+            "budget_wei": str(bridge.budget_wei), "spent_wei": str(bridge.spent_wei),
             **{s: str(served[s]) for s in services},
             **{f"{s}_refused": str(served[f"{s}_refused"]) for s in services}}
 
@@ -271,10 +400,14 @@ def bridge_node_class():
     class BridgeNode(Node):
         """ROS services over a :class:`RegistryBridge` (see the module docstring)."""
 
-        def __init__(self, registry: Any = None, node_name: str = "medc_bridge", **kwargs: Any) -> None:
+        def __init__(self, registry: Any = None, node_name: str = "medc_bridge",
+                     command_line: list[str] | None = None, **kwargs: Any) -> None:
+            """``command_line``: the process's arguments (``--ros-args`` among them), where text
+            parameters ROS's parser turned into numbers are read back as written."""
             kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
             super().__init__(node_name, **kwargs)
-            (self.namespace_, self.names_ns), connection, cache = _declare_parameters(self)
+            (self.namespace_, self.names_ns), connection, cache, budget = _declare_parameters(
+                self, command_line)
             # No cache_dir (no content store): a temporary folder of this node's own for it,
             # removed again by destroy_node.
             self._own_dirs = TempFolders()
@@ -283,7 +416,7 @@ def bridge_node_class():
                     if not connection["content"]:
                         connection["content"] = self._own_dirs.make("medc-store-")
                     registry = connect_registry(**connection)
-                self.bridge = RegistryBridge(registry, cache or self._own_dirs.make("medc-bundles-"))
+                self.bridge = RegistryBridge(registry, cache or self._own_dirs.make("medc-bundles-"), budget)
             except BaseException:
                 self._own_dirs.remove()
                 raise
@@ -327,7 +460,8 @@ def bridge_node_class():
         def _on_request(self, req, res):
             try:
                 allocs = self.bridge.request(req.application, req.requirements_json, req.weights_json,
-                                             req.count, req.min_model_reputation, req.min_owner_reputation)
+                                             req.count, req.min_model_reputation, req.min_owner_reputation,
+                                             req.max_price_wei)
             except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
                 return self._refuse(res, "request_experts", self._failure(exc))
             self.served["request_experts"] += 1
@@ -376,7 +510,9 @@ def main(argv: list[str] | None = None) -> int:
     from medc_common.executors import run_node
     from rclpy.executors import SingleThreadedExecutor
 
-    return run_node("medc-bridge", argv, lambda: bridge_node_class()(), errors=(BridgeError,),
+    command_line = list(sys.argv if argv is None else argv)
+    return run_node("medc-bridge", argv, lambda: bridge_node_class()(command_line=command_line),
+                    errors=(BridgeError,),
                     executor_factory=SingleThreadedExecutor)
 
 
