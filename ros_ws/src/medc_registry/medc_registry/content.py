@@ -212,6 +212,17 @@ class LocalContentStore:
         return self._path(cid).is_file()
 
 
+def _transport_error(api_url: str, exc: BaseException) -> ContentStoreError:
+    """The typed error of an HTTP exchange with an IPFS node that failed: a status, header, chunk
+    or trailer line http.client refuses (over-long, malformed) is a malformed answer; a refused or
+    broken connection, an unreachable node."""
+    if isinstance(exc, http.client.HTTPException) and not isinstance(
+            exc, ConnectionError | http.client.IncompleteRead):
+        why = f"{type(exc).__name__}: {printable(str(exc), 200)}"
+        return ContentStoreError(f"IPFS node at {api_url} answered with a malformed HTTP response ({why})")
+    return ContentStoreError(f"IPFS node at {api_url} unreachable: {printable(str(exc), 200)}")
+
+
 class KuboContentStore:
     """A Kubo-compatible RPC endpoint (``http://127.0.0.1:5001``): add, cat, pin.
 
@@ -273,7 +284,7 @@ class KuboContentStore:
         except bounded_http.BodyTooLarge as exc:
             raise ContentStoreError(f"IPFS node at {self.api_url}: {exc}") from None
         except (OSError, http.client.HTTPException) as exc:
-            raise ContentStoreError(f"IPFS node at {self.api_url} unreachable: {exc}") from None
+            raise _transport_error(self.api_url, exc) from None
         if status != 200:
             text = printable(answer[:300].decode("utf-8", "replace").strip(), 300)
             raise ContentStoreError(f"IPFS {path} failed ({status}): {text}")
@@ -411,7 +422,7 @@ class KuboContentStore:
                 f"IPFS node at {self.api_url} did not answer {path} for {cid} within {self.timeout:g} s"
             ) from None
         except (OSError, http.client.HTTPException) as exc:
-            raise ContentStoreError(f"IPFS node at {self.api_url} unreachable: {exc}") from None
+            raise _transport_error(self.api_url, exc) from None
 
     def pin(self, cid: str) -> None:
         """``ipfs pin add``."""
