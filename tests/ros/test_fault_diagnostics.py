@@ -226,3 +226,71 @@ def test_the_simulator_reports_two_moves_of_one_sender_with_different_actions(rc
         executor.shutdown()
         for node in (sim, agent):
             node.destroy_node()
+
+
+@pytest.mark.timing
+@pytest.mark.ros
+def test_a_pose_stamped_far_ahead_keeps_no_teammate_in_the_team(rclpy_context, capfd):
+    """agent_1's UAV falls silent: agent_0 takes it out after lost_timeout_s, even while a pose and
+    reading of agent_1 stamped an hour ahead come (no sign of life), and they do not take it back;
+    its pose and reading of the step waited on do."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from medc_agents.node import AgentNode
+    from medc_common import contract
+    from medc_common.contract import GridGeometry
+    from medc_interfaces.msg import EpisodeStatus, RadiationReading
+    from medc_sim import messages
+    from nav_msgs.msg import OccupancyGrid
+    from rclpy.executors import SingleThreadedExecutor
+
+    ids = ["agent_0", "agent_1"]
+    agent = AgentNode(agent_id="agent_0", parameter_overrides=_params(
+        agent_id="agent_0", policy="greedy", agents=2, grid=10, lost_timeout_s=0.5))
+    driver = rclpy.create_node("stamp_driver", namespace=NS)
+    seen = _Seen(driver)
+    pubs = {(kind, a): driver.create_publisher(t, topic(NS, a), contract.SENSOR_QOS)
+            for a in ids for kind, t, topic in (("pose", PoseStamped, contract.pose_topic),
+                                                ("reading", RadiationReading, contract.radiation_topic))}
+    status_pub = driver.create_publisher(EpisodeStatus, contract.status_topic(NS), contract.RELIABLE_QOS)
+    map_pub = driver.create_publisher(OccupancyGrid, contract.map_topic(NS), contract.LATCHED_QOS)
+    executor = SingleThreadedExecutor()
+    for node in (agent, driver):
+        executor.add_node(node)
+    log = _Log(capfd)
+    geo = GridGeometry(10, 10)
+
+    def send(a: str, sec: int, cell=(5, 5)) -> None:
+        pubs[("pose", a)].publish(messages.pose_msg(cell, Time(sec=sec), geo))
+        pubs[("reading", a)].publish(messages.reading_msg(a, 2.0, 0.0, Time(sec=sec)))
+
+    def step(n: int, who=("agent_0", "agent_1")) -> None:
+        for a in who:
+            send(a, 10 + n, (n % 10, ids.index(a)))
+        status_pub.publish(messages.status_msg(ids, 0, n, Time(sec=10 + n), Time(sec=1), session="s1"))
+
+    try:
+        everyone = (*pubs.values(), status_pub, map_pub)
+        assert spin_until(executor, lambda: min(p.get_subscription_count() for p in everyone) >= 1
+                          and seen.move_sub.get_publisher_count() >= 1, 30)
+        map_pub.publish(messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), Time(sec=1), 1.0))
+        step(0)
+        assert spin_until(executor, lambda: seen.moved(0, 0), 30)
+        # agent_1's UAV falls silent; a pose and reading of it stamped an hour ahead come meanwhile.
+        step(1, who=("agent_0",))
+        send("agent_1", 10 + 3600)
+        assert spin_until(executor, lambda: seen.moved(0, 1), 30), agent.observer.waiting_for()
+        assert agent.observer.absent == {1} and "agent_1 lost" in log()
+        step(2, who=("agent_0",))
+        send("agent_1", 10 + 3601)
+        assert spin_until(executor, lambda: seen.moved(0, 2), 30)
+        assert agent.observer.absent == {1} and "agent_1 is heard again" not in log()
+        # Its pose and reading of the step waited on take it back.
+        step(3)
+        assert spin_until(executor, lambda: seen.moved(0, 3), 30)
+        assert agent.observer.absent == set() and log().count("agent_1 is heard again: back in the team") == 1
+        assert "Traceback" not in log()
+    finally:
+        executor.shutdown()
+        for node in (agent, driver):
+            node.destroy_node()

@@ -317,7 +317,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         #: The map fault reported (the count of maps offered when it came), until a step is decided
         #: on that map or one received after it.
         self._map_fault: int | None = None
-        self._map_check: tuple[int, float] | None = None  # (map_load_time, when it came)
+        self._map_checks: dict[int, float] = {}  # map_load_time -> when it came, until checked
         self._old_statuses = 0  # statuses below the step answered since the last summary
         self._old_since = 0.0
 
@@ -397,7 +397,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self._flush_notes()
         # A map no status names yet is checked against the team's poses a moment later: a new area's
         # first poses come just after its map.
-        self._map_check = (key, time.monotonic())
+        self._map_checks[key] = time.monotonic()
         self._maybe_decide()
 
     def _check_map(self, key: int) -> None:
@@ -486,6 +486,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         except ValueError as exc:
             self._drop("status", exc)
             return
+        self._readmit()
         if tick is not None and self.observer.answered_tick(tick):
             # The simulator re-sent a step it has not got every move for: ours may have been lost,
             # or the policy failed on it.
@@ -537,6 +538,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
         self._unanswered = None
         self._stall_over(tick)
+        self._map_checks.pop(tick.map_stamp, None)  # a map a status names is the driver's
         self._map_fault_over(tick)
         self._flush_notes()
         try:  # the estimate goes out before the move: a driver ending on the declaration sees it first

@@ -22,6 +22,8 @@ from medc_agents.team_messages import show_stamp
 CLEAR_S = 10.0
 #: Seconds after a map no status names before it is checked against the team's poses.
 MAP_CHECK_S = 1.0
+#: A pose or reading stamped more than this (ns) ahead of the step waited on is not a sign of life.
+FUTURE_NS = 5_000_000_000
 
 
 class TeamWatch:
@@ -63,8 +65,8 @@ class TeamWatch:
         self._flush_notes()
         self._check_lost()
         self._sum_old_statuses()
-        if self._map_check is not None and time.monotonic() - self._map_check[1] >= MAP_CHECK_S:
-            key, self._map_check = self._map_check[0], None
+        for key in [k for k, at in self._map_checks.items() if time.monotonic() - at >= MAP_CHECK_S]:
+            del self._map_checks[key]
             try:
                 self._check_map(key)
             except Exception as exc:  # a report must never take the node down
@@ -123,8 +125,11 @@ class TeamWatch:
             return
         if self._pending_since[0] != t:
             self._pending_since = (t, time.monotonic())
+        # Alive, if mis-stamped: something newer than the step answered, but not far ahead of the
+        # step waited on (a pose stamped an hour ahead keeps nobody in the team).
         fresh = {j for j in range(o.num_agents)
-                 if any(o.rounds.latest.get((kind, j), -1) > o.clock.stamp for kind in ("pose", "reading"))}
+                 if any(o.clock.stamp < o.rounds.latest.get((kind, j), -1) <= t.stamp + FUTURE_NS
+                        for kind in ("pose", "reading"))}
         newly = self.lost_watch.check(o.missing(), self._pending_since[1], fresh)
         for idx, _why in newly:
             o.absent.add(idx)
@@ -170,10 +175,22 @@ class TeamWatch:
         o = self.observer
         idx = contract.agent_index(agent_id, o.num_agents)
         self.lost_watch.seen(kind, idx)
-        if idx in o.absent and o.rounds.latest.get(("pose", idx)) == o.rounds.latest.get(("reading", idx)):
+        if idx in o.absent:
+            self._readmit()
+
+    def _readmit(self) -> None:
+        """Take back into the team every teammate taken out whose pose and reading stamped with the
+        step waited on are here (a pose or reading with any other stamp, one far in the future
+        above all, brings nobody back)."""
+        o = self.observer
+        t = o.clock.open_tick()
+        if t is None or not o.absent:
+            return
+        here = set(o.rounds.present(t.stamp))
+        for idx in sorted(o.absent & here):
             o.absent.discard(idx)
             if self.lost_watch.back(idx):
-                self.get_logger().info(f"{agent_id} is heard again: back in the team")
+                self.get_logger().info(f"{o.ids[idx]} is heard again: back in the team")
                 self._report_team()
 
     def _stall_over(self, tick) -> None:
