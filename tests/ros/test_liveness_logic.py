@@ -203,6 +203,11 @@ def test_readings_in_the_wrong_units_are_warned_once():
     assert check.check(0, "agent_0", 1e6) is None  # once per agent and kind
     fine = ReadingCheck(SENSING_PRESETS["realistic"], 1)
     assert all(fine.check(0, "agent_0", v) is None for v in [12, 30, 25, 400, 2100, 18, 33, 41, 27])
+    # The fault is over once the last 8 readings of the agent are plausible: warned again if it comes back.
+    assert all(check.check(1, "agent_1", v) is None for v in [5.0, 12.0, 3.0, 40.0, 8.0, 2.0, 9.0, 6.0])
+    assert (1, "low") not in check.warned and (0, "high") in check.warned
+    again = [w for w in (check.check(1, "agent_1", 1e-3) for _ in range(8)) if w]
+    assert len(again) == 1 and "wrong units" in again[0]
 
 
 def test_a_stall_says_whether_no_map_came_or_why_it_was_dropped():

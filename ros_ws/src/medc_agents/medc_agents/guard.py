@@ -180,9 +180,16 @@ class ReadingCheck:
         self.warned: set[tuple[int, str]] = set()
 
     def check(self, idx: int, agent_id: str, value: float) -> str | None:
-        """A warning the first time agent ``idx``'s readings look implausible (per kind), else None."""
+        """A warning the first time agent ``idx``'s readings look implausible (per kind), else None.
+        A kind warned is over (:attr:`warned` loses it) once the last LOW_WINDOW readings of that
+        agent are plausible again."""
         recent = self.recent[idx]
         recent.append(value)
+        if len(recent) == recent.maxlen:
+            if (idx, "high") in self.warned and max(recent) <= self.high:
+                self.warned.discard((idx, "high"))
+            if (idx, "low") in self.warned and sum(recent) / len(recent) >= self.low:
+                self.warned.discard((idx, "low"))
         if value > self.high and (idx, "high") not in self.warned:
             self.warned.add((idx, "high"))
             return (f"reading {value:g} of {agent_id} is above {self.high:g} counts/s, {HIGH_FACTOR:g}x the "

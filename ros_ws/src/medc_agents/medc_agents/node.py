@@ -382,6 +382,9 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         warning = self.reading_check.check(self.observer.index_of(agent_id), agent_id, float(msg.value))
         if warning:
             self.health.set("readings", DiagnosticStatus.WARN, warning)
+        elif not self.reading_check.warned and self.health.level("readings") != DiagnosticStatus.OK:
+            self.health.set("readings", DiagnosticStatus.OK, f"the last {guard.LOW_WINDOW} readings of every "
+                            "agent warned about are plausible again")
         self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
