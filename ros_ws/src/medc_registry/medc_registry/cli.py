@@ -338,7 +338,7 @@ def cmd_request(args: argparse.Namespace) -> int:
 def cmd_fetch(args: argparse.Namespace) -> int:
     reg = open_registry(args)
     if args.output:
-        size = reg.fetch_to(args.cid, args.output)
+        size = reg.fetch_to(args.cid, args.output, overwrite=args.overwrite)
         print(f"{size} bytes verified against {args.cid} -> {args.output}")
     else:
         sys.stdout.buffer.write(reg.fetch(args.cid))
@@ -470,7 +470,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sp = add("fetch", cmd_fetch, "download a model file, verified against its CID")
     sp.add_argument("cid")
-    sp.add_argument("-o", "--output", help="file to write (default: stdout)")
+    sp.add_argument("-o", "--output", help="file to write, atomically (default: stdout); an existing "
+                    "file is refused unless --overwrite")
+    sp.add_argument("--overwrite", action="store_true", help="replace a file already at --output")
     sp = add("review", cmd_review, "review an allocated model (updateModelRep)")
     sp.add_argument("allocation_id", type=int)
     sp.add_argument("value", type=float, help="review in [0, 1]")

@@ -77,8 +77,9 @@ class ContentStore(Protocol):
         """Return the bytes of ``cid``, verified against the CID."""
         ...
 
-    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
-        """Write the verified bytes of ``cid`` to ``path``; return their size."""
+    def fetch_to(self, cid: str, path: str | os.PathLike[str], overwrite: bool = True) -> int:
+        """Write the verified bytes of ``cid`` to ``path``; return their size. ``overwrite``: replace
+        a file already at ``path`` (else refuse it, before fetching and again when writing)."""
         ...
 
     def pin(self, cid: str) -> None:
@@ -108,18 +109,31 @@ def _verified_copy(src: IO[bytes], cid: str, out: IO[bytes], max_size: int) -> N
         raise ContentIntegrityError(str(exc)) from None
 
 
-def _deliver(spool: IO[bytes], path: str | os.PathLike[str] | None) -> bytes | int:
-    """A verified spool's bytes, or (with ``path``) its size after moving it to ``path`` atomically."""
+def _deliver(spool: IO[bytes], path: str | os.PathLike[str] | None,
+             overwrite: bool = True) -> bytes | int:
+    """A verified spool's bytes, or (with ``path``) its size after moving it to ``path`` atomically:
+    a fresh temporary file beside it (``O_EXCL``), renamed over it (a link at ``path`` is replaced,
+    never written through), or with ``overwrite`` False linked to it, which fails if anything,
+    a link included, is there by then."""
     spool.seek(0)
     if path is None:
         return spool.read()
-    target = _check_target(path)
+    target = _check_target(path, overwrite)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".medc-fetch-")
     try:
         with os.fdopen(fd, "wb") as fh:
             shutil.copyfileobj(spool, fh, 1 << 20)
             size = fh.tell()
-        os.replace(tmp, target)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if overwrite:
+            os.replace(tmp, target)
+        else:
+            try:
+                os.link(tmp, target, follow_symlinks=False)
+            except FileExistsError:
+                raise ContentStoreError(_exists(target)) from None
+            os.unlink(tmp)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)  # never leave the verified bytes behind in a temporary file
@@ -127,16 +141,22 @@ def _deliver(spool: IO[bytes], path: str | os.PathLike[str] | None) -> bytes | i
     return size
 
 
-def _check_target(path: str | os.PathLike[str]) -> Path:
-    """``path`` as a file to write, refused (before anything is fetched) when it is a folder or
-    its folder does not exist."""
+def _check_target(path: str | os.PathLike[str], overwrite: bool = True) -> Path:
+    """``path`` as a file to write, refused (before anything is fetched) when it is a folder, its
+    folder does not exist, or (unless ``overwrite``) anything, a link included, is there."""
     target = Path(path)
     if target.is_dir():
         raise ContentStoreError(f"{target} is a folder: give the file to write, e.g. {target / 'model.bin'}")
     parent = target.parent
     if not parent.is_dir():
         raise ContentStoreError(f"cannot write {target}: the folder {parent} does not exist")
+    if not overwrite and (target.exists() or target.is_symlink()):
+        raise ContentStoreError(_exists(target))
     return target
+
+
+def _exists(target: Path) -> str:
+    return f"{target} exists: not overwritten (pass overwrite=True, or --overwrite to medc-registry fetch)"
 
 
 def _parsed(cid: str) -> str:
@@ -185,12 +205,13 @@ class LocalContentStore:
         """Verified bytes of ``cid``; ContentNotFoundError / ContentIntegrityError / ContentSizeError."""
         return self._fetch(cid, None)  # type: ignore[return-value]
 
-    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
-        """Write the verified bytes of ``cid`` to ``path`` (atomically); returns their size."""
-        _check_target(path)
-        return self._fetch(cid, path)  # type: ignore[return-value]
+    def fetch_to(self, cid: str, path: str | os.PathLike[str], overwrite: bool = True) -> int:
+        """Write the verified bytes of ``cid`` to ``path`` (atomically; a file there is refused
+        unless ``overwrite``); returns their size."""
+        _check_target(path, overwrite)
+        return self._fetch(cid, path, overwrite)  # type: ignore[return-value]
 
-    def _fetch(self, cid: str, path: str | os.PathLike[str] | None) -> bytes | int:
+    def _fetch(self, cid: str, path: str | os.PathLike[str] | None, overwrite: bool = True) -> bytes | int:
         src = self._path(cid)
         if not src.is_file():
             raise ContentNotFoundError(f"CID {cid} is not in the local content store {self.root}")
@@ -199,7 +220,7 @@ class LocalContentStore:
             raise _too_large(cid, size, self.max_size, "refused before reading")
         with open(src, "rb") as fh, _spool() as spool:
             _verified_copy(fh, cid, spool, self.max_size)
-            return _deliver(spool, path)
+            return _deliver(spool, path, overwrite)
 
     def pin(self, cid: str) -> None:
         """Record a pin for ``cid`` (which must be stored)."""
@@ -347,12 +368,13 @@ class KuboContentStore:
         """
         return self._fetch(cid, None)  # type: ignore[return-value]
 
-    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
-        """Write the verified bytes of ``cid`` to ``path`` (atomically); returns their size."""
-        _check_target(path)
-        return self._fetch(cid, path)  # type: ignore[return-value]
+    def fetch_to(self, cid: str, path: str | os.PathLike[str], overwrite: bool = True) -> int:
+        """Write the verified bytes of ``cid`` to ``path`` (atomically; a file there is refused
+        unless ``overwrite``); returns their size."""
+        _check_target(path, overwrite)
+        return self._fetch(cid, path, overwrite)  # type: ignore[return-value]
 
-    def _fetch(self, cid: str, path: str | os.PathLike[str] | None) -> bytes | int:
+    def _fetch(self, cid: str, path: str | os.PathLike[str] | None, overwrite: bool = True) -> bytes | int:
         until = time.monotonic() + self.deadline
         with _spool() as spool:
             builder = CidBuilder(parse_cid(_parsed(cid)).version)
@@ -361,7 +383,7 @@ class KuboContentStore:
                 spool.write(chunk)
             try:
                 check_built(builder, cid)
-                return _deliver(spool, path)
+                return _deliver(spool, path, overwrite)
             except ContentMismatchError:
                 pass
             spool.seek(0)
@@ -374,7 +396,7 @@ class KuboContentStore:
                 raise ContentSizeError(str(exc)) from None
             except CidError as exc:
                 raise ContentStoreError(f"cannot read {cid} as a file: {exc}") from None
-            return _deliver(spool, path)
+            return _deliver(spool, path, overwrite)
 
     def _block(self, cid: Cid, until: float, root: str) -> bytes:
         return b"".join(self._stream("/block/get", {"arg": cid.encode()}, MAX_BLOCK_BYTES, until, root))

@@ -123,11 +123,11 @@ def load_state(home: Path) -> dict[str, Any]:
 
 
 def save_state(home: Path, state: Mapping[str, Any]) -> None:
-    """Write ``registry.json`` atomically."""
+    """Write ``registry.json`` atomically, never through a link (:func:`medc_registry.files.write_atomic`)."""
+    from .files import write_atomic
+
     home.mkdir(parents=True, exist_ok=True)
-    tmp = home / (STATE_FILE + ".tmp")
-    tmp.write_text(json.dumps(state, indent=2) + "\n")
-    os.replace(tmp, home / STATE_FILE)
+    write_atomic(home / STATE_FILE, (json.dumps(state, indent=2) + "\n").encode(), mode=0o644)
 
 
 def read_key_file(path: str | os.PathLike[str]) -> list[str]:

@@ -26,6 +26,7 @@ from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 from web3.logs import DISCARD
 
 from .chain import ChainClient, ChainError, ContractRevert, TxResult
+from .files import open_lock, write_atomic
 from .ranker import Ranker, Ranking
 from .records import Allocation, SharedModel, format_eth
 from .request import ModelRequest, request_id_from
@@ -129,7 +130,7 @@ class PendingRequests:
                 yield
                 return
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path.with_name(self.path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o600)
+            fd = open_lock(self.path.with_name(self.path.name + ".lock"))
             try:
                 try:
                     while True:
@@ -188,12 +189,7 @@ class PendingRequests:
             self._memory = records
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with open(tmp, "w") as fh:
-            fh.write(json.dumps(records, indent=1, sort_keys=True) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.path)
+        write_atomic(self.path, (json.dumps(records, indent=1, sort_keys=True) + "\n").encode())
 
     @staticmethod
     def _key(record: dict[str, Any]) -> str:

@@ -351,9 +351,11 @@ class Registry:
         """The bytes of ``cid`` from the content store, verified against the CID."""
         return self.store.fetch(cid)
 
-    def fetch_to(self, cid: str, path: str | os.PathLike[str]) -> int:
-        """Write the bytes of ``cid``, verified while they stream in, to ``path``; returns the size."""
-        return self.store.fetch_to(cid, path)
+    def fetch_to(self, cid: str, path: str | os.PathLike[str], overwrite: bool = True) -> int:
+        """Write the bytes of ``cid``, verified while they stream in, to ``path`` atomically (never
+        through a link there); returns the size. ``overwrite`` False: a file (or link) already at
+        ``path`` is refused, before fetching and again at the write."""
+        return self.store.fetch_to(cid, path, overwrite)
 
     # ------------------------------------------------------------ reviews and payments
     def review(self, allocation: int | Allocation, value: float) -> TxResult:
