@@ -12,11 +12,24 @@ record both (``config``, ``inputs``). Every field is compared, except:
 
 A record written before inputs were recorded (the committed docs/reproduction runs) compares its
 config only; a config recorded before a field existed reads as :meth:`TrainConfig.from_dict` says.
+
+A folder takes one run at a time: :func:`lock_run_folder` holds an exclusive lock on
+``<folder>/.run.lock`` (``flock``: the kernel releases it when the holder exits or is killed), so a
+second run into the same folder is refused with the holder's pid instead of mixing its metrics
+into the first's.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
+import os
+import stat
+import time
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 #: Fields never compared: they do not change what a run computes.
@@ -28,6 +41,52 @@ RESUME_FREE = ("total_steps", *PERFORMANCE_ONLY)
 class RunMismatch(ValueError):
     """A run folder holds another configuration than the one asked for; the message names every
     differing field and what to do."""
+
+
+class RunFolderBusy(RunMismatch):
+    """Another run holds the run folder's lock; the message names its pid and what to do."""
+
+
+#: The lock file :func:`lock_run_folder` holds in a run folder.
+LOCK_FILE = ".run.lock"
+
+
+@contextlib.contextmanager
+def lock_run_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
+    """Hold ``out``'s run lock (the folder is created if missing) for the ``with`` block; yields the
+    folder. The lock file is opened without following a link and records the holder's pid and start
+    time, for the refusal of a second run.
+
+    Raises:
+        RunFolderBusy: another process holds it (the message names its pid).
+        RunMismatch: the lock file is a link or not a regular file.
+    """
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / LOCK_FILE
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise RunMismatch(f"{lock} is a symlink: a run folder's lock must be a plain file; remove "
+                              "the link") from None
+        raise
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise RunMismatch(f"{lock} is not a regular file: a run folder's lock must be one")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode("ascii", "replace").split()
+            who = f"pid {holder[0]}" if holder and holder[0].isdigit() else "another process"
+            raise RunFolderBusy(f"{folder} is in use by another training run ({who}): two runs into "
+                                "one folder would mix their metrics and checkpoints; wait for it to "
+                                "end, or use another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()} {time.time():.0f}\n".encode(), 0)
+        yield folder
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def run_inputs(experts=(), expert_weights=None, side_users=()) -> dict[str, Any]:
