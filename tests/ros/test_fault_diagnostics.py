@@ -294,3 +294,72 @@ def test_a_pose_stamped_far_ahead_keeps_no_teammate_in_the_team(rclpy_context, c
         executor.shutdown()
         for node in (agent, driver):
             node.destroy_node()
+
+
+@pytest.mark.timing
+@pytest.mark.ros
+def test_a_declaration_counts_only_from_a_team_member(rclpy_context, capfd):
+    """Under end_on: declaration, the simulator refuses a declaration naming no agent of the team,
+    and every declaration while a node that moves no agent publishes declarations (a message does
+    not say which node sent it); each refusal is on /diagnostics with its reason. Once that node is
+    gone, the team's declaration ends the episode and the report is OK again."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from medc_common import contract
+    from medc_interfaces.msg import AgentMove, EpisodeStatus, SourceDeclaration
+    from medc_sim.node import SimNode
+    from rclpy.executors import SingleThreadedExecutor
+
+    sim = SimNode(parameter_overrides=_params(agents=1, walls=0, grid=10, max_steps=200, seed=1,
+                                              end_on="declaration", wait_for_subscribers=1))
+    member = rclpy.create_node("medc_agent_0", namespace=NS)
+    seen = _Seen(member)
+    statuses: list = []
+    move_pub = member.create_publisher(AgentMove, contract.move_topic(NS, "agent_0"),
+                                       contract.RELIABLE_QOS)
+    topic = contract.declaration_topic(NS)
+    declare_pub = member.create_publisher(SourceDeclaration, topic, contract.RELIABLE_QOS)
+
+    def on_status(msg) -> None:
+        statuses.append(msg)
+        if not msg.done:  # the member moves north, then south: the episode never ends on its own
+            move_pub.publish(AgentMove(agent_id="agent_0", episode=msg.episode, step=msg.step,
+                                       action=0 if msg.step % 2 == 0 else 4, sender="member"))
+
+    member.create_subscription(EpisodeStatus, contract.status_topic(NS), on_status, contract.RELIABLE_QOS)
+    intruder = rclpy.create_node("intruder", namespace=NS)
+    forge_pub = intruder.create_publisher(SourceDeclaration, topic, contract.RELIABLE_QOS)
+    executor = SingleThreadedExecutor()
+    for node in (sim, member, intruder):
+        executor.add_node(node)
+    log = _Log(capfd)
+
+    def declaration(agent_id: str):
+        s = next(m for m in reversed(statuses) if not m.done)
+        return SourceDeclaration(agent_id=agent_id, episode=s.episode, step=s.step, map_stamp=s.map_stamp,
+                                 cell_i=0, cell_j=0)
+
+    refused = lambda text: [s for s in seen.condition("medc_sim: declarations")  # noqa: E731
+                            if s.level == DiagnosticStatus.WARN and text in s.message]
+    try:
+        assert spin_until(executor, lambda: len(statuses) >= 3 and sim.count_publishers(topic) >= 2, 30)
+        forge_pub.publish(declaration("agent_0"))  # a node that moves no agent, naming agent_0
+        assert spin_until(executor, lambda: bool(refused("1 node(s) that move no agent publish on")), 30)
+        assert "/medc/intruder" in refused("move no agent")[0].message
+        declare_pub.publish(declaration("agent_7"))
+        named = "it names 'agent_7', not an agent of this team"
+        assert spin_until(executor, lambda: bool(refused(named)), 30)
+        assert not any(s.done for s in statuses)  # nothing ended the episode
+        # The intruder leaves: the member's declaration ends the episode.
+        executor.remove_node(intruder)
+        intruder.destroy_node()
+        assert spin_until(executor, lambda: sim.count_publishers(topic) == 1, 30)
+        declare_pub.publish(declaration("agent_0"))
+        reports = lambda: seen.condition("medc_sim: declarations")  # noqa: E731
+        assert spin_until(executor, lambda: any(s.done for s in statuses), 30), [s.message for s in reports()]
+        assert spin_until(executor, lambda: reports()[-1].level == DiagnosticStatus.OK, 30)
+        assert "ended by the team's declaration" in log() and "Traceback" not in log()
+    finally:
+        executor.shutdown()
+        for node in (sim, member):
+            node.destroy_node()

@@ -29,6 +29,7 @@ from medc_common import contract
 from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
+from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
@@ -310,6 +311,29 @@ class SimNode(MoveWatch, Node):
             return
         self._begin_episode()
 
+    def _declaration_refusal(self, msg) -> str | None:
+        """Why a declaration is not the team's, or None. It must name an agent of the team that is
+        not taken out, and every node that publishes declarations must be one that publishes an
+        agent's moves (a message does not say which node sent it: while another node publishes
+        declarations, none can be told from its own)."""
+        agent = str(msg.agent_id)
+        if agent not in self.ids:
+            return (f"it names {printable(agent, 40)!r}, not an agent of this team "
+                    f"({', '.join(self.ids)}); a declaration counts only from a team member")
+        if self.ids.index(agent) in self.book.lost:
+            return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
+                    "again")
+        movers = {(i.node_namespace, i.node_name) for a in self.ids
+                  for i in self.get_publishers_info_by_topic(contract.move_topic(self.namespace_, a))}
+        topic = contract.declaration_topic(self.namespace_)
+        publishers = {(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)}
+        strangers = sorted(publishers - movers)
+        if strangers:
+            names = ", ".join(printable(f"{ns.rstrip('/')}/{name}", 80) for ns, name in strangers[:4])
+            return (f"{len(strangers)} node(s) that move no agent publish on {topic} ({names}): a "
+                    "declaration cannot be told from theirs; refused until they are gone")
+        return None
+
     def _on_declaration(self, msg) -> None:
         """End the episode on the team's declaration (``end_on`` 'declaration' or 'either')."""
         if not self.started or self.finished:
@@ -325,10 +349,17 @@ class SimNode(MoveWatch, Node):
             return
         try:
             cell = declared_cell(msg.cell_i, msg.cell_j, core.config.grid)
+            refusal = self._declaration_refusal(msg)
         except ValueError as exc:
             self.dropped += 1
             self.get_logger().warning(f"dropped declaration: {exc}")
             return
+        if refusal:
+            self.dropped += 1
+            self.health.set("declarations", DiagnosticStatus.WARN, f"declaration refused: {refusal}")
+            return
+        if self.health.level("declarations") != DiagnosticStatus.OK:
+            self.health.set("declarations", DiagnosticStatus.OK, f"declaration of {msg.agent_id} taken")
         finished = core.end_by_declaration(cell)
         self.get_logger().info(
             f"episode {finished.episode} ended by the team's declaration at step {finished.length} "
