@@ -310,20 +310,33 @@ def infotaxis_scores(posterior: torch.Tensor, positions: torch.Tensor, mask: tor
 # ------------------------------------------------------------------------------------------
 
 
-def controller_scores(name: str, env, mask: torch.Tensor | None = None, **options) -> torch.Tensor:
+def controller_scores(name: str, env, mask: torch.Tensor | None = None, envs: torch.Tensor | None = None,
+                      **options) -> torch.Tensor:
     """float32 [B,N,8]: controller ``name``'s move scores for the current state of the batched
     target-localization core ``env`` (it reads the core's team memory, positions, walls and mask;
-    ``options`` go to the controller's function). Raises ValueError for an unknown name, a core of
-    another application, or a posterior-reading controller on a core that keeps no posterior."""
+    ``options`` go to the controller's function). ``envs`` (int64 [K], optional): score only those
+    environments, [K,N,8] (``mask`` is then theirs, [K,N,8], or None for the core's); the searchers
+    then spend nothing on the others. Raises ValueError for an unknown name, a core of another
+    application, or a posterior-reading controller on a core that keeps no posterior."""
     _check(name, env)
     mem = env.memory
+    if envs is not None and mask is None:
+        mask = env.mask[envs]
     mask = env.mask if mask is None else mask
     if name in SEARCHERS:
         from medc_training.searchers import searcher_scores
 
         rects = mem.rects if mem.sensing.line == "exact" else None
-        return searcher_scores(mem.log_post, env.positions, mask, env.walls, mem.sensing, rects=rects,
-                               visit_map=mem.visit_map, **SEARCHERS[name], **options)
+        log_post, positions, walls, visits = mem.log_post, env.positions, env.walls, mem.visit_map
+        if envs is not None:
+            log_post, positions, walls, visits = log_post[envs], positions[envs], walls[envs], visits[envs]
+            rects = None if rects is None else rects[envs]
+        return searcher_scores(log_post, positions, mask, walls, mem.sensing, rects=rects,
+                               visit_map=visits, **SEARCHERS[name], **options)
+    if envs is not None:  # the other controllers are cheap: score every environment, keep the chosen
+        full = env.mask.clone()
+        full[envs] = mask
+        return controller_scores(name, env, full, **options)[envs]
     if name == "greedy":
         return greedy_scores(mem.posterior(), env.positions, mask, mem.visit_map, **options)
     if mem.log_post is not None:

@@ -8,6 +8,9 @@ finds probable enough (see :mod:`medc_training.medc`).
 Kinds:
 - :class:`BundleExpert` — a trained policy bundle of any architecture (scores = log-probs).
 - :class:`OracleExpert` — scripted, from the environment's BFS oracle (needs the env).
+- :class:`ControllerExpert` — a classical search controller of :mod:`medc_training.controllers`
+  (``infotaxis``, ``space-aware``, ...): it reads the team's memory in the environment, as a searcher
+  in the field would, and is asked only for the rows of guided episodes.
 - :class:`RandomExpert` — a random ranking of the valid moves every call.
 - :class:`BiasedExpert` — always suggests the same action, whatever it sees.
 - :class:`MaliciousExpert` — knows the right action (from an inner expert) and suggests
@@ -153,6 +156,69 @@ class OracleExpert(Expert):
         return full[rows].masked_fill(~mask[rows], NEG_INF)
 
 
+class ControllerExpert(Expert):
+    """A classical search controller (:data:`medc_training.controllers.CONTROLLERS`) as an expert.
+
+    Its scores are the controller's move scores for the bound target-localization core's current
+    state (the team memory, not the observation: a searcher needs the posterior, which the agents'
+    observations only summarise), computed only for the environments of the rows asked about. Its
+    attributes are those of the environment it is bound to: a controller advises any environment
+    its model covers, so the contract's QoS rule ranks it as an exact match.
+    """
+
+    def __init__(self, controller: str) -> None:
+        from .controllers import CONTROLLERS
+
+        if controller not in CONTROLLERS:
+            raise ExpertError(f"unknown controller {str(controller)[:40]!r} for controller:NAME; "
+                              f"choose one of {', '.join(CONTROLLERS)}")
+        self.controller = controller
+        self.name = f"controller:{controller}"
+        self.env = None
+        #: Environment rows (agents) this expert has scored: guided steps only.
+        self.rows_scored = 0
+
+    def bind(self, env) -> ControllerExpert:
+        """Attach the target-localization core whose team this controller advises; returns self.
+        Raises ExpertError when the controller cannot play that core (another application, or a
+        posterior-reading controller on a core that keeps no posterior)."""
+        from .controllers import _check
+
+        try:
+            _check(self.controller, env)
+        except ValueError as exc:
+            raise ExpertError(f"expert {self.name}: {exc}") from None
+        self.env = env
+        self.attributes = dict(getattr(env, "attributes", {}) or {})
+        return self
+
+    def scores(self, obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        env = self._bound()
+        rows = torch.arange(env.num_envs * env.num_agents, device=mask.device)
+        if mask.shape[0] != rows.numel():
+            raise ExpertError(f"{self.name}.scores needs the full batch of {rows.numel()} agents, got "
+                              f"{mask.shape[0]}; use scores_rows for a subset")
+        return self.scores_rows(obs, mask, rows)
+
+    def scores_rows(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        from .controllers import controller_scores
+
+        env = self._bound()
+        n, a = env.num_agents, env.num_actions
+        rows = rows.to(env.device)
+        envs, slot = torch.unique(rows // n, return_inverse=True)
+        team_mask = mask.to(env.device).view(env.num_envs, n, a)[envs]
+        scores = controller_scores(self.controller, env, team_mask, envs=envs)  # [K,N,A]
+        self.rows_scored += int(rows.numel())
+        out = scores[slot, rows % n].to(obs.device)
+        return out.masked_fill(~mask[rows.to(mask.device)], NEG_INF)
+
+    def _bound(self):
+        if self.env is None:
+            raise ExpertError(f"{self.name} needs the environment: call bind(env) first")
+        return self.env
+
+
 class RandomExpert(Expert):
     """Suggests a uniformly random ranking of the valid moves (a useless expert)."""
 
@@ -242,12 +308,15 @@ def parse_expert(spec: str, generator: torch.Generator | None = None, device: st
     """Build an expert from a CLI spec.
 
     ``PATH`` (a bundle file) | ``random`` | ``biased`` or ``biased:A`` | ``malicious:PATH`` |
-    ``malicious:oracle`` | ``oracle``.
+    ``malicious:oracle`` | ``oracle`` | ``controller:NAME`` (a classical search controller, e.g.
+    ``controller:space-aware``) | ``malicious:controller:NAME``.
     """
     if spec == "random":
         return RandomExpert(generator)
     if spec == "oracle":
         return OracleExpert()
+    if spec.startswith("controller:"):
+        return ControllerExpert(spec.split(":", 1)[1])
     if spec == "biased" or spec.startswith("biased:"):
         action = spec.split(":", 1)[1] if ":" in spec else "0"
         if not action.isdigit():
@@ -262,7 +331,7 @@ def parse_expert(spec: str, generator: torch.Generator | None = None, device: st
     if not path.is_file():
         raise ExpertError(
             f"expert {spec!r} is neither a bundle file nor one of: random, biased[:A], oracle, "
-            "malicious:PATH, malicious:oracle"
+            "controller:NAME, malicious:PATH, malicious:oracle, malicious:controller:NAME"
         )
     from .bundle import load_bundle  # the bundle module is only needed for file experts
 

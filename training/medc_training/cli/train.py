@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
 from ..console import QUIET_HELP, HelpFormatter, epilog
-from ..envs import core_has_estimate
+from ..envs import WORLDS, core_has_estimate
 from ..envs.tl_observation import DEFAULT_OBSERVATION
 from ..envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 
@@ -83,12 +83,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "docs/environments.md)")
     p.add_argument("--sensing", choices=sorted(SENSING_PRESETS),
                    help="target localization's sensing model (default paper-simple; docs/environments.md)")
+    p.add_argument("--world", choices=WORLDS,
+                   help="target localization's world: grid (the project's layouts, default) | radbench (the "
+                        "field benchmark's world on fresh episodes, docs/radbench.md; --walls is then the "
+                        "most obstructions of an episode, 0-7, and --sensing realistic)")
     p.add_argument("--method", choices=METHODS, default="sparse",
                    help="sparse (MDRL, sparse reward), medc (Multi-Expert Demonstration Cloning), rs (reward "
                         "shaping), il (imitation), frl (federated averaging); default sparse")
     p.add_argument("--expert", action="append", default=[], metavar="SPEC",
                    help="repeatable: a bundle path | random | biased[:A] | malicious:PATH | "
-                        "malicious:oracle | oracle")
+                        "malicious:oracle | oracle | controller:NAME (a classical searcher, e.g. "
+                        "controller:space-aware; medc-controllers --help)")
     p.add_argument("--expert-weight", action="append", type=float, metavar="W",
                    help="repeatable, one per --expert in the same order: its roulette-wheel weight R_S "
                         "(normalised; default: from the experts' environment attributes by the "
@@ -157,6 +162,10 @@ def config_from_args(args: argparse.Namespace):
         env_options.setdefault("observation", args.observation)
     if args.sensing is not None and args.sensing != DEFAULT_SENSING:
         env_options.setdefault("sensing", args.sensing)
+    if args.world is not None and args.world != "grid":
+        if args.sensing is None:
+            env_options.setdefault("sensing", "realistic")
+        env_options.setdefault("world", args.world)
     if env_options:
         overrides["env_options"] = env_options
     return scaled_config(args.scale, **overrides)

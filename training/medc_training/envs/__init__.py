@@ -14,17 +14,30 @@ from typing import Any
 from medc_training.envs.core import BatchedEnv, StepOutput
 
 ENV_NAMES: tuple[str, ...] = ("target_localization", "fleet_coordination", "maze_cleaning")
+#: Target localization's worlds: ``grid`` (the project's layouts and sensing presets) and
+#: ``radbench`` (the field benchmark's world on fresh episodes, medc_training.radbench.world).
+WORLDS: tuple[str, ...] = ("grid", "radbench")
 
 __all__ = [
-    "ENV_NAMES", "BatchedEnv", "StepOutput", "core_has_estimate", "core_options", "make_batched", "make_env",
+    "ENV_NAMES", "WORLDS", "BatchedEnv", "StepOutput", "core_has_estimate", "core_options", "make_batched",
+    "make_env",
 ]
 
 
-def _core_class(name: str) -> type[BatchedEnv]:
+def _core_class(name: str, world: str = "grid") -> type[BatchedEnv]:
     if name == "target_localization":
+        if world not in WORLDS:
+            raise ValueError(f"unknown world {str(world)[:40]!r} for target_localization; choose one of "
+                             f"{', '.join(WORLDS)}")
+        if world == "radbench":
+            from medc_training.radbench.world import BenchWorld
+
+            return BenchWorld
         from medc_training.envs.target_localization import TargetLocalization
 
         return TargetLocalization
+    if world != "grid":
+        raise ValueError(f"only target_localization has other worlds, not {name!r}")
     if name == "fleet_coordination":
         from medc_training.envs.fleet_coordination import FleetCoordination
 
@@ -36,10 +49,13 @@ def _core_class(name: str) -> type[BatchedEnv]:
     raise ValueError(f"unknown environment {name!r}; choose one of {', '.join(ENV_NAMES)}")
 
 
-def core_options(name: str) -> tuple[str, ...]:
-    """The keyword options application ``name``'s core takes (besides num_envs, device, seed)."""
+def core_options(name: str, world: str = "grid") -> tuple[str, ...]:
+    """The keyword options application ``name``'s core takes (besides num_envs, device, seed) in
+    ``world``; target localization's include ``world`` itself."""
     common = ("self", "num_envs", "device", "seed")
-    return tuple(p for p in inspect.signature(_core_class(name).__init__).parameters if p not in common)
+    signature = inspect.signature(_core_class(name, world).__init__)
+    options = tuple(p for p in signature.parameters if p not in common)
+    return (*options, "world") if name == "target_localization" else options
 
 
 def core_has_estimate(name: str) -> bool:
@@ -54,13 +70,15 @@ def make_batched(
 
     Options per application (all keyword; unknown ones raise ValueError): see
     docs/environments.md, e.g. target_localization: agents, walls, grid, max_steps,
-    reward_shaping, noise.
+    reward_shaping, noise, world ("grid" or "radbench": the field benchmark's world).
     """
-    cls = _core_class(name)
-    allowed = core_options(name)
+    world = options.pop("world", "grid")
+    cls = _core_class(name, world)
+    allowed = core_options(name, world)
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise ValueError(f"unknown option(s) {unknown} for {name}; allowed options: {', '.join(allowed)}")
+        where = f"{name} in the {world} world" if world != "grid" else name
+        raise ValueError(f"unknown option(s) {unknown} for {where}; allowed options: {', '.join(allowed)}")
     return cls(num_envs=num_envs, device=device, seed=seed, **options)
 
 

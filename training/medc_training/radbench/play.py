@@ -43,8 +43,8 @@ from .metrics import EpisodeResult
 from .scenario import noise_uniforms
 from .sets import BenchSet
 
-__all__ = ["TEAM_SENSING", "BenchCore", "core_policy", "play_set", "poisson_counts", "policy_names",
-           "resolve_policy"]
+__all__ = ["TEAM_SENSING", "BenchCore", "core_policy", "episode_tensors", "play_set", "poisson_counts",
+           "policy_names", "resolve_policy", "world_rates"]
 
 #: The team's sensor model on the benchmark: the realistic preset (its name, so that bundles trained
 #: under it play) with the benchmark's strength range.
@@ -76,6 +76,39 @@ def poisson_counts(rate: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         ok = torch.special.gammaincc((mid + 1).to(torch.float64), lam) >= u
         hi = torch.where(active & ok, mid, hi)
         lo = torch.where(active & ~ok, mid, lo)
+
+
+def episode_tensors(episodes: Sequence[Any], grid: int, slots: int, device: torch.device | str
+                    ) -> dict[str, torch.Tensor]:
+    """The layouts of benchmark ``episodes`` as a core takes them: walls bool [K,G,G], target [K,2],
+    positions [K,N,2], distance (BFS to the source) [K,G,G], strength and background float32 [K],
+    rects (the walls' rectangles, ``slots`` per episode)."""
+    walls = torch.stack([torch.from_numpy(e.walls(grid)) for e in episodes]).to(device)
+    target = torch.tensor([e.source for e in episodes], dtype=torch.long, device=device)
+    source_map = torch.zeros_like(walls)
+    source_map[torch.arange(len(episodes), device=device), target[:, 0], target[:, 1]] = True
+    return {
+        "walls": walls,
+        "target": target,
+        "positions": torch.tensor([e.starts for e in episodes], dtype=torch.long, device=device),
+        "distance": bfs_distance(~walls, source_map),
+        "strength": torch.tensor([e.strength for e in episodes], dtype=torch.float32, device=device),
+        "background": torch.tensor([float(e.background) for e in episodes], dtype=torch.float32,
+                                   device=device),
+        "rects": wall_rectangles(walls, slots),
+    }
+
+
+def world_rates(sensing: SensingModel, cell_m: float, lay: dict[str, torch.Tensor]) -> torch.Tensor:
+    """float32 [K,N]: the benchmark world's mean rate (counts/s) at each agent of ``lay`` (positions,
+    target, walls, rects, strength, background): ``S / d_m**2 + B`` with d floored at 1 m where the
+    line of sight is clear (the exact rule of ``sensing``), ``B`` where an obstruction blocks it."""
+    positions, target = lay["positions"], lay["target"]
+    factor = geometric_factor(sensing, positions, target.unsqueeze(1), lay["walls"], lay["rects"])[..., 0]
+    delta = (positions - target.unsqueeze(1)).to(torch.float32)
+    d2_m = (delta * delta).sum(-1) * (cell_m ** 2)
+    near = torch.where(factor > 0, 1.0 / d2_m.clamp(min=1.0), torch.zeros_like(d2_m))
+    return lay["strength"].unsqueeze(1) * near + lay["background"].unsqueeze(1)
 
 
 class BenchCore(TargetLocalization):
@@ -112,21 +145,9 @@ class BenchCore(TargetLocalization):
         slots = max(1, bench_set.obstructions)
         self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device, self.sensing,
                                  posterior=True, max_walls=slots, rule_out=True)
+        self.cell_m = bench_set.cell_m
+        self._defs = episode_tensors(chosen, self.grid, slots, self.device)
         g, dev = self.grid, self.device
-        walls = torch.stack([torch.from_numpy(e.walls(g)) for e in chosen]).to(dev)
-        target = torch.tensor([e.source for e in chosen], dtype=torch.long, device=dev)
-        source_map = torch.zeros_like(walls)
-        source_map[torch.arange(len(chosen), device=dev), target[:, 0], target[:, 1]] = True
-        self._defs = {
-            "walls": walls,
-            "target": target,
-            "positions": torch.tensor([e.starts for e in chosen], dtype=torch.long, device=dev),
-            "distance": bfs_distance(~walls, source_map),
-            "strength": torch.tensor([e.strength for e in chosen], dtype=torch.float32, device=dev),
-            "background": torch.tensor([float(e.background) for e in chosen], dtype=torch.float32,
-                                       device=dev),
-            "rects": wall_rectangles(walls, slots),
-        }
         noise = [noise_uniforms(e.noise_seed, self.max_steps, self.num_agents, run) for e in chosen]
         self._noise = torch.from_numpy(np.stack(noise)).to(dev)  # float64 [K, T+1, N]
         self._rows = torch.arange(self.num_envs, device=dev)
@@ -172,13 +193,7 @@ class BenchCore(TargetLocalization):
 
     def world_rates(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
         """float32 [K,N]: the world's mean rate (counts/s) at each agent of ``lay``'s rows."""
-        positions, target = lay["positions"], lay["target"]
-        factor = geometric_factor(self.sensing, positions, target.unsqueeze(1), lay["walls"],
-                                  lay["rects"])[..., 0]
-        delta = (positions - target.unsqueeze(1)).to(torch.float32)
-        d2_m = (delta * delta).sum(-1) * (self.bench_set.cell_m ** 2)
-        near = torch.where(factor > 0, 1.0 / d2_m.clamp(min=1.0), torch.zeros_like(d2_m))
-        return lay["strength"].unsqueeze(1) * near + lay["background"].unsqueeze(1)
+        return world_rates(self.sensing, self.cell_m, lay)
 
     def _read(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
         u = self._noise[lay["rows"], lay["step"].clamp(max=self.max_steps)]  # [K,N]

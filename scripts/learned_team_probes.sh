@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# The probes of docs/learned-team.md: one training seed, one variable at a time, on the benchmark's
+# world (medc-train --world radbench), each bundle and the classical searchers played on the
+# validation episodes (a set file of the benchmark's generator at seed 4043, never the frozen sets).
+# Every step writes its result under docs/reproduction/learned-team/probes/ and is skipped when the
+# result exists, so an interrupted probe resumes where it stopped.
+#
+#   scripts/learned_team_probes.sh [STEPS]     # default 300000 training steps per probe
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source scripts/env.sh
+steps=${1:-300000}
+out=docs/reproduction/learned-team/probes
+val=${MEDC_VALIDATION_DIR:-/tmp/medc-validation}
+mkdir -p "$out" "$val"
+if [[ ! -s "$val/g20-a3.json" ]]; then
+  medc-radbench --generate "$val" --seed 4043 --grid 20 --agents 3 --quiet > /dev/null
+fi
+sets="$val/g20-a3.json"
+per=16  # validation episodes per set: 384 in all
+
+play() {  # name, then policies
+  local name=$1; shift
+  if [[ -s "$out/$name.json" ]]; then echo "skip play $name (done)"; return; fi
+  medc-radbench "$@" --sets-file "$sets" --grid 20 --agents 3 --episodes $per --quiet \
+    --out "$out/$name.episodes.jsonl" > "$out/$name.json.part"
+  mv "$out/$name.json.part" "$out/$name.json"
+  echo "played $name"
+}
+
+train() {  # name, then medc-train arguments
+  local name=$1; shift
+  if [[ -s "$out/$name/policy.safetensors" ]]; then echo "skip train $name (done)"; return; fi
+  local resume=()
+  [[ -s "$out/$name/checkpoint.safetensors" ]] && resume=(--resume)
+  medc-train --world radbench --grid 20 --agents 3 --walls 7 --max-steps 120 --steps "$steps" \
+    --seed 0 --num-envs 32 --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
+    --out "$out/$name" "${resume[@]}" "$@"
+  echo "trained $name"
+}
+
+play searchers --reference infotaxis-exact infotaxis-exact infotaxis random
+train sparse-300k --method sparse
+train medc-infotaxis-300k --method medc --expert controller:infotaxis
+play bundles --reference infotaxis-exact infotaxis-exact \
+  "$out/sparse-300k/policy.safetensors" "$out/medc-infotaxis-300k/policy.safetensors"

@@ -1,0 +1,128 @@
+"""The benchmark's world as a training environment: fresh RAD-A2C episodes, never the frozen sets.
+
+:class:`BenchWorld` is the batched target-localization core whose episodes come from the benchmark's
+own generator (:func:`~medc_training.radbench.scenario.generate_set`: obstructions of 2-5 m, sources
+at least 10 m from every start, strength and background matched to RAD-A2C's SNR bins) and whose
+readings follow the benchmark's world (``S / d**2 + B`` counts/s, background only where an
+obstruction blocks the line of sight, Poisson counts), exactly as :class:`~medc_training.radbench.
+play.BenchCore` plays a frozen set. The team (memory, Bayes estimator, observations, experts that
+read it) uses the team's sensor model, :data:`~medc_training.radbench.play.TEAM_SENSING` by default.
+
+Where they differ: a training world draws its episodes from seeds far from the frozen sets' (the
+sets use seed 2021; a world draws from ``TRAIN_SEED_BASE`` plus a number taken from the core's
+generator, so ``reset(seed)`` replays the same episodes), mixes every obstruction count from 0 to
+``walls`` and the three SNR bins in equal shares, draws its count noise from the core's generator
+instead of the episode's stream, and records nothing per episode.
+
+Build it through the registry of cores, so that a training config, a bundle's manifest and the
+evaluator name it: ``make_batched("target_localization", world="radbench", grid=20, agents=3,
+walls=7, max_steps=120, sensing="realistic")`` (``medc-train --world radbench``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from medc_training.envs.target_localization import TargetLocalization
+from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory
+from medc_training.envs.tl_sensing import SensingModel, parse_sensing
+
+from .play import TEAM_SENSING, episode_tensors, world_rates
+from .scenario import GRIDS, MAX_STEPS, OBSTRUCTION_COUNTS, generate_set
+
+__all__ = ["SNR_MIX", "TRAIN_SEED_BASE", "WORLD", "BenchWorld", "draw_episodes"]
+
+#: The name a config, a manifest and ``make_batched(..., world=...)`` give this world.
+WORLD = "radbench"
+#: Training worlds draw episodes from seeds at and above this (the frozen sets use 2021).
+TRAIN_SEED_BASE = 1_000_000_000
+#: The SNR bins a training world mixes, in equal shares (those of the frozen sets).
+SNR_MIX: tuple[str, ...] = ("low", "medium", "high")
+
+
+def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int):
+    """About ``count`` fresh benchmark episodes (list of :class:`~medc_training.radbench.scenario.
+    Episode`), an equal share for every obstruction count 0..``max_obstructions`` and SNR bin of
+    :data:`SNR_MIX`, shuffled; the same arguments give the same episodes."""
+    groups = [(o, name) for o in range(max_obstructions + 1) for name in SNR_MIX]
+    per = max(1, -(-count // len(groups)))
+    episodes = []
+    for o, name in groups:
+        drawn, _ = generate_set(grid, agents, o, name, per, seed=seed)
+        episodes.extend(drawn)
+    order = np.random.default_rng(seed).permutation(len(episodes))
+    return [episodes[i] for i in order]
+
+
+class BenchWorld(TargetLocalization):
+    """Target localization in the benchmark's world, on fresh episodes (module docstring).
+
+    ``walls``: the most obstructions an episode has (0..7; every count up to it in equal shares);
+    ``grid``: 20 or 30 (the benchmark's areas); ``max_steps``: the benchmark's 120 by default;
+    ``sensing``: the team's model (``"realistic"`` or None: :data:`TEAM_SENSING`; it must have the
+    world's cell size, the exact line of sight and obstructions that block it); ``pool``: episodes
+    drawn at a time (each is played once, then a fresh pool is drawn).
+    """
+
+    def __init__(self, num_envs: int = 1, device: str | torch.device = "cpu", seed: int | None = None,
+                 agents: int = 3, walls: int = 7, grid: int = 20, max_steps: int = MAX_STEPS,
+                 reward_shaping: bool = False, copy_obs: bool = True, observation: str = DEFAULT_OBSERVATION,
+                 sensing: SensingModel | str | dict | None = None, pool: int = 2048) -> None:
+        if grid not in GRIDS:
+            raise ValueError(f"the benchmark's world has grids of {sorted(GRIDS)} cells, got {grid!r}")
+        if isinstance(walls, bool) or not isinstance(walls, int) or walls not in OBSTRUCTION_COUNTS:
+            raise ValueError("walls (the most obstructions of an episode) must be "
+                             f"0..{max(OBSTRUCTION_COUNTS)}, got {walls!r}")
+        if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
+            raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
+        if sensing is None or sensing == TEAM_SENSING.name:
+            sensing = TEAM_SENSING
+        sensing = parse_sensing(sensing)
+        spec = GRIDS[grid]
+        if sensing.cell_size_m != spec.cell_m or sensing.line != "exact" or sensing.attenuation != 0.0:
+            raise ValueError("the team's sensing model must have the world's cell size, the exact line of "
+                             "sight and obstructions that block it (attenuation 0), e.g. 'realistic'")
+        super().__init__(num_envs=num_envs, device=device, seed=seed, agents=agents, walls=0, grid=grid,
+                         max_steps=max_steps, reward_shaping=reward_shaping, copy_obs=copy_obs,
+                         observation=observation, sensing=sensing, posterior=True, end_on_find=True)
+        self.num_walls = walls
+        self.cell_m = spec.cell_m
+        self.pool_size = pool
+        self._slots = max(1, max(OBSTRUCTION_COUNTS))
+        self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device, self.sensing,
+                                 posterior=True, max_walls=self._slots, rule_out=True)
+        self._episodes: dict[str, torch.Tensor] | None = None
+        self._next = 0
+
+    @property
+    def attributes(self) -> dict[str, Any]:
+        return {"agents": self.num_agents, "walls": self.num_walls, "grid": self.grid,
+                "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD}
+
+    def _draw_pool(self) -> None:
+        seed = TRAIN_SEED_BASE + int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator,
+                                                   device=self.device))
+        episodes = draw_episodes(self.grid, self.num_agents, self.num_walls, self.pool_size, seed)
+        self._episodes = episode_tensors(episodes, self.grid, self._slots, self.device)
+        self._next = 0
+
+    def _take_layouts(self, k: int) -> dict[str, torch.Tensor]:
+        parts: list[dict[str, torch.Tensor]] = []
+        while k > 0:
+            if self._episodes is None or self._next >= len(self._episodes["target"]):
+                self._draw_pool()
+            take = min(k, len(self._episodes["target"]) - self._next)
+            parts.append({key: v[self._next:self._next + take] for key, v in self._episodes.items()})
+            self._next += take
+            k -= take
+        return parts[0] if len(parts) == 1 else {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+
+    def _reseeded(self) -> None:
+        self._episodes, self._next = None, 0
+
+    def _read(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.poisson(world_rates(self.sensing, self.cell_m, lay), generator=self.generator)
+
