@@ -3,8 +3,10 @@
 Every agent keeps the team's posterior over the source cell (``TeamObserver.memory``, the training
 environment's :class:`~medc_training.envs.tl_observation.TeamMemory`); all agents hold the same one.
 One agent publishes it for the team: the lowest-numbered live one (:class:`EstimateRole`), agent_0
-while it lives; an agent with ``publish_estimate`` false never does. After each team step it has
-decided, before its move, it publishes (topics: ``medc_common.contract``):
+while it lives; an agent with ``publish_estimate`` false never does. Every agent keeps the estimate
+of its latest steps, so the agent the role comes to first publishes those of the steps since the
+last move of the teammates it takes over from. After each team step it has decided, before its
+move, it publishes (topics: ``medc_common.contract``):
 
 - ``<ns>/team/source_estimate`` (geometry_msgs/PoseWithCovarianceStamped, frame ``map``, stamp =
   the step's): the posterior mean of the source's position and its covariance (x, y block; the
