@@ -117,3 +117,27 @@ def test_medc_bridge_reads_unquoted_addresses_and_refuses_them_clearly_from_a_pa
     assert "Traceback" not in done.stderr
     done = _bridge(tmp_path, "-p", "budget:=plenty")
     assert done.returncode == 2 and "budget 'plenty' is not an amount" in done.stderr, done.stderr
+
+
+def test_a_link_planted_in_the_bundle_cache_is_replaced_not_written_through(bundles, tmp_path):
+    """The bridge stores a vetted bundle under <cache>/<cid>.safetensors through a fresh temporary
+    file renamed into place: a link planted at that name is replaced, its target untouched, and no
+    temporary file is left."""
+    from medc_registry.bridge_node import RegistryBridge
+
+    data = bundles["north"].read_bytes()
+
+    class Store:
+        def fetch(self, cid):
+            return data
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    cid = "QmYwAPJzv5CZsnA625s3Xf2nemtYgPpHdWEz79ojWnPbdG"
+    (cache / f"{cid}.safetensors").symlink_to(victim)
+    path, _manifest = RegistryBridge(Store(), cache).fetch(cid)
+    assert victim.read_text() == "precious\n"
+    assert not path.is_symlink() and path.read_bytes() == data
+    assert sorted(p.name for p in cache.iterdir()) == [f"{cid}.safetensors"]

@@ -177,11 +177,12 @@ class RegistryBridge:
             raise BridgeError(f"content {cid} is not a valid policy bundle: {exc}") from exc
         except Exception as exc:  # no file may end in anything but a refusal
             raise BridgeError(f"content {cid} is not a valid policy bundle ({type(exc).__name__})") from exc
+        from medc_registry.files import write_atomic
+
         path = self.cache_dir / f"{cid}.safetensors"
-        # Write then rename, so an agent never reads a half-written file.
-        with tempfile.NamedTemporaryFile(dir=self.cache_dir, delete=False, suffix=".part") as tmp:
-            tmp.write(data)
-        os.replace(tmp.name, path)
+        # A fresh temporary file renamed into place: an agent never reads a half-written file, a
+        # failed write leaves nothing behind, and a link planted at the name is replaced.
+        write_atomic(path, data, mode=0o644)
         return path, bundle.manifest
 
     def review(self, allocation_id: int, cid: str, score: float) -> str:
