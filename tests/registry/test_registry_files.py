@@ -130,3 +130,21 @@ def test_medc_registry_fetch_refuses_an_existing_output_unless_overwrite(tmp_pat
         done = fetch("--overwrite")
         assert done.returncode == 0, done.stderr
     assert out.read_bytes() == b"model bytes"
+
+
+def test_fetch_to_refuses_a_device_or_fifo_even_when_asked_to_overwrite(tmp_path):
+    """``fetch -o /dev/full --overwrite`` would rename a file over the device node (as root, it
+    could); a device or FIFO is refused before anything is fetched, and left as it was."""
+    from medc_registry.content import ContentStoreError, LocalContentStore
+
+    store = LocalContentStore(tmp_path / "store")
+    cid = store.add(b"model bytes")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    before = os.stat("/dev/full")
+    for target in ("/dev/full", fifo):
+        with pytest.raises(ContentStoreError, match="is not a regular file"):
+            store.fetch_to(cid, target, overwrite=True)
+    after = os.stat("/dev/full")
+    assert (after.st_ino, after.st_rdev) == (before.st_ino, before.st_rdev)
+    assert {p.name for p in tmp_path.iterdir()} == {"store", "fifo"}

@@ -18,6 +18,7 @@ import contextlib
 import http.client
 import os
 import shutil
+import stat
 import tempfile
 import time
 from collections.abc import Iterator
@@ -143,15 +144,23 @@ def _deliver(spool: IO[bytes], path: str | os.PathLike[str] | None,
 
 def _check_target(path: str | os.PathLike[str], overwrite: bool = True) -> Path:
     """``path`` as a file to write, refused (before anything is fetched) when it is a folder, its
-    folder does not exist, or (unless ``overwrite``) anything, a link included, is there."""
+    folder does not exist or cannot be written, something other than a file or link is there (a
+    device such as ``/dev/full``), or (unless ``overwrite``) anything, a link included, is there."""
     target = Path(path)
     if target.is_dir():
         raise ContentStoreError(f"{target} is a folder: give the file to write, e.g. {target / 'model.bin'}")
     parent = target.parent
     if not parent.is_dir():
         raise ContentStoreError(f"cannot write {target}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ContentStoreError(f"cannot write {target}: the folder {parent} is not writable")
     if not overwrite and (target.exists() or target.is_symlink()):
         raise ContentStoreError(_exists(target))
+    with contextlib.suppress(FileNotFoundError):
+        mode = target.lstat().st_mode
+        if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+            raise ContentStoreError(f"{target} is not a regular file (a device, FIFO or socket): give "
+                                    "a file to write")
     return target
 
 
