@@ -133,3 +133,23 @@ def test_a_quote_over_the_total_allowed_is_refused_before_anything_is_signed(reg
     with pytest.raises(ContractRevert, match="NoEligibleModels") as info:
         requester.request_models(APP, A3W2, max_price=PRICE - 1)
     assert "given" in info.value.values["limit"]
+
+
+def test_equal_qos_goes_to_the_cheapest_across_ranking_pages(registry, users, monkeypatch):
+    """Ten exact matches, the dearest shared first (10P ... P). With ranking pages of three
+    candidates (the contract takes up to 256; a small page makes the paging run here), the two
+    cheapest are taken, found page by page and round by round among the equally ranked rest."""
+    from medc_registry import ranker
+
+    monkeypatch.setattr(ranker, "MAX_CANDIDATES", 5)
+    owners, requester = users[:3], users[3]
+    models = [owners[i % 3].share_model(b"m%d" % i, APP, A3W2, (10 - i) * PRICE) for i in range(10)]
+    near = owners[0].share_model(b"near", APP, {"agents": 3, "walls": 1}, 0)
+    ids, price = requester.quote(APP, A3W2, count=2)
+    assert sorted(ids) == [models[8].model_id, models[9].model_id] and price == 3 * PRICE
+    ids, price = requester.quote(APP, A3W2, count=3)
+    assert sorted(ids) == [m.model_id for m in models[7:]] and price == 6 * PRICE
+    assert near.model_id not in ids  # free, but an exact match ranks first at any price in the limit
+    allocs = requester.request_models(APP, A3W2, count=2)
+    assert sorted(a.model_id for a in allocs) == [models[8].model_id, models[9].model_id]
+    assert sum(a.price_wei for a in allocs) == 3 * PRICE
