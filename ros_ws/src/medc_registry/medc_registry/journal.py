@@ -129,27 +129,39 @@ class PendingRequests:
             if self.path is None:
                 yield
                 return
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = open_lock(self.path.with_name(self.path.name + ".lock"))
+            fd = self._acquire(until)
             try:
-                try:
-                    while True:
-                        try:
-                            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                            break
-                        except BlockingIOError:
-                            if time.monotonic() >= until:
-                                raise PendingLockTimeout(self._busy()) from None
-                            time.sleep(0.05)
-                except KeyboardInterrupt:
-                    raise LockWaitInterrupted(
-                        f"interrupted while waiting for another run's request on {self.path} to finish; "
-                        "this run sent nothing and paid nothing") from None
                 yield
             finally:
                 os.close(fd)  # releases the flock
         finally:
             self._thread_lock.release()
+
+    def _acquire(self, until: float) -> int:
+        """The lock file's descriptor with the flock held, waited for until ``until``; Ctrl-C from
+        the lock file's creation to the lock held is LockWaitInterrupted (nothing was sent)."""
+        fd = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = open_lock(self.path.with_name(self.path.name + ".lock"))
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    return fd
+                except BlockingIOError:
+                    if time.monotonic() >= until:
+                        raise PendingLockTimeout(self._busy()) from None
+                    time.sleep(0.05)
+        except KeyboardInterrupt:
+            if fd is not None:
+                os.close(fd)
+            raise LockWaitInterrupted(
+                f"interrupted while waiting for another run's request on {self.path} to finish; "
+                "this run sent nothing and paid nothing") from None
+        except BaseException:
+            if fd is not None:
+                os.close(fd)
+            raise
 
     def _busy(self) -> str:
         return (f"another request on {self.path or 'this registry'} has been running for over "
