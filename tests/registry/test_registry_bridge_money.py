@@ -84,3 +84,15 @@ def test_a_payment_whose_outcome_is_unknown_counts_against_the_budget(tmp_path):
     with pytest.raises(BridgeError, match="no answer"):
         bridge.request(APP, A3W2)
     assert bridge.spent_wei == 7 * PRICE
+    with pytest.raises(BridgeError, match="no answer"):
+        bridge.request(APP, A3W2)
+    assert bridge.spent_wei == 14 * PRICE  # over the budget: what is left is 0, never negative
+
+
+def test_nothing_left_of_the_budget_still_gets_free_experts(registry, users, tmp_path):
+    owner, _, _, requester = users
+    free = owner.share_model(b"free", APP, {"agents": 3, "walls": 2}, 0)
+    bridge = RegistryBridge(requester, tmp_path / "cache", budget_wei=0)
+    assert [a.model_id for a in bridge.request(APP, A3W2, max_price_wei=str(ETH))] == [free.model_id]
+    bridge.spent_wei = 5  # more than the budget (an unknown outcome counted)
+    assert [a.model_id for a in bridge.request(APP, A3W2)] == [free.model_id]

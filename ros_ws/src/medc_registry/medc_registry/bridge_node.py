@@ -116,7 +116,7 @@ class RegistryBridge:
         weights = self._json_object(weights_json, "weights_json")
         max_price = parse_wei_text(max_price_wei, "max_price_wei")
         with self._money:
-            left = self.budget_wei - self.spent_wei
+            left = max(0, self.budget_wei - self.spent_wei)
             quoted: list[int] = []
             try:
                 allocs = self.registry.request_models(
