@@ -323,10 +323,13 @@ class SimNode(MoveWatch, Node):
         if self.ids.index(agent) in self.book.lost:
             return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
                     "again")
-        movers = {(i.node_namespace, i.node_name) for a in self.ids
-                  for i in self.get_publishers_info_by_topic(contract.move_topic(self.namespace_, a))}
         topic = contract.declaration_topic(self.namespace_)
-        publishers = {(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)}
+        try:
+            movers = {(i.node_namespace, i.node_name) for a in self.ids
+                      for i in self.get_publishers_info_by_topic(contract.move_topic(self.namespace_, a))}
+            publishers = {(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)}
+        except Exception as exc:  # the graph unreadable (shutting down): nothing to tell it from
+            return f"the publishers of {topic} could not be read ({type(exc).__name__})"
         strangers = sorted(publishers - movers)
         if strangers:
             names = ", ".join(printable(f"{ns.rstrip('/')}/{name}", 80) for ns, name in strangers[:4])
