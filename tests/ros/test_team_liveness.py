@@ -194,7 +194,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
 
         # A second process claiming agent_1: a move from another sender for the step in play.
         move_pub = node.create_publisher(AgentMove, contract.move_topic(ns, "agent_1"), contract.RELIABLE_QOS)
-        # The simulator, agent_1 itself and agent_2 (which follows the moves of the agents before it).
+        # The simulator, agent_1 itself and its teammates (every agent follows every teammate's moves).
         assert listen.spin(60, lambda: move_pub.get_subscription_count() >= 3, procs), \
             move_pub.get_subscription_count()
         t_dup = time.monotonic()
