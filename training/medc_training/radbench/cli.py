@@ -79,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run", type=int, default=0,
                    help="Monte Carlo run of the count noise (0: each episode's own stream; another run "
                         "draws other counts for the same episodes)")
+    p.add_argument("--departure", metavar="KEY=NUMBER,...",
+                   help="the world departs from the team's and the searchers' model, e.g. transmission=0.3 "
+                        "(obstructions let 30%% through), efficiency=0.7, strength_scale=2, background=80, "
+                        "position_noise=0.2 (medc_training.radbench.departure; default: the nominal world)")
     p.add_argument("--batch", type=int, default=100, help="episodes played at once")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -258,12 +262,14 @@ def _play(args: argparse.Namespace) -> int:
     import torch
 
     from ..console import progress_bar
+    from .departure import Departure
     from .play import TEAM_SENSING, play_set
     from .sets import file_name, load_sets
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--threads, --batch and --episodes must be positive")
     torch.set_num_threads(args.threads)
+    departure = Departure.parse(args.departure)
     if args.quick:
         grid, agents, counts, snrs = QUICK["grid"], QUICK["agents"], QUICK["obstructions"], QUICK["snrs"]
         episodes = QUICK["episodes"]
@@ -293,7 +299,8 @@ def _play(args: argparse.Namespace) -> int:
     max_steps = sets[0].max_steps
     _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
                f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "
-               f"episodes, policies {', '.join(policies)}")
+               f"episodes, policies {', '.join(policies)}"
+               + ("" if departure.nominal else f"; the world departs from the model: {departure.to_dict()}"))
     results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
@@ -304,13 +311,15 @@ def _play(args: argparse.Namespace) -> int:
                 for policy in policies:
                     start = time.perf_counter()
                     played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
-                                      progress=bar.update)
+                                      progress=bar.update, departure=departure)
                     seconds[policy] += time.perf_counter() - start
                     results[s.id][policy] = played
                     if out_file is not None:
                         for r in played:
                             out_file.write(json.dumps({"policy": policy, "grid": grid, "agents": agents,
                                                        "run": args.run, "set_sha256": s.sha256,
+                                                       **({"departure": departure.to_dict()}
+                                                          if not departure.nominal else {}),
                                                        **r.to_json()}) + "\n")
     finally:
         if out_file is not None:
@@ -321,7 +330,8 @@ def _play(args: argparse.Namespace) -> int:
         "max_steps": max_steps,
         "set_file": source, "set_file_sha256": file_digest, "quick": bool(args.quick), "run": args.run,
         "episodes_per_set": len(sets[0].episodes), "policies": policies, "reference": reference,
-        "team_sensing": TEAM_SENSING.to_dict(), "seconds": {p: round(v, 2) for p, v in seconds.items()},
+        "team_sensing": TEAM_SENSING.to_dict(), "departure": departure.to_dict(),
+        "seconds": {p: round(v, 2) for p, v in seconds.items()},
         "sets": per_set, "pooled": pooled, "paired_pooled": pooled_pairs,
     }))
     return 0

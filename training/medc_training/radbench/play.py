@@ -39,6 +39,7 @@ from medc_training.envs.tl_estimate import DEFAULT_THRESHOLD, declare
 from medc_training.envs.tl_observation import TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing, wall_rectangles
 
+from .departure import Departure, jittered_positions
 from .metrics import EpisodeResult
 from .scenario import noise_uniforms
 from .sets import BenchSet
@@ -102,13 +103,21 @@ def episode_tensors(episodes: Sequence[Any], grid: int, slots: int, device: torc
 def world_rates(sensing: SensingModel, cell_m: float, lay: dict[str, torch.Tensor]) -> torch.Tensor:
     """float32 [K,N]: the benchmark world's mean rate (counts/s) at each agent of ``lay`` (positions,
     target, walls, rects, strength, background): ``S / d_m**2 + B`` with d floored at 1 m where the
-    line of sight is clear (the exact rule of ``sensing``), ``B`` where an obstruction blocks it."""
+    line of sight is clear (the exact rule of ``sensing``), ``B`` where an obstruction blocks it. Where
+    the world departs from the model (:mod:`~medc_training.radbench.departure`), ``lay`` also holds per
+    row the obstructions' ``transmission`` (blocked: ``transmission * S / d² + B``) and the detector's
+    ``efficiency`` (every rate times it)."""
     positions, target = lay["positions"], lay["target"]
     factor = geometric_factor(sensing, positions, target.unsqueeze(1), lay["walls"], lay["rects"])[..., 0]
     delta = (positions - target.unsqueeze(1)).to(torch.float32)
     d2_m = (delta * delta).sum(-1) * (cell_m ** 2)
-    near = torch.where(factor > 0, 1.0 / d2_m.clamp(min=1.0), torch.zeros_like(d2_m))
-    return lay["strength"].unsqueeze(1) * near + lay["background"].unsqueeze(1)
+    inverse = 1.0 / d2_m.clamp(min=1.0)
+    through = lay.get("transmission")
+    blocked = torch.zeros_like(d2_m) if through is None else through.unsqueeze(1) * inverse
+    near = torch.where(factor > 0, inverse, blocked)
+    rate = lay["strength"].unsqueeze(1) * near + lay["background"].unsqueeze(1)
+    efficiency = lay.get("efficiency")
+    return rate if efficiency is None else rate * efficiency.unsqueeze(1)
 
 
 class BenchCore(TargetLocalization):
@@ -120,12 +129,14 @@ class BenchCore(TargetLocalization):
     ``observation``: what the team's agents see (a bundle's; the controllers read the memory);
     ``threshold``: the declaration rule's posterior mass; ``run``: which Monte Carlo run of the
     episodes' count noise (0 = the episode's own stream, :func:`~medc_training.radbench.scenario.
-    noise_uniforms`).
+    noise_uniforms`); ``departure``: how the world departs from the team's model
+    (:class:`~medc_training.radbench.departure.Departure`; None: the nominal world).
     """
 
     def __init__(self, bench_set: BenchSet, episodes: Sequence[int], *, device: str | torch.device = "cpu",
                  observation: str = CONTROLLER_OBSERVATION, sensing: SensingModel | str | dict | None = None,
-                 threshold: float = DEFAULT_THRESHOLD, run: int = 0) -> None:
+                 threshold: float = DEFAULT_THRESHOLD, run: int = 0,
+                 departure: Departure | None = None) -> None:
         sensing = TEAM_SENSING if sensing is None else parse_sensing(sensing)
         if sensing.cell_size_m != bench_set.cell_m or sensing.line != "exact" or sensing.attenuation != 0.0:
             raise ValueError("the team's sensing model must have the set's cell size, the exact line of "
@@ -146,10 +157,26 @@ class BenchCore(TargetLocalization):
         self.memory = TeamMemory(self.observation, self.num_envs, self.grid, self.device, self.sensing,
                                  posterior=True, max_walls=slots, rule_out=True)
         self.cell_m = bench_set.cell_m
+        self.departure = Departure() if departure is None else departure
         self._defs = episode_tensors(chosen, self.grid, slots, self.device)
-        g, dev = self.grid, self.device
+        g, dev, k = self.grid, self.device, len(chosen)
+        dep = self.departure
+        self._defs["strength"] = self._defs["strength"] * dep.strength_scale
+        if dep.background is not None:
+            self._defs["background"] = torch.full((k,), float(dep.background), device=dev)
+        self._defs["transmission"] = torch.full((k,), float(dep.transmission), device=dev)
+        self._defs["efficiency"] = torch.full((k,), float(dep.efficiency), device=dev)
         noise = [noise_uniforms(e.noise_seed, self.max_steps, self.num_agents, run) for e in chosen]
         self._noise = torch.from_numpy(np.stack(noise)).to(dev)  # float64 [K, T+1, N]
+        # Where readings are taken off the reported cell: a stream of its own per episode and run.
+        self._jitter = None
+        if dep.position_noise > 0:
+            jitter = []
+            for e in chosen:
+                rng = np.random.default_rng([e.noise_seed, run, 1])
+                off = rng.random((self.max_steps + 1, self.num_agents)) < dep.position_noise
+                jitter.append(np.where(off, rng.integers(1, 9, off.shape), 0))
+            self._jitter = torch.from_numpy(np.stack(jitter)).to(dev)  # int64 [K, T+1, N]
         self._rows = torch.arange(self.num_envs, device=dev)
         idx = torch.arange(g * g, device=dev)
         self._cells = torch.stack((idx // g, idx % g), -1).to(torch.float64)  # [G², 2]
@@ -189,6 +216,7 @@ class BenchCore(TargetLocalization):
         state = super()._episode_state()
         state["rows"] = self._rows
         state["step"] = self.t + 1
+        state["transmission"], state["efficiency"] = self._defs["transmission"], self._defs["efficiency"]
         return state
 
     def world_rates(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -196,7 +224,11 @@ class BenchCore(TargetLocalization):
         return world_rates(self.sensing, self.cell_m, lay)
 
     def _read(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
-        u = self._noise[lay["rows"], lay["step"].clamp(max=self.max_steps)]  # [K,N]
+        step = lay["step"].clamp(max=self.max_steps)
+        u = self._noise[lay["rows"], step]  # [K,N]
+        if self._jitter is not None:
+            lay = {**lay, "positions": jittered_positions(lay["positions"], self._jitter[lay["rows"], step],
+                                                          lay["walls"])}
         return poisson_counts(self.world_rates(lay), u)
 
     # -- what the team knows, recorded per episode --------------------------------------------
@@ -306,7 +338,8 @@ def core_policy(core: BenchCore, policy: Any, bundle: Any = None):
 def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | None = None, batch: int = 100,
              device: str | torch.device = "cpu", sensing: SensingModel | str | dict | None = None,
              threshold: float = DEFAULT_THRESHOLD, seed: int = 12345, run: int = 0,
-             progress: Callable[[int], None] | None = None) -> list[EpisodeResult]:
+             progress: Callable[[int], None] | None = None, departure: Departure | None = None
+             ) -> list[EpisodeResult]:
     """Play the first ``episodes`` episodes of ``bench_set`` (all when None), each to its end, with
     ``policy``, ``batch`` episodes at a time; return their results in episode order.
 
@@ -314,8 +347,9 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     (:data:`medc_training.controllers.CONTROLLERS`), a PolicyBundle or a bundle's path (played greedily
     on the observation it was trained on), or a callable ``factory(core) -> Policy`` (a
     :data:`medc_training.evaluate.Policy` for that core). ``seed`` seeds the random policy's draws;
-    ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream).
-    ``progress(n)`` is called after each chunk with the episodes it played.
+    ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream);
+    ``departure`` how the world departs from the team's model (None: nominal). ``progress(n)`` is
+    called after each chunk with the episodes it played.
     """
     from medc_training.evaluate import play_episodes
 
@@ -327,7 +361,7 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     for lo in range(0, count, batch):
         chunk = list(range(lo, min(count, lo + batch)))
         core = BenchCore(bench_set, chunk, device=device, observation=observation, sensing=sensing,
-                         threshold=threshold, run=run)
+                         threshold=threshold, run=run, departure=departure)
         chosen = core_policy(core, policy, bundle)
         played = play_episodes(core, chosen, episodes=len(chunk), seed=seed)
         results = core.results()

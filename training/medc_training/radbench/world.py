@@ -14,6 +14,16 @@ generator, so ``reset(seed)`` replays the same episodes), mixes every obstructio
 ``walls`` and the three SNR bins in equal shares, draws its count noise from the core's generator
 instead of the episode's stream, and records nothing per episode.
 
+**Domain randomisation.** A training world can depart from the team's model episode by episode, so a
+team learns to cope where a model-based searcher would not (the departures of :mod:`~medc_training.
+radbench.departure`, each drawn per episode): ``transmission_max`` (obstructions let a fraction
+uniform in [0, max] through), ``efficiency_spread`` (detector efficiency uniform in [1 - s, 1 + s]),
+``strength_spread`` (strength times a factor log-uniform in [1/s, s]), ``background_low`` /
+``background_high`` (background uniform in that range instead of the episode's own, both given or
+neither), ``position_noise_max`` (each reading one cell off the reported position with a probability
+uniform in [0, max]). The non-default ones are in :attr:`BenchWorld.attributes`, hence in the
+manifest of every bundle trained there.
+
 Build it through the registry of cores, so that a training config, a bundle's manifest and the
 evaluator name it: ``make_batched("target_localization", world="radbench", grid=20, agents=3,
 walls=7, max_steps=120, sensing="realistic")`` (``medc-train --world radbench``).
@@ -30,6 +40,7 @@ from medc_training.envs.target_localization import TargetLocalization
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, parse_sensing
 
+from .departure import jittered_positions
 from .play import TEAM_SENSING, episode_tensors, world_rates
 from .scenario import GRIDS, MAX_STEPS, OBSTRUCTION_COUNTS, generate_set
 
@@ -64,13 +75,17 @@ class BenchWorld(TargetLocalization):
     ``grid``: 20 or 30 (the benchmark's areas); ``max_steps``: the benchmark's 120 by default;
     ``sensing``: the team's model (``"realistic"`` or None: :data:`TEAM_SENSING`; it must have the
     world's cell size, the exact line of sight and obstructions that block it); ``pool``: episodes
-    drawn at a time (each is played once, then a fresh pool is drawn).
+    drawn at a time (each is played once, then a fresh pool is drawn); the rest: the domain
+    randomisation of the module docstring (defaults: none).
     """
 
     def __init__(self, num_envs: int = 1, device: str | torch.device = "cpu", seed: int | None = None,
                  agents: int = 3, walls: int = 7, grid: int = 20, max_steps: int = MAX_STEPS,
                  reward_shaping: bool = False, copy_obs: bool = True, observation: str = DEFAULT_OBSERVATION,
-                 sensing: SensingModel | str | dict | None = None, pool: int = 2048) -> None:
+                 sensing: SensingModel | str | dict | None = None, pool: int = 2048,
+                 transmission_max: float = 0.0, efficiency_spread: float = 0.0, strength_spread: float = 1.0,
+                 background_low: float | None = None, background_high: float | None = None,
+                 position_noise_max: float = 0.0) -> None:
         if grid not in GRIDS:
             raise ValueError(f"the benchmark's world has grids of {sorted(GRIDS)} cells, got {grid!r}")
         if isinstance(walls, bool) or not isinstance(walls, int) or walls not in OBSTRUCTION_COUNTS:
@@ -78,6 +93,8 @@ class BenchWorld(TargetLocalization):
                              f"0..{max(OBSTRUCTION_COUNTS)}, got {walls!r}")
         if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
             raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
+        self.randomisation = _randomisation(transmission_max, efficiency_spread, strength_spread,
+                                            background_low, background_high, position_noise_max)
         if sensing is None or sensing == TEAM_SENSING.name:
             sensing = TEAM_SENSING
         sensing = parse_sensing(sensing)
@@ -96,18 +113,25 @@ class BenchWorld(TargetLocalization):
                                  posterior=True, max_walls=self._slots, rule_out=True)
         self._episodes: dict[str, torch.Tensor] | None = None
         self._next = 0
+        b = self.num_envs
+        #: Per environment: the current episode's departures from the team's model.
+        self._departs = {"transmission": torch.zeros(b, device=self.device),
+                         "efficiency": torch.ones(b, device=self.device),
+                         "position_noise": torch.zeros(b, device=self.device)}
 
     @property
     def attributes(self) -> dict[str, Any]:
         return {"agents": self.num_agents, "walls": self.num_walls, "grid": self.grid,
-                "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD}
+                "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD,
+                **self.randomisation}
 
     def _draw_pool(self) -> None:
         seed = TRAIN_SEED_BASE + int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator,
                                                    device=self.device))
         episodes = draw_episodes(self.grid, self.num_agents, self.num_walls, self.pool_size, seed)
-        self._episodes = episode_tensors(episodes, self.grid, self._slots, self.device)
-        self._next = 0
+        tensors = episode_tensors(episodes, self.grid, self._slots, self.device)
+        tensors.update(_draw_departures(self.randomisation, tensors, seed, self.device))
+        self._episodes, self._next = tensors, 0
 
     def _take_layouts(self, k: int) -> dict[str, torch.Tensor]:
         parts: list[dict[str, torch.Tensor]] = []
@@ -118,11 +142,76 @@ class BenchWorld(TargetLocalization):
             parts.append({key: v[self._next:self._next + take] for key, v in self._episodes.items()})
             self._next += take
             k -= take
-        return parts[0] if len(parts) == 1 else {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+        lay = parts[0] if len(parts) == 1 else {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+        self._fresh = {key: lay[key] for key in self._departs}
+        return lay
 
     def _reseeded(self) -> None:
         self._episodes, self._next = None, 0
 
+    def _start_episodes(self, rows: torch.Tensor | None) -> None:
+        super()._start_episodes(rows)
+        for key, value in self._fresh.items():  # the new episodes' departures, from their layouts
+            if rows is None:
+                self._departs[key] = value.clone()
+            else:
+                self._departs[key][rows] = value
+
     def _read(self, lay: dict[str, torch.Tensor]) -> torch.Tensor:
+        noise = lay["position_noise"]
+        if bool((noise > 0).any()):
+            k, n = lay["positions"].shape[:2]
+            off = torch.rand((k, n), generator=self.generator, device=self.device) < noise.unsqueeze(1)
+            way = torch.randint(1, 9, (k, n), generator=self.generator, device=self.device)
+            lay = {**lay, "positions": jittered_positions(lay["positions"], torch.where(off, way, 0),
+                                                          lay["walls"])}
         return torch.poisson(world_rates(self.sensing, self.cell_m, lay), generator=self.generator)
+
+    def _episode_state(self) -> dict[str, torch.Tensor]:
+        return {**super()._episode_state(), **self._departs}
+
+
+def _randomisation(transmission_max: float, efficiency_spread: float, strength_spread: float,
+                   background_low: float | None, background_high: float | None,
+                   position_noise_max: float) -> dict[str, float]:
+    """The checked randomisation options that differ from none (the attributes' form)."""
+    checks = (("transmission_max", transmission_max, 0.0, 0.0, 1.0),
+              ("efficiency_spread", efficiency_spread, 0.0, 0.0, 0.9),
+              ("strength_spread", strength_spread, 1.0, 1.0, 10.0),
+              ("position_noise_max", position_noise_max, 0.0, 0.0, 1.0))
+    out: dict[str, float] = {}
+    for name, value, default, lo, hi in checks:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+            raise ValueError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
+        if value != default:
+            out[name] = float(value)
+    if (background_low is None) != (background_high is None):
+        raise ValueError("give background_low and background_high together (a background range in counts/s)")
+    if background_low is not None:
+        for name, value in (("background_low", background_low), ("background_high", background_high)):
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 10_000.0:
+                raise ValueError(f"{name} must be counts/s in [0, 10000], got {value!r}")
+        if background_low > background_high:
+            raise ValueError(f"background_low {background_low} is above background_high {background_high}")
+        out.update(background_low=float(background_low), background_high=float(background_high))
+    return out
+
+
+def _draw_departures(options: dict[str, float], tensors: dict[str, torch.Tensor], seed: int,
+                     device: torch.device) -> dict[str, torch.Tensor]:
+    """Per episode of a pool: its departures from the team's model under ``options`` (the strength
+    and background replaced where they are randomised), from a stream of the pool's seed."""
+    k = len(tensors["target"])
+    rng = np.random.default_rng([seed, 2])
+    u = torch.from_numpy(rng.random((5, k))).to(device=device, dtype=torch.float32)
+    out = {"transmission": options.get("transmission_max", 0.0) * u[0],
+           "efficiency": 1.0 + options.get("efficiency_spread", 0.0) * (2.0 * u[1] - 1.0),
+           "position_noise": options.get("position_noise_max", 0.0) * u[2]}
+    spread = options.get("strength_spread", 1.0)
+    if spread != 1.0:
+        out["strength"] = tensors["strength"] * spread ** (2.0 * u[3] - 1.0)
+    if "background_low" in options:
+        lo, hi = options["background_low"], options["background_high"]
+        out["background"] = lo + (hi - lo) * u[4]
+    return out
 
