@@ -100,6 +100,34 @@ def test_the_role_stays_with_the_next_agent_across_episodes_and_hands_back():
     assert set(role.last) == {0, 2}
 
 
+def test_a_ghost_answering_for_a_silent_agent_does_not_take_the_role_back():
+    from medc_agents.estimate import EstimateRole
+
+    clock = _Clock()
+    role = EstimateRole(1, 1.5, clock, num_agents=2)  # agent_1
+    for step in range(3):
+        role.moved(0, 0, step, "agent0-run1")
+        assert not role.holds(0, step + 1)
+        clock.t += 0.1
+    clock.t += 3.0  # agent_0 dies after its move for step 2; the driver steps on without it
+    assert role.holds(0, 4)
+    # A ghost answers for agent_0 under a new sender each step: agent_1 keeps the role.
+    for step in range(4, 10):
+        role.moved(0, 0, step, f"ghost{step}")
+        clock.t += 0.1
+        assert role.holds(0, step + 1), step
+    # agent_0's own process heard again (its sender): back at once.
+    role.moved(0, 0, 10, "agent0-run1")
+    assert not role.holds(0, 11)
+    clock.t += 3.0
+    assert role.holds(0, 12)  # silent again
+    # A restarted agent_0 (a new sender) is back once it has moved for two steps.
+    role.moved(0, 0, 12, "agent0-run2")
+    assert role.holds(0, 13)
+    role.moved(0, 0, 13, "agent0-run2")
+    assert not role.holds(0, 14)
+
+
 class _Listener:
     """Records the team's statuses, estimates and every diagnostic status (the agents' heartbeats'
     ``estimate`` value among them)."""

@@ -90,6 +90,10 @@ class EstimateRole:
     process may still be starting, or its move topic not yet matched). Across an episode's end the previous
     step is the last step of the episode before, so the first steps of an episode follow the same rule.
 
+    A silent teammate moves again (:meth:`moved`) by a move from the sender it moved with before
+    (its own process, heard again), or by moves for two steps from one new sender (a restarted
+    process); moves that each come under a new sender (a ghost answering for it) never bring it back.
+
     Agent ``own`` holds the role (publishes the estimate) when every agent numbered below it is
     silent; agent 0 always holds it; when a lower-numbered agent moves again, it hands it back.
     ``timeout_s`` <= 0 (the agent's ``lost_timeout_s`` 0: no teammate is ever taken out): nobody is
@@ -108,12 +112,35 @@ class EstimateRole:
         #: The steps this agent decided: the latest and the one before it.
         self.current: tuple[int, int] | None = None
         self.previous: tuple[int, int] | None = None
+        #: Teammates found silent, until they move again; the sender each moved with before.
+        self.out: set[int] = set()
+        self.senders: dict[int, str] = {}
+        self._returning: dict[int, tuple[str, set]] = {}  # a silent teammate's new sender, its steps
 
-    def moved(self, idx: int, episode: int, step: int) -> None:
-        """Teammate ``idx`` moved for (``episode``, ``step``)."""
+    def moved(self, idx: int, episode: int, step: int, sender: str = "") -> None:
+        """Teammate ``idx`` moved for (``episode``, ``step``) (``sender``: ``AgentMove.sender``)."""
+        if idx == self.own or not 0 <= idx < self.num_agents:
+            return
+        tick, sender = (int(episode), int(step)), str(sender)
+        if idx in self.out:
+            if not self._returns(idx, tick, sender):
+                return
+            self.out.discard(idx)
+            self._returning.pop(idx, None)
         # The latest, not the highest: one forged far-ahead step holds nothing.
-        if idx != self.own and 0 <= idx < self.num_agents:
-            self.last[idx] = ((int(episode), int(step)), self.clock())
+        self.last[idx] = (tick, self.clock())
+        self.senders[idx] = sender
+
+    def _returns(self, idx: int, tick: tuple[int, int], sender: str) -> bool:
+        """Whether a move of silent teammate ``idx`` brings it back (class docstring)."""
+        if sender == self.senders.get(idx):
+            return True
+        seen = self._returning.get(idx)
+        if seen is None or seen[0] != sender:
+            self._returning[idx] = (sender, {tick})
+            return False
+        seen[1].add(tick)
+        return len(seen[1]) >= 2
 
     def decided(self, episode: int, step: int) -> None:
         """This agent decides (``episode``, ``step``) (again: nothing changes)."""
@@ -127,14 +154,18 @@ class EstimateRole:
         """Whether teammate ``idx`` is silent when this agent decides (``episode``, ``step``)."""
         if self.timeout_s <= 0:
             return False
+        if idx in self.out:
+            return True
         self.decided(episode, step)
         now = self.clock()
         heard = self.last.get(idx)
         if heard is None:  # not started yet, or its move topic not matched yet (discovery takes seconds)
-            return now - self._since >= NEVER_HEARD_FACTOR * self.timeout_s
-        if heard[0] in (self.current, self.previous):
-            return False
-        return now - heard[1] >= self.timeout_s
+            silent = now - self._since >= NEVER_HEARD_FACTOR * self.timeout_s
+        else:
+            silent = heard[0] not in (self.current, self.previous) and now - heard[1] >= self.timeout_s
+        if silent:
+            self.out.add(idx)
+        return silent
 
     def holds(self, episode: int, step: int) -> bool:
         """Whether this agent publishes the estimate of (``episode``, ``step``)."""
@@ -219,7 +250,7 @@ class TeamEstimate:
 
             def on_move(msg, j=j, agent=agent) -> None:
                 if msg.agent_id == agent:  # a move on another agent's topic says nothing of this one
-                    self.role.moved(j, msg.episode, msg.step)
+                    self.role.moved(j, msg.episode, msg.step, msg.sender)
 
             self.node.create_subscription(AgentMove, contract.move_topic(namespace, agent), on_move,
                                           contract.RELIABLE_QOS)
