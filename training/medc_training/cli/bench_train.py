@@ -12,7 +12,15 @@ together) and PPO updates per second of the CPU-scale learner (``config.CPU_SCAL
 - ``realistic_sparse``: the default learner on the realistic sensing preset (unknown strength and
   background, Poisson counts, walls block the line of sight) on 20×20 with 100-step episodes, and
   ``realistic_baseline_maps_mlp`` the maps/MLP baseline there: ``realistic_speedup_over_baseline``
-  is their ratio, ``realistic_over_simple`` realistic_sparse / sparse (``--no-realistic`` skips them).
+  is their ratio, ``realistic_over_simple`` realistic_sparse / sparse (``--no-realistic`` skips them);
+- ``realistic40_sparse``: the default learner on the realistic preset at the claims scale's 40×40 with
+  50-step episodes.
+
+A/B against the estimator path the fused one replaced, in the same run: each default learner also
+runs as ``..._reference`` (``reference`` path, :data:`~medc_training.envs.tl_observation.ESTIMATOR_PATHS`),
+and ``..._speedup_over_reference`` is their ratio of training steps per second (``--no-reference``
+skips them). ``--thread-ab`` adds the default realistic learners on one torch thread beside the
+default count (``..._1thread``), which says whether the second core pays.
 
 Rounds are interleaved, one update of each learner per round, so that a shared machine's load
 hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
@@ -30,11 +38,17 @@ import time
 import torch
 
 from ..config import scaled_config
+from ..envs.tl_observation import estimator_path
 from ..envs.tl_sensing import DEFAULT_SENSING
 from ..ppo import Trainer
 
 #: The realistic preset's scenario: RAD-A2C's 20 m x 20 m area, 1 m cells, 100-step episodes.
 REALISTIC = {"grid": 20, "max_steps": 100, "env_options": {"sensing": "realistic"}}
+#: The claims scale's realistic scenario (config.CLAIMS_SCALE): 40×40 cells, 50-step episodes.
+REALISTIC_40 = {"grid": 40, "max_steps": 50, "env_options": {"sensing": "realistic"}}
+#: Learner options of this benchmark only (not TrainConfig fields): the estimator path and the
+#: torch threads it runs on (0: the process's count).
+_PATH, _THREADS = "_path", "_threads"
 
 
 def _timed_update(trainer: Trainer, cuda: bool) -> tuple[float, float, int]:
@@ -55,16 +69,30 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
     """Time ``rounds`` updates of each learner (label -> config overrides, e.g. {"method": "rs"}),
     interleaved round by round so that a shared machine's changing load hits every learner alike;
     per-update medians are reported."""
-    trainers = {m: Trainer(scaled_config(scale, device=device, total_steps=10**12, **{**overrides, **extra}))
-                for m, extra in learners.items()}
+    trainers, threads = {}, {}
+    default_threads = torch.get_num_threads()
+    for m, extra in learners.items():
+        extra = dict(extra)
+        path, threads[m] = extra.pop(_PATH, "fused"), extra.pop(_THREADS, 0) or default_threads
+        with estimator_path(path):
+            cfg = scaled_config(scale, device=device, total_steps=10**12, **{**overrides, **extra})
+            trainers[m] = Trainer(cfg)
     methods = tuple(learners)
     cuda = device.startswith("cuda")
-    for trainer in trainers.values():  # warm-up (allocations, first-call overheads)
-        _timed_update(trainer, cuda)
+
+    def timed(m: str) -> tuple[float, float, int]:
+        torch.set_num_threads(threads[m])
+        try:
+            return _timed_update(trainers[m], cuda)
+        finally:
+            torch.set_num_threads(default_threads)
+
+    for m in methods:  # warm-up (allocations, first-call overheads)
+        timed(m)
     times: dict[str, list[tuple[float, float, int]]] = {m: [] for m in methods}
     for _ in range(rounds):
-        for m, trainer in trainers.items():
-            times[m].append(_timed_update(trainer, cuda))
+        for m in methods:
+            times[m].append(timed(m))
     results = {}
     for m, rows in times.items():
         cfg = trainers[m].cfg
@@ -77,6 +105,7 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
             "walls": cfg.walls, "observation": cfg.observation, "num_envs": cfg.num_envs,
             "horizon": cfg.steps_per_update,
             "epochs": cfg.epochs, "arch": cfg.arch, "rounds": rounds,
+            "estimator": learners[m].get(_PATH, "fused"), "threads": threads[m],
             "env_steps_per_s": steps / total, "updates_per_s": 1.0 / total,
             "collect_steps_per_s": steps / collect, "median_update_s": total,
         }
@@ -92,17 +121,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cuda-updates", type=int, default=2, help="timed updates at paper scale on CUDA")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-realistic", action="store_true", help="skip the realistic-preset learners")
+    p.add_argument("--no-reference", action="store_true",
+                   help="skip the A/B learners on the reference estimator")
+    p.add_argument("--thread-ab", action="store_true",
+                   help="also run the default realistic learners on one torch thread")
+    p.add_argument("--only-ab", action="store_true",
+                   help="only the default learners and their A/B (no RS, LeNet-5 or maps baselines)")
     p.add_argument("--horizon", type=int, default=0,
                    help="training steps per CPU update (0: the CPU scale's; small for quick checks)")
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     result: dict = {"torch_threads": torch.get_num_threads()}
-    learners = {"sparse": {}, "rs": {"method": "rs"},
-                "baseline_maps_mlp": {"observation": "maps", "arch": "mlp"}, "lenet5": {"arch": "lenet5"}}
-    if not args.no_realistic:
-        maps = {**copy.deepcopy(REALISTIC), "observation": "maps", "arch": "mlp"}
-        learners.update(realistic_sparse=copy.deepcopy(REALISTIC), realistic_baseline_maps_mlp=maps)
+    learners = _learners(args)
     cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2,
                   **({"horizon": args.horizon} if args.horizon else {}))
     for m, r in cpu.items():
@@ -113,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['arch']}, {r['num_envs']} envs, horizon {r['horizon']}, {r['epochs']} epochs; "
               f"rollout alone {r['collect_steps_per_s']:.0f} steps/s)")
         result[f"cpu_{m}"] = r
+    _ab_ratios(cpu, result)
+    if args.only_ab:
+        print(json.dumps(result))
+        return 0
     result["speedup_over_baseline"] = (cpu["sparse"]["env_steps_per_s"]
                                        / cpu["baseline_maps_mlp"]["env_steps_per_s"])
     print(f"default learner / baseline (maps, mlp) training steps/s: {result['speedup_over_baseline']:.2f}")
@@ -141,6 +176,41 @@ def main(argv: list[str] | None = None) -> int:
         print("CUDA: not available on this machine (no figures)")
     print(json.dumps(result))
     return 0
+
+
+def _learners(args: argparse.Namespace) -> dict[str, dict]:
+    """The learners to time, label -> config overrides (and this benchmark's _PATH, _THREADS)."""
+    default = {"sparse": {}}
+    if not args.no_realistic:
+        default.update(realistic_sparse=copy.deepcopy(REALISTIC),
+                       realistic40_sparse=copy.deepcopy(REALISTIC_40))
+    learners = dict(default)
+    if not args.only_ab:
+        learners.update(rs={"method": "rs"}, baseline_maps_mlp={"observation": "maps", "arch": "mlp"},
+                        lenet5={"arch": "lenet5"})
+        if not args.no_realistic:
+            learners["realistic_baseline_maps_mlp"] = {**copy.deepcopy(REALISTIC), "observation": "maps",
+                                                       "arch": "mlp"}
+    for m, extra in default.items():
+        if not args.no_reference:
+            learners[f"{m}_reference"] = {**copy.deepcopy(extra), _PATH: "reference"}
+        if args.thread_ab and m != "sparse":
+            learners[f"{m}_1thread"] = {**copy.deepcopy(extra), _THREADS: 1}
+    return learners
+
+
+def _ab_ratios(cpu: dict[str, dict], result: dict) -> None:
+    """Print and record each default learner's training steps/s over its reference and 1-thread twins."""
+    for m in ("sparse", "realistic_sparse", "realistic40_sparse"):
+        for twin, label in (("reference", "fused / reference estimator"), ("1thread", "threads / 1 thread")):
+            if m in cpu and f"{m}_{twin}" in cpu:
+                a, b = cpu[m], cpu[f"{m}_{twin}"]
+                ratio = a["env_steps_per_s"] / b["env_steps_per_s"]
+                rollout = a["collect_steps_per_s"] / b["collect_steps_per_s"]
+                result[f"{m}_speedup_over_{twin}"] = ratio
+                print(f"A/B {m} ({a['sensing']} {a['grid']}x{a['grid']}), {label}: {ratio:.2f}x training "
+                      f"steps/s ({a['env_steps_per_s']:.0f} vs {b['env_steps_per_s']:.0f}), rollout alone "
+                      f"{rollout:.2f}x ({a['collect_steps_per_s']:.0f} vs {b['collect_steps_per_s']:.0f})")
 
 
 if __name__ == "__main__":

@@ -367,7 +367,7 @@ class SourceEstimator:
             return None
         if rects is None:
             rects = wall_rectangles(walls)
-        return sight_lines(self.sensing, positions, walls, rects)
+        return sight_lines(self.sensing, positions, walls, rects, fused=self.path == "fused")
 
     def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,
                             readings: torch.Tensor) -> torch.Tensor:
