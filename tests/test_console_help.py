@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import pytest
+from ros_domain import claim_domain
 from test_layout import _entry_points
 
 #: Node scripts: their help lists the ROS parameters their nodes declare.
@@ -42,7 +43,7 @@ def test_help_exits_0_without_starting_a_node(argv, target):
     code = (f"import sys; sys.argv = {argv!r}; from {module} import {function} as main; "
             "sys.exit(main())")
     # A domain of its own: a node started by mistake would not meet anyone else's graph.
-    env = {**os.environ, "ROS_DOMAIN_ID": str(150 + os.getpid() % 50)}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(claim_domain())}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
     assert out.returncode == 0, out.stderr[-2000:]
     text = out.stdout + out.stderr

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from ros_domain import claim_domain
 
 pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
@@ -26,7 +27,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     out = tmp_path_factory.mktemp("demo")
     script = Path(sys.executable).parent / "medc-demo"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(40 + os.getpid() % 150))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(claim_domain()))
     proc = subprocess.run([str(script), "--quick", "--no-progress", "--out", str(out)], capture_output=True,
                           text=True, timeout=900, env=env)
     assert proc.returncode == 0, f"medc-demo failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"

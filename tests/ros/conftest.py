@@ -6,12 +6,12 @@ import os
 from pathlib import Path
 
 import pytest
+from ros_domain import claim_domain
 
-# A domain of our own (per test process) so that other people's graphs on this machine never
-# talk to ours; set before rclpy or any child process starts. Under pytest-xdist each worker's
-# differs from the others' (its index is the domain modulo 4).
-_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-os.environ["ROS_DOMAIN_ID"] = str(100 + 4 * (os.getpid() % 25) + _WORKER % 4)
+# A domain of our own (per test process, claimed with a lock: no other test process on this machine
+# holds it, xdist worker or another session) so that no other graph talks to ours; set before rclpy
+# or any child process starts.
+os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 GRID = 10
