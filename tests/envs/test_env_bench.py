@@ -32,6 +32,17 @@ def test_default_run_measures_both_presets_against_maps_with_their_targets(capsy
     assert any("ratio ego6+estimate / maps" in line for line in lines)
 
 
+def test_every_scenario_is_measured_against_the_reference_estimator_in_the_same_run(capsys) -> None:
+    lines, figures = _run(capsys, TINY)
+    for r in figures["scenarios"].values():
+        assert r["reference_agent_steps_per_s"] > 0 and 1 <= r["reference_timed_steps"] <= 6
+        assert r["speedup_over_reference"] > 0
+    assert sum("A/B fused / reference estimator" in line for line in lines) == 2
+    lines, figures = _run(capsys, [*TINY, "--no-reference"])
+    assert all("speedup_over_reference" not in r for r in figures["scenarios"].values())
+    assert not any("reference" in line for line in lines[:-1])
+
+
 def test_custom_scenario_with_sensing_and_one_by_one(capsys) -> None:
     argv = [*TINY, "--grid", "10", "--sensing", "realistic", "--one-by-one-steps", "1"]
     lines, figures = _run(capsys, argv)

@@ -3,7 +3,7 @@ LeNet-5 and RS, with the speed-up ratios, ending with one JSON line (figures are
 
 import json
 
-from medc_training.cli.bench_train import REALISTIC, main
+from medc_training.cli.bench_train import REALISTIC, REALISTIC_40, main
 from medc_training.config import CPU_SCALE, TrainConfig
 
 
@@ -29,3 +29,22 @@ def test_bench_train_reports_the_default_learner_on_both_presets_and_its_ratio_t
     assert REALISTIC["env_options"] == {"sensing": "realistic"}  # the learners did not change it
     assert any(line.startswith("default learner / baseline") for line in lines)
     assert any(line.startswith("realistic: default learner / baseline") for line in lines)
+
+
+def test_bench_train_reports_each_default_learner_against_the_reference_estimator(capsys) -> None:
+    """The A/B: each default learner (paper-simple 13x13, realistic 20x20 and 40x40) and its twin on the
+    reference estimator, timed in the same run; --thread-ab adds the realistic ones on one thread."""
+    assert main(["--updates", "1", "--threads", "1", "--horizon", "64", "--only-ab", "--thread-ab"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    result = json.loads(lines[-1])
+    for m, grid in (("sparse", CPU_SCALE["grid"]), ("realistic_sparse", 20), ("realistic40_sparse", 40)):
+        fused, reference = result[f"cpu_{m}"], result[f"cpu_{m}_reference"]
+        assert (fused["estimator"], reference["estimator"]) == ("fused", "reference")
+        assert fused["grid"] == reference["grid"] == grid
+        ratio = fused["env_steps_per_s"] / reference["env_steps_per_s"]
+        assert result[f"{m}_speedup_over_reference"] == ratio
+    assert (result["cpu_realistic40_sparse"]["max_steps"], REALISTIC_40["grid"]) == (50, 40)
+    assert result["cpu_realistic_sparse_1thread"]["threads"] == 1
+    assert "realistic_sparse_speedup_over_1thread" in result
+    assert "cpu_rs" not in result and "cpu_baseline_maps_mlp" not in result  # --only-ab
+    assert sum(line.startswith("A/B ") for line in lines) == 3 + 2
