@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# The model mismatch sweep of docs/learned-team.md: the searchers (and the policies given as
+# arguments, e.g. a learned team's bundle) on the first 12 episodes of every g20-a3 set, in the
+# nominal world and in each departure of the protocol. Each run's JSON and episode lines go to
+# docs/reproduction/learned-team/mismatch/; a run whose JSON exists is skipped (resumable).
+#
+#   scripts/radbench_mismatch.sh [BUNDLE ...]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source scripts/env.sh
+out=docs/reproduction/learned-team/mismatch
+mkdir -p "$out"
+policies=(infotaxis infotaxis-exact space-aware "$@")
+departures=(nominal background=5 background=80 transmission=0.1 transmission=0.3 strength_scale=2
+            efficiency=0.7 efficiency=1.3 position_noise=0.2)
+for d in "${departures[@]}"; do
+  name=${d//=/-}
+  if [[ -s "$out/$name.json" ]]; then echo "skip $name (done)"; continue; fi
+  extra=()
+  [[ $d != nominal ]] && extra=(--departure "$d")
+  t0=$(date +%s)
+  medc-radbench --grid 20 --agents 3 --episodes 12 --reference infotaxis-exact "${extra[@]}" --quiet \
+    --out "$out/$name.episodes.jsonl" "${policies[@]}" > "$out/$name.json.part"
+  mv "$out/$name.json.part" "$out/$name.json"
+  echo "$name: $(( $(date +%s) - t0 )) s"
+done
