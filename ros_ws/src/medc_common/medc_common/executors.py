@@ -9,7 +9,9 @@ times; an agent node handles 2N+2 messages per team step, so this is most of its
 from __future__ import annotations
 
 import os
+import re
 import signal
+import sys
 import threading
 
 #: Set by SIGINT/SIGTERM in a node process run by :func:`run_node`: the spin loops end at the
@@ -84,6 +86,103 @@ def spin_once_alive(executor, timeout_sec: float) -> bool:
     return True
 
 
+class BadRosArguments(ValueError):
+    """The ``--ros-args`` of a node's command line cannot be used; the message names the argument."""
+
+
+#: Where rcl says where in its sources it failed (", at /project/src/rcl/arguments.c:380"): not
+#: for the user.
+_RCL_SOURCE = re.compile(r",? at \S+\.c:\d+")
+#: A line of rcl's own log (what it warns about before failing).
+_RCL_LOG = re.compile(r"^\[(?:WARN|ERROR)\] \[[\d.]+\] \[rcl\]: (.*)$")
+
+
+def _remapped_namespaces(args: list[str]) -> list[tuple[str, str]]:
+    """``(argument, namespace)`` of every ``-r [node:]__ns:=NS`` in the ``--ros-args`` of ``args``."""
+    out, inside = [], False
+    for i, arg in enumerate(args):
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg in ("-r", "--remap") and i + 1 < len(args):
+            rule = args[i + 1]
+            name, sep, value = rule.partition(":=")
+            if sep and name.rsplit(":", 1)[-1] == "__ns":
+                out.append((f"{arg} {rule}", value))
+    return out
+
+
+def init_ros(args: list[str], signal_handler_options=None) -> None:
+    """``rclpy.init(args=args)``; arguments it cannot use are refused with one line.
+
+    A namespace remap (``-r __ns:=NS``) is checked first as the nodes check a namespace
+    (:func:`medc_common.contract.check_namespace`, which gives the reason); any other argument rcl
+    refuses is named from rcl's own error, without its source locations. rcl's log lines of a
+    failed start (``[rcl]: Failed to parse global arguments``) are kept off stderr; those of a
+    start that works are passed on.
+
+    Raises:
+        BadRosArguments: the argument and why it cannot be used.
+    """
+    import rclpy
+
+    from medc_common.contract import check_namespace
+
+    for arg, namespace in _remapped_namespaces(list(args)):
+        if not namespace.startswith("/"):
+            raise BadRosArguments(f"{arg}: a node namespace must be fully qualified (start with '/'); "
+                                  "see --help")
+        try:
+            check_namespace(namespace)
+        except ValueError as exc:
+            raise BadRosArguments(f"{arg}: {exc}; see --help") from None
+    log = _capture_stderr()
+    try:
+        with log:
+            if signal_handler_options is None:
+                rclpy.init(args=args)
+            else:
+                rclpy.init(args=args, signal_handler_options=signal_handler_options)
+    except RuntimeError as exc:  # rclpy's RCLError, or UnknownROSArgsError
+        if type(exc).__name__ == "UnknownROSArgsError":  # its message is the list of arguments
+            raise BadRosArguments(f"unknown ROS arguments {exc} (a value with a space must be quoted); "
+                                  "see --help") from None
+        said = [m.group(1) for m in map(_RCL_LOG.match, log.text.splitlines()) if m]
+        why = [w for w in said if "Failed to parse global arguments" not in w]
+        text = _RCL_SOURCE.sub("", str(exc)).removeprefix("failed to initialize rcl: ").strip()
+        text = re.sub(r"\. Error: (error not set|Expected lexeme[^.]*)$", "", text)
+        raise BadRosArguments(f"cannot start with these ROS arguments: {text}"
+                              + (f" ({'; '.join(why)})" if why else "") + "; see --help") from None
+    if log.text:
+        sys.stderr.write(log.text)
+        sys.stderr.flush()
+
+
+class _capture_stderr:
+    """Everything written to file descriptor 2 (by C code too) inside the ``with`` block, as
+    ``.text`` afterwards; nothing of it reaches stderr."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    def __enter__(self):
+        import tempfile
+
+        sys.stderr.flush()
+        self._file = tempfile.TemporaryFile()
+        self._saved = os.dup(2)
+        os.dup2(self._file.fileno(), 2)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._file.seek(0)
+        self.text = self._file.read().decode("utf-8", "replace")
+        self._file.close()
+
+
 def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_shutdown,
              errors: tuple[type[Exception], ...] = (ValueError,), executor_factory=make_executor) -> int:
     """The life of a console-script node: init rclpy, build the node, spin it, clean up.
@@ -91,18 +190,23 @@ def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_sh
     SIGINT and SIGTERM end the spin loop (:func:`install_stop_handlers`); then the executor, the
     node and the context are shut down in that order, so no callback runs on a dead context.
 
+    Arguments rcl cannot parse (a remap, a parameter override, a log level, a params file) end it
+    before any node exists with one line naming the argument and status 2 (:func:`init_ros`).
     ``make_node()`` builds the node after rclpy is initialised; ``spin(node, executor)`` runs
     it. Ctrl-C and an external shutdown end it with status 0; an exception of ``errors`` (a
     bad parameter, a registry that cannot be reached) is printed as ``program: message``
     with status 2. Call ``require_interfaces()`` before this.
     """
-    import sys
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=sys.argv if argv is None else argv, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        init_ros(sys.argv if argv is None else argv, SignalHandlerOptions.NO)
+    except BadRosArguments as exc:
+        print(f"{program}: {exc}", file=sys.stderr)
+        return 2
     install_stop_handlers()
     node = None
     executor = None
