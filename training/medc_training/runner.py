@@ -48,10 +48,21 @@ def run_training(learner, cfg: TrainConfig, out_dir: str | Path, resume: bool = 
     A folder holds one run (:mod:`medc_training.runs`): ``resume`` refuses a checkpoint of another
     configuration (every field but ``total_steps`` and ``torch_threads``, and the inputs), naming
     each differing field; without ``resume`` a folder that already holds a run (a summary or a
-    checkpoint) is refused unless ``overwrite``. Returns the summary dict.
+    checkpoint) is refused unless ``overwrite``; a folder another run is writing is refused
+    (:class:`medc_training.runs.RunFolderBusy`, naming its pid). Returns the summary dict.
     """
+    from .runs import lock_run_folder
+
     check_learner(learner)
     out = Path(out_dir)
+    with lock_run_folder(out):  # one run at a time in a folder (RunFolderBusy names the holder)
+        return _run_locked(learner, cfg, out, resume, progress, tensorboard, save_final, max_updates,
+                           inputs, overwrite)
+
+
+def _run_locked(learner, cfg: TrainConfig, out: Path, resume: bool, progress: bool, tensorboard: bool,
+                save_final: bool, max_updates: int | None, inputs: dict | None, overwrite: bool) -> dict:
+    """:func:`run_training`'s body, with ``out``'s run lock held."""
     ckpt = out / CHECKPOINT
     next_eval, train_seconds = _open_run_folder(out, learner, cfg, resume, overwrite, inputs)
     logger = MetricsLogger(out, tensorboard=tensorboard,

@@ -9,6 +9,7 @@ finished), so rerunning the same command resumes.
 from __future__ import annotations
 
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -20,10 +21,50 @@ INTERRUPTED = ("finished runs are kept; unfinished ones left no run folder and r
                "checkpoint when the same command is run again")
 
 
-def _worker_init(threads: int = 1) -> None:
+def _worker_init(threads: int = 1, parent: int | None = None) -> None:
+    """Set up a worker process: ``threads`` torch threads, and (``parent``: the sweep's pid) die
+    with the sweep (:func:`die_with_parent`)."""
     import torch
 
+    if parent is not None:
+        die_with_parent(parent)
     torch.set_num_threads(threads)
+
+
+#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+#: Seconds between two looks at the parent where prctl is not there (not Linux).
+WATCH_PARENT_EVERY_S = 1.0
+
+
+def die_with_parent(parent: int) -> None:
+    """End this process when ``parent`` (the pid that started it) ends, however it ends (SIGKILL
+    included): the kernel's parent-death signal (``prctl(PR_SET_PDEATHSIG, SIGKILL)``) on Linux, a
+    thread watching the parent pid elsewhere. A parent already gone before this ran ends it at once.
+    A pool worker's run keeps its checkpoint in its partial folder, so a rerun resumes it."""
+    import signal
+
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+    if armed:
+        return
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(WATCH_PARENT_EVERY_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
 def _line(job: dict, summary: dict, start: float) -> str:
@@ -33,7 +74,8 @@ def _line(job: dict, summary: dict, start: float) -> str:
 
 @dataclass
 class LocalPool:
-    """``workers`` processes on this machine (1: in this process), one torch thread each."""
+    """``workers`` processes on this machine (1: in this process), one torch thread each; they die
+    with the process that started them, even when it is killed (:func:`die_with_parent`)."""
 
     workers: int = 1
 
@@ -46,7 +88,9 @@ class LocalPool:
             for job in todo:
                 done(job, run_job(job))
             return
-        pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_init)
+        # Workers die with this process even when it is SIGKILLed (no clean-up of its own runs then).
+        pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_worker_init,
+                                   initargs=(1, os.getpid()))
         try:
             futures = {pool.submit(run_job, job): job for job in todo}
             for fut in as_completed(futures):

@@ -106,7 +106,7 @@ def _train(job: dict, out: Path, work: Path) -> dict:
     if out.exists() and not work.exists() and not (out / SUMMARY).exists():
         out.rename(work)  # an unfinished run left in place by an older version
     # A finished run of another config (replaced with overwrite) stays until the new one finishes.
-    from ..runs import job_inputs
+    from ..runs import RunFolderBusy, job_inputs
 
     cfg = TrainConfig.from_dict(job["config"]).validate()
     learner = make_learner(cfg, job.get("experts", ()), job.get("expert_weights"), job.get("side_users", ()))
@@ -115,6 +115,8 @@ def _train(job: dict, out: Path, work: Path) -> dict:
     resume = (work / CHECKPOINT).exists()
     try:
         summary = run_training(learner, cfg, work, resume=resume, overwrite=True, **options)
+    except RunFolderBusy:  # another sweep is running this job: never start it afresh under it
+        raise
     except ValueError:  # a checkpoint of another config, or an unreadable one: start afresh
         if not resume:
             raise
