@@ -1,7 +1,10 @@
 """``medc-inspect BUNDLE``: verify a policy bundle and print its manifest.
 
-``medc-inspect --export onnx|torchscript BUNDLE OUT``: verify it, write its network to OUT and its
-observation/action contract to ``OUT.json`` (medc_training.bundle.export), for onboard computers.
+``medc-inspect --export onnx|torchscript BUNDLE OUT``: verify it as an agent does (the timed dry
+run included: a bundle the agents refuse is refused with the same reason), write its network to OUT
+and its observation/action contract to ``OUT.json`` (medc_training.bundle.export), for onboard
+computers. OUT is never the bundle itself; an existing OUT or OUT.json (a link included) is
+replaced only with ``--overwrite``, and a link is replaced, never written through.
 
 Exit status: 0 for a valid bundle, 1 for a file that is not a valid bundle (the reason goes to
 stderr), 2 for bad command-line usage. Whatever the file holds, it never ends in a traceback, and
@@ -21,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from medc_training.bundle import BundleError, load_bundle, read_manifest
+from medc_training.outfiles import OutputError
 
 
 def clean(value: Any) -> str:
@@ -91,17 +95,17 @@ def format_manifest(manifest: dict[str, Any], sha256: str | None = None, paramet
     return "\n".join(lines)
 
 
-def _export(bundle: str, out: str, fmt: str) -> int:
+def _export(bundle: str, out: str, fmt: str, overwrite: bool = False) -> int:
     from medc_training.bundle.export import export_bundle
 
     try:
-        model, side = export_bundle(bundle, out, fmt)
+        model, side = export_bundle(bundle, out, fmt, overwrite=overwrite)
     except ImportError as exc:
         print(f"medc-inspect: --export {fmt} needs {exc.name or exc}: pip install -r requirements.txt",
               file=sys.stderr)
         return 1
     except Exception as exc:  # BundleError, or anything at all: a reason, never a traceback
-        reason = str(exc) if isinstance(exc, BundleError) else (
+        reason = str(exc) if isinstance(exc, BundleError | OutputError) else (
             f"{clean(str(bundle))}: cannot be exported ({type(exc).__name__}: {exc})")
         print(f"medc-inspect: {clean(reason)}", file=sys.stderr)
         return 1
@@ -124,19 +128,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --export: the model file to write (OUT.json: its contract)")
     parser.add_argument("--export", choices=["onnx", "torchscript"],
                         help="write the network as ONNX or TorchScript to OUT, its contract to OUT.json")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="with --export: replace OUT and OUT.json if they exist (a link is replaced, "
+                             "never written through)")
     parser.add_argument("--json", action="store_true", help="print the raw manifest as JSON")
     parser.add_argument("--manifest-only", action="store_true",
                         help="check the header and manifest only, without decoding the weights")
     args = parser.parse_args(argv)
     if args.export and not args.out:
         parser.error("--export needs OUT, the model file to write")
+    if args.overwrite and not args.export:
+        parser.error("--overwrite is only used with --export onnx|torchscript")
     if args.out and not args.export:
         parser.error("OUT is only used with --export onnx|torchscript")
     for stream in (sys.stdout, sys.stderr):  # a terminal that is not UTF-8 gets escapes, not a crash
         if hasattr(stream, "reconfigure"):
             stream.reconfigure(errors="backslashreplace")
     if args.export:
-        return _export(args.bundle, args.out, args.export)
+        return _export(args.bundle, args.out, args.export, args.overwrite)
     try:
         if args.manifest_only:
             manifest = read_manifest(args.bundle)
