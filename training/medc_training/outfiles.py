@@ -20,6 +20,8 @@ import tempfile
 from pathlib import Path
 from typing import IO
 
+from medc_training.untrusted import printable
+
 #: Characters of the target's name the temporary name starts with (``.<name>.<random>.tmp``).
 TMP_NAME_CHARS = 40
 
@@ -47,26 +49,28 @@ def check_output(path: str | os.PathLike[str], overwrite: bool = False, flag: st
     target = Path(os.path.abspath(os.fspath(path)))
     parent = target.parent
     if not parent.is_dir():
-        raise OutputError(f"cannot write {target}: the folder {parent} does not exist")
+        raise OutputError(f"cannot write {_shown(target)}: the folder {_shown(parent)} does not exist")
     if len(os.fsencode(target.name)) > _name_max(parent):
-        raise OutputError(f"cannot write {parent / target.name[:40]}...: the name is longer than the "
+        raise OutputError(f"cannot write {_shown(parent / target.name[:40])}...: the name is longer than the "
                           f"{_name_max(parent)} bytes the file system takes")
     if target.is_dir() and not target.is_symlink():
-        raise OutputError(f"{target} is a folder: give the file to write, e.g. {target / 'out'}")
+        raise OutputError(f"{_shown(target)} is a folder: give the file to write, e.g. "
+                          f"{_shown(target / 'out')}")
     try:
         mode = target.lstat().st_mode
     except FileNotFoundError:
         mode = None
     except OSError as exc:
-        raise OutputError(f"cannot write {target}: {exc.strerror}") from None
+        raise OutputError(f"cannot write {_shown(target)}: {exc.strerror}") from None
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
-        raise OutputError(f"{target} is not a regular file (a device, FIFO or socket): give a file to write")
+        raise OutputError(f"{_shown(target)} is not a regular file (a device, FIFO or socket): give a file "
+                          "to write")
     if mode is not None and not overwrite:
         what = "a link" if stat.S_ISLNK(mode) else "a file"
-        raise OutputError(f"{target} exists ({what}): not overwritten; give {flag} to replace it, or "
+        raise OutputError(f"{_shown(target)} exists ({what}): not overwritten; give {flag} to replace it, or "
                           "another name")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"cannot write {target}: the folder {parent} is not writable")
+        raise OutputError(f"cannot write {_shown(target)}: the folder {_shown(parent)} is not writable")
     return target
 
 
@@ -89,7 +93,7 @@ class AtomicOutput:
         try:
             fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=self.target.parent)
         except OSError as exc:
-            raise OutputError(f"cannot write {self.target}: {exc.strerror or exc}") from None
+            raise OutputError(f"cannot write {_shown(self.target)}: {exc.strerror or exc}") from None
         self.tmp = Path(tmp)
         # mkstemp makes the file 0600; an output is a file to share: the mode open() would give it.
         with contextlib.suppress(OSError):
@@ -107,7 +111,7 @@ class AtomicOutput:
             self.file.flush()
             os.fsync(self.file.fileno())
         except OSError as exc:
-            raise OutputError(f"cannot write {self.target}: {exc.strerror or exc}") from None
+            raise OutputError(f"cannot write {_shown(self.target)}: {exc.strerror or exc}") from None
 
     def commit(self) -> Path:
         """Fsync the file and move it to the target's name; returns the target.
@@ -130,14 +134,14 @@ class AtomicOutput:
         try:
             os.link(self.tmp, self.target, follow_symlinks=False)
         except FileExistsError:
-            raise OutputError(f"{self.target} appeared while writing: not overwritten; what was written "
-                              f"is in {self.tmp}") from None
+            raise OutputError(f"{_shown(self.target)} appeared while writing: not overwritten; what was "
+                              f"written is in {_shown(self.tmp)}") from None
         except OSError as exc:  # a file system without hard links: the last look, then the rename
             if exc.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.EMLINK):
                 raise
             if os.path.lexists(self.target):
-                raise OutputError(f"{self.target} appeared while writing: not overwritten; what was "
-                                  f"written is in {self.tmp}") from None
+                raise OutputError(f"{_shown(self.target)} appeared while writing: not overwritten; what was "
+                                  f"written is in {_shown(self.tmp)}") from None
             os.replace(self.tmp, self.target)
             return self.target
         os.unlink(self.tmp)
@@ -169,7 +173,7 @@ def write_output(path: str | os.PathLike[str], data: bytes, overwrite: bool = Fa
         try:
             out.file.write(data)
         except OSError as exc:
-            raise OutputError(f"cannot write {target}: {exc.strerror or exc}") from None
+            raise OutputError(f"cannot write {_shown(target)}: {exc.strerror or exc}") from None
     return target
 
 
@@ -181,6 +185,11 @@ def is_same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
         if exc.errno in (errno.ENOENT, errno.ENOTDIR, errno.ELOOP):
             return False
         raise
+
+
+def _shown(path: str | os.PathLike[str]) -> str:
+    """``path`` for a message: printable ASCII only (anything else as ``?``), 300 characters at most."""
+    return printable(os.fspath(path), 300)
 
 
 def _umask() -> int:

@@ -563,11 +563,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help=QUIET_HELP)
     parser.add_argument("--record", metavar="FILE.mcap",
                         help="record every topic of the team to this MCAP file (rosbag2 layout; medc-record)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="with --record: replace FILE.mcap if it exists (a link is replaced, never "
+                             "written through)")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
                         help="serve a live view to Foxglove on ws://127.0.0.1:PORT (default port 8765)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
+    if args.overwrite and args.record is None:
+        parser.error("--overwrite is only used with --record FILE.mcap")
     try:
         cfg = load_config(args.config, seed=args.seed, policy=policy_from_cwd(args.policy),
                           agents=args.agents, sensing=args.sensing, namespace=args.namespace)
@@ -583,7 +588,7 @@ def main(argv: list[str] | None = None) -> int:
 
     log = EpisodeLog(quiet=args.quiet)
     try:
-        recorder = start_recorder(cfg, args.record, args.foxglove, quiet=args.quiet)
+        recorder = start_recorder(cfg, args.record, args.foxglove, quiet=args.quiet, overwrite=args.overwrite)
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)
         return 2

@@ -3,13 +3,18 @@
     medc-record -o mission.mcap                   # every topic under /medc, until Ctrl-C
     medc-record -o mission.mcap --foxglove        # and a live view on ws://127.0.0.1:8765
     medc-record --foxglove 8766 --namespace /team2
+    medc-record -o mission.mcap --overwrite       # replace mission.mcap if it exists
 
 The recorder finds the topics under the namespace (and ``/diagnostics``) as they appear, so
 topics added later (the team's estimate, for one) are recorded too. The file is rosbag2's MCAP
 layout (profile ``ros2``, ``ros2msg`` schemas from the installed ``.msg`` files, CDR messages):
 ``ros2 bag info``, ``rosbags``, ``mcap_ros2`` and Foxglove read it. Ctrl-C (or SIGTERM) finishes
 the file; the last line on stdout is a JSON summary (topics, message counts, bytes, the time the
-recorder spent per message). A recorder never holds the simulator back or stands in for an agent:
+recorder spent per message). The file is checked before anything is recorded (a folder, a device,
+a name too long, a folder it cannot write, or an existing file or link without ``--overwrite``:
+refused in one line, status 2) and written under a fresh temporary name beside it
+(``.NAME.XXXXXXXX.tmp``, where a killed recorder leaves what it had), moved into place when the
+file is finished: never through a link. A recorder never holds the simulator back or stands in for an agent:
 the simulator starts when every agent's own move publisher is there.
 """
 
@@ -226,8 +231,11 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
         def _on_message(self, topic: str, type_name: str, decode, data: bytes) -> None:
             t0 = time.perf_counter()
             now = time.time_ns()
-            if recording is not None and not recording.closed:
+            if recording is not None and not recording.closed and recording.failed is None:
                 recording.write(topic, data, now)
+                if recording.failed is not None:
+                    self.get_logger().error(f"the recording stopped: {recording.failed} (the live view, "
+                                            "if any, goes on)")
             if live is not None:
                 msg = deserialize_message(data, decode) if decode is not None else None
                 live.on_message(topic, type_name, data, msg, now)
@@ -237,13 +245,16 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
     return RecorderNode()
 
 
-def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = False):
+def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = False,
+                   overwrite: bool = False):
     """For ``medc-launch --record/--foxglove``: start ``medc-record`` for ``cfg``'s team as its own
     process (own session: Ctrl-C reaches the launcher, which stops it last). None if neither is
-    asked for. A relative ``record`` path is taken from the current directory.
+    asked for. A relative ``record`` path is taken from the current directory; ``overwrite``
+    replaces an existing file.
 
     Raises:
-        ValueError: the record file's folder does not exist.
+        ValueError: the record file cannot be written there (checked as ``medc-record -o`` checks
+        it, before the mission), the reason said.
     """
     import os
     import subprocess
@@ -255,10 +266,13 @@ def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = 
     command = [sys.executable, "-m", "medc_bringup.recorder", "--namespace", cfg.namespace,
                "--agents", str(cfg.agents)]
     if record is not None:
-        path = Path(record).expanduser().resolve()
-        if not path.parent.is_dir():
-            raise ValueError(f"--record {record}: folder {path.parent} does not exist")
-        command += ["--output", str(path)]
+        from medc_training.outfiles import check_output
+
+        try:
+            path = check_output(Path(record).expanduser(), overwrite)
+        except ValueError as exc:
+            raise ValueError(f"--record {clean_path(record)}: {exc}") from None
+        command += ["--output", str(path)] + (["--overwrite"] if overwrite else [])
     if foxglove is not None:
         command += ["--foxglove", str(foxglove)]
     if quiet:
@@ -293,6 +307,58 @@ def stop_recorder(process, grace_s: float = 15.0) -> dict | None:
     return None
 
 
+def clean_path(path: str) -> str:
+    """``path`` for a one-line message: control characters escaped, at most 200 characters."""
+    text = path.encode("unicode_escape", "backslashreplace").decode("ascii")
+    return text if len(text) <= 200 else text[:200] + "..."
+
+
+def open_recording(path: str, overwrite: bool = False, compression: str = "zstd"):
+    """``(output path, its AtomicOutput, McapRecording)`` of ``medc-record -o PATH``, before the
+    mission: the target is checked (:func:`medc_training.outfiles.check_output`: a folder, a
+    device such as ``/dev/full``, a name too long, a missing or unwritable folder, or, unless
+    ``overwrite``, an existing file or link are refused), the recording starts in a fresh temporary
+    file beside it and its header is written through to the disk.
+
+    Raises:
+        ValueError: the reason (OutputError), the file unchanged.
+    """
+    from medc_training.outfiles import AtomicOutput, OutputError, check_output
+
+    from medc_bringup.recording import McapRecording
+
+    output = check_output(Path(path).expanduser(), overwrite)
+    target = AtomicOutput(output, overwrite)
+    try:
+        recording = McapRecording(target.file, compression=compression)
+        recording.flush()
+        target.sync()
+    except OSError as exc:
+        target.discard()
+        raise OutputError(f"cannot write {output}: {exc.strerror or exc}") from None
+    except BaseException:
+        target.discard()
+        raise
+    return output, target, recording
+
+
+def finish_recording(recording, target) -> str | None:
+    """Close ``recording`` and move its temporary file into place (``target``, an AtomicOutput);
+    None, or what went wrong, in one line (a recording the disk refused is removed; one whose name
+    was taken meanwhile is kept where the message says)."""
+    from medc_training.outfiles import OutputError
+
+    recording.close()
+    if recording.failed is not None:
+        target.discard()
+        return f"the recording stopped: cannot write {target.target}: {recording.failed}"
+    try:
+        target.commit()
+    except (OutputError, OSError) as exc:
+        return str(exc)
+    return None
+
+
 def spin_then_drain(drain_s: float):
     """A ``run_node`` spin function: spin until stopped, then ``drain_s`` more seconds so that
     messages already on their way (the last episode's result) are still written."""
@@ -316,6 +382,9 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter, epilog=epilog(__doc__),
     )
     parser.add_argument("-o", "--output", help="MCAP file to write (rosbag2 layout); none = do not record")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the -o file if it exists (a link there is replaced, never written "
+                             "through)")
     parser.add_argument("--namespace", default="/medc",
                         help="the team's namespace: every topic under it is recorded")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
@@ -342,19 +411,19 @@ def main(argv: list[str] | None = None) -> int:
         args.namespace = check_namespace(args.namespace)
     except ValueError as exc:
         parser.error(f"--namespace: {exc}")
-    output = None
-    if args.output is not None:
-        output = Path(args.output).expanduser().resolve()
-        if not output.parent.is_dir():
-            parser.error(f"-o {args.output}: folder {output.parent} does not exist")
     from medc_common.ros_env import require_interfaces
 
     require_interfaces()
     from medc_common.executors import run_node
 
-    from medc_bringup.recording import McapRecording
-
-    recording = McapRecording(output, compression=args.compression) if output is not None else None
+    output = target = recording = None
+    if args.output is not None:
+        # Before the mission: the file is refused at once when it cannot be written there.
+        try:
+            output, target, recording = open_recording(args.output, args.overwrite, args.compression)
+        except ValueError as exc:
+            print(f"medc-record: {exc}", file=sys.stderr)
+            return 2
     live = None
     holder: dict[str, object] = {}
     try:
@@ -379,10 +448,17 @@ def main(argv: list[str] | None = None) -> int:
 
         rc = run_node("medc-record", argv, make_node, spin=spin_then_drain(args.drain))
     finally:
-        if recording is not None:
+        failed = None
+        if recording is not None and "node" not in holder:  # no mission: nothing to keep
             recording.close()
+            target.discard()
+        elif recording is not None:
+            failed = finish_recording(recording, target)
         if live is not None:
             live.close()
+    if failed is not None:
+        print(f"medc-record: {failed}", file=sys.stderr)
+        rc = rc or 2
     node = holder.get("node")
     messages = getattr(node, "messages", 0)
     summary = {
@@ -392,7 +468,8 @@ def main(argv: list[str] | None = None) -> int:
             getattr(node, "subscribed", {})),
         "messages": messages,
         "bytes": recording.bytes if recording is not None else 0,
-        "file_bytes": output.stat().st_size if output is not None and output.exists() else 0,
+        "file_bytes": (output.stat().st_size if output is not None and failed is None and output.exists()
+                       else 0),
         "per_message_us": round(1e6 * getattr(node, "busy_s", 0.0) / messages, 2) if messages else None,
     }
     print(json.dumps(summary), flush=True)

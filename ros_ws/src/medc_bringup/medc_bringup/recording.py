@@ -156,6 +156,8 @@ class McapRecording:
         self.counts: dict[str, int] = {}
         self.bytes = 0
         self.closed = False
+        #: Why the file stopped taking messages (None: it did not).
+        self.failed: str | None = None
 
     def add_topic(self, topic: str, type_name: str, qos=None) -> None:
         """Declare ``topic`` of ``type_name`` (its schema text from the installed ``.msg`` files)."""
@@ -173,19 +175,34 @@ class McapRecording:
         self.counts[topic] = 0
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None) -> None:
-        """Record the CDR bytes of one message on a declared ``topic``."""
+        """Record the CDR bytes of one message on a declared ``topic``. A write the file refuses
+        (a full disk) ends the recording: ``failed`` says why, later messages are not written."""
+        if self.failed is not None:
+            return
         now = time.time_ns() if log_time_ns is None else log_time_ns
         self._sequence[topic] += 1
-        self._writer.add_message(self._channels[topic], log_time=now, data=data, publish_time=now,
-                                 sequence=self._sequence[topic])
+        try:
+            self._writer.add_message(self._channels[topic], log_time=now, data=data, publish_time=now,
+                                     sequence=self._sequence[topic])
+        except OSError as exc:
+            self.failed = exc.strerror or str(exc)
+            return
         self.counts[topic] += 1
         self.bytes += len(data)
 
+    def flush(self) -> None:
+        """Write what is buffered to the file (an error of the file raises OSError)."""
+        self._stream.flush()
+
     def close(self) -> None:
-        """Finish the file (idempotent)."""
+        """Finish the file (idempotent); a recording that ``failed`` is left as it is."""
         if self.closed:
             return
         self.closed = True
-        self._writer.finish()
+        if self.failed is None:
+            try:
+                self._writer.finish()
+            except OSError as exc:
+                self.failed = exc.strerror or str(exc)
         if self._own:
             self._stream.close()
