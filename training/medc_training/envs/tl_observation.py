@@ -175,8 +175,10 @@ class SourceEstimator:
         self._square = ((lines.unsqueeze(1) - lines.unsqueeze(0)) ** 2).int()  # int32 [G, G]: (i - j)²
         #: int64 [O,2]: the (row, column) offsets within the success radius, made on first use.
         self._reach: torch.Tensor | None = None
-        #: The fused path's [2Q, L] table (log rates, then rates, per (d², walls crossed) pair).
+        #: The fused path's [Q + 2, L] table (log rates per (d², walls crossed) pair, then the levels'
+        #: strengths and backgrounds) and [Q] geometric factors.
         self._bag_table: torch.Tensor | None = None
+        self._bag_factor: torch.Tensor | None = None
         #: A cell whose weights summed over the levels are at most this gets exactly 0 from the fused
         #: path: every level of it is at or below EXP_FLOOR. (The reference writes each such weight as
         #: 0; the fused path takes exp(EXP_FLOOR) for them, which keeps its exp off float32's slow
@@ -299,8 +301,9 @@ class SourceEstimator:
 
         A block of episodes at a time (:data:`BLOCK_BYTES`), every step over contiguous memory while
         the block is in cache: one ``embedding_bag`` makes each (episode, cell)'s row of L
-        log-likelihoods, sum_n r_n log rate_n - rate_n, from 2N table rows (the N readings' log-rate
-        rows weighted by the readings, their rate rows weighted by -1); it is added to the posterior,
+        log-likelihoods, sum_n r_n log rate_n - S sum_n factor_n - N B (the reference's arithmetic, in
+        its order), from N + 2 table rows (the N readings' log-rate rows weighted by the readings, the
+        strength row by -sum_n factor_n, the background row by -N); it is added to the posterior,
         the ruled-out cells are floored, the block is shifted by its episodes' maxima and floored, and
         (``posterior_out``) the marginal over the levels is summed from exp2 of the block scaled by
         log2(e) (float32's exp2 is about 3x faster than its exp here)."""
@@ -309,15 +312,28 @@ class SourceEstimator:
         span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
         most = int(crossed.max()) if crossed.numel() else 0
         table = self._bag_table
-        if table is None or table.shape[0] < 2 * span * (most + 1):
+        if table is None or table.shape[0] < span * (most + 1) + 2:
             q = torch.arange(span * (max(most, 1) + 1), device=self.device)
             crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
             factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
             rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            table = self._bag_table = torch.cat((rate.log().t(), rate.t())).contiguous()  # [2Q, L]
-        rows = table.shape[0] // 2
-        index = d2 + span * crossed  # [K,N,G²]
-        weights = torch.cat((readings, torch.full_like(readings, -1.0)), 1)  # [K,2N]
+            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
+            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
+            self._bag_factor = factor  # [Q]
+        q_rows = table.shape[0] - 2
+        # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
+        # row weighted by -sum_n factor_n, the background row by -N.
+        index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
+        bags = torch.empty((k, cells, n + 2), dtype=torch.int64, device=self.device)
+        bags[..., :n] = index.transpose(1, 2)
+        bags[..., n] = q_rows
+        bags[..., n + 1] = q_rows + 1
+        weights = torch.empty((k, cells, n + 2), device=self.device)
+        weights[..., :n] = readings.unsqueeze(1)
+        torch.sum(self._bag_factor.index_select(0, index.view(-1)).view(k, n, cells), 1, out=weights[..., n])
+        weights[..., n].neg_()
+        weights[..., n + 1] = -float(n)
+        bags, weights = bags.view(k * cells, n + 2), weights.view(k * cells, n + 2)
         out = walls.reshape(k, -1).bool()
         if self.rule_out:
             out = out | self.ruled_out(positions)
@@ -329,12 +345,8 @@ class SourceEstimator:
         for i, s in enumerate(starts):
             e = min(k, s + step)
             kb = e - s
-            bags = torch.empty((kb, cells, 2 * n), dtype=index.dtype, device=index.device)
-            bags[..., :n] = index[s:e].transpose(1, 2)
-            torch.add(bags[..., :n], rows, out=bags[..., n:])
-            bag_weights = weights[s:e].unsqueeze(1).expand(kb, cells, 2 * n).reshape(kb * cells, 2 * n)
-            loglik = torch.nn.functional.embedding_bag(bags.view(kb * cells, 2 * n), table, mode="sum",
-                                                       per_sample_weights=bag_weights)
+            loglik = torch.nn.functional.embedding_bag(bags[s * cells:e * cells], table, mode="sum",
+                                                       per_sample_weights=weights[s * cells:e * cells])
             block = phys[s:e]
             block.add_(loglik.view(kb, cells, levels))
             lo, hi = cuts[i], cuts[i + 1]
