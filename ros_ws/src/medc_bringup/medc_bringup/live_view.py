@@ -20,6 +20,7 @@ unsubscribed (:meth:`LiveView.tick`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
@@ -220,12 +221,223 @@ def scene_update(state: SceneState, stamp_ns: int | None = None):
     return SceneUpdate(entities=entities)
 
 
+# ---------------------------------------------------------------- the connection gate
+#: Connections the live view serves at once unless told otherwise (medc-record --foxglove-clients):
+#: a few Foxglove windows; each costs the server memory and a copy of every message.
+DEFAULT_MAX_CLIENTS = 8
+#: Connections that have not finished their opening request yet; more are closed unanswered.
+MAX_PENDING = 64
+#: Seconds a connection has to send its opening request, and the largest one taken (bytes).
+REQUEST_TIMEOUT_S = 5.0
+MAX_REQUEST_BYTES = 16384
+#: Host names of a web page's origin the live view accepts: this machine's.
+LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "::1")
+#: WebSocket close codes of a refusal (RFC 6455): policy violation, try again later.
+CLOSE_POLICY = 1008
+CLOSE_TRY_LATER = 1013
+_WS_GUID = "258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
+
+
+def origin_allowed(origin: str | None, allowed: tuple[str, ...] = ()) -> bool:
+    """Whether a WebSocket opening request with this ``Origin`` header is served: none (a client
+    that is no web page: Foxglove's desktop app, a script), a page served by this machine
+    (``http(s)://localhost``, ``127.0.0.1`` or ``[::1]``, any port, or ``*.localhost``), or one of
+    ``allowed`` (exact origins the user named, e.g. ``https://app.foxglove.dev``). Any other web
+    page, ``null`` (a sandboxed or local-file page) included, is refused: a page the user merely
+    visits must not read the mission."""
+    if origin is None:
+        return True
+    origin = origin.strip()
+    if origin in allowed:
+        return True
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(origin)
+        host = (parts.hostname or "").lower()
+        parts.port  # noqa: B018 - a port that is not a number raises here
+    except ValueError:
+        return False
+    return parts.scheme in ("http", "https") and (host in LOOPBACK_HOSTS or host.endswith(".localhost"))
+
+
+def _close_frame(code: int, reason: str) -> bytes:
+    """An unmasked WebSocket close frame (server to client) with ``code`` and ``reason`` (cut to
+    the 123 bytes a control frame may carry)."""
+    payload = code.to_bytes(2, "big") + reason.encode()[:123]
+    return bytes([0x88, len(payload)]) + payload
+
+
+def _parse_request(head: bytes) -> tuple[str, dict[str, str]]:
+    """(request line, headers by lower-case name) of an HTTP request head."""
+    lines = head.decode("latin-1").split("\r\n")
+    headers: dict[str, str] = {}
+    for line in lines[1:]:
+        name, sep, value = line.partition(":")
+        if sep:
+            headers[name.strip().lower()] = value.strip()
+    return lines[0], headers
+
+
+class ConnectionGate:
+    """What stands between a client and the Foxglove server (which has no hook for either): a TCP
+    listener on ``host``:``port`` that reads each connection's opening request and serves it (passes
+    it and everything after it to the server on ``upstream``) only when its web ``Origin`` is
+    allowed (:func:`origin_allowed`) and fewer than ``max_clients`` connections are served.
+    Otherwise it completes the WebSocket handshake and closes with a reason a client shows: 1008
+    for an origin, 1013 (try again later) for one connection too many; a request that is no
+    WebSocket opening gets an HTTP 403 with the reason. A request must come within
+    REQUEST_TIMEOUT_S and fit MAX_REQUEST_BYTES; more than MAX_PENDING connections still to send
+    theirs are closed unanswered. It runs an asyncio loop in a thread of its own.
+
+    ``refused`` counts the refusals by kind (``origin``, ``clients``, ``request``), ``served`` the
+    connections served so far; ``active`` is the number served now.
+    """
+
+    def __init__(self, upstream: int, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
+                 max_clients: int = DEFAULT_MAX_CLIENTS, allowed_origins: tuple[str, ...] = ()) -> None:
+        import asyncio
+        import threading
+
+        if max_clients < 1:
+            raise ValueError(f"max_clients must be at least 1, got {max_clients}")
+        self.upstream = int(upstream)
+        self.max_clients = int(max_clients)
+        self.allowed_origins = tuple(allowed_origins)
+        self.active = 0
+        self.pending = 0
+        self.served = 0
+        self.refused = {"origin": 0, "clients": 0, "request": 0}
+        self._writers: set = set()
+        self._loop = asyncio.new_event_loop()
+        try:
+            self._server = self._loop.run_until_complete(
+                asyncio.start_server(self._handle, host, int(port), reuse_address=True,
+                                     limit=MAX_REQUEST_BYTES))
+        except BaseException:
+            self._loop.close()
+            raise
+        self.port = int(self._server.sockets[0].getsockname()[1])
+        self._thread = threading.Thread(target=self._loop.run_forever, name="live-view-gate", daemon=True)
+        self._thread.start()
+
+    async def _handle(self, reader, writer) -> None:
+        import asyncio
+
+        from medc_training.untrusted import printable
+
+        self._writers.add(writer)
+        try:
+            if self.pending >= MAX_PENDING:
+                self.refused["request"] += 1
+                return
+            self.pending += 1
+            try:
+                head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), REQUEST_TIMEOUT_S)
+            except (TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, ConnectionError):
+                self.refused["request"] += 1
+                return
+            finally:
+                self.pending -= 1
+            if len(head) > MAX_REQUEST_BYTES:
+                self.refused["request"] += 1
+                return
+            _, headers = _parse_request(head)
+            origin = headers.get("origin")
+            if not origin_allowed(origin, self.allowed_origins):
+                self.refused["origin"] += 1
+                await self._refuse(writer, headers, CLOSE_POLICY,
+                                   f"origin {printable(origin, 60)} refused: the live view serves this "
+                                   "machine's pages only")
+                return
+            if self.active >= self.max_clients:
+                self.refused["clients"] += 1
+                await self._refuse(writer, headers, CLOSE_TRY_LATER,
+                                   f"too many connections: the live view serves {self.max_clients} at once")
+                return
+            self.active += 1
+            self.served += 1
+            try:
+                await self._serve(head, reader, writer)
+            finally:
+                self.active -= 1
+        except Exception:  # a connection's trouble is that connection's only
+            pass
+        finally:
+            self._writers.discard(writer)
+            writer.close()
+
+    async def _serve(self, head: bytes, reader, writer) -> None:
+        import asyncio
+
+        up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream)
+        self._writers.add(up_writer)
+        up_writer.write(head)
+
+        async def pipe(source, sink) -> None:
+            try:
+                while data := await source.read(1 << 16):
+                    sink.write(data)
+                    await sink.drain()
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                sink.close()
+
+        try:
+            await asyncio.gather(pipe(reader, up_writer), pipe(up_reader, writer))
+        finally:
+            self._writers.discard(up_writer)
+            up_writer.close()
+
+    async def _refuse(self, writer, headers: dict[str, str], code: int, reason: str) -> None:
+        """Answer a refused request: the handshake and a close frame with ``reason`` (a WebSocket
+        opening), or an HTTP 403 with it."""
+        import asyncio
+        import base64
+        import hashlib
+
+        key = headers.get("sec-websocket-key")
+        if key and headers.get("upgrade", "").lower() == "websocket":
+            accept = base64.b64encode(hashlib.sha1((key + _WS_GUID).encode()).digest()).decode()
+            protocol = headers.get("sec-websocket-protocol", "").split(",")[0].strip()
+            answer = ("HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                      f"Sec-WebSocket-Accept: {accept}\r\n"
+                      + (f"Sec-WebSocket-Protocol: {protocol}\r\n" if protocol else "") + "\r\n")
+            writer.write(answer.encode("latin-1") + _close_frame(code, reason))
+        else:
+            body = (reason + "\n").encode()
+            writer.write(b"HTTP/1.1 403 Forbidden\r\nContent-Type: text/plain; charset=utf-8\r\n"
+                         + f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n".encode() + body)
+        with contextlib.suppress(TimeoutError, ConnectionError):
+            await asyncio.wait_for(writer.drain(), REQUEST_TIMEOUT_S)
+
+    def close(self) -> None:
+        """Stop listening and close every connection (idempotent)."""
+        if self._loop.is_closed():
+            return
+
+        def stop() -> None:
+            self._server.close()
+            for writer in list(self._writers):
+                writer.close()
+            self._loop.stop()
+
+        self._loop.call_soon_threadsafe(stop)
+        self._thread.join(timeout=10)
+        if not self._thread.is_alive():
+            self._loop.close()
+
+
 class LiveView:
     """The Foxglove WebSocket server of a recorder: raw ROS topics as channels plus the scene.
 
     ``topics``: ``(topic, type name, ros2msg definition, latched)`` of every topic known before the
     server starts (the contract's); their channels and the scene's exist before a client can
-    connect. ``port`` 0 picks a free port (``self.port`` tells which). The server binds ``127.0.0.1``.
+    connect. ``port`` 0 picks a free port (``self.port`` tells which). Clients reach the server
+    through a :class:`ConnectionGate` on ``host`` (``127.0.0.1``): a web page from elsewhere
+    (its ``Origin``, unless in ``allowed_origins``) and a connection beyond ``max_clients`` are
+    refused with a close reason. The Foxglove server itself listens on another loopback port.
     """
 
     #: Seconds after which a channel created while the server runs, still without a subscriber, is
@@ -233,7 +445,8 @@ class LiveView:
     READVERTISE_AFTER_S = 1.0
 
     def __init__(self, namespace: str, port: int = DEFAULT_PORT, host: str = "127.0.0.1",
-                 topics=()) -> None:
+                 topics=(), max_clients: int = DEFAULT_MAX_CLIENTS,
+                 allowed_origins: tuple[str, ...] = ()) -> None:
         import threading
 
         import foxglove
@@ -267,10 +480,16 @@ class LiveView:
         self.serving = False
         for topic, type_name, definition, latched in topics:
             self.add_topic(topic, type_name, definition, latched)
-        self.server = foxglove.start_server(name="medc", host=host, port=int(port), server_listener=_Resend(),
+        self.server = foxglove.start_server(name="medc", host="127.0.0.1", port=0, server_listener=_Resend(),
                                             context=self.context)
+        try:
+            self.gate = ConnectionGate(int(self.server.port), host=host, port=int(port),
+                                       max_clients=max_clients, allowed_origins=allowed_origins)
+        except BaseException:
+            self.server.stop()
+            raise
         self.serving = True
-        self.port = int(self.server.port)
+        self.port = self.gate.port
 
     def _channel(self, topic: str, schema):
         return self._foxglove.Channel(topic, message_encoding="cdr", schema=schema, context=self.context)
@@ -350,5 +569,6 @@ class LiveView:
                 or ("estimate" in last and type_name in ESTIMATE_TYPES))
 
     def close(self) -> None:
-        """Stop the server."""
+        """Stop the gate and the server."""
+        self.gate.close()
         self.server.stop()

@@ -3,6 +3,7 @@
     medc-record -o mission.mcap                   # every topic under /medc, until Ctrl-C
     medc-record -o mission.mcap --foxglove        # and a live view on ws://127.0.0.1:8765
     medc-record --foxglove 8766 --namespace /team2
+    medc-record --foxglove --foxglove-origin https://app.foxglove.dev   # serve the Foxglove web app too
     medc-record -o mission.mcap --overwrite       # replace mission.mcap if it exists
 
 The recorder finds the topics under the namespace (and ``/diagnostics``) as they appear, so
@@ -25,6 +26,8 @@ import json
 import sys
 import time
 from pathlib import Path
+
+from medc_bringup.live_view import DEFAULT_MAX_CLIENTS
 
 #: Topics outside the namespace that belong to a MEDC graph.
 GLOBAL_TOPICS = ("/diagnostics",)
@@ -389,6 +392,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the team's namespace: every topic under it is recorded")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
                         help="also serve a live view to Foxglove on ws://127.0.0.1:PORT (0 = any free port)")
+    parser.add_argument("--foxglove-clients", type=int, default=DEFAULT_MAX_CLIENTS, metavar="N",
+                        help="connections the live view serves at once; one more is refused with a close "
+                             "reason")
+    parser.add_argument("--foxglove-origin", action="append", default=[], metavar="ORIGIN",
+                        help="also serve web pages of this origin (e.g. https://app.foxglove.dev; repeat for "
+                             "more): the live view refuses any page not served by this machine")
     parser.add_argument("--agents", type=int, default=0,
                         help="subscribe to agent_0..N-1's topics at once instead of when discovered")
     parser.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd",
@@ -405,6 +414,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.output is None and args.foxglove is None:
         parser.error("nothing to do: give -o FILE.mcap, --foxglove [PORT], or both")
+    if args.foxglove_clients < 1:
+        parser.error(f"--foxglove-clients must be at least 1, got {args.foxglove_clients}")
     from medc_common.contract import check_namespace
 
     try:
@@ -432,7 +443,9 @@ def main(argv: list[str] | None = None) -> int:
 
             try:
                 live = LiveView(args.namespace, port=args.foxglove,
-                                topics=live_topics(args.namespace, args.agents))
+                                topics=live_topics(args.namespace, args.agents),
+                                max_clients=args.foxglove_clients,
+                                allowed_origins=tuple(args.foxglove_origin))
             except Exception as exc:  # the SDK raises its own error types for a busy port
                 print(f"medc-record: cannot start the Foxglove server on 127.0.0.1:{args.foxglove}: {exc} "
                       "(pick another port with --foxglove PORT, or 0 for any free one)", file=sys.stderr)
