@@ -20,7 +20,8 @@ A/B against the estimator path the fused one replaced, in the same run: each def
 runs as ``..._reference`` (``reference`` path, :data:`~medc_training.envs.tl_observation.ESTIMATOR_PATHS`),
 and ``..._speedup_over_reference`` is their ratio of training steps per second (``--no-reference``
 skips them). ``--thread-ab`` adds the default realistic learners on one torch thread beside the
-default count (``..._1thread``), which says whether the second core pays.
+run's count (``..._1thread``; on two threads, ``..._2threads``, when the run is on one), which says
+whether the second core pays.
 
 Rounds are interleaved, one update of each learner per round, so that a shared machine's load
 hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
@@ -124,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-reference", action="store_true",
                    help="skip the A/B learners on the reference estimator")
     p.add_argument("--thread-ab", action="store_true",
-                   help="also run the default realistic learners on one torch thread")
+                   help="also run the default realistic learners on one torch thread (two if --threads 1)")
     p.add_argument("--only-ab", action="store_true",
                    help="only the default learners and their A/B (no RS, LeNet-5 or maps baselines)")
     p.add_argument("--horizon", type=int, default=0,
@@ -195,14 +196,23 @@ def _learners(args: argparse.Namespace) -> dict[str, dict]:
         if not args.no_reference:
             learners[f"{m}_reference"] = {**copy.deepcopy(extra), _PATH: "reference"}
         if args.thread_ab and m != "sparse":
-            learners[f"{m}_1thread"] = {**copy.deepcopy(extra), _THREADS: 1}
+            other = _other_threads(count=True)
+            learners[f"{m}_{_other_threads()}"] = {**copy.deepcopy(extra), _THREADS: other}
     return learners
+
+
+def _other_threads(count: bool = False) -> int | str:
+    """The thread count --thread-ab compares with (one thread, or two when the run is on one), as a
+    number or as the learner's label suffix."""
+    k = 2 if torch.get_num_threads() == 1 else 1
+    return k if count else f"{k}thread" + ("s" if k > 1 else "")
 
 
 def _ab_ratios(cpu: dict[str, dict], result: dict) -> None:
     """Print and record each default learner's training steps/s over its reference and 1-thread twins."""
+    threads = f"{torch.get_num_threads()} / {_other_threads(count=True)} threads"
     for m in ("sparse", "realistic_sparse", "realistic40_sparse"):
-        for twin, label in (("reference", "fused / reference estimator"), ("1thread", "threads / 1 thread")):
+        for twin, label in (("reference", "fused / reference estimator"), (_other_threads(), threads)):
             if m in cpu and f"{m}_{twin}" in cpu:
                 a, b = cpu[m], cpu[f"{m}_{twin}"]
                 ratio = a["env_steps_per_s"] / b["env_steps_per_s"]

@@ -234,9 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--observation", default=DEFAULT_OBSERVATION,
                    help=f"the observation measured against {BASELINE_OBSERVATION!r} (default: %(default)s)")
     p.add_argument("--max-steps", type=int, default=100, help="episode length limit")
-    p.add_argument("--seconds", type=float, default=3.0,
+    p.add_argument("--seconds", type=float, default=4.0,
                    help="timed seconds per path and scenario, split over the rounds (each round >= 1 step)")
-    p.add_argument("--rounds", type=int, default=3, help="interleaved measurement rounds (medians reported)")
+    p.add_argument("--rounds", type=int, default=10, help="interleaved measurement rounds (medians reported)")
     p.add_argument("--warmup", type=int, default=1, help="untimed steps of each path first")
     p.add_argument("--warmup-seconds", type=float, default=0.5, help="... and at least this long")
     p.add_argument("--steps", type=int, default=0, help="at most this many timed steps per round (0: no cap)")
