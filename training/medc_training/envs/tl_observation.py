@@ -133,7 +133,95 @@ def estimator_path(path: str):
         ESTIMATOR_PATH = before
 
 
-class SourceEstimator:
+class _FusedLevels:
+    """The fused path's steps over a cells-major posterior over levels (:class:`SourceEstimator`)."""
+
+    grid: int
+    levels: int
+
+    def cells_major(self, log_post: torch.Tensor) -> bool:
+        """Whether ``log_post`` [K, L, G²] is a view of cells-major memory [K, G², L] (the fused
+        path's layout, :meth:`prior`)."""
+        return (log_post.dim() == 3 and log_post.shape[1] > 1 and log_post.stride(1) == 1
+                and log_post.stride(2) == log_post.shape[1])
+
+    def _fused_update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                      readings: torch.Tensor, d2: torch.Tensor, crossed: torch.Tensor,
+                      posterior_out: torch.Tensor | None) -> None:
+        """:meth:`update` of a cells-major posterior over levels from per-(d², walls crossed) tables.
+
+        A block of episodes at a time (:data:`BLOCK_BYTES`), every step over contiguous memory while
+        the block is in cache: one ``embedding_bag`` makes each (episode, cell)'s row of L
+        log-likelihoods, sum_n r_n log rate_n - S sum_n factor_n - N B (the reference's arithmetic, in
+        its order), from N + 2 table rows (the N readings' log-rate rows weighted by the readings, the
+        strength row by -sum_n factor_n, the background row by -N); it is added to the posterior,
+        the ruled-out cells are floored, the block is shifted by its episodes' maxima and floored, and
+        (``posterior_out``) the marginal over the levels is summed from exp2 of the block scaled by
+        log2(e) (float32's exp2 is about 3x faster than its exp here)."""
+        k, n = readings.shape
+        cells, levels = self.grid * self.grid, self.levels
+        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
+        most = int(crossed.max()) if crossed.numel() else 0
+        table = self._bag_table
+        if table is None or table.shape[0] < span * (most + 1) + 2:
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
+            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
+            self._bag_factor = factor  # [Q]
+        q_rows = table.shape[0] - 2
+        # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
+        # row weighted by -sum_n factor_n, the background row by -N.
+        index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
+        bags = torch.empty((k, cells, n + 2), dtype=torch.int64, device=self.device)
+        bags[..., :n] = index.transpose(1, 2)
+        bags[..., n] = q_rows
+        bags[..., n + 1] = q_rows + 1
+        weights = torch.empty((k, cells, n + 2), device=self.device)
+        weights[..., :n] = readings.unsqueeze(1)
+        torch.sum(self._bag_factor.index_select(0, index.view(-1)).view(k, n, cells), 1, out=weights[..., n])
+        weights[..., n].neg_()
+        weights[..., n + 1] = -float(n)
+        bags, weights = bags.view(k * cells, n + 2), weights.view(k * cells, n + 2)
+        out = walls.reshape(k, -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
+        episode, cell = out.nonzero(as_tuple=True)  # in episode order
+        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
+        step = self.block(k)
+        starts = list(range(0, k, step))
+        cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
+        for i, s in enumerate(starts):
+            e = min(k, s + step)
+            kb = e - s
+            loglik = torch.nn.functional.embedding_bag(bags[s * cells:e * cells], table, mode="sum",
+                                                       per_sample_weights=weights[s * cells:e * cells])
+            block = phys[s:e]
+            block.add_(loglik.view(kb, cells, levels))
+            lo, hi = cuts[i], cuts[i + 1]
+            if hi > lo:
+                block[episode[lo:hi] - s, cell[lo:hi]] = LOG_FLOOR
+            block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+            if posterior_out is not None:
+                self._marginal(block, loglik.view(kb, cells, levels), posterior_out[s:e])
+        if posterior_out is not None:
+            self._normalise(posterior_out)
+
+    def _marginal(self, block: torch.Tensor, scratch: torch.Tensor, out: torch.Tensor) -> None:
+        """Sum over the levels of exp(``block``) (cells-major [k, G², L]) into ``out`` [k, G²], through
+        ``scratch`` (same shape, contiguous); entries at or below EXP_FLOOR weigh exp(EXP_FLOOR)."""
+        weights = torch.clamp(block, min=EXP_FLOOR, out=scratch).mul_(_LOG2E).exp2_()
+        torch.sum(weights, 2, out=out)
+
+    def _normalise(self, p: torch.Tensor) -> torch.Tensor:
+        """``p`` [K, G²] of :meth:`_marginal`, in place: dead cells exactly 0, rows summing to 1."""
+        p.masked_fill_(p <= self._dead_cell, 0.0)
+        return p.div_(p.sum(1, keepdim=True))
+
+
+class SourceEstimator(_FusedLevels):
     """The team's Bayes posterior over the source cell on a ``grid``×``grid`` area (module docstring).
 
     Stateless apart from per-grid constants; the posterior lives in a ``log_post`` tensor the caller
@@ -189,12 +277,6 @@ class SourceEstimator:
     def fused(self) -> bool:
         """Whether this estimator keeps a posterior over levels cells-major and takes the fused path."""
         return self.path == "fused" and self.levels > 1
-
-    def cells_major(self, log_post: torch.Tensor) -> bool:
-        """Whether ``log_post`` [K, L, G²] is a view of cells-major memory [K, G², L] (the fused
-        path's layout, :meth:`prior`)."""
-        return (log_post.dim() == 3 and log_post.shape[1] > 1 and log_post.stride(1) == 1
-                and log_post.stride(2) == log_post.shape[1])
 
     def prior(self, walls: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²] (or [K, levels, G²]) log prior: 0 on free cells, LOG_FLOOR on walls."""
@@ -293,81 +375,6 @@ class SourceEstimator:
                 block[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
             block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
         return False
-
-    def _fused_update(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
-                      readings: torch.Tensor, d2: torch.Tensor, crossed: torch.Tensor,
-                      posterior_out: torch.Tensor | None) -> None:
-        """:meth:`update` of a cells-major posterior over levels from per-(d², walls crossed) tables.
-
-        A block of episodes at a time (:data:`BLOCK_BYTES`), every step over contiguous memory while
-        the block is in cache: one ``embedding_bag`` makes each (episode, cell)'s row of L
-        log-likelihoods, sum_n r_n log rate_n - S sum_n factor_n - N B (the reference's arithmetic, in
-        its order), from N + 2 table rows (the N readings' log-rate rows weighted by the readings, the
-        strength row by -sum_n factor_n, the background row by -N); it is added to the posterior,
-        the ruled-out cells are floored, the block is shifted by its episodes' maxima and floored, and
-        (``posterior_out``) the marginal over the levels is summed from exp2 of the block scaled by
-        log2(e) (float32's exp2 is about 3x faster than its exp here)."""
-        k, n = readings.shape
-        cells, levels = self.grid * self.grid, self.levels
-        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
-        most = int(crossed.max()) if crossed.numel() else 0
-        table = self._bag_table
-        if table is None or table.shape[0] < span * (most + 1) + 2:
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
-            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
-            self._bag_factor = factor  # [Q]
-        q_rows = table.shape[0] - 2
-        # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
-        # row weighted by -sum_n factor_n, the background row by -N.
-        index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
-        bags = torch.empty((k, cells, n + 2), dtype=torch.int64, device=self.device)
-        bags[..., :n] = index.transpose(1, 2)
-        bags[..., n] = q_rows
-        bags[..., n + 1] = q_rows + 1
-        weights = torch.empty((k, cells, n + 2), device=self.device)
-        weights[..., :n] = readings.unsqueeze(1)
-        torch.sum(self._bag_factor.index_select(0, index.view(-1)).view(k, n, cells), 1, out=weights[..., n])
-        weights[..., n].neg_()
-        weights[..., n + 1] = -float(n)
-        bags, weights = bags.view(k * cells, n + 2), weights.view(k * cells, n + 2)
-        out = walls.reshape(k, -1).bool()
-        if self.rule_out:
-            out = out | self.ruled_out(positions)
-        episode, cell = out.nonzero(as_tuple=True)  # in episode order
-        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
-        step = self.block(k)
-        starts = list(range(0, k, step))
-        cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
-        for i, s in enumerate(starts):
-            e = min(k, s + step)
-            kb = e - s
-            loglik = torch.nn.functional.embedding_bag(bags[s * cells:e * cells], table, mode="sum",
-                                                       per_sample_weights=weights[s * cells:e * cells])
-            block = phys[s:e]
-            block.add_(loglik.view(kb, cells, levels))
-            lo, hi = cuts[i], cuts[i + 1]
-            if hi > lo:
-                block[episode[lo:hi] - s, cell[lo:hi]] = LOG_FLOOR
-            block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
-            if posterior_out is not None:
-                self._marginal(block, loglik.view(kb, cells, levels), posterior_out[s:e])
-        if posterior_out is not None:
-            self._normalise(posterior_out)
-
-    def _marginal(self, block: torch.Tensor, scratch: torch.Tensor, out: torch.Tensor) -> None:
-        """Sum over the levels of exp(``block``) (cells-major [k, G², L]) into ``out`` [k, G²], through
-        ``scratch`` (same shape, contiguous); entries at or below EXP_FLOOR weigh exp(EXP_FLOOR)."""
-        weights = torch.clamp(block, min=EXP_FLOOR, out=scratch).mul_(_LOG2E).exp2_()
-        torch.sum(weights, 2, out=out)
-
-    def _normalise(self, p: torch.Tensor) -> torch.Tensor:
-        """``p`` [K, G²] of :meth:`_marginal`, in place: dead cells exactly 0, rows summing to 1."""
-        p.masked_fill_(p <= self._dead_cell, 0.0)
-        return p.div_(p.sum(1, keepdim=True))
 
     def block(self, k: int) -> int:
         """Episodes per block of a posterior over levels (:data:`BLOCK_BYTES`), for a batch of ``k``."""
