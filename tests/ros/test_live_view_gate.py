@@ -138,3 +138,20 @@ def test_a_request_that_is_no_websocket_opening_or_never_comes(live, monkeypatch
         sock.sendall(b"GET / HTTP/1.1\r\n")  # and nothing more
         assert sock.recv(4096) == b""  # closed, unanswered, once the request is overdue
     assert live.gate.refused["request"] == 1 and live.gate.active == 0
+
+
+def test_launch_passes_the_live_view_options_to_its_recorder(monkeypatch):
+    """medc-launch --foxglove --foxglove-clients N --foxglove-origin O starts medc-record with them."""
+    import subprocess
+
+    from medc_bringup import recorder
+    from medc_bringup.launcher import LaunchConfig
+
+    started = {}
+    monkeypatch.setattr(subprocess, "Popen", lambda command, **_: started.setdefault("command", command))
+    recorder.start_recorder(LaunchConfig(agents=2), None, 0, foxglove_clients=3,
+                            foxglove_origins=("https://app.foxglove.dev",))
+    command = started["command"]
+    assert command[command.index("--foxglove-clients") + 1] == "3"
+    assert command[command.index("--foxglove-origin") + 1] == "https://app.foxglove.dev"
+    assert recorder.build_parser().parse_args(command[3:]).foxglove_origin == ["https://app.foxglove.dev"]

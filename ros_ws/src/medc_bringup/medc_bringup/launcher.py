@@ -38,6 +38,8 @@ from medc_common.contract import agent_node_name
 from medc_common.ros_env import interfaces_env, repo_root, require_interfaces
 from medc_common.share import config_file
 
+from medc_bringup.live_view import DEFAULT_MAX_CLIENTS
+
 #: The installed share/medc_bringup/config/launch.yaml (ament index), else the source tree's.
 DEFAULT_CONFIG = config_file("medc_bringup", "launch.yaml")
 #: Scenario used when neither the config nor the policy's manifest says otherwise.
@@ -568,11 +570,20 @@ def main(argv: list[str] | None = None) -> int:
                              "written through)")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
                         help="serve a live view to Foxglove on ws://127.0.0.1:PORT (default port 8765)")
+    parser.add_argument("--foxglove-clients", type=int, default=DEFAULT_MAX_CLIENTS, metavar="N",
+                        help="with --foxglove: connections the live view serves at once")
+    parser.add_argument("--foxglove-origin", action="append", default=[], metavar="ORIGIN",
+                        help="with --foxglove: also serve web pages of this origin (repeatable; the live "
+                             "view refuses any page not served by this machine)")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
     if args.overwrite and args.record is None:
         parser.error("--overwrite is only used with --record FILE.mcap")
+    if args.foxglove_origin and args.foxglove is None:
+        parser.error("--foxglove-origin is only used with --foxglove")
+    if args.foxglove_clients < 1:
+        parser.error(f"--foxglove-clients must be at least 1, got {args.foxglove_clients}")
     try:
         cfg = load_config(args.config, seed=args.seed, policy=policy_from_cwd(args.policy),
                           agents=args.agents, sensing=args.sensing, namespace=args.namespace)
@@ -588,7 +599,9 @@ def main(argv: list[str] | None = None) -> int:
 
     log = EpisodeLog(quiet=args.quiet)
     try:
-        recorder = start_recorder(cfg, args.record, args.foxglove, quiet=args.quiet, overwrite=args.overwrite)
+        recorder = start_recorder(cfg, args.record, args.foxglove, quiet=args.quiet, overwrite=args.overwrite,
+                                  foxglove_clients=args.foxglove_clients,
+                                  foxglove_origins=tuple(args.foxglove_origin))
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)
         return 2

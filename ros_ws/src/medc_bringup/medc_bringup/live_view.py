@@ -418,10 +418,14 @@ class ConnectionGate:
             return
 
         def stop() -> None:
+            import asyncio
+
             self._server.close()
             for writer in list(self._writers):
                 writer.close()
-            self._loop.stop()
+            for task in asyncio.all_tasks(self._loop):  # each connection's task ends, none left pending
+                task.cancel()
+            self._loop.call_soon(self._loop.stop)  # after the cancellations have run
 
         self._loop.call_soon_threadsafe(stop)
         self._thread.join(timeout=10)

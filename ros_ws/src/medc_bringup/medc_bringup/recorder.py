@@ -249,11 +249,13 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
 
 
 def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = False,
-                   overwrite: bool = False):
+                   overwrite: bool = False, foxglove_clients: int | None = None,
+                   foxglove_origins: tuple[str, ...] = ()):
     """For ``medc-launch --record/--foxglove``: start ``medc-record`` for ``cfg``'s team as its own
     process (own session: Ctrl-C reaches the launcher, which stops it last). None if neither is
     asked for. A relative ``record`` path is taken from the current directory; ``overwrite``
-    replaces an existing file.
+    replaces an existing file; ``foxglove_clients`` and ``foxglove_origins`` are medc-record's
+    ``--foxglove-clients`` and ``--foxglove-origin``.
 
     Raises:
         ValueError: the record file cannot be written there (checked as ``medc-record -o`` checks
@@ -278,6 +280,10 @@ def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = 
         command += ["--output", str(path)] + (["--overwrite"] if overwrite else [])
     if foxglove is not None:
         command += ["--foxglove", str(foxglove)]
+        if foxglove_clients is not None:
+            command += ["--foxglove-clients", str(foxglove_clients)]
+        for origin in foxglove_origins:
+            command += ["--foxglove-origin", origin]
     if quiet:
         command.append("--quiet")
     env = interfaces_env()
