@@ -21,7 +21,7 @@ runs as ``..._reference`` (``reference`` path, :data:`~medc_training.envs.tl_obs
 and ``..._speedup_over_reference`` is their ratio of training steps per second (``--no-reference``
 skips them). ``--thread-ab`` adds the default realistic learners on one torch thread beside the
 run's count (``..._1thread``; on two threads, ``..._2threads``, when the run is on one), which says
-whether the second core pays.
+whether the second core pays. ``--only-ab`` times only the default learners and their twins.
 
 Rounds are interleaved, one update of each learner per round, so that a shared machine's load
 hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
