@@ -38,7 +38,7 @@ import torch
 from medc_training.envs import make_batched, make_env
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, estimator_path
 
-#: The issue's scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
+#: The measured scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
 SCENARIOS: tuple[tuple[str, int, int], ...] = (("paper-simple", 30, 100_000), ("realistic", 20, 50_000))
 BASELINE_OBSERVATION = "maps"
 
