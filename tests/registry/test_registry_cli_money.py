@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from child_signals import default_sigint
 from medc_registry.home import PENDING_FILE
 from medc_registry.nodes import start_anvil
 from registry_helpers import APP, PRICE, REQUEST, cli_home, ledger
@@ -40,7 +41,8 @@ def home(tmp_path, capsys):
 
 def _start(home: list[str], *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "medc_registry.cli", "--deadline", "120", *home, *REQUEST,
-                             *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_sigint)
 
 
 def _finish(proc: subprocess.Popen) -> tuple[int, str, str]:

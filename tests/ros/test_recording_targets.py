@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from child_signals import default_sigint
 
 BIN = Path(sys.executable).parent
 #: Seconds a loaded machine is given for what these tests wait on (the deadline, not a sleep).
@@ -138,7 +139,8 @@ def test_overwrite_replaces_a_planted_link_and_keeps_what_was_recorded(rclpy_con
     pub = node.create_publisher(String, f"{ns}/note", latched)
     pub.publish(String(data="kept"))
     proc = subprocess.Popen([str(BIN / "medc-record"), "-o", str(out), "--overwrite", "--namespace", ns],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_sigint)
     try:
         deadline = time.monotonic() + DEADLINE_S
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
