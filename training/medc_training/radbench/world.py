@@ -41,7 +41,7 @@ from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, parse_sensing
 
 from .departure import jittered_positions
-from .play import TEAM_SENSING, episode_tensors, world_rates
+from .physics import TEAM_SENSING, episode_tensors, world_rates
 from .scenario import GRIDS, MAX_STEPS, OBSTRUCTION_COUNTS, generate_set
 
 __all__ = ["SNR_MIX", "TRAIN_SEED_BASE", "WORLD", "BenchWorld", "draw_episodes"]

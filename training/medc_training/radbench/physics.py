@@ -1,0 +1,61 @@
+"""The benchmark world's physics as tensors, shared by the cores that play frozen sets
+(:class:`~medc_training.radbench.play.BenchCore`) and the training world
+(:class:`~medc_training.radbench.world.BenchWorld`): the team's sensor model on the benchmark, the
+episodes' layouts as a core takes them, and the world's mean count rates."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+
+from medc_training.envs.grid import bfs_distance
+from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing, wall_rectangles
+
+__all__ = ["TEAM_SENSING", "episode_tensors", "world_rates"]
+
+#: The team's sensor model on the benchmark: the realistic preset (its name, so that bundles trained
+#: under it play) with the benchmark's strength range.
+TEAM_SENSING: SensingModel = parse_sensing({"name": "realistic", "strength": [100.0, 1000.0]})
+
+
+def episode_tensors(episodes: Sequence[Any], grid: int, slots: int, device: torch.device | str
+                    ) -> dict[str, torch.Tensor]:
+    """The layouts of benchmark ``episodes`` as a core takes them: walls bool [K,G,G], target [K,2],
+    positions [K,N,2], distance (BFS to the source) [K,G,G], strength and background float32 [K],
+    rects (the walls' rectangles, ``slots`` per episode)."""
+    walls = torch.stack([torch.from_numpy(e.walls(grid)) for e in episodes]).to(device)
+    target = torch.tensor([e.source for e in episodes], dtype=torch.long, device=device)
+    source_map = torch.zeros_like(walls)
+    source_map[torch.arange(len(episodes), device=device), target[:, 0], target[:, 1]] = True
+    return {
+        "walls": walls,
+        "target": target,
+        "positions": torch.tensor([e.starts for e in episodes], dtype=torch.long, device=device),
+        "distance": bfs_distance(~walls, source_map),
+        "strength": torch.tensor([e.strength for e in episodes], dtype=torch.float32, device=device),
+        "background": torch.tensor([float(e.background) for e in episodes], dtype=torch.float32,
+                                   device=device),
+        "rects": wall_rectangles(walls, slots),
+    }
+
+
+def world_rates(sensing: SensingModel, cell_m: float, lay: dict[str, torch.Tensor]) -> torch.Tensor:
+    """float32 [K,N]: the benchmark world's mean rate (counts/s) at each agent of ``lay`` (positions,
+    target, walls, rects, strength, background): ``S / d_m**2 + B`` with d floored at 1 m where the
+    line of sight is clear (the exact rule of ``sensing``), ``B`` where an obstruction blocks it. Where
+    the world departs from the model (:mod:`~medc_training.radbench.departure`), ``lay`` also holds per
+    row the obstructions' ``transmission`` (blocked: ``transmission * S / d² + B``) and the detector's
+    ``efficiency`` (every rate times it)."""
+    positions, target = lay["positions"], lay["target"]
+    factor = geometric_factor(sensing, positions, target.unsqueeze(1), lay["walls"], lay["rects"])[..., 0]
+    delta = (positions - target.unsqueeze(1)).to(torch.float32)
+    d2_m = (delta * delta).sum(-1) * (cell_m ** 2)
+    inverse = 1.0 / d2_m.clamp(min=1.0)
+    through = lay.get("transmission")
+    blocked = torch.zeros_like(d2_m) if through is None else through.unsqueeze(1) * inverse
+    near = torch.where(factor > 0, inverse, blocked)
+    rate = lay["strength"].unsqueeze(1) * near + lay["background"].unsqueeze(1)
+    efficiency = lay.get("efficiency")
+    return rate if efficiency is None else rate * efficiency.unsqueeze(1)
