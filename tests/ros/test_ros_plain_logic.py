@@ -115,7 +115,7 @@ def test_move_book_drops_bad_moves():
         book.offer(IDS[i], 2, 5, i)
     assert book.complete and book.actions() == [0, 1, 2]
     book.open(2, 6)
-    assert book.offer("agent_1", 2, 5, 3) is None  # late answer to a re-sent step 5: ignored
+    assert book.offer("agent_1", 2, 5, 1) is None  # a late re-send of its move for step 5: ignored
     with pytest.raises(MoveRejected):
         book.offer("agent_1", 2, 4, 3)  # older than that: dropped and logged
     assert book.missing == [0, 1, 2]

@@ -245,3 +245,62 @@ def test_the_first_poses_on_a_new_area_are_checked_against_its_map(map_first):
     with pytest.raises(ValueError, match="pose of agent_2"):
         o.add_pose("agent_2", pose)  # its status is here: checked against its map at once
     assert "pose" in o.missing()[1]  # the dropped pose is missing, not used
+
+
+class _Health:
+    """The conditions a MapFaults sets, as a node's Health keeps them."""
+
+    def __init__(self) -> None:
+        self.states: dict[str, tuple[bytes, str]] = {}
+
+    def set(self, part: str, level: bytes, message: str, values=None, log: bool = True) -> None:
+        self.states[part] = (level, message)
+
+    def level(self, part: str) -> bytes:
+        from diagnostic_msgs.msg import DiagnosticStatus
+
+        return self.states.get(part, (DiagnosticStatus.OK, ""))[0]
+
+
+def test_a_map_fault_is_over_once_a_later_status_is_decided_on_the_drivers_map_even_an_older_one():
+    """A driver that sends one map for the whole mission: a map from elsewhere, then one refused,
+    each WARN until a step whose status came after it is decided on the driver's map (which came
+    before them); the step waiting when the fault came does not end it."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from medc_agents.map_faults import MapFaults
+    from medc_agents.team_state import TeamObserver
+
+    o = TeamObserver("agent_0", 3, 10)
+    health = _Health()
+    faults = MapFaults(o, health, logger=None)
+    cells = [(1, 1), (2, 2), (3, 3)]
+    mission = messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), Time(sec=1), 1.0)
+    o.add_map(mission)
+    faults.taken(1 * S)
+    _play_step(o, 0, 0, 10, 1, GEO, cells)
+    faults.decided(o.observe()[2])
+    assert faults.checks == {}  # the status names it: no check
+
+    elsewhere = messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), Time(sec=5), 1.0)
+    elsewhere.info.origin.position.x = elsewhere.info.origin.position.y = 500.0
+    _play_step(o, 0, 1, 11, 1, GEO, cells)  # step 1 waits while the map from elsewhere comes
+    o.add_map(elsewhere)
+    faults.taken(5 * S)
+    faults.check(5 * S)
+    level, message = health.states["map"]
+    assert level == DiagnosticStatus.WARN and "holds none of the team's 3 latest poses" in message
+    faults.decided(o.observe()[2])  # the step that was waiting: not past the fault
+    assert health.level("map") == DiagnosticStatus.WARN
+    _play_step(o, 0, 2, 12, 1, GEO, cells)  # a status after the fault, on the mission's map
+    faults.decided(o.observe()[2])
+    assert health.states["map"] == (DiagnosticStatus.OK, "deciding on the map with map_load_time "
+                                    "1.000000000, which the episode status names")
+    assert faults.fault is None
+
+    with pytest.raises(ValueError, match="8x8") as refused:
+        o.add_map(messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), Time(sec=9), 1.0))
+    faults.refused(9 * S, refused.value)
+    assert health.states["map"][1].startswith("map with map_load_time 9.000000000 refused: map is 8x8")
+    _play_step(o, 0, 3, 13, 1, GEO, cells)  # the driver goes on with its own map
+    faults.decided(o.observe()[2])
+    assert health.level("map") == DiagnosticStatus.OK and faults.fault is None

@@ -44,6 +44,7 @@ from std_msgs.msg import String
 from medc_agents import guard
 from medc_agents.controller import controller_move, controller_name, controller_scenario
 from medc_agents.estimate import TeamEstimate
+from medc_agents.map_faults import MapFaults
 from medc_agents.policy import (
     PolicyRejected,
     PolicySlot,
@@ -51,7 +52,7 @@ from medc_agents.policy import (
     shown,
 )
 from medc_agents.policy_swaps import PolicySwaps, refusal_reason
-from medc_agents.team_messages import EDGE_TOLERANCE_CELLS, show_stamp, stamp_key
+from medc_agents.team_messages import EDGE_TOLERANCE_CELLS, stamp_key
 from medc_agents.team_state import TeamObserver
 from medc_agents.team_watch import TeamWatch
 
@@ -314,10 +315,6 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self._stall_since: tuple[object, float] | None = None  # (what, since when)
         self._stall_report: tuple[object, str] | None = None  # (what, report) once logged
         self._noted: set[str] = set()
-        #: The map fault reported (the count of maps offered when it came), until a step is decided
-        #: on that map or one received after it.
-        self._map_fault: int | None = None
-        self._map_checks: dict[int, float] = {}  # map_load_time -> when it came, until checked
         self._old_statuses = 0  # statuses below the step answered since the last summary
         self._old_since = 0.0
 
@@ -341,6 +338,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
         self.health = Health(self, self.agent_id, self._summary)
+        #: The ``map`` condition: maps refused or from elsewhere, and the checks of maps taken.
+        self.map_faults = MapFaults(self.observer, self.health, self.get_logger())
         # Another process publishing moves as this agent (a duplicate id) is reported here too.
         self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self._on_own_move,
                                  contract.RELIABLE_QOS)
@@ -393,52 +392,15 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             self.observer.add_map(msg)
         except ValueError as exc:  # refused: a fault on /diagnostics (once per map and reason)
             self.dropped_by["map"] += 1
-            self._map_fault = self.observer.maps.offered
-            self.health.set("map", DiagnosticStatus.WARN, f"map with map_load_time {show_stamp(key)} "
-                            f"refused: {exc}; a step that names it waits for a map it can take")
+            self.map_faults.refused(key, exc)
             return
         self._flush_notes()
-        # A map no status names yet is checked against the team's poses a moment later: a new area's
-        # first poses come just after its map.
-        self._map_checks[key] = time.monotonic()
+        self.map_faults.taken(key)
         self._maybe_decide()
-
-    def _check_map(self, key: int) -> None:
-        """Report a map none of the team's latest poses lie on (a map from elsewhere) that no status
-        names: it is kept aside and used only when an episode status names it."""
-        o = self.observer
-        geometry = o.maps.geometry(key)
-        xys = o.rounds.latest_xy()
-        if geometry is None or not xys or key in o.clock.maps_in_use():
-            return
-        on = 0
-        for xy in xys:
-            try:
-                geometry.xy_to_cell(*xy, o.tolerance_m(geometry))
-                on += 1
-            except ValueError:
-                pass
-        if on == 0:
-            self._map_fault = o.maps.arrival(key)
-            self.health.set("map", DiagnosticStatus.WARN, (
-                f"map with map_load_time {show_stamp(key)} (origin ({geometry.origin_x:g}, "
-                f"{geometry.origin_y:g}) m) holds none of the team's {len(xys)} latest poses: held; the "
-                "team keeps the map its episode status names and uses this one only when a status names it"))
 
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
         self.get_logger().warning(f"dropped {what} message: {exc}")
-
-    def _map_fault_over(self, tick) -> None:
-        """A step decided on a map received since the map reported (or on that very map): the map
-        fault is over."""
-        if self._map_fault is None:
-            return
-        arrival = self.observer.maps.arrival(tick.map_stamp)
-        if arrival is not None and arrival >= self._map_fault:
-            self._map_fault = None
-            self.health.set("map", DiagnosticStatus.OK, f"deciding on the map with map_load_time "
-                            f"{show_stamp(tick.map_stamp)}, which the episode status names")
 
     def _old_status(self, why: str) -> None:
         """A status below the step answered (normal: a re-send that crossed the next step): logged
@@ -541,8 +503,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
         self._unanswered = None
         self._stall_over(tick)
-        self._map_checks.pop(tick.map_stamp, None)  # a map a status names is the driver's
-        self._map_fault_over(tick)
+        self.map_faults.decided(tick)
         self._flush_notes()
         try:  # the estimate goes out before the move: a driver ending on the declaration sees it first
             self.estimate.on_step(self.observer, tick)

@@ -20,8 +20,6 @@ from medc_agents.team_messages import show_stamp
 #: Seconds without a repeat after which a fault that came from outside (another process moving as
 #: this agent) is over: its condition is OK again.
 CLEAR_S = 10.0
-#: Seconds after a map no status names before it is checked against the team's poses.
-MAP_CHECK_S = 1.0
 #: A pose or reading stamped more than this (ns) ahead of the step waited on is not a sign of life.
 FUTURE_NS = 5_000_000_000
 
@@ -65,12 +63,7 @@ class TeamWatch:
         self._flush_notes()
         self._check_lost()
         self._sum_old_statuses()
-        for key in [k for k, at in self._map_checks.items() if time.monotonic() - at >= MAP_CHECK_S]:
-            del self._map_checks[key]
-            try:
-                self._check_map(key)
-            except Exception as exc:  # a report must never take the node down
-                self.get_logger().error(f"map check failed: {type(exc).__name__}")
+        self.map_faults.check_due()
         if self._claimed_at is not None and time.monotonic() - self._claimed_at >= CLEAR_S:
             self._claimed_at = None
             self.health.set("moves", DiagnosticStatus.OK, f"no other process has moved as {self.agent_id} "

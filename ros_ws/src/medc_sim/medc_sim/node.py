@@ -29,12 +29,11 @@ from medc_common import contract
 from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
-from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
 
 from medc_sim import messages
-from medc_sim.episode_end import declared_cell
+from medc_sim.declarations import Declarations
 from medc_sim.move_watch import MoveWatch
 from medc_sim.moves import ConflictingMove, DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
@@ -157,11 +156,8 @@ class SimNode(MoveWatch, Node):
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
-        if cfg.end_on != "source":
-            from medc_interfaces.msg import SourceDeclaration
-
-            self.create_subscription(SourceDeclaration, contract.declaration_topic(ns), self._on_declaration,
-                                     contract.RELIABLE_QOS)
+        #: The team's declarations, when one may end an episode (medc_sim.declarations).
+        self.declarations = Declarations(self) if cfg.end_on != "source" else None
         self.move_subs = [
             self.create_subscription(
                 AgentMove,
@@ -310,62 +306,3 @@ class SimNode(MoveWatch, Node):
             self.get_logger().info(f"{len(self.core.results)} episodes done; simulator idle")
             return
         self._begin_episode()
-
-    def _declaration_refusal(self, msg) -> str | None:
-        """Why a declaration is not the team's, or None. It must name an agent of the team that is
-        not taken out, and every node that publishes declarations must be one that publishes an
-        agent's moves (a message does not say which node sent it: while another node publishes
-        declarations, none can be told from its own)."""
-        agent = str(msg.agent_id)
-        if agent not in self.ids:
-            return (f"it names {printable(agent, 40)!r}, not an agent of this team "
-                    f"({', '.join(self.ids)}); a declaration counts only from a team member")
-        if self.ids.index(agent) in self.book.lost:
-            return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
-                    "again")
-        topic = contract.declaration_topic(self.namespace_)
-        try:
-            movers = {(i.node_namespace, i.node_name) for a in self.ids
-                      for i in self.get_publishers_info_by_topic(contract.move_topic(self.namespace_, a))}
-            publishers = {(i.node_namespace, i.node_name) for i in self.get_publishers_info_by_topic(topic)}
-        except Exception as exc:  # the graph unreadable (shutting down): nothing to tell it from
-            return f"the publishers of {topic} could not be read ({type(exc).__name__})"
-        strangers = sorted(publishers - movers)
-        if strangers:
-            names = ", ".join(printable(f"{ns.rstrip('/')}/{name}", 80) for ns, name in strangers[:4])
-            return (f"{len(strangers)} node(s) that move no agent publish on {topic} ({names}): a "
-                    "declaration cannot be told from theirs; refused until they are gone")
-        return None
-
-    def _on_declaration(self, msg) -> None:
-        """End the episode on the team's declaration (``end_on`` 'declaration' or 'either')."""
-        if not self.started or self.finished:
-            return
-        core = self.core
-        if int(msg.episode) < core.episode:
-            return  # the episode has ended already (e.g. a UAV found the source under 'either')
-        if int(msg.episode) != core.episode or (msg.map_stamp.sec, msg.map_stamp.nanosec) != (
-                self._map_stamp.sec, self._map_stamp.nanosec) or int(msg.step) > core.step:
-            self.get_logger().warning(
-                f"dropped declaration for episode {msg.episode} step {msg.step}: the simulator is at episode "
-                f"{core.episode} step {core.step} (its map_stamp must be this episode's map)")
-            return
-        try:
-            cell = declared_cell(msg.cell_i, msg.cell_j, core.config.grid)
-            refusal = self._declaration_refusal(msg)
-        except ValueError as exc:
-            self.dropped += 1
-            self.get_logger().warning(f"dropped declaration: {exc}")
-            return
-        if refusal:
-            self.dropped += 1
-            self.health.set("declarations", DiagnosticStatus.WARN, f"declaration refused: {refusal}")
-            return
-        if self.health.level("declarations") != DiagnosticStatus.OK:
-            self.health.set("declarations", DiagnosticStatus.OK, f"declaration of {msg.agent_id} taken")
-        finished = core.end_by_declaration(cell)
-        self.get_logger().info(
-            f"episode {finished.episode} ended by the team's declaration at step {finished.length} "
-            f"(declared at step {msg.step}, posterior mass {msg.mass:.3f}): {finished.error:.2f} cells "
-            f"from the source, {'found' if finished.success else 'wrong cell'}")
-        self._finish_episode(finished)

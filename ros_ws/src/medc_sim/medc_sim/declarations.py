@@ -1,0 +1,96 @@
+"""The team's source declarations to the simulator (``end_on`` 'declaration' or 'either'): the one
+that names the episode in play, comes from a member of the team and cannot be told from a stranger's
+ends the episode; the others are dropped, a refused one reported on /diagnostics (part
+``declarations``) until one is taken.
+
+Owned by :class:`medc_sim.node.SimNode`, whose episode state (core, map stamp, move book) it reads
+and whose episode it ends; the cell rule is :func:`medc_sim.episode_end.declared_cell`.
+"""
+
+from __future__ import annotations
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from medc_common import contract
+from medc_training.untrusted import printable
+
+from medc_sim.episode_end import declared_cell
+
+
+class Declarations:
+    """The declaration subscription of a simulator node, and its verdicts."""
+
+    def __init__(self, sim) -> None:
+        """Subscribe ``sim`` (a SimNode) to the team's declaration topic."""
+        from medc_interfaces.msg import SourceDeclaration
+
+        self.sim = sim
+        #: The declaration topic, fully qualified (its publishers are looked up in the graph).
+        self.topic = contract.declaration_topic(sim.namespace_)
+        #: Declarations that ended an episode, and those refused as not the team's.
+        self.taken = 0
+        self.refused = 0
+        sim.create_subscription(SourceDeclaration, contract.declaration_topic(sim.names_ns),
+                                self.on_declaration, contract.RELIABLE_QOS)
+
+    def refusal(self, msg) -> str | None:
+        """Why a declaration is not the team's, or None. It must name an agent of the team that is
+        not taken out, and every node that publishes declarations must be one that publishes an
+        agent's moves (a message does not say which node sent it: while another node publishes
+        declarations, none can be told from its own)."""
+        sim = self.sim
+        agent = str(msg.agent_id)
+        if agent not in sim.ids:
+            return (f"it names {printable(agent, 40)!r}, not an agent of this team "
+                    f"({', '.join(sim.ids)}); a declaration counts only from a team member")
+        if sim.ids.index(agent) in sim.book.lost:
+            return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
+                    "again")
+        publishers_of = sim.get_publishers_info_by_topic
+        try:
+            movers = {(i.node_namespace, i.node_name) for a in sim.ids
+                      for i in publishers_of(contract.move_topic(sim.namespace_, a))}
+            publishers = {(i.node_namespace, i.node_name) for i in publishers_of(self.topic)}
+        except Exception as exc:  # the graph unreadable (shutting down): nothing to tell it from
+            return f"the publishers of {self.topic} could not be read ({type(exc).__name__})"
+        strangers = sorted(publishers - movers)
+        if strangers:
+            names = ", ".join(printable(f"{ns.rstrip('/')}/{name}", 80) for ns, name in strangers[:4])
+            return (f"{len(strangers)} node(s) that move no agent publish on {self.topic} ({names}): a "
+                    "declaration cannot be told from theirs; refused until they are gone")
+        return None
+
+    def on_declaration(self, msg) -> None:
+        """End the episode on the team's declaration."""
+        sim = self.sim
+        if not sim.started or sim.finished:
+            return
+        core, log = sim.core, sim.get_logger()
+        if int(msg.episode) < core.episode:
+            return  # the episode has ended already (e.g. a UAV found the source under 'either')
+        if int(msg.episode) != core.episode or (msg.map_stamp.sec, msg.map_stamp.nanosec) != (
+                sim._map_stamp.sec, sim._map_stamp.nanosec) or int(msg.step) > core.step:
+            log.warning(
+                f"dropped declaration for episode {msg.episode} step {msg.step}: the simulator is at episode "
+                f"{core.episode} step {core.step} (its map_stamp must be this episode's map)")
+            return
+        try:
+            cell = declared_cell(msg.cell_i, msg.cell_j, core.config.grid)
+            refusal = self.refusal(msg)
+        except ValueError as exc:
+            sim.dropped += 1
+            log.warning(f"dropped declaration: {exc}")
+            return
+        if refusal:
+            sim.dropped += 1
+            self.refused += 1
+            sim.health.set("declarations", DiagnosticStatus.WARN, f"declaration refused: {refusal}")
+            return
+        if sim.health.level("declarations") != DiagnosticStatus.OK:
+            sim.health.set("declarations", DiagnosticStatus.OK, f"declaration of {msg.agent_id} taken")
+        self.taken += 1
+        finished = core.end_by_declaration(cell)
+        log.info(
+            f"episode {finished.episode} ended by the team's declaration at step {finished.length} "
+            f"(declared at step {msg.step}, posterior mass {msg.mass:.3f}): {finished.error:.2f} cells "
+            f"from the source, {'found' if finished.success else 'wrong cell'}")
+        sim._finish_episode(finished)
