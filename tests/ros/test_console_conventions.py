@@ -55,10 +55,10 @@ def test_quiet_means_the_same_everywhere():
     from medc_training.cli import clone, train
 
     parsers = {"medc-train": train.build_parser(), "medc-clone": clone.build_parser(),
-               "medc-record": recorder.build_parser()}
+               "medc-record": recorder.build_parser(), "medc-launch": launcher.build_parser()}
     for name, parser in parsers.items():
         assert _option(parser, "--quiet").help == QUIET_HELP, name
-    # medc-launch and medc-demo build theirs in main(): their --help shows the same text.
+    # Their --help shows the same text (medc-demo builds its parser in main()).
     import contextlib
 
     for main in (launcher.main, __import__("medc_bringup.demo", fromlist=["main"]).main):

@@ -543,8 +543,8 @@ def policy_from_cwd(policy: str | None, cwd: Path | None = None) -> str | None:
     return str(absolute)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Console script ``medc-launch`` (see the module docstring)."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``medc-launch`` (see the module docstring)."""
     from medc_training.console import QUIET_HELP, HelpFormatter, epilog
 
     parser = argparse.ArgumentParser(prog="medc-launch", description=__doc__.split("\n\n")[0],
@@ -575,7 +575,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--foxglove-origin", action="append", default=[], metavar="ORIGIN",
                         help="with --foxglove: also serve web pages of this origin (repeatable; the live "
                              "view refuses any page not served by this machine)")
-    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    return parser
+
+
+def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse (``parser.error``: usage, status 2) what argparse alone lets through: a negative
+    ``--episodes``, an option given without the one it qualifies, too few Foxglove connections."""
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
     if args.overwrite and args.record is None:
@@ -584,6 +589,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--foxglove-origin is only used with --foxglove")
     if args.foxglove_clients < 1:
         parser.error(f"--foxglove-clients must be at least 1, got {args.foxglove_clients}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console script ``medc-launch`` (see the module docstring)."""
+    parser = build_parser()
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    _check_args(parser, args)
     try:
         cfg = load_config(args.config, seed=args.seed, policy=policy_from_cwd(args.policy),
                           agents=args.agents, sensing=args.sensing, namespace=args.namespace)

@@ -27,6 +27,9 @@ import sys
 import time
 from pathlib import Path
 
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message
+
 from medc_bringup.live_view import DEFAULT_MAX_CLIENTS
 
 #: Topics outside the namespace that belong to a MEDC graph.
@@ -145,6 +148,104 @@ class StatusHold:
         return now > self.deadline or (self._heard_at is not None and now - self._heard_at >= self.settle_s)
 
 
+class RecorderNode(Node):
+    """Subscribes to the graph's topics as they appear (see the module docstring and
+    :func:`make_recorder_node`)."""
+
+    def __init__(self, namespace: str, recording=None, live=None, agents: int = 0,
+                 discover_every_s: float = 0.2, node_name: str = "medc_recorder",
+                 hold_status_s: float = HOLD_STATUS_S) -> None:
+        from medc_common import contract
+
+        # In the team's namespace (/team2/medc_recorder): two teams' recorders do not clash. The
+        # topics it subscribes to are fully qualified.
+        super().__init__(node_name, namespace=contract.check_namespace(namespace))
+        self.ns = _ns(namespace)
+        self._recording, self._live, self._hold_status_s = recording, live, hold_status_s
+        self.subscribed: dict[str, str] = {}
+        self.skipped: set[str] = set()
+        self.messages = 0
+        self.busy_s = 0.0
+        self._subs: dict[str, object] = {}
+        self.hold = StatusHold(namespace, agents, hold_status_s)
+        topics = known_topics(namespace, agents)
+        #: The status subscription held back (StatusHold); None once subscribed.
+        self.held = (self.hold.topic, topics.pop(self.hold.topic)) if self.hold.topic else None
+        for topic, (type_name, qos) in topics.items():
+            self._subscribe(topic, type_name, qos)
+        self._discover()
+        self.create_timer(discover_every_s, self._discover)
+        if live is not None:
+            self.create_timer(0.5, live.tick)
+
+    def _ours(self, topic: str) -> bool:
+        return topic.startswith(self.ns + "/") or topic in GLOBAL_TOPICS
+
+    def _release(self) -> None:
+        """Subscribe to the held status topic once the team is heard (StatusHold)."""
+        if not self.hold.due(self._subs):
+            return
+        silent = self.hold.silent(self._subs)
+        if silent:
+            self.get_logger().warning(f"no publisher on {', '.join(silent)} after {self._hold_status_s:g} s; "
+                                      "recording the episode status anyway")
+        topic, (type_name, qos) = self.held
+        self.held = None
+        self._subscribe(topic, type_name, qos)
+
+    def _discover(self) -> None:
+        if self.held is not None:
+            self._release()
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subscribed or topic in self.skipped or not self._ours(topic) or not types:
+                continue
+            if self.held is not None and topic == self.held[0]:
+                continue
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue  # only subscribers so far: match the publishers once they appear
+            self._subscribe(topic, types[0], qos_for_publishers(infos))
+
+    def _subscribe(self, topic: str, type_name: str, qos) -> None:
+        from medc_bringup.recording import message_class, message_definition
+
+        try:
+            cls = message_class(type_name)
+            definition = message_definition(type_name)
+        except ValueError as exc:
+            self.skipped.add(topic)
+            self.get_logger().warning(f"not recording {topic}: {exc}")
+            return
+        recording, live = self._recording, self._live
+        if recording is not None:
+            recording.add_topic(topic, type_name, qos)
+        decode = None
+        if live is not None:
+            live.add_topic(topic, type_name, definition, latched=_is_latched(qos))
+            if live.wants(topic, type_name):
+                decode = cls
+        self.subscribed[topic] = type_name
+        self._subs[topic] = self.create_subscription(
+            cls, topic, lambda data, t=topic, n=type_name, d=decode: self._on_message(t, n, d, data),
+            qos, raw=True,
+        )
+
+    def _on_message(self, topic: str, type_name: str, decode, data: bytes) -> None:
+        t0 = time.perf_counter()
+        now = time.time_ns()
+        recording, live = self._recording, self._live
+        if recording is not None and not recording.closed and recording.failed is None:
+            recording.write(topic, data, now)
+            if recording.failed is not None:
+                self.get_logger().error(f"the recording stopped: {recording.failed} (the live view, "
+                                        "if any, goes on)")
+        if live is not None:
+            msg = deserialize_message(data, decode) if decode is not None else None
+            live.on_message(topic, type_name, data, msg, now)
+        self.messages += 1
+        self.busy_s += time.perf_counter() - t0
+
+
 def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 0,
                        discover_every_s: float = 0.2, node_name: str = "medc_recorder",
                        hold_status_s: float = HOLD_STATUS_S):
@@ -152,100 +253,7 @@ def make_recorder_node(namespace: str, recording=None, live=None, agents: int = 
     ``recording`` (a :class:`medc_bringup.recording.McapRecording`) and ``live``
     (a :class:`medc_bringup.live_view.LiveView`); either may be None. With ``agents`` > 0 its
     status subscription waits for the team, ``hold_status_s`` at most (:class:`StatusHold`)."""
-    from medc_common import contract
-    from rclpy.node import Node
-    from rclpy.serialization import deserialize_message
-
-    from medc_bringup.recording import message_class, message_definition
-
-    class RecorderNode(Node):
-        """Subscribes to the graph's topics as they appear (see the module docstring)."""
-
-        def __init__(self) -> None:
-            # In the team's namespace (/team2/medc_recorder): two teams' recorders do not clash. The
-            # topics it subscribes to are fully qualified.
-            super().__init__(node_name, namespace=contract.check_namespace(namespace))
-            self.ns = _ns(namespace)
-            self.subscribed: dict[str, str] = {}
-            self.skipped: set[str] = set()
-            self.messages = 0
-            self.busy_s = 0.0
-            self._subs: dict[str, object] = {}
-            self.hold = StatusHold(namespace, agents, hold_status_s)
-            topics = known_topics(namespace, agents)
-            #: The status subscription held back (StatusHold); None once subscribed.
-            self.held = (self.hold.topic, topics.pop(self.hold.topic)) if self.hold.topic else None
-            for topic, (type_name, qos) in topics.items():
-                self._subscribe(topic, type_name, qos)
-            self._discover()
-            self.create_timer(discover_every_s, self._discover)
-            if live is not None:
-                self.create_timer(0.5, live.tick)
-
-        def _ours(self, topic: str) -> bool:
-            return topic.startswith(self.ns + "/") or topic in GLOBAL_TOPICS
-
-        def _release(self) -> None:
-            """Subscribe to the held status topic once the team is heard (StatusHold)."""
-            if not self.hold.due(self._subs):
-                return
-            silent = self.hold.silent(self._subs)
-            if silent:
-                self.get_logger().warning(f"no publisher on {', '.join(silent)} after {hold_status_s:g} s; "
-                                          "recording the episode status anyway")
-            topic, (type_name, qos) = self.held
-            self.held = None
-            self._subscribe(topic, type_name, qos)
-
-        def _discover(self) -> None:
-            if self.held is not None:
-                self._release()
-            for topic, types in self.get_topic_names_and_types():
-                if topic in self.subscribed or topic in self.skipped or not self._ours(topic) or not types:
-                    continue
-                if self.held is not None and topic == self.held[0]:
-                    continue
-                infos = self.get_publishers_info_by_topic(topic)
-                if not infos:
-                    continue  # only subscribers so far: match the publishers once they appear
-                self._subscribe(topic, types[0], qos_for_publishers(infos))
-
-        def _subscribe(self, topic: str, type_name: str, qos) -> None:
-            try:
-                cls = message_class(type_name)
-                definition = message_definition(type_name)
-            except ValueError as exc:
-                self.skipped.add(topic)
-                self.get_logger().warning(f"not recording {topic}: {exc}")
-                return
-            if recording is not None:
-                recording.add_topic(topic, type_name, qos)
-            decode = None
-            if live is not None:
-                live.add_topic(topic, type_name, definition, latched=_is_latched(qos))
-                if live.wants(topic, type_name):
-                    decode = cls
-            self.subscribed[topic] = type_name
-            self._subs[topic] = self.create_subscription(
-                cls, topic, lambda data, t=topic, n=type_name, d=decode: self._on_message(t, n, d, data),
-                qos, raw=True,
-            )
-
-        def _on_message(self, topic: str, type_name: str, decode, data: bytes) -> None:
-            t0 = time.perf_counter()
-            now = time.time_ns()
-            if recording is not None and not recording.closed and recording.failed is None:
-                recording.write(topic, data, now)
-                if recording.failed is not None:
-                    self.get_logger().error(f"the recording stopped: {recording.failed} (the live view, "
-                                            "if any, goes on)")
-            if live is not None:
-                msg = deserialize_message(data, decode) if decode is not None else None
-                live.on_message(topic, type_name, data, msg, now)
-            self.messages += 1
-            self.busy_s += time.perf_counter() - t0
-
-    return RecorderNode()
+    return RecorderNode(namespace, recording, live, agents, discover_every_s, node_name, hold_status_s)
 
 
 def start_recorder(cfg, record: str | None, foxglove: int | None, quiet: bool = False,

@@ -36,8 +36,12 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from medc_common import contract
+from medc_common.health import Health
 from medc_common.ros_env import require_interfaces
 from medc_training.untrusted import UntrustedJSONError, parse_json, printable
+from rclpy.node import Node
+from std_msgs.msg import String
 
 from medc_registry.records import format_eth
 
@@ -317,7 +321,6 @@ def _declare_parameters(
         text parameter ROS read as a number and no command line gives, or a budget that is not
         an amount.
     """
-    from medc_common import contract
     from medc_common.params import declare
 
     def p(name: str, default: Any, description: str, read_only: bool = False) -> Any:
@@ -390,110 +393,107 @@ def bridge_summary(bridge: RegistryBridge, served: Counter) -> dict[str, str]:
             **{f"{s}_refused": str(served[f"{s}_refused"]) for s in services}}
 
 
-def bridge_node_class():
-    """The BridgeNode class (built on first use: it needs medc_interfaces importable)."""
-    from medc_common import contract
-    from medc_common.health import Health
-    from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
-    from rclpy.node import Node
-    from std_msgs.msg import String
+class BridgeNode(Node):
+    """ROS services over a :class:`RegistryBridge` (see the module docstring)."""
 
-    class BridgeNode(Node):
-        """ROS services over a :class:`RegistryBridge` (see the module docstring)."""
+    def __init__(self, registry: Any = None, node_name: str = "medc_bridge",
+                 command_line: list[str] | None = None, **kwargs: Any) -> None:
+        """``command_line``: the process's arguments (``--ros-args`` among them), where text
+        parameters ROS's parser turned into numbers are read back as written."""
+        from medc_interfaces.srv import FetchBundle, RequestExperts, SubmitReview
 
-        def __init__(self, registry: Any = None, node_name: str = "medc_bridge",
-                     command_line: list[str] | None = None, **kwargs: Any) -> None:
-            """``command_line``: the process's arguments (``--ros-args`` among them), where text
-            parameters ROS's parser turned into numbers are read back as written."""
-            kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
-            super().__init__(node_name, **kwargs)
-            (self.namespace_, self.names_ns), connection, cache, budget = _declare_parameters(
-                self, command_line)
-            # No cache_dir (no content store): a temporary folder of this node's own for it,
-            # removed again by destroy_node.
-            self._own_dirs = TempFolders()
-            try:
-                if registry is None:
-                    if not connection["content"]:
-                        connection["content"] = self._own_dirs.make("medc-store-")
-                    registry = connect_registry(**connection)
-                self.bridge = RegistryBridge(registry, cache or self._own_dirs.make("medc-bundles-"), budget)
-            except BaseException:
-                self._own_dirs.remove()
-                raise
-            for srv_type, name, handler in ((RequestExperts, "request_experts", self._on_request),
-                                            (FetchBundle, "fetch_bundle", self._on_fetch),
-                                            (SubmitReview, "submit_review", self._on_review)):
-                self.create_service(srv_type, contract.registry_service(self.names_ns, name), handler)
-            self._policy_pubs: dict[str, Any] = {}
-            self._String = String
-            #: Calls served and refused, per service (the heartbeat's values).
-            self.served: Counter[str] = Counter()
-            self.health = Health(self, "registry", lambda: bridge_summary(self.bridge, self.served))
-            self.get_logger().info(
-                f"registry bridge on {contract.registry_service(self.namespace_, 'fetch_bundle')} (and "
-                f"request_experts, submit_review), caching bundles in {self.bridge.cache_dir}"
-            )
-
-        def destroy_node(self) -> None:
-            super().destroy_node()
+        kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
+        super().__init__(node_name, **kwargs)
+        (self.namespace_, self.names_ns), connection, cache, budget = _declare_parameters(
+            self, command_line)
+        # No cache_dir (no content store): a temporary folder of this node's own for it,
+        # removed again by destroy_node.
+        self._own_dirs = TempFolders()
+        try:
+            if registry is None:
+                if not connection["content"]:
+                    connection["content"] = self._own_dirs.make("medc-store-")
+                registry = connect_registry(**connection)
+            self.bridge = RegistryBridge(registry, cache or self._own_dirs.make("medc-bundles-"), budget)
+        except BaseException:
             self._own_dirs.remove()
+            raise
+        for srv_type, name, handler in ((RequestExperts, "request_experts", self._on_request),
+                                        (FetchBundle, "fetch_bundle", self._on_fetch),
+                                        (SubmitReview, "submit_review", self._on_review)):
+            self.create_service(srv_type, contract.registry_service(self.names_ns, name), handler)
+        self._policy_pubs: dict[str, Any] = {}
+        #: Calls served and refused, per service (the heartbeat's values).
+        self.served: Counter[str] = Counter()
+        self.health = Health(self, "registry", lambda: bridge_summary(self.bridge, self.served))
+        self.get_logger().info(
+            f"registry bridge on {contract.registry_service(self.namespace_, 'fetch_bundle')} (and "
+            f"request_experts, submit_review), caching bundles in {self.bridge.cache_dir}"
+        )
 
-        def _policy_pub(self, agent_id: str):
-            if agent_id not in self._policy_pubs:
-                self._policy_pubs[agent_id] = self.create_publisher(
-                    self._String, contract.policy_topic(self.names_ns, agent_id), contract.LATCHED_QOS
-                )
-            return self._policy_pubs[agent_id]
+    def destroy_node(self) -> None:
+        super().destroy_node()
+        self._own_dirs.remove()
 
-        def _refuse(self, res, service: str, reason: str):
-            res.ok, res.message = False, printable(reason, 2000)
-            self.served[f"{service}_refused"] += 1
-            self.get_logger().warning(f"{service} refused: {res.message}")
-            return res
+    def _policy_pub(self, agent_id: str):
+        if agent_id not in self._policy_pubs:
+            self._policy_pubs[agent_id] = self.create_publisher(
+                String, contract.policy_topic(self.names_ns, agent_id), contract.LATCHED_QOS
+            )
+        return self._policy_pubs[agent_id]
 
-        def _failure(self, exc: Exception) -> str:
-            """A refusal's reason: a BridgeError's message; any other exception (a fault of the chain
-            node, the content store or this code) as an internal error, so no answer from outside
-            ends the node."""
-            return str(exc) if isinstance(exc, BridgeError) else f"internal error ({type(exc).__name__})"
+    def _refuse(self, res, service: str, reason: str):
+        res.ok, res.message = False, printable(reason, 2000)
+        self.served[f"{service}_refused"] += 1
+        self.get_logger().warning(f"{service} refused: {res.message}")
+        return res
 
-        def _on_request(self, req, res):
-            try:
-                allocs = self.bridge.request(req.application, req.requirements_json, req.weights_json,
-                                             req.count, req.min_model_reputation, req.min_owner_reputation,
-                                             req.max_price_wei)
-            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
-                return self._refuse(res, "request_experts", self._failure(exc))
-            self.served["request_experts"] += 1
-            return _allocations_answer(res, allocs)
+    def _failure(self, exc: Exception) -> str:
+        """A refusal's reason: a BridgeError's message; any other exception (a fault of the chain
+        node, the content store or this code) as an internal error, so no answer from outside
+        ends the node."""
+        return str(exc) if isinstance(exc, BridgeError) else f"internal error ({type(exc).__name__})"
 
-        def _on_fetch(self, req, res):
-            try:
-                ids = list(req.agent_ids)
-                for agent_id in ids:
-                    if not contract.AGENT_ID_PATTERN.match(agent_id):
-                        raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
-                path, manifest = self.bridge.fetch(req.cid)
-            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
-                return self._refuse(res, "fetch_bundle", self._failure(exc))
-            self.served["fetch_bundle"] += 1
+    def _on_request(self, req, res):
+        try:
+            allocs = self.bridge.request(req.application, req.requirements_json, req.weights_json,
+                                         req.count, req.min_model_reputation, req.min_owner_reputation,
+                                         req.max_price_wei)
+        except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+            return self._refuse(res, "request_experts", self._failure(exc))
+        self.served["request_experts"] += 1
+        return _allocations_answer(res, allocs)
+
+    def _on_fetch(self, req, res):
+        try:
+            ids = list(req.agent_ids)
             for agent_id in ids:
-                self._policy_pub(agent_id).publish(self._String(data=str(path)))
-            res.ok, res.path, res.manifest_json = True, str(path), json.dumps(manifest)
-            res.message = f"verified {req.cid}" + (f", handed to {', '.join(ids)}" if ids else "")
-            self.get_logger().info(res.message)
-            return res
+                if not contract.AGENT_ID_PATTERN.match(agent_id):
+                    raise BridgeError(f"unknown agent id {agent_id!r}: expected agent_<i>")
+            path, manifest = self.bridge.fetch(req.cid)
+        except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+            return self._refuse(res, "fetch_bundle", self._failure(exc))
+        self.served["fetch_bundle"] += 1
+        for agent_id in ids:
+            self._policy_pub(agent_id).publish(String(data=str(path)))
+        res.ok, res.path, res.manifest_json = True, str(path), json.dumps(manifest)
+        res.message = f"verified {req.cid}" + (f", handed to {', '.join(ids)}" if ids else "")
+        self.get_logger().info(res.message)
+        return res
 
-        def _on_review(self, req, res):
-            try:
-                res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
-            except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
-                return self._refuse(res, "submit_review", self._failure(exc))
-            self.served["submit_review"] += 1
-            res.ok, res.message = True, "review recorded"
-            return res
+    def _on_review(self, req, res):
+        try:
+            res.tx_hash = self.bridge.review(int(req.allocation_id), req.cid, float(req.score))
+        except Exception as exc:  # BridgeError, or anything at all: refuse and keep serving
+            return self._refuse(res, "submit_review", self._failure(exc))
+        self.served["submit_review"] += 1
+        res.ok, res.message = True, "review recorded"
+        return res
 
+
+def bridge_node_class() -> type[BridgeNode]:
+    """The BridgeNode class (its services' types are imported when a node is made: they need
+    medc_interfaces importable, which main checks first)."""
     return BridgeNode
 
 

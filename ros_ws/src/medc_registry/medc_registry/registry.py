@@ -29,7 +29,8 @@ from eth_utils import to_checksum_address
 from medc_training.qos import from_fixed, to_fixed
 from web3.logs import DISCARD
 
-from .chain import ChainClient, ChainError, ContractRevert, TxResult
+from .catalog import MAX_DESCRIPTION_BYTES, ModelCatalog, bundle_summary, model_description
+from .chain import ChainClient, ChainError, TxResult
 from .content import ContentStore
 from .home import (
     EMBEDDED,
@@ -41,8 +42,8 @@ from .home import (
     spec_settings,
 )
 from .journal import PaidRequests, PendingRequests
-from .ranker import Ranker, Ranking, models_list
-from .records import Allocation, Deployment, SharedModel, UserInfo, description_features, format_eth
+from .ranker import Ranker, Ranking
+from .records import Allocation, Deployment, SharedModel, UserInfo, format_eth
 from .request import (
     MAX_CANDIDATES,
     MAX_COUNT,
@@ -58,6 +59,7 @@ from .request import (
 __all__ = [
     "MAX_CANDIDATES",
     "MAX_COUNT",
+    "MAX_DESCRIPTION_BYTES",
     "MAX_FEATURES",
     "Allocation",
     "Deployment",
@@ -71,6 +73,7 @@ __all__ = [
     "check_share_text",
     "deploy_contracts",
     "format_eth",
+    "model_description",
     "request_id_from",
 ]
 
@@ -95,7 +98,8 @@ class Registry:
 
     A facade: requests are typed (:class:`~medc_registry.request.ModelRequest`), ranked by
     :class:`~medc_registry.ranker.Ranker` and paid exactly once by
-    :class:`~medc_registry.journal.PaidRequests`, all over the chain client's public API.
+    :class:`~medc_registry.journal.PaidRequests`; the shared models are read through
+    :class:`~medc_registry.catalog.ModelCatalog`; all over the chain client's public API.
     """
 
     def __init__(
@@ -108,10 +112,10 @@ class Registry:
         #: Where paid requests are recorded before they are sent (set by the CLI to the home).
         self.pending = PendingRequests()
         self.users = chain.contract("UsersManager", deployment.users)
-        self._feature_cache: dict[str, tuple[str, ...]] = {}
         #: The last transaction this registry sent (hash, gasUsed, receipt), e.g. for gas figures.
         self.last_tx: TxResult | None = None
         self.models = chain.contract("ModelsManager", deployment.models)
+        self.catalog = ModelCatalog(chain, self.models)
 
     # ------------------------------------------------------------ construction
     @classmethod
@@ -138,18 +142,7 @@ class Registry:
         """
         store = settings.open_store()
         chain = settings.open_chain(deadline)
-        if settings.embedded:
-            deployment = deploy_contracts(chain)
-        else:
-            deployment = Deployment(settings.users_manager, settings.models_manager)
-            if not chain.has_code(deployment.models):
-                fix = (f"remove {settings.home / STATE_FILE} and run `medc-registry start` again"
-                       if settings.home is not None else "check the models_manager address")
-                raise RegistryHomeError(
-                    f"no Models Manager contract at {deployment.models} on {settings.chain}: the chain's "
-                    f"state was lost or the address is wrong; {fix}"
-                )
-        reg = cls(chain, store, deployment, account)
+        reg = cls(chain, store, settings_deployment(settings, chain), account)
         reg.pending = PendingRequests(settings.pending_file)
         return reg
 
@@ -171,7 +164,7 @@ class Registry:
     def as_user(self, account: int | str) -> Registry:
         """The same registry acting as another signing account (index or address)."""
         other = Registry(self.chain, self.store, self.deployment, account)
-        other._feature_cache = self._feature_cache  # per application, fixed once set on chain
+        other.catalog = self.catalog  # feature names per application, fixed once set on chain
         other.pending = self.pending
         return other
 
@@ -217,13 +210,7 @@ class Registry:
         """
         _check_share_args(bundle, application, price, description)
         names, values = parse_features(env_features)
-        existing = self.feature_names(application)
-        if existing is not None and names and existing and names != existing:
-            raise ValueError(f"{application!r} models use features {list(existing)}, got {list(names)}")
-        text = model_description(names, bytes(bundle), description)
-        if len(text.encode("utf-8")) > MAX_DESCRIPTION_BYTES:
-            raise ValueError(f"the model's description would be {len(text.encode('utf-8'))} bytes, over "
-                             f"the {MAX_DESCRIPTION_BYTES} byte limit: shorten the description")
+        text = self.catalog.new_description(application, names, bytes(bundle), description)
         cid = self.store.add(bytes(bundle), cid_version)
         self.store.pin(cid)
         result = self._tx(self.models.functions.addModel(application, cid, text, list(values), price))
@@ -232,48 +219,20 @@ class Registry:
 
     def model(self, model_id: int) -> SharedModel:
         """Model ``model_id`` (ContractRevert ``UnknownModel`` if there is none)."""
-        owner, app_id, env, price, rep, count, total = self.chain.call(
-            self.models.functions.getModel(model_id)
-        )
-        cid, description = self.chain.call(self.models.functions.getModelText(model_id))
-        application = self.chain.call(self.models.functions.applicationName(app_id))
-        return SharedModel(
-            model_id,
-            owner,
-            application,
-            cid,
-            description,
-            description_features(description),
-            tuple(env),
-            price,
-            from_fixed(rep),
-            count,
-            from_fixed(total),
-        )
+        return self.catalog.model(model_id)
 
     def model_count(self) -> int:
         """Number of shared models."""
-        return self.chain.call(self.models.functions.modelCount())
+        return self.catalog.count()
 
     def list_models(self, application: str | None = None) -> list[SharedModel]:
         """All shared models (of ``application`` when given)."""
-        out = [self.model(i) for i in range(self.model_count())]
-        return [m for m in out if application is None or m.application == application]
+        return self.catalog.list_models(application)
 
     def feature_names(self, application: str) -> tuple[str, ...] | None:
         """Feature names of ``application`` (fixed by its first model; () when it named none),
         None when no model of it was shared."""
-        if application in self._feature_cache:
-            return self._feature_cache[application]
-        try:
-            first = models_list(self.chain, self.models, application)[0]
-        except ContractRevert as exc:
-            if exc.error != "UnknownApplication":
-                raise
-            return None
-        _cid, description = self.chain.call(self.models.functions.getModelText(first))
-        self._feature_cache[application] = description_features(description)
-        return self._feature_cache[application]
+        return self.catalog.feature_names(application)
 
     # ------------------------------------------------------------ allocation
     @takes_request
@@ -363,12 +322,7 @@ class Registry:
 
         Paper: updateModelRep. Only the requester it was allocated to may review it, once.
         """
-        allocation_id = allocation.allocation_id if isinstance(allocation, Allocation) else allocation
-        if (isinstance(allocation_id, bool) or not isinstance(allocation_id, int)
-                or not 0 <= allocation_id < 2**256):
-            raise ValueError(
-                f"allocation must be an allocation id (0 to 2**256 - 1) or an Allocation, got {allocation!r}"
-            )
+        allocation_id = _allocation_id(allocation)
         return self._tx(self.models.functions.updateModelRep(allocation_id, to_fixed(value, "review")))
 
     def owed(self, address: str | None = None) -> int:
@@ -406,9 +360,20 @@ class Registry:
         }
 
 
-#: Longest model description recorded on chain (UTF-8 bytes of the JSON :func:`model_description`
-#: writes; a shared bundle's is a few hundred). Storage costs gas per 32 bytes: 4 KB is ~3 M gas.
-MAX_DESCRIPTION_BYTES = 4096
+def settings_deployment(settings: RegistrySettings, chain: ChainClient) -> Deployment:
+    """The contracts of the registry ``settings`` describe, on ``chain``: fresh ones on an embedded
+    chain, else the recorded ones, whose Models Manager must be there (RegistryHomeError if not)."""
+    if settings.embedded:
+        return deploy_contracts(chain)
+    deployment = Deployment(settings.users_manager, settings.models_manager)
+    if not chain.has_code(deployment.models):
+        fix = (f"remove {settings.home / STATE_FILE} and run `medc-registry start` again"
+               if settings.home is not None else "check the models_manager address")
+        raise RegistryHomeError(
+            f"no Models Manager contract at {deployment.models} on {settings.chain}: the chain's "
+            f"state was lost or the address is wrong; {fix}"
+        )
+    return deployment
 
 
 def check_share_text(application: str, description: str | Mapping[str, Any] | None) -> None:
@@ -436,34 +401,13 @@ def _check_share_args(bundle: bytes, application: str, price: int,
         raise ValueError(f"price must be an integer number of wei in [0, 2**128), got {price!r}")
 
 
-def bundle_summary(data: bytes) -> dict[str, Any]:
-    """What a requester must know before using a shared policy bundle, read from its validated
-    manifest (the weights are never decoded): the observation variant it takes and its
-    architecture. {} for bytes that are not a policy bundle (the registry stores any file)."""
-    from medc_training.bundle import BundleError, manifest_observation, read_manifest
-    from medc_training.envs import core_has_estimate
-
-    try:
-        manifest = read_manifest(data)
-    except BundleError:
-        return {}
-    out: dict[str, Any] = {"architecture": manifest["architecture"].get("name", "?")}
-    if core_has_estimate(manifest["application"]):
-        out["observation"] = manifest_observation(manifest)
-    return out
-
-
-def model_description(
-    names: tuple[str, ...], bundle: bytes, description: str | Mapping[str, Any] | None
-) -> str:
-    """The description a shared model is recorded with: compact JSON of its feature names, the
-    bundle's summary (:func:`bundle_summary`) and the sharer's ``description`` ("" if empty)."""
-    desc: dict[str, Any] = {}
-    if names:
-        desc["features"] = list(names)
-    desc.update(bundle_summary(bundle))
-    if isinstance(description, Mapping):
-        desc.update(description)
-    elif description:
-        desc["text"] = str(description)
-    return json.dumps(desc, separators=(",", ":"), sort_keys=True) if desc else ""
+def _allocation_id(allocation: int | Allocation) -> int:
+    """The id of the allocation :meth:`Registry.review` is given (its id or the :class:`Allocation`);
+    ValueError for anything else."""
+    allocation_id = allocation.allocation_id if isinstance(allocation, Allocation) else allocation
+    if (isinstance(allocation_id, bool) or not isinstance(allocation_id, int)
+            or not 0 <= allocation_id < 2**256):
+        raise ValueError(
+            f"allocation must be an allocation id (0 to 2**256 - 1) or an Allocation, got {allocation!r}"
+        )
+    return allocation_id
