@@ -315,42 +315,37 @@ def controller_scores(name: str, env, mask: torch.Tensor | None = None, envs: to
     """float32 [B,N,8]: controller ``name``'s move scores for the current state of the batched
     target-localization core ``env`` (it reads the core's team memory, positions, walls and mask;
     ``options`` go to the controller's function). ``envs`` (int64 [K], optional): score only those
-    environments, [K,N,8] (``mask`` is then theirs, [K,N,8], or None for the core's); the searchers
-    then spend nothing on the others. Raises ValueError for an unknown name, a core of another
+    environments, [K,N,8] (``mask`` is then theirs, [K,N,8], or None for the core's), spending
+    nothing on the others. Raises ValueError for an unknown name, a core of another
     application, or a posterior-reading controller on a core that keeps no posterior."""
     _check(name, env)
     mem = env.memory
-    if envs is not None and mask is None:
-        mask = env.mask[envs]
-    mask = env.mask if mask is None else mask
+
+    def pick(value):  # the chosen environments' rows of a per-environment tensor
+        return value if envs is None or not isinstance(value, torch.Tensor) else value[envs]
+
+    if mask is None:
+        mask = pick(env.mask)
+    positions, walls, visits = pick(env.positions), pick(env.walls), pick(mem.visit_map)
+    rects = pick(mem.rects) if mem.sensing.line == "exact" else None
     if name in SEARCHERS:
         from medc_training.searchers import searcher_scores
 
-        rects = mem.rects if mem.sensing.line == "exact" else None
-        log_post, positions, walls, visits = mem.log_post, env.positions, env.walls, mem.visit_map
-        if envs is not None:
-            log_post, positions, walls, visits = log_post[envs], positions[envs], walls[envs], visits[envs]
-            rects = None if rects is None else rects[envs]
-        return searcher_scores(log_post, positions, mask, walls, mem.sensing, rects=rects,
+        return searcher_scores(pick(mem.log_post), positions, mask, walls, mem.sensing, rects=rects,
                                visit_map=visits, **SEARCHERS[name], **options)
-    if envs is not None:  # the other controllers are cheap: score every environment, keep the chosen
-        full = env.mask.clone()
-        full[envs] = mask
-        return controller_scores(name, env, full, **options)[envs]
     if name == "greedy":
-        return greedy_scores(mem.posterior(), env.positions, mask, mem.visit_map, **options)
+        return greedy_scores(pick(mem.posterior()), positions, mask, visits, **options)
     if mem.log_post is not None:
         strength, background = posterior_mean_levels(mem.log_post, mem.sensing)
     else:
         strength, background = None, _background_floor(env)
+    strength, background = pick(strength), pick(background)
     if name == "gradient":
         options.setdefault("noise", env.noise)
-        return gradient_scores(mem.reading_map, mem.visit_map, env.positions, mask, mem.sensing,
+        return gradient_scores(pick(mem.reading_map), visits, positions, mask, mem.sensing,
                                background=background, **options)
-    posterior = mem.posterior()
-    rects = mem.rects if mem.sensing.line == "exact" else None
-    return infotaxis_scores(posterior, env.positions, mask, env.walls, mem.sensing, strength=strength,
-                            background=background, visit_map=mem.visit_map, rects=rects, **options)
+    return infotaxis_scores(pick(mem.posterior()), positions, mask, walls, mem.sensing, strength=strength,
+                            background=background, visit_map=visits, rects=rects, **options)
 
 
 def _background_floor(env) -> torch.Tensor:
