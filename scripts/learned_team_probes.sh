@@ -43,5 +43,7 @@ train() {  # name, then medc-train arguments
 play searchers --reference infotaxis-exact infotaxis-exact infotaxis random
 train sparse-300k --method sparse
 train medc-infotaxis-300k --method medc --expert controller:infotaxis
-play bundles --reference infotaxis-exact infotaxis-exact \
-  "$out/sparse-300k/policy.safetensors" "$out/medc-infotaxis-300k/policy.safetensors"
+# The bundles alone (the searchers' episodes above are the same episodes and count noise; the
+# comparison pairs them by episode: python -m medc_training.radbench.pairing
+# --reference infotaxis-exact DIR/*.episodes.jsonl).
+play bundles "$out/sparse-300k/policy.safetensors" "$out/medc-infotaxis-300k/policy.safetensors"

@@ -1,0 +1,122 @@
+"""Policies played in different ``medc-radbench`` runs, paired by episode: the episode lines of each
+run (``--out``) name the set's hash, the set, the episode and the count-noise run, so a learned team
+played later pairs with the searchers played earlier on the same episodes and count noise.
+
+    python -m medc_training.radbench.pairing --reference infotaxis-exact A.episodes.jsonl B.episodes.jsonl
+
+prints, per obstruction group (0-2, 3-4, 5-7) and pooled, each policy's mean length with failures at
+the limit and completion, and the paired mean difference against the reference with its 95% t
+interval; the last line is JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+from .metrics import EpisodeResult, paired, summarize
+from .scenario import MAX_STEPS
+
+__all__ = ["GROUPS", "load_episodes", "pair_table"]
+
+#: Obstruction-count groups the table reports (the goal is stated on 5-7).
+GROUPS: dict[str, tuple[int, ...]] = {"obs0-2": (0, 1, 2), "obs3-4": (3, 4), "obs5-7": (5, 6, 7)}
+_FIELDS = ("set_id", "index", "length", "success", "declared_step", "declared_error_m", "track_rmse_m")
+
+
+def _policy_name(policy: str) -> str:
+    if policy.endswith(".safetensors"):
+        return "/".join(Path(policy).parts[-2:-1]) or policy
+    return policy
+
+
+def load_episodes(paths: Iterable[str | Path]) -> dict[str, dict[tuple, EpisodeResult]]:
+    """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files. Raises
+    ValueError for a line that is not one, or for one episode of one policy given twice."""
+    out: dict[str, dict[tuple, EpisodeResult]] = {}
+    for path in paths:
+        with open(path, encoding="utf-8") as fh:
+            for number, line in enumerate(fh, 1):
+                try:
+                    doc = json.loads(line)
+                    key = (doc["set_sha256"], doc["set_id"], int(doc["index"]), int(doc.get("run", 0)),
+                           json.dumps(doc.get("departure", {}), sort_keys=True))
+                    result = EpisodeResult(**{k: doc[k] for k in _FIELDS})
+                    policy = _policy_name(str(doc["policy"]))
+                except (ValueError, KeyError, TypeError) as exc:
+                    raise ValueError(f"{path}:{number}: not a medc-radbench episode line ({exc})") from None
+                episodes = out.setdefault(policy, {})
+                if key in episodes:
+                    raise ValueError(f"{path}:{number}: {policy} played episode {key[1:4]} twice")
+                episodes[key] = result
+    return out
+
+
+def _obstructions(set_id: str) -> int:
+    match = re.match(r"obs(\d+)-", set_id)
+    if match is None:
+        raise ValueError(f"set id {set_id!r} does not name its obstruction count")
+    return int(match.group(1))
+
+
+def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
+               max_steps: int = MAX_STEPS) -> dict[str, Any]:
+    """Per group and pooled: every policy's summary on the episodes all policies played, and its
+    paired comparison with ``reference``. Raises ValueError when the reference is missing or the
+    policies share no episode."""
+    if reference not in episodes:
+        raise ValueError(f"reference {reference!r} is not among the policies: {', '.join(episodes)}")
+    common = set.intersection(*(set(e) for e in episodes.values()))
+    if not common:
+        raise ValueError("the policies share no episode (another set file, run or departure?)")
+    keys = sorted(common, key=lambda k: (k[1], k[2]))
+    groups = {name: [k for k in keys if _obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
+    groups["all"] = keys
+    table: dict[str, Any] = {"reference": reference, "episodes": len(keys), "groups": {}}
+    for name, chosen in groups.items():
+        if not chosen:
+            continue
+        ref = [episodes[reference][k] for k in chosen]
+        rows = {}
+        for policy, played in episodes.items():
+            mine = [played[k] for k in chosen]
+            row = {"summary": summarize(mine, max_steps)}
+            if policy != reference:
+                row["paired"] = paired(mine, ref, max_steps)
+            rows[policy] = row
+        table["groups"][name] = rows
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m medc_training.radbench.pairing",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("files", nargs="+", help="episode-line files of medc-radbench runs (--out)")
+    p.add_argument("--reference", required=True, help="the policy the others are compared with")
+    args = p.parse_args(argv)
+    try:
+        table = pair_table(load_episodes(args.files), args.reference)
+    except (OSError, ValueError) as exc:
+        print(f"pairing: {exc}", file=sys.stderr)
+        return 2
+    for group, rows in table["groups"].items():
+        print(f"{group}:")
+        for policy, row in rows.items():
+            s = row["summary"]
+            line = (f"  {policy:<28} mean {s['mean_length']:.2f} ± {s['mean_length_ci95']:.2f}, "
+                    f"completed {100 * s['completion_rate']:.1f}% of {s['episodes']}")
+            if "paired" in row:
+                d = row["paired"]
+                line += f"; vs {table['reference']}: {d['mean_diff']:+.2f} ± {d['mean_diff_ci95']:.2f}"
+            print(line)
+    print(json.dumps(table))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
