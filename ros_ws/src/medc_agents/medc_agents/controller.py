@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from medc_training.controllers import CONTROLLERS, COORDINATED, controller_scores
+from medc_training.controllers import CONTROLLERS, COORDINATED, SEARCHERS, controller_scores
 
 #: The application every controller plays.
 APPLICATION = "target_localization"
@@ -86,15 +86,23 @@ def team_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
 
 
 def own_scores(name: str, observer, noise: bool = False) -> torch.Tensor:
-    """float32 [8]: this agent's row (``observer.index``) of :func:`team_scores`. Most controllers
-    decide each agent's move independently, from the same team state, so the row is computed alone
-    (the team's other N - 1 rows, which this agent does not use, are not); a coordinated controller
-    (``COORDINATED``: agents choose in turn) computes the rows of the agents before this one too, the
-    same sequence every teammate computes from the same team state."""
+    """float32 [8]: this agent's row (``observer.index``) of :func:`team_scores`. The classical
+    controllers (gradient, greedy, infotaxis) decide each agent's move independently and row by row,
+    so the row is computed alone (the team's other N - 1 rows, which this agent does not use, are
+    not); a coordinated controller (``COORDINATED``: agents choose in turn) computes the rows of the
+    agents before this one too, the same sequence every teammate computes from the same team state;
+    the other information-driven searchers (``SEARCHERS``) place their count quadrature and keep
+    their levels from the whole batch of rows they score, so the agent scores the whole team and
+    takes its row: the move the batched core makes for it."""
     i = observer.index
-    rows = slice(0, i + 1) if name in COORDINATED else slice(i, i + 1)
+    if name in COORDINATED:
+        rows, own = slice(0, i + 1), -1
+    elif name in SEARCHERS:
+        rows, own = slice(None), i
+    else:
+        rows, own = slice(i, i + 1), -1
     with torch.no_grad():
-        return controller_scores(name, team_view(observer, noise, rows))[0, -1]
+        return controller_scores(name, team_view(observer, noise, rows))[0, own]
 
 
 def controller_move(name: str, observer, mask: torch.Tensor | None = None, noise: bool = False) -> int:
