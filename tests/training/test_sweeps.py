@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from child_signals import default_sigint
 from medc_training.bundle import load_state
 from medc_training.metrics import read_metrics
 from medc_training.runner import CHECKPOINT
@@ -141,7 +142,8 @@ def test_ctrl_c_stops_a_pool_sweep_and_leaves_no_run_folders(tmp_path):
     out = tmp_path / "sweep"
     args = [sys.executable, "-m", "medc_training.cli.train", *TINY_ARGS, "--steps", "100000",
             "--seeds", "0", "1", "--jobs", "2", "--out", str(out)]
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=default_sigint)
     ckpts = [partial_dir(out / f"seed-{s}") / CHECKPOINT for s in (0, 1)]
     try:
         for ckpt in ckpts:
