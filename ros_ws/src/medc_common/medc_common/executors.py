@@ -13,6 +13,7 @@ import re
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 
 #: Set by SIGINT/SIGTERM in a node process run by :func:`run_node`: the spin loops end at the
 #: next spin_once boundary, and only then are the executor, the node and the context shut down.
@@ -97,19 +98,26 @@ _RCL_SOURCE = re.compile(r",? at \S+\.c:\d+")
 _RCL_LOG = re.compile(r"^\[(?:WARN|ERROR)\] \[[\d.]+\] \[rcl\]: (.*)$")
 
 
-def _remapped_namespaces(args: list[str]) -> list[tuple[str, str]]:
-    """``(argument, namespace)`` of every ``-r [node:]__ns:=NS`` in the ``--ros-args`` of ``args``."""
-    out, inside = [], False
+def ros_argument_values(args: list[str], flags: tuple[str, ...]) -> Iterator[tuple[str, str]]:
+    """``(flag, value)`` of every ``FLAG VALUE`` pair among ``flags`` inside the ``--ros-args``
+    sections of ``args`` (each up to its ``--``), in order."""
+    inside = False
     for i, arg in enumerate(args):
         if arg == "--ros-args":
             inside = True
         elif arg == "--":
             inside = False
-        elif inside and arg in ("-r", "--remap") and i + 1 < len(args):
-            rule = args[i + 1]
-            name, sep, value = rule.partition(":=")
-            if sep and name.rsplit(":", 1)[-1] == "__ns":
-                out.append((f"{arg} {rule}", value))
+        elif inside and arg in flags and i + 1 < len(args):
+            yield arg, args[i + 1]
+
+
+def _remapped_namespaces(args: list[str]) -> list[tuple[str, str]]:
+    """``(argument, namespace)`` of every ``-r [node:]__ns:=NS`` in the ``--ros-args`` of ``args``."""
+    out = []
+    for flag, rule in ros_argument_values(args, ("-r", "--remap")):
+        name, sep, value = rule.partition(":=")
+        if sep and name.rsplit(":", 1)[-1] == "__ns":
+            out.append((f"{flag} {rule}", value))
     return out
 
 

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from medc_common import contract
+from medc_common.executors import ros_argument_values
 from medc_common.health import Health
 from medc_common.ros_env import require_interfaces
 from medc_training.untrusted import UntrustedJSONError, parse_json, printable
@@ -238,20 +239,13 @@ def command_line_value(command_line: list[str], node_name: str, name: str) -> st
     """The text given for parameter ``name`` on a ROS command line (``--ros-args -p name:=TEXT``,
     or ``-p node_name:name:=TEXT``), the last one given; None when none is."""
     found = None
-    in_ros = False
-    tokens = list(command_line)
-    for i, token in enumerate(tokens):
-        if token == "--ros-args":
-            in_ros = True
-        elif token == "--":
-            in_ros = False
-        elif in_ros and token in ("-p", "--param") and i + 1 < len(tokens):
-            key, sep, value = tokens[i + 1].partition(":=")
-            if not sep:
-                continue
-            target, _, key = key.rpartition(":")
-            if key == name and target.rsplit("/", 1)[-1] in ("", node_name):
-                found = value
+    for _, text in ros_argument_values(list(command_line), ("-p", "--param")):
+        key, sep, value = text.partition(":=")
+        if not sep:
+            continue
+        target, _, key = key.rpartition(":")
+        if key == name and target.rsplit("/", 1)[-1] in ("", node_name):
+            found = value
     return found
 
 
