@@ -1,0 +1,93 @@
+#!/usr/bin/env bash
+# The main runs of docs/learned-team.md (its addendum): `sparse`, `medc` and `il` with
+# controller:infotaxis as the expert, training seeds 0, 1, 2, in the benchmark's world, carried to
+# the budget in pieces with --resume. After every piece the run folder holds the run's summary,
+# metrics and curve so far and `pieces.jsonl` gains a line; a run that reaches the budget plays the
+# frozen g20-a3 episodes (the first 40 of every set, count noise run 0, as the searchers' protocol
+# run) into frozen-g20-a3.episodes.jsonl, paired later with
+#   python -m medc_training.radbench.pairing --reference infotaxis-exact \
+#     docs/reproduction/radbench/searchers/g20-a3.episodes.jsonl DIR/*/frozen-g20-a3.episodes.jsonl
+# A piece killed half-way resumes from the run's last checkpoint; a finished step is skipped.
+#
+#   scripts/learned_team_main.sh                 # every run, seed by seed
+#   scripts/learned_team_main.sh sparse-s0 il-s1 # these runs (METHOD-sSEED, METHOD: sparse, medc, il)
+#
+# Environment: MEDC_MAIN_BUDGET (training steps per run, default 2000000), MEDC_MAIN_PIECE (default
+# 300000), MEDC_TRAIN_THREADS (torch threads per run, default 1: two runs side by side use both
+# cores), MEDC_MAIN_OUT (default docs/reproduction/learned-team/main).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source scripts/env.sh
+budget=${MEDC_MAIN_BUDGET:-2000000}
+piece=${MEDC_MAIN_PIECE:-300000}
+threads=${MEDC_TRAIN_THREADS:-1}
+out=${MEDC_MAIN_OUT:-docs/reproduction/learned-team/main}
+expert=controller:infotaxis
+for n in "$budget" "$piece"; do
+  if ! [[ "$n" =~ ^[1-9][0-9]*$ ]]; then
+    echo "learned_team_main: budget and piece must be positive step counts, got '$n'" >&2
+    exit 2
+  fi
+done
+runs=("$@")
+if [[ ${#runs[@]} -eq 0 ]]; then
+  runs=(sparse-s0 medc-s0 il-s0 sparse-s1 medc-s1 il-s1 sparse-s2 medc-s2 il-s2)
+fi
+mkdir -p "$out"
+
+steps_done() {  # the steps a run folder's summary records (0 when none)
+  python - "$1/summary.json" <<'EOF'
+import json, sys
+try:
+    print(int(json.load(open(sys.argv[1]))["steps"]))
+except FileNotFoundError:
+    print(0)
+EOF
+}
+
+one_run() {  # METHOD-sSEED
+  local name=$1 method seed dir
+  if ! [[ "$name" =~ ^(sparse|medc|il)-s([0-9]+)$ ]]; then
+    echo "learned_team_main: a run is METHOD-sSEED with METHOD sparse, medc or il, got '$name'" >&2
+    return 2
+  fi
+  method=${BASH_REMATCH[1]}
+  seed=${BASH_REMATCH[2]}
+  dir=$out/$name
+  local extra=()
+  [[ $method != sparse ]] && extra=(--expert "$expert")
+  local done_steps
+  done_steps=$(steps_done "$dir")
+  while (( done_steps < budget )); do
+    local target=$(( (done_steps / piece + 1) * piece ))
+    (( target > budget )) && target=$budget
+    local resume=()
+    [[ -s "$dir/checkpoint.safetensors" ]] && resume=(--resume)
+    local t0; t0=$(date +%s)
+    echo "$(date +%T) $name: training to $target steps"
+    medc-train --world radbench --grid 20 --agents 3 --walls 7 --max-steps 120 --steps "$target" \
+      --seed "$seed" --num-envs 32 --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
+      --threads "$threads" --method "$method" "${extra[@]}" --out "$dir" "${resume[@]}" > /dev/null
+    python - "$dir" "$(( $(date +%s) - t0 ))" <<'EOF' >> "$dir/pieces.jsonl"
+import json, sys
+s = json.load(open(f"{sys.argv[1]}/summary.json"))
+print(json.dumps({"steps": s["steps"], "train_seconds": round(s["train_seconds"], 1),
+                  "piece_wall_seconds": int(sys.argv[2]),
+                  "eval_episode_length": s["final_episode_length"],
+                  "eval_success_rate": s["final_success_rate"]}))
+EOF
+    done_steps=$(steps_done "$dir")
+    echo "$(date +%T) $name: $done_steps steps ($(tail -1 "$dir/pieces.jsonl"))"
+  done
+  if [[ ! -s "$dir/frozen-g20-a3.json" ]]; then
+    medc-radbench "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 \
+      --quiet --out "$dir/frozen-g20-a3.episodes.jsonl" > "$dir/frozen-g20-a3.json.part"
+    mv "$dir/frozen-g20-a3.json.part" "$dir/frozen-g20-a3.json"
+    echo "$(date +%T) $name: played the frozen g20-a3 episodes"
+  fi
+}
+
+for name in "${runs[@]}"; do
+  one_run "$name"
+done
