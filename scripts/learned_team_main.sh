@@ -2,7 +2,10 @@
 # The main runs of docs/learned-team.md (its addendum): `sparse`, `medc` and `il` with
 # controller:infotaxis as the expert, training seeds 0, 1, 2, in the benchmark's world, carried to
 # the budget in pieces with --resume. After every piece the run folder holds the run's summary,
-# metrics and curve so far and `pieces.jsonl` gains a line; a run that reaches the budget plays the
+# metrics and curve so far, `pieces.jsonl` gains a line, and the bundle of that piece
+# (policy-STEPS.safetensors, not committed) plays the validation episodes (the first 16 of every set
+# of the seed-4043 file, as the probes) into validation-STEPS.json and .episodes.jsonl, from which
+# the protocol's steps-to-the-yardstick comparison is read; a run that reaches the budget plays the
 # frozen g20-a3 episodes (the first 40 of every set, count noise run 0, as the searchers' protocol
 # run) into frozen-g20-a3.episodes.jsonl, paired later with
 #   python -m medc_training.radbench.pairing --reference infotaxis-exact \
@@ -34,7 +37,11 @@ runs=("$@")
 if [[ ${#runs[@]} -eq 0 ]]; then
   runs=(sparse-s0 medc-s0 il-s0 sparse-s1 medc-s1 il-s1 sparse-s2 medc-s2 il-s2)
 fi
-mkdir -p "$out"
+val=${MEDC_VALIDATION_DIR:-/tmp/medc-validation}
+mkdir -p "$out" "$val"
+if [[ ! -s "$val/g20-a3.json" ]]; then
+  medc-radbench --generate "$val" --seed 4043 --grid 20 --agents 3 --quiet > /dev/null
+fi
 
 steps_done() {  # the steps a run folder's summary records (0 when none)
   python - "$1/summary.json" <<'EOF'
@@ -44,6 +51,20 @@ try:
 except FileNotFoundError:
     print(0)
 EOF
+}
+
+validate() {  # run folder: every piece's bundle that has not played the validation episodes yet
+  local dir=$1 bundle steps
+  for bundle in "$dir"/policy-*.safetensors; do
+    [[ -e "$bundle" ]] || continue
+    steps=${bundle##*/policy-}
+    steps=${steps%.safetensors}
+    [[ -s "$dir/validation-$steps.json" ]] && continue
+    medc-radbench "$bundle" --sets-file "$val/g20-a3.json" --grid 20 --agents 3 --episodes 16 --quiet \
+      --out "$dir/validation-$steps.episodes.jsonl" > "$dir/validation-$steps.json.part"
+    mv "$dir/validation-$steps.json.part" "$dir/validation-$steps.json"
+    echo "$(date +%T) ${dir##*/}: the $steps-step bundle played the validation episodes"
+  done
 }
 
 one_run() {  # METHOD-sSEED
@@ -79,7 +100,14 @@ print(json.dumps({"steps": s["steps"], "train_seconds": round(s["train_seconds"]
 EOF
     done_steps=$(steps_done "$dir")
     echo "$(date +%T) $name: $done_steps steps ($(tail -1 "$dir/pieces.jsonl"))"
+    cp "$dir/policy.safetensors" "$dir/policy-$done_steps.safetensors"
+    validate "$dir"
   done
+  # A run stopped between its last piece and that piece's bundle copy or validation play:
+  if [[ ! -e "$dir/policy-$done_steps.safetensors" ]]; then
+    cp "$dir/policy.safetensors" "$dir/policy-$done_steps.safetensors"
+  fi
+  validate "$dir"
   if [[ ! -s "$dir/frozen-g20-a3.json" ]]; then
     medc-radbench "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 \
       --quiet --out "$dir/frozen-g20-a3.episodes.jsonl" > "$dir/frozen-g20-a3.json.part"
