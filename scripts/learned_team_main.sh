@@ -10,7 +10,8 @@
 # run) into frozen-g20-a3.episodes.jsonl, paired later with
 #   python -m medc_training.radbench.pairing --reference infotaxis-exact \
 #     docs/reproduction/radbench/searchers/g20-a3.episodes.jsonl DIR/*/frozen-g20-a3.episodes.jsonl
-# A piece killed half-way resumes from the run's last checkpoint; a finished step is skipped.
+# A piece killed half-way resumes from the run's last checkpoint; a finished step is skipped. Two
+# instances side by side share the work: each run is claimed (a lock file) by the first to reach it.
 #
 #   scripts/learned_team_main.sh                 # every run, seed by seed
 #   scripts/learned_team_main.sh sparse-s0 il-s1 # these runs (METHOD-sSEED, METHOD: sparse, medc, il)
@@ -76,6 +77,13 @@ one_run() {  # METHOD-sSEED
   method=${BASH_REMATCH[1]}
   seed=${BASH_REMATCH[2]}
   dir=$out/$name
+  local claim
+  exec {claim}>"$out/.$name.claim"
+  if ! flock -n "$claim"; then
+    echo "$(date +%T) $name: another instance has it"
+    exec {claim}>&-
+    return 0
+  fi
   local extra=()
   [[ $method != sparse ]] && extra=(--expert "$expert")
   local done_steps
@@ -114,6 +122,7 @@ EOF
     mv "$dir/frozen-g20-a3.json.part" "$dir/frozen-g20-a3.json"
     echo "$(date +%T) $name: played the frozen g20-a3 episodes"
   fi
+  exec {claim}>&-
 }
 
 for name in "${runs[@]}"; do
