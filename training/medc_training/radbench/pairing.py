@@ -22,7 +22,7 @@ from typing import Any
 from .metrics import EpisodeResult, paired, summarize
 from .scenario import MAX_STEPS
 
-__all__ = ["GROUPS", "load_episodes", "pair_table"]
+__all__ = ["GROUPS", "load_episodes", "obstructions", "pair_table"]
 
 #: Obstruction-count groups the table reports (the goal is stated on 5-7).
 GROUPS: dict[str, tuple[int, ...]] = {"obs0-2": (0, 1, 2), "obs3-4": (3, 4), "obs5-7": (5, 6, 7)}
@@ -57,7 +57,8 @@ def load_episodes(paths: Iterable[str | Path]) -> dict[str, dict[tuple, EpisodeR
     return out
 
 
-def _obstructions(set_id: str) -> int:
+def obstructions(set_id: str) -> int:
+    """The obstruction count a set id (``obs5-low[:40]``) names."""
     match = re.match(r"obs(\d+)-", set_id)
     if match is None:
         raise ValueError(f"set id {set_id!r} does not name its obstruction count")
@@ -75,7 +76,7 @@ def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
     if not common:
         raise ValueError("the policies share no episode (another set file, run or departure?)")
     keys = sorted(common, key=lambda k: (k[1], k[2]))
-    groups = {name: [k for k in keys if _obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
+    groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
     groups["all"] = keys
     table: dict[str, Any] = {"reference": reference, "episodes": len(keys), "groups": {}}
     for name, chosen in groups.items():
