@@ -14,7 +14,8 @@
 # instances side by side share the work: each run is claimed (a lock file) by the first to reach it.
 #
 #   scripts/learned_team_main.sh                 # every run, seed by seed
-#   scripts/learned_team_main.sh sparse-s0 il-s1 # these runs (METHOD-sSEED, METHOD: sparse, medc, il)
+#   scripts/learned_team_main.sh sparse-s0 il-s1 # these runs (METHOD-sSEED, METHOD: sparse, medc, il,
+#                                                # medc-exact: MEDC from controller:infotaxis-exact)
 #
 # Environment: MEDC_MAIN_BUDGET (training steps per run, default 2000000), MEDC_MAIN_PIECE (default
 # 300000), MEDC_TRAIN_THREADS (torch threads per run, default 1: two runs side by side use both
@@ -36,7 +37,8 @@ for n in "$budget" "$piece"; do
 done
 runs=("$@")
 if [[ ${#runs[@]} -eq 0 ]]; then
-  runs=(sparse-s0 medc-s0 il-s0 sparse-s1 medc-s1 il-s1 sparse-s2 medc-s2 il-s2)
+  runs=(sparse-s0 medc-s0 il-s0 sparse-s1 medc-s1 il-s1 sparse-s2 medc-s2 il-s2
+        medc-exact-s0 medc-exact-s1 medc-exact-s2)
 fi
 val=${MEDC_VALIDATION_DIR:-/tmp/medc-validation}
 mkdir -p "$out" "$val"
@@ -70,8 +72,8 @@ validate() {  # run folder: every piece's bundle that has not played the validat
 
 one_run() {  # METHOD-sSEED
   local name=$1 method seed dir
-  if ! [[ "$name" =~ ^(sparse|medc|il)-s([0-9]+)$ ]]; then
-    echo "learned_team_main: a run is METHOD-sSEED with METHOD sparse, medc or il, got '$name'" >&2
+  if ! [[ "$name" =~ ^(sparse|medc|il|medc-exact)-s([0-9]+)$ ]]; then
+    echo "learned_team_main: a run is METHOD-sSEED with METHOD sparse, medc, il or medc-exact, got '$name'" >&2
     return 2
   fi
   method=${BASH_REMATCH[1]}
@@ -85,7 +87,10 @@ one_run() {  # METHOD-sSEED
     return 0
   fi
   local extra=()
-  [[ $method != sparse ]] && extra=(--expert "$expert")
+  case $method in
+    medc|il) extra=(--expert "$expert") ;;
+    medc-exact) method=medc; extra=(--expert controller:infotaxis-exact) ;;
+  esac
   local done_steps
   done_steps=$(steps_done "$dir")
   while (( done_steps < budget )); do
