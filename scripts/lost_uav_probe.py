@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""How a team does with 3, 2 and 1 of its agents left (docs/ros.md, "A lost UAV").
+"""How a team does with 3, 2 and 1 of its agents left (docs/ros-reference.md, "A lost UAV").
 
     python scripts/lost_uav_probe.py --episodes 40 [--gone] [--policy models/team] [--seed 0]
 

@@ -1,5 +1,5 @@
 """Every console script of the house answers ``--help``: its usage and parameters, exit status 0, and no
-node is started (docs/ros.md, "Nodes and parameters"). The entry points are read from the setup.py
+node is started (docs/ros-reference.md, "Nodes and parameters"). The entry points are read from the setup.py
 files and training/pyproject.toml (tests/test_layout.py's reader), so a new script is covered at once;
 each runs through its ``main`` in a fresh interpreter, as the installed script would."""
 

@@ -1,7 +1,8 @@
-"""The defaults the docs state are the code's: docs/ros.md's node parameters (read from the nodes'
-declarations, as their ``--help`` is: medc_common.cli_help), its launch config table (the shipped
-launch.yaml and medc_bringup.launcher) and docs/training.md's medc-controllers scenario (its
-argument parser). A doc that restates a default the code does not have fails here."""
+"""The defaults the docs state are the code's: docs/ros-reference.md's node parameters (read from
+the nodes' declarations, as their ``--help`` is: medc_common.cli_help), docs/ros-guide.md's launch
+config table (the shipped launch.yaml and medc_bringup.launcher), the defaults both ROS pages state
+in their prose, and docs/training.md's medc-controllers scenario (its argument parser). A doc that
+restates a default the code does not have fails here."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-ROS_MD = ROOT / "docs" / "ros.md"
+ROS_GUIDE_MD = ROOT / "docs" / "ros-guide.md"
+ROS_REFERENCE_MD = ROOT / "docs" / "ros-reference.md"
 TRAINING_MD = ROOT / "docs" / "training.md"
 
 #: `name` (VALUE ...) or `name` (default **VALUE ...): VALUE a number, true/false, "empty" or `text`.
@@ -47,6 +49,11 @@ def stated_defaults(text: str) -> dict[str, list[object]]:
     return out
 
 
+def ros_docs_text() -> str:
+    """The two ROS pages, the guide then the reference: where the docs state the graph's defaults."""
+    return ROS_GUIDE_MD.read_text() + "\n\n" + ROS_REFERENCE_MD.read_text()
+
+
 def paragraph(text: str, head: str) -> str:
     """The paragraph of ``text`` that starts with ``head``."""
     start = text.index(head)
@@ -77,7 +84,7 @@ NODES = {
 
 @pytest.mark.parametrize("head", list(NODES))
 def test_the_node_paragraphs_name_every_parameter_with_the_declared_defaults(head):
-    text = paragraph(ROS_MD.read_text(), head)
+    text = paragraph(ROS_REFERENCE_MD.read_text(), head)
     code = node_defaults(*NODES[head])
     named = set(re.findall(r"`([a-z_]+)`", text))
     assert set(code) <= named, f"{head} does not name {sorted(set(code) - named)}"
@@ -89,19 +96,20 @@ def test_the_node_paragraphs_name_every_parameter_with_the_declared_defaults(hea
     assert not wrong, f"{head}: doc default vs code: {wrong}"
 
 
-def test_defaults_stated_in_the_prose_of_ros_md_are_the_nodes():
+def test_defaults_stated_in_the_prose_of_the_ros_docs_are_the_nodes():
     """`lost_timeout_s` (default **1.5 s**) in "A lost UAV" and the like: a parameter whose default
-    is the same on every node that declares it is checked wherever docs/ros.md states it so."""
+    is the same on every node that declares it is checked wherever docs/ros-guide.md or
+    docs/ros-reference.md states it so."""
     declared: dict[str, list[object]] = {}
     for modules in NODES.values():
         for name, value in node_defaults(*modules).items():
             declared.setdefault(name, []).append(value)
     unique = {name: values[0] for name, values in declared.items() if all(v == values[0] for v in values)}
     bold = re.compile(r"`(?P<name>[a-z_]+)` \(default \*\*(?P<value>-?\d+(?:\.\d+)?)")
-    stated = [(m["name"], float(m["value"])) for m in bold.finditer(ROS_MD.read_text().replace("\n", " "))]
+    stated = [(m["name"], float(m["value"])) for m in bold.finditer(ros_docs_text().replace("\n", " "))]
     assert {"move_timeout_s", "lost_timeout_s", "stall_timeout_s"} <= {name for name, _ in stated}
     wrong = [(name, value, unique[name]) for name, value in stated if not _same(value, unique[name])]
-    assert not wrong, f"docs/ros.md default vs code: {wrong}"
+    assert not wrong, f"docs/ros-guide.md or docs/ros-reference.md default vs code: {wrong}"
 
 
 def _table(text: str, heading: str) -> dict[str, str]:
@@ -127,16 +135,16 @@ def test_the_launch_config_table_is_the_shipped_launch_yaml():
     from medc_bringup.launcher import DEFAULT_CONFIG
 
     shipped = yaml.safe_load(Path(DEFAULT_CONFIG).read_text())
-    rows = _table(ROS_MD.read_text(), "### Launch config")
+    rows = _table(ROS_GUIDE_MD.read_text(), "### Launch config")
     assert set(rows) == set(shipped), set(rows) ^ set(shipped)
     wrong = {key: (rows[key], shipped[key]) for key in rows if yaml.safe_load(rows[key]) != shipped[key]}
-    assert not wrong, f"docs/ros.md launch config table vs launch.yaml: {wrong}"
+    assert not wrong, f"docs/ros-guide.md launch config table vs launch.yaml: {wrong}"
 
 
 def test_the_scenario_defaults_the_docs_state_are_the_launchers():
     from medc_bringup import launcher
 
-    text = ROS_MD.read_text()
+    text = ros_docs_text()
     row = next(line for line in text.splitlines() if line.startswith("| `agents`, `walls`, `grid`"))
     keys = ("agents", "walls", "grid", "max_steps")
     found = re.search(r"else (\d+), (\d+), (\d+), (\d+)", row)
@@ -192,3 +200,28 @@ def test_training_md_states_medc_controllers_defaults(monkeypatch):
     assert (table[1].lower(), *map(int, table.groups()[1:])) == (
         defaults["sensing"], defaults["grid"], defaults["walls"], defaults["agents"], defaults["max_steps"],
         defaults["num_envs"], defaults["seed"])
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+@pytest.mark.parametrize("page", ["docs/ros.md", "docs/ros-guide.md", "docs/ros-reference.md"])
+def test_links_between_the_pages_land_on_a_file_and_heading(page):
+    """docs/ros.md maps the sections that links name to the guide and the reference: every link of
+    these pages to a markdown page names a file that exists and, with an anchor, one of its headings."""
+    source = ROOT / page
+    text = re.sub(r"```.*?```", "", source.read_text(), flags=re.S)
+    broken = []
+    for target, anchor in re.findall(r"\]\(([^)\s#]*\.md|)(?:#([^)\s]+))?\)", text):
+        path = (source.parent / target).resolve() if target else source
+        if not path.is_file():
+            broken.append(f"{target}: no such file")
+            continue
+        if anchor:
+            headings = re.findall(r"^#+ (.+)$", re.sub(r"```.*?```", "", path.read_text(), flags=re.S),
+                                  flags=re.M)
+            if anchor not in {_slug(h) for h in headings}:
+                broken.append(f"{target}#{anchor}: no such heading")
+    assert not broken, f"{page}: {broken}"

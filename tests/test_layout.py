@@ -1,6 +1,6 @@
 """The repository layout of design.md section 2: valid ament_python packages, one-way imports.
 
-Packages (docs/ros.md, "Packages"): ``medc_common`` (topic contract and ROS plumbing) is what the
+Packages (docs/ros-reference.md, "Packages"): ``medc_common`` (topic contract and ROS plumbing) is what the
 node packages share; ``medc_sim``, ``medc_agents`` and ``medc_registry`` are leaves that never
 import each other; ``medc_bringup`` (launcher, demo, benches, gas report) may import them all and
 nothing imports it. Every package.xml declares exactly what its package imports, and no module of

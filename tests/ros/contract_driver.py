@@ -1,4 +1,4 @@
-"""A small UAV-team driver written from docs/ros.md and the .msg files only (no medc_sim, no
+"""A small UAV-team driver written from docs/ros-reference.md and the .msg files only (no medc_sim, no
 medc_training): its own world, walls and sensor model, in ENU coordinates (REP 103).
 
 It plays the part a real team's drivers (with a small coordinator) play: publishes the walls map,
@@ -7,12 +7,12 @@ id); waits for every agent's AgentMove, executes each (agent, episode, step) onc
 from the same sender is ignored, the same agent from another sender is a duplicate, logged) and
 goes on; an agent with no move ``--move-timeout-s`` after the step's first move (5 times as long
 for one that has never moved) stays and is not waited for until a move from it is received again,
-for the step being collected or the step just applied (docs/ros.md, "A lost UAV", "Moves are
+for the step being collected or the step just applied (docs/ros-reference.md, "A lost UAV", "Moves are
 executed once"). A step not answered within ``--resend-s`` is published again (same stamp), well
 before an agent would report a stall or take a teammate out: a best-effort pose or reading lost on
 a loaded machine is sent again, not reported.
 
-The loop's order (docs/ros.md, "The driver loop"): every message already received is processed
+The loop's order (docs/ros-reference.md, "The driver loop"): every message already received is processed
 (:func:`drain`) before each decision: before publishing a step, before taking an agent out and
 before flying a step's moves. With ``--end-on declaration`` (or ``either``) the team's
 SourceDeclaration for the current episode ends it, so a declaration that came with the step's
@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-# docs/ros.md, "Moves": action -> one-cell step (di, dj) in the grid frame (i east, j north).
+# docs/ros-reference.md, "Moves": action -> one-cell step (di, dj) in the grid frame (i east, j north).
 MOVES = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1))
 SOURCE_STRENGTH, ATTENUATION, BACKGROUND = 1000.0, 0.5, 1.0
 #: An agent that has never moved (still starting) is taken out only after this many move timeouts.
@@ -48,7 +48,7 @@ STARTUP_FACTOR = 5.0
 
 def rate(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray) -> np.ndarray:
     """Noise-free readings (counts/s) at sensor cells [K,2] (i, j) for one source, exactly as
-    docs/ros.md "Sensor model" specifies (float32 arithmetic, environment rows r = H - 1 - j).
+    docs/ros-reference.md "Sensor model" specifies (float32 arithmetic, environment rows r = H - 1 - j).
 
     walls_ij: bool [W,H] indexed [i, j]."""
     f32 = np.float32
@@ -70,7 +70,7 @@ def rate(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray
 
 def realistic_factor(walls_ij: np.ndarray, source_ij: tuple[int, int], sensor_ij: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The realistic preset's geometric factor (docs/ros.md "Sensor model": the rate is
+    """The realistic preset's geometric factor (docs/ros-reference.md "Sensor model": the rate is
     S * factor + B) at sensor cells [K,2] (i, j) for one source: 1 / (1 + d^2), or 0 when the
     segment between the two cell centres runs through the interior of a wall cell (the unit square
     around its centre) for a positive length. Float64, by clipping the segment to each wall cell
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     received: dict[int, int] = {}  # this step's move messages per agent, re-sends included
     summary = {"moves_received": 0, "resends_ignored": 0, "duplicates": [], "episodes": [], "lost": [],
                "back": [], "declarations": []}
-    silent: set[int] = set()  # agents taken out: not waited for (docs/ros.md, "A lost UAV")
+    silent: set[int] = set()  # agents taken out: not waited for (docs/ros-reference.md, "A lost UAV")
     known: set[int] = set()  # agents that have had a move executed
     handled = [0]  # messages processed (drain() stops when none is left)
     declared: list = []  # the current episode's SourceDeclaration, once received
@@ -259,8 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     declaration_sub = node.create_subscription(SourceDeclaration, f"{ns}/team/source_declared",
                                                on_declaration, qos(20, False))
 
-    # Discovery (docs/ros.md): before the first step every agent listens to every topic published
-    # here and publishes its move, or the first messages are lost (and re-sent after resend_s).
+    # Discovery (docs/ros-reference.md, "How one team step goes"): before the first step every
+    # agent listens to every topic published here and publishes its move, or the first messages
+    # are lost (and re-sent after resend_s).
     processes = args.processes or n
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and (

@@ -1,4 +1,4 @@
-"""A driver written from docs/ros.md alone (tests/ros/contract_driver.py: its own ENU
+"""A driver written from docs/ros-reference.md alone (tests/ros/contract_driver.py: its own ENU
 world, walls and sensor model) runs the shipped team as three medc-agent processes started from
 the bundle alone. The driver is restarted mid-run and sends one mis-stamped reading: the team
 keeps stepping, every move is the policy's on the driver's world, and the mistake and the
@@ -40,7 +40,7 @@ def test_the_driver_uses_only_the_documented_contract():
 
 @pytest.mark.parametrize("grid, walls", [(13, 2), (10, 1), (30, 2)])
 def test_the_documented_sensor_model_is_the_environments_bit_for_bit(grid, walls):
-    """docs/ros.md's sensor model, as the driver implements it, equals
+    """docs/ros-reference.md's sensor model, as the driver implements it, equals
     expected_rate_from_sources on every source-sensor pair of several layouts."""
     from contract_driver import rate
     from medc_training.envs.target_localization import expected_rate_from_sources, generate_layouts
@@ -62,7 +62,7 @@ def test_the_documented_sensor_model_is_the_environments_bit_for_bit(grid, walls
 
 @pytest.mark.parametrize("grid, walls", [(13, 2), (10, 2), (18, 4)])
 def test_the_documented_realistic_line_of_sight_is_the_environments(grid, walls):
-    """docs/ros.md's realistic sensor model (a wall cell on the segment between the centres blocks
+    """docs/ros-reference.md's realistic sensor model (a wall cell on the segment between the centres blocks
     it), as the driver implements it cell by cell in float64, blocks exactly the pairs the
     environment's rectangle rule blocks, and gives the same factor 1 / (1 + d^2) elsewhere, segments
     that only touch a wall corner (open) included."""
@@ -195,7 +195,7 @@ def test_a_documented_driver_restarts_and_misstamps_and_the_team_goes_on(rclpy_c
 @pytest.mark.ros
 def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_its_step(rclpy_context,
                                                                                       tmp_path):
-    """docs/ros.md, "The driver loop": the driver processes every message already received before
+    """docs/ros-reference.md, "The driver loop": the driver processes every message already received before
     it flies a step's moves, so the team's declaration of step S (sent before its publisher's move)
     ends the episode after S moves, with step S's moves not flown."""
     from ros_helpers import DiagnosticsListener, run_contract_driver, stop_node_processes
@@ -206,7 +206,8 @@ def test_a_documented_driver_ends_each_episode_on_the_declaration_before_flying_
     agents = []
     out, summary_path = tmp_path / "steps.jsonl", tmp_path / "summary.json"
     try:
-        for i in range(3):  # a driver that ends episodes only on the declaration: docs/ros.md
+        # A driver that ends episodes only on the declaration: docs/ros-guide.md, "Flying real UAVs".
+        for i in range(3):
             agents.append(subprocess.Popen(
                 [str(BIN / "medc-agent"), "--ros-args", "-p", f"agent_id:=agent_{i}",
                  "-p", f"policy:={TEAM}", "-p", "source_ends_episode:=false"],

@@ -1,4 +1,4 @@
-"""Faults on /diagnostics (docs/ros.md, "Diagnostics"): one agent node and the simulator, each in
+"""Faults on /diagnostics (docs/ros-reference.md, "Diagnostics"): one agent node and the simulator, each in
 this process with a hand-written counterpart, show each fault once, with its reason, and OK again
 when it clears; what the contract calls normal (a status below the step answered) is counted, not
 warned."""

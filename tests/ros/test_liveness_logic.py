@@ -1,6 +1,6 @@
 """The plain rules behind a team that survives a lost UAV and hostile messages (no node spinning):
 medc_agents.guard, the simulator's MoveBook, the observer without a teammate, the grid's edge
-tolerance (docs/ros.md, "A lost UAV", "Moves are executed once", "Messages that contradict the
+tolerance (docs/ros-reference.md, "A lost UAV", "Moves are executed once", "Messages that contradict the
 team's evidence", "Diagnostics")."""
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def test_a_silent_agent_is_taken_out_and_comes_back_with_a_move():
 
 
 def test_only_a_move_received_after_the_take_out_brings_an_agent_back():
-    """docs/ros.md, "A lost UAV", rules 1-5: agent_2 answers step 3 and dies. Its answer to the
+    """docs/ros-reference.md, "A lost UAV", rules 1-5: agent_2 answers step 3 and dies. Its answer to the
     previous step, received before it was taken out, does not bring it back; at step 4 the team
     steps without it. A previous-step move received after the take-out does (not executed; the
     step being collected then waits for its move)."""

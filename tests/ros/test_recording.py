@@ -88,8 +88,9 @@ def test_launch_record_decodes_to_the_episodes_it_printed(bundles, tmp_path, mod
     if not mode:
         # Processes: the team steps at the agents' pace, and a reliable topic (status, moves; keep
         # last 20) reaches the recorder whole. In one process the team can outrun a recorder in
-        # another by more than 20 messages on a loaded machine (docs/ros.md says so). Readings are
-        # best effort (sensor-data QoS, as a driver publishes them): any reader may miss some.
+        # another by more than 20 messages on a loaded machine (docs/ros-guide.md, "Record, watch,
+        # export", says so). Readings are best effort (sensor-data QoS, as a driver publishes
+        # them): any reader may miss some.
         assert sorted(set(done)) == printed
         counts = {t: len(v) for t, v in moves.items()}
         assert all(n == steps for n in counts.values()), counts

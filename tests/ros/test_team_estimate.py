@@ -1,4 +1,4 @@
-"""The team's source estimate on the graph (docs/ros.md, "The team's source estimate"): the estimate
+"""The team's source estimate on the graph (docs/ros-reference.md, "The team's source estimate"): the estimate
 topic converges to the source, the team declares it, and the simulator ends episodes on the
 declaration (``end_on``), with the shipped team (models/team, paper-simple, 13x13)."""
 

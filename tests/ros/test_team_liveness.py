@@ -153,7 +153,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
 
         # Episodes last at most 20 steps at 20 Hz: on a loaded machine the latest status heard here
         # may already be of an episode the agents have left. A status naming an earlier episode is
-        # a driver restart to them (docs/ros.md, "Episodes and restarts": they say so, "went
+        # a driver restart to them (docs/ros-reference.md, "Episodes and restarts": they say so, "went
         # back ... step 1000000000", and follow it), not a jump within the episode: then the test
         # sends it again for the episode then in play. Every status that is neither reported as
         # a jump nor taken as a restart fails the test.

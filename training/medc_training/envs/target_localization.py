@@ -24,7 +24,7 @@ Readings (:func:`sensor_reading`)
     crossed halves the rate); k(p) = number of walls the straight line from s to p crosses:
     the line is sampled at t = (k + 0.5)/(H+W), k = 0..H+W-1 (float32, at most 0.71 cell
     apart), each sample rounded to a cell (half to even), and every run of consecutive wall
-    samples counts as one wall (docs/ros.md, "Sensor model", gives it step by step);
+    samples counts as one wall (docs/ros-reference.md, "Sensor model", gives it step by step);
     BG = :data:`BACKGROUND` (1 count/s). The ``+1`` in the denominator keeps the reading at
     the source finite.
     With ``noise=True`` the reading is a Poisson draw with mean I(p) (counts in 1 s).

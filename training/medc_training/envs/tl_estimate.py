@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-#: Posterior mass within the radius that makes the team declare (docs/ros.md, "The team's source
+#: Posterior mass within the radius that makes the team declare (docs/ros-reference.md, "The team's source
 #: estimate", which gives the measured errors and times).
 DEFAULT_THRESHOLD = 0.95
 

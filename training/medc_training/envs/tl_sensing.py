@@ -330,8 +330,8 @@ class SensingModel:
     d in cells (one cell = ``cell_size_m`` metres); A = ``attenuation`` per obstruction the line
     of sight crosses (0: an obstruction blocks it, the reading is background only); k counted by
     the ``line`` rule: ``sampled`` (the paper-simple preset's rule: H+W samples along the line,
-    docs/ros.md) or ``exact`` (the segment between the two cell centres against each wall
-    segment's rectangle: exact geometry, O(walls) per pair).
+    docs/ros-reference.md, "Sensor model") or ``exact`` (the segment between the two cell centres
+    against each wall segment's rectangle: exact geometry, O(walls) per pair).
 
     S is drawn per episode uniformly from ``strength`` and B from ``background`` (a range with
     equal ends is a known constant). With ``noise`` True readings are Poisson counts in one

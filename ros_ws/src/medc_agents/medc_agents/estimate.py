@@ -35,7 +35,7 @@ from medc_common import contract
 from medc_common.contract import GridGeometry, cell_to_ij
 from medc_common.params import declare
 
-#: Parameter defaults (docs/ros.md, "The team's source estimate").
+#: Parameter defaults (docs/ros-reference.md, "The team's source estimate").
 DEFAULT_MAP_RATE_HZ = 1.0
 #: A teammate never heard from is silent this many times ``lost_timeout_s`` after an agent's first
 #: step (the simulator likewise gives an agent that never moved 5 x its move timeout).

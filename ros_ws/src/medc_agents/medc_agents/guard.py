@@ -1,7 +1,7 @@
 """What an agent does not take on trust (no ROS here): lost teammates, other drivers' statuses,
 statuses that jump ahead, maps that contradict the team's poses, readings in the wrong units.
 
-docs/ros.md, "A lost UAV" and "Messages that contradict the team's evidence", state the rules;
+docs/ros-reference.md, "A lost UAV" and "Messages that contradict the team's evidence", state the rules;
 the agent node applies them with these classes and reports what they say on ``/diagnostics``.
 
 - :class:`LostWatch`: a teammate whose pose or reading for the step being waited on has not come
@@ -194,7 +194,7 @@ class ReadingCheck:
             self.warned.add((idx, "high"))
             return (f"reading {value:g} of {agent_id} is above {self.high:g} counts/s, {HIGH_FACTOR:g}x the "
                     f"highest rate of the '{self.name}' sensor model: readings must be counts per second "
-                    "(docs/ros.md, 'Sensor model'), not scaled")
+                    "(docs/ros-reference.md, 'Sensor model'), not scaled")
         if len(recent) == recent.maxlen and (idx, "low") not in self.warned:
             mean = sum(recent) / len(recent)
             if mean < self.low:
@@ -202,5 +202,5 @@ class ReadingCheck:
                 return (f"the last {len(recent)} readings of {agent_id} average {mean:.4g} counts/s, "
                         f"below half the lowest background of the '{self.name}' sensor model "
                         f"({2 * self.low:g} counts/s): readings in the wrong units (normalised or "
-                        "divided)? docs/ros.md, 'Sensor model'")
+                        "divided)? docs/ros-reference.md, 'Sensor model'")
         return None

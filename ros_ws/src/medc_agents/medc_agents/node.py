@@ -1,6 +1,6 @@
 """The agent node: one per agent; observes the team, runs its policy bundle, publishes its move.
 
-Subscribes (names and QoS: medc_common.contract, docs/ros.md): every team member's pose and
+Subscribes (names and QoS: medc_common.contract, docs/ros-reference.md): every team member's pose and
 radiation reading, the walls map, the episode status, and its own and the team's policy topics.
 Publishes its medc_interfaces/AgentMove on ``<ns>/<agent_id>/move``. Every name is relative to
 the node's namespace (``/medc`` unless ``-r __ns:=/team2`` moves it), the registry bridge's
@@ -58,8 +58,9 @@ from medc_agents.team_watch import TeamWatch
 
 #: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
 NUM_ACTIONS = len(ACTIONS)
-#: Default of the agent's ``stall_timeout_s`` (docs/ros.md): longer than a driver's re-send period
-#: (the simulator's resend_s is 0.5 s), so one lost best-effort message is not reported.
+#: Default of the agent's ``stall_timeout_s`` (docs/ros-reference.md, "Stalls and diagnostics"):
+#: longer than a driver's re-send period (the simulator's resend_s is 0.5 s), so one lost
+#: best-effort message is not reported.
 STALL_TIMEOUT_S = 2.0
 #: Statuses below the step answered are summed up in one log line at most this often (seconds).
 OLD_STATUS_SUMMARY_S = 10.0
@@ -154,7 +155,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         "sensing",
         DEFAULT_SENSING,
         f"Sensing model of the team's readings, a preset ({', '.join(sorted(SENSING_PRESETS))}; "
-        "docs/ros.md, 'Sensor model'); a bundle trained under another is refused",
+        "docs/ros-reference.md, 'Sensor model'); a bundle trained under another is refused",
         True,
     )
     if sensing not in SENSING_PRESETS:
@@ -189,7 +190,8 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     lost_timeout_s = float(p(
         "lost_timeout_s", guard.LOST_TIMEOUT_S,
         "A teammate whose pose or reading has not come for this long (seconds) while a step waits "
-        "for it is taken out of the team until it is heard again (docs/ros.md, 'A lost UAV'); 0: never",
+        "for it is taken out of the team until it is heard again (docs/ros-reference.md, "
+        "'A lost UAV'); 0: never",
         True))
     session_hold_s = float(p(
         "session_hold_s", guard.SESSION_HOLD_S,

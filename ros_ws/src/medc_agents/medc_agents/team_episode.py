@@ -1,7 +1,7 @@
 """Which team step an agent answers, from the driver's episode statuses (no ROS here).
 
 Messages of one team step share one header stamp; an ``EpisodeStatus`` names the step and the walls
-map that holds (its ``info.map_load_time``). Episodes (docs/ros.md, "Episodes and restarts"): a
+map that holds (its ``info.map_load_time``). Episodes (docs/ros-reference.md, "Episodes and restarts"): a
 status starts a new episode (the memory is reset) when its ``step`` is 0 (and it is not a re-send
 of the step-0 status already answered: same stamp), or its ``episode`` or ``map_stamp`` differs
 from the episode in memory. So a driver that restarts (episode 0 step 0 again, a new map) is

@@ -107,7 +107,7 @@ class MapStore:
 class TeamRounds:
     """The team's poses (raw map-frame x, y) and readings by header stamp, the last
     :data:`STAMP_HISTORY` stamps; what was last heard of each agent; which teammates are taken out
-    of the team (docs/ros.md, "A lost UAV": steps are decided without their pose and reading, and
+    of the team (docs/ros-reference.md, "A lost UAV": steps are decided without their pose and reading, and
     their last cell stays in the observation)."""
 
     KINDS = ("pose", "reading")

@@ -7,7 +7,7 @@ unit, tested on its own:
   readings, walls maps); a bad message raises ``ValueError`` with the reason, and the node logs it
   and drops the message;
 - :class:`~medc_agents.team_episode.EpisodeClock`: which step is answered next, from the episode
-  statuses, and when the memory starts afresh (docs/ros.md, "Episodes and restarts");
+  statuses, and when the memory starts afresh (docs/ros-reference.md, "Episodes and restarts");
 - :class:`~medc_agents.team_inputs.MapStore` and :class:`~medc_agents.team_inputs.TeamRounds`: the
   maps and the poses and readings held until a step is answered, and what a step still lacks
   (:meth:`TeamObserver.waiting_for`, for the node's stall report);
@@ -117,7 +117,7 @@ class TeamObserver:
 
     @property
     def absent(self) -> set[int]:
-        """Teammates taken out of the team (docs/ros.md, "A lost UAV")."""
+        """Teammates taken out of the team (docs/ros-reference.md, "A lost UAV")."""
         return self.rounds.absent
 
     @property

@@ -49,7 +49,7 @@ def _ns(namespace: str) -> str:
 
 
 def known_topics(namespace: str, agents: int = 0) -> dict[str, tuple[str, object]]:
-    """The contract's topics (docs/ros.md) with their types and QoS, subscribed before they are
+    """The contract's topics (docs/ros-reference.md) with their types and QoS, subscribed before they are
     discovered so that nothing published early is lost; ``agents``: also those of agent_0..N-1."""
     from medc_common import contract
 

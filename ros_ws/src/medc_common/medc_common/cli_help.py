@@ -156,8 +156,8 @@ def node_help(program: str, summary: str, parameters: Sequence[tuple[str, str, s
     for name, default, description in parameters:
         lines.append(f"  {name} (default {default})")
         lines.append(f"      {description}")
-    lines += ["", "Topics and the whole contract: docs/ros.md.", "-h, --help  show this help and exit "
-              "(no node is started)"]
+    lines += ["", "Topics and the whole contract: docs/ros-reference.md.",
+              "-h, --help  show this help and exit (no node is started)"]
     return "\n".join(lines)
 
 

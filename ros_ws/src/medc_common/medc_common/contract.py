@@ -1,7 +1,8 @@
 """The topic contract between the simulator (or a real UAV driver) and the agent nodes.
 
 Everything a node needs to agree on lives here: topic and service names, QoS profiles, frames,
-agent ids, and the grid <-> map-frame conversion. docs/ros.md describes the same contract for people.
+agent ids, and the grid <-> map-frame conversion. docs/ros-reference.md describes the same
+contract for people.
 
 Names are relative to the team's namespace, which is each node's ROS namespace (DEFAULT_NAMESPACE
 unless remapped: ``--ros-args -r __ns:=/team2`` moves a whole team); only names that are global by

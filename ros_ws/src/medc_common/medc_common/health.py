@@ -4,7 +4,7 @@ Monitors (diagnostic aggregators, rqt_robot_monitor, Foxglove's diagnostics pane
 node to publish its status about once a second and show a node as stale when it stops. A
 :class:`Health` keeps the latest status of each named condition of one node (its ``team step``,
 its ``team``, its ``inputs`` ...) and publishes all of them, with a summary status named after the
-node, every ``period_s`` (docs/ros.md, "Diagnostics"). A change is published at once too, and
+node, every ``period_s`` (docs/ros-reference.md, "Diagnostics"). A change is published at once too, and
 logged at the level it is published with (WARN on /diagnostics = a warning in the log; ERROR =
 an error; OK = info), so the log and /diagnostics always agree.
 

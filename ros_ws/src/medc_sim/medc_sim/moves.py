@@ -1,6 +1,6 @@
 """Collecting the team's moves for one step, with every check a move must pass (no ROS here).
 
-Moves are idempotent (docs/ros.md, "Moves are executed once"): each (agent, episode, step) is
+Moves are idempotent (docs/ros-reference.md, "Moves are executed once"): each (agent, episode, step) is
 executed once, with the first move received for it. A second move for the same key from the same
 sender (``AgentMove.sender``, the agent node's per-run id) is a re-send and is ignored (with another
 action it is reported: :class:`ConflictingMove`); one from another sender means two processes claim
@@ -9,7 +9,7 @@ has not moved within the simulator's move timeout is taken out (:meth:`MoveBook.
 steps do not wait for it until a move from it is *received after* the take-out: an executed move for
 the step being collected, or a move for the step collected before it (from the sender whose move
 was executed for that step, or any sender if none was). The moves received before the take-out
-never bring it back (docs/ros.md, "A lost UAV", states the rule step by step).
+never bring it back (docs/ros-reference.md, "A lost UAV", states the rule step by step).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Publishes, per agent, its pose (geometry_msgs/PoseStamped, frame "map") and radiation reading
 (medc_interfaces/RadiationReading), both with sensor-data QoS; the walls map (nav_msgs/
 OccupancyGrid, transient local) and one medc_interfaces/EpisodeStatus per team step. Applies each
-agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and docs/ros.md.
+agent's medc_interfaces/AgentMove. Topic names and QoS: medc_common.contract and docs/ros-reference.md.
 The names are relative to the node's namespace (``/medc`` unless ``-r __ns:=/team2`` moves it).
 
 Modes:
@@ -11,7 +11,7 @@ Modes:
             While waiting it re-publishes the step every ``resend_s`` so lost sensor-data
             messages or late-starting agents cannot stall the team. An agent with no move
             ``move_timeout_s`` after the step's first move stays in place and is taken out: later
-            steps do not wait for it until it moves again (docs/ros.md, "A lost UAV"; the move
+            steps do not wait for it until it moves again (docs/ros-reference.md, "A lost UAV"; the move
             rules: medc_sim.moves; other drivers on the topics: medc_sim.watch).
   realtime  steps every 1/``rate_hz`` s with the moves received; an agent without a move stays.
 """
@@ -63,8 +63,8 @@ class SimNode(MoveWatch, Node):
             sensing=p(
                 "sensing",
                 "paper-simple",
-                "Sensing model, a preset (paper-simple, realistic; docs/ros.md, 'Sensor model'): how "
-                "readings are made and how near an agent must come to the source",
+                "Sensing model, a preset (paper-simple, realistic; docs/ros-reference.md, "
+                "'Sensor model'): how readings are made and how near an agent must come to the source",
                 True,
             ),
             end_on=p(

@@ -27,7 +27,7 @@ class SimConfig:
     #: (realistic) does so whatever this says.
     noise: bool = False
     #: The sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``): how readings are made
-    #: and when an agent has found the source (docs/ros.md, "Sensor model").
+    #: and when an agent has found the source (docs/ros-reference.md, "Sensor model").
     sensing: str = "paper-simple"
     #: What ends an episode besides max_steps (medc_sim.episode_end): ``source``, ``declaration`` or
     #: ``either``.

@@ -13,7 +13,7 @@ Three counts, each of readers or writers matched with the simulator's own endpoi
   results are latched only while the simulator lives; a finished simulator also waits for this
   many before it exits (medc_sim.sim_node). Without this count a recorder, matched first, let
   the simulator run its episodes and exit before the launcher's monitor was discovered: the
-  launcher then waited for results that no longer existed (docs/ros.md, "Recording").
+  launcher then waited for results that no longer existed (docs/ros-guide.md, "Record, watch, export").
 
 After ``timeout_s`` the simulator starts anyway and logs what was missing.
 """
