@@ -407,6 +407,40 @@ def _connected(free: np.ndarray) -> bool:
         count = now
 
 
+def _hidden_from_all(starts: np.ndarray, source: np.ndarray, rects: list[tuple[int, int, int, int]]) -> bool:
+    """``line_of_sight_blocked(starts, source, rects).all()`` for the generator's few starts and
+    rectangles, in plain float arithmetic: the same IEEE operations in the same order (a reciprocal,
+    then products), hence the same answer, without numpy's per-call cost on arrays of a few
+    elements."""
+    br, bc = float(source[0]), float(source[1])
+    slabs = [(r0 - 0.5, c0 - 0.5, r1 + 0.5, c1 + 0.5) for r0, c0, r1, c1 in rects]
+    for start in starts:
+        ar, ac = float(start[0]), float(start[1])
+        dr, dc = br - ar, bc - ac
+        ir = 1.0 / dr if dr != 0.0 else 0.0
+        ic = 1.0 / dc if dc != 0.0 else 0.0
+        for lo_r, lo_c, hi_r, hi_c in slabs:
+            if dr == 0.0:
+                inside = lo_r < ar < hi_r
+                min_r, max_r = (-math.inf, math.inf) if inside else (math.inf, -math.inf)
+            else:
+                t0, t1 = (lo_r - ar) * ir, (hi_r - ar) * ir
+                min_r, max_r = min(t0, t1), max(t0, t1)
+            if dc == 0.0:
+                inside = lo_c < ac < hi_c
+                min_c, max_c = (-math.inf, math.inf) if inside else (math.inf, -math.inf)
+            else:
+                t0, t1 = (lo_c - ac) * ic, (hi_c - ac) * ic
+                min_c, max_c = min(t0, t1), max(t0, t1)
+            enter = max(max(min_r, min_c), 0.0)
+            leave = min(min(max_r, max_c), 1.0)
+            if enter + 1e-9 < leave:
+                break  # this start's line is blocked
+        else:
+            return False  # a start sees the source
+    return True
+
+
 def _draw_geometry(rng: np.random.Generator, spec: GridSpec, agents: int, obstructions: int,
                    stats: GenerationStats, cell_rc: np.ndarray):
     """(obstructions, walls, starts int64 [N,2], source int64 [2]) drawn by the rules of the module
@@ -430,7 +464,7 @@ def _draw_geometry(rng: np.random.Generator, spec: GridSpec, agents: int, obstru
             if walls[source[0], source[1]]:
                 tries += 1
                 continue
-            hidden = obstructions == 0 or bool(line_of_sight_blocked(starts, source, rects).all())
+            hidden = obstructions == 0 or _hidden_from_all(starts, source, rects)
             if obstructions and hidden:
                 break
             if obstructions == 0 or tries >= LOS_CANDIDATES:

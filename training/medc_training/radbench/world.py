@@ -31,6 +31,7 @@ walls=7, max_steps=120, sensing="realistic")`` (``medc-train --world radbench``)
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -57,7 +58,13 @@ SNR_MIX: tuple[str, ...] = ("low", "medium", "high")
 def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int):
     """About ``count`` fresh benchmark episodes (list of :class:`~medc_training.radbench.scenario.
     Episode`), an equal share for every obstruction count 0..``max_obstructions`` and SNR bin of
-    :data:`SNR_MIX`, shuffled; the same arguments give the same episodes."""
+    :data:`SNR_MIX`, shuffled; the same arguments give the same episodes. The last few draws are
+    kept: a training run's evaluation draws the same pool at every evaluation."""
+    return list(_draw_episodes(grid, agents, max_obstructions, count, seed))
+
+
+@functools.lru_cache(maxsize=4)
+def _draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int) -> tuple:
     groups = [(o, name) for o in range(max_obstructions + 1) for name in SNR_MIX]
     per = max(1, -(-count // len(groups)))
     episodes = []
@@ -65,7 +72,7 @@ def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, see
         drawn, _ = generate_set(grid, agents, o, name, per, seed=seed)
         episodes.extend(drawn)
     order = np.random.default_rng(seed).permutation(len(episodes))
-    return [episodes[i] for i in order]
+    return tuple(episodes[i] for i in order)
 
 
 class BenchWorld(TargetLocalization):
