@@ -140,6 +140,30 @@ def test_line_of_sight_is_the_environments_exact_rule():
     assert not line_of_sight_blocked((0, 0), (2, 2), [(0, 2, 0, 3)])  # grazes the corner only
 
 
+def test_the_generators_source_check_answers_as_the_line_of_sight_rule():
+    from medc_training.radbench.scenario import _hidden_from_all
+
+    rng = np.random.default_rng(7)
+    g = 20
+    idx = np.arange(g * g)
+    cells = np.stack((idx // g, idx % g), 1)
+    episodes, _ = generate_set(20, 3, 7, "none", episodes=8)
+    checked = 0
+    for e in episodes:
+        starts = np.array(e.starts)
+        rects = list(e.obstructions)
+        # every cell as the source, and starts in the same row or column as it (flat segments)
+        for source in cells[rng.permutation(len(cells))[:120]]:
+            for these in (starts, np.array([[source[0], 0], [0, source[1]], starts[0]])):
+                expected = bool(line_of_sight_blocked(these, source, rects).all())
+                assert _hidden_from_all(these, source, rects) == expected
+                checked += 1
+    assert checked == 8 * 120 * 2
+    # a segment that only grazes a corner is clear; one through the inside is blocked
+    assert not _hidden_from_all(np.array([[0, 0]]), np.array([2, 2]), [(0, 2, 0, 3)])
+    assert _hidden_from_all(np.array([[0, 0]]), np.array([0, 5]), [(0, 2, 0, 2)])
+
+
 def test_noise_streams_are_uniform_and_fixed_by_their_seed():
     u = noise_uniforms(12345, 120, 3)
     assert u.shape == (121, 3) and u.dtype == np.float64
