@@ -89,6 +89,7 @@ def _run(folder, seed, curve, reference_length=20):
     for steps, length in curve:
         _write(folder / f"validation-{steps}.episodes.jsonl", folder.name,
                [("obs1-low[:4]", i, length, True) for i in range(4)])
+        (folder / f"validation-{steps}.json").write_text("{}")
     return folder
 
 
@@ -100,7 +101,10 @@ def test_steps_to_the_yardstick_and_the_claim(tmp_path):
     runs = {"medc": [_run(tmp_path / f"m{s}", s, [(300, 25), (600, 20)]) for s in range(3)],
             "sparse": [_run(tmp_path / f"s{s}", s, [(300, 30), (600, 24), (900, 19 + s)]) for s in range(3)],
             "il": [_run(tmp_path / f"i{s}", s, [(300, 30 - 12 * (s == 0))]) for s in range(3)]}
+    # a play still under way (no summary yet) does not count, even when it looks good so far
+    _write(tmp_path / "m0" / "validation-100.episodes.jsonl", "m0", [("obs1-low[:4]", 0, 10, True)])
     v = steps_to_level(reference, runs, budget=900)
+    assert [p["steps"] for p in v["runs"]["medc"][0]["curve"]] == [300, 600]
     assert v["runs"]["medc"][1]["reached"] == 600
     # sparse seed 2 ends at 21 > 20: censored at the budget
     assert v["runs"]["sparse"][0]["reached"] == 900 and v["runs"]["sparse"][2]["censored"]

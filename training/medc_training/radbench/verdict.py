@@ -139,12 +139,13 @@ def frozen_verdict(yardstick: dict, seeds: Sequence[dict], max_steps: int = MAX_
 
 def _validation_curve(run: Path, reference: dict, max_steps: int) -> list[tuple[int, float, float]]:
     """(steps, the run's mean length, the yardstick's on the same episodes) for every piece bundle
-    of ``run`` that played the validation episodes, by steps."""
+    of ``run`` that has played the validation episodes to the end (its ``validation-STEPS.json``
+    written), by steps."""
     curve = []
     for path in run.glob("validation-*.episodes.jsonl"):
         match = re.fullmatch(r"validation-(\d+)\.episodes\.jsonl", path.name)
-        if match is None:
-            continue
+        if match is None or not (run / f"validation-{match.group(1)}.json").exists():
+            continue  # not a piece's play, or one still being played (its summary comes last)
         played = _only_policy(path)
         keys = sorted(set(played) & set(reference), key=lambda k: (k[1], k[2]))
         if not keys:
