@@ -407,6 +407,15 @@ def _connected(free: np.ndarray) -> bool:
         count = now
 
 
+def _slab(a: float, d: float, inv: float, lo: float, hi: float) -> tuple[float, float]:
+    """(t entering, t leaving) of the segment a + t d in the slab lo < x < hi along one axis, with
+    ``inv`` = 1 / d (any value when d is 0: the segment is inside for every t or for none)."""
+    if d == 0.0:
+        return (-math.inf, math.inf) if lo < a < hi else (math.inf, -math.inf)
+    t0, t1 = (lo - a) * inv, (hi - a) * inv
+    return min(t0, t1), max(t0, t1)
+
+
 def _hidden_from_all(starts: np.ndarray, source: np.ndarray, rects: list[tuple[int, int, int, int]]) -> bool:
     """``line_of_sight_blocked(starts, source, rects).all()`` for the generator's few starts and
     rectangles, in plain float arithmetic: the same IEEE operations in the same order (a reciprocal,
@@ -420,21 +429,9 @@ def _hidden_from_all(starts: np.ndarray, source: np.ndarray, rects: list[tuple[i
         ir = 1.0 / dr if dr != 0.0 else 0.0
         ic = 1.0 / dc if dc != 0.0 else 0.0
         for lo_r, lo_c, hi_r, hi_c in slabs:
-            if dr == 0.0:
-                inside = lo_r < ar < hi_r
-                min_r, max_r = (-math.inf, math.inf) if inside else (math.inf, -math.inf)
-            else:
-                t0, t1 = (lo_r - ar) * ir, (hi_r - ar) * ir
-                min_r, max_r = min(t0, t1), max(t0, t1)
-            if dc == 0.0:
-                inside = lo_c < ac < hi_c
-                min_c, max_c = (-math.inf, math.inf) if inside else (math.inf, -math.inf)
-            else:
-                t0, t1 = (lo_c - ac) * ic, (hi_c - ac) * ic
-                min_c, max_c = min(t0, t1), max(t0, t1)
-            enter = max(max(min_r, min_c), 0.0)
-            leave = min(min(max_r, max_c), 1.0)
-            if enter + 1e-9 < leave:
+            min_r, max_r = _slab(ar, dr, ir, lo_r, hi_r)
+            min_c, max_c = _slab(ac, dc, ic, lo_c, hi_c)
+            if max(max(min_r, min_c), 0.0) + 1e-9 < min(min(max_r, max_c), 1.0):
                 break  # this start's line is blocked
         else:
             return False  # a start sees the source
