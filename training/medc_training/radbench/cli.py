@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the world departs from the team's and the searchers' model, e.g. transmission=0.3 "
                         "(obstructions let 30%% through), efficiency=0.7, strength_scale=2, background=80, "
                         "position_noise=0.2 (medc_training.radbench.departure; default: the nominal world)")
+    p.add_argument("--temperature", type=float, default=0.0,
+                   help="a bundle samples its move from softmax(logits / T) instead of taking the most "
+                        "probable one (0, the default: the most probable; controllers are unaffected)")
     p.add_argument("--batch", type=int, default=100, help="episodes played at once")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -263,7 +266,7 @@ def _play(args: argparse.Namespace) -> int:
 
     from ..console import progress_bar
     from .departure import Departure
-    from .play import TEAM_SENSING, play_set
+    from .play import TEAM_SENSING, play_set, policy_names
     from .sets import file_name, load_sets
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
@@ -304,6 +307,7 @@ def _play(args: argparse.Namespace) -> int:
     results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
+    names = policy_names()  # the rest are bundles, which --temperature applies to
     out_file = args.out.open("w") if args.out else None
     try:
         with progress_bar(total, unit="episode", disable=args.quiet) as bar:
@@ -311,7 +315,7 @@ def _play(args: argparse.Namespace) -> int:
                 for policy in policies:
                     start = time.perf_counter()
                     played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
-                                      progress=bar.update, departure=departure)
+                                      progress=bar.update, departure=departure, temperature=args.temperature)
                     seconds[policy] += time.perf_counter() - start
                     results[s.id][policy] = played
                     if out_file is not None:
@@ -320,6 +324,9 @@ def _play(args: argparse.Namespace) -> int:
                                                        "run": args.run, "set_sha256": s.sha256,
                                                        **({"departure": departure.to_dict()}
                                                           if not departure.nominal else {}),
+                                                       **({"temperature": args.temperature}
+                                                          if args.temperature and policy not in names
+                                                          else {}),
                                                        **r.to_json()}) + "\n")
     finally:
         if out_file is not None:
@@ -331,6 +338,7 @@ def _play(args: argparse.Namespace) -> int:
         "set_file": source, "set_file_sha256": file_digest, "quick": bool(args.quick), "run": args.run,
         "episodes_per_set": len(sets[0].episodes), "policies": policies, "reference": reference,
         "team_sensing": TEAM_SENSING.to_dict(), "departure": departure.to_dict(),
+        "temperature": args.temperature,
         "seconds": {p: round(v, 2) for p, v in seconds.items()},
         "sets": per_set, "pooled": pooled, "paired_pooled": pooled_pairs,
     }))

@@ -48,6 +48,8 @@ def load_episodes(paths: Iterable[str | Path]) -> dict[str, dict[tuple, EpisodeR
                            json.dumps(doc.get("departure", {}), sort_keys=True))
                     result = EpisodeResult(**{k: doc[k] for k in _FIELDS})
                     policy = _policy_name(str(doc["policy"]))
+                    if doc.get("temperature"):
+                        policy += f"@T{float(doc['temperature']):g}"
                 except (ValueError, KeyError, TypeError) as exc:
                     raise ValueError(f"{path}:{number}: not a medc-radbench episode line ({exc})") from None
                 episodes = out.setdefault(policy, {})

@@ -291,11 +291,18 @@ def core_policy(core: BenchCore, policy: Any, bundle: Any = None):
     return None
 
 
+def _tempered(policy, temperature: float):
+    def logits(obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return policy(obs, mask) / temperature
+
+    return logits
+
+
 def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | None = None, batch: int = 100,
              device: str | torch.device = "cpu", sensing: SensingModel | str | dict | None = None,
              threshold: float = DEFAULT_THRESHOLD, seed: int = 12345, run: int = 0,
-             progress: Callable[[int], None] | None = None, departure: Departure | None = None
-             ) -> list[EpisodeResult]:
+             progress: Callable[[int], None] | None = None, departure: Departure | None = None,
+             temperature: float = 0.0) -> list[EpisodeResult]:
     """Play the first ``episodes`` episodes of ``bench_set`` (all when None), each to its end, with
     ``policy``, ``batch`` episodes at a time; return their results in episode order.
 
@@ -304,8 +311,10 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     on the observation it was trained on), or a callable ``factory(core) -> Policy`` (a
     :data:`medc_training.evaluate.Policy` for that core). ``seed`` seeds the random policy's draws;
     ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream);
-    ``departure`` how the world departs from the team's model (None: nominal). ``progress(n)`` is
-    called after each chunk with the episodes it played.
+    ``departure`` how the world departs from the team's model (None: nominal); ``temperature`` > 0:
+    a bundle samples its move from softmax(logits / temperature) with a stream seeded by ``seed``
+    instead of taking the most probable one (controllers are unaffected). ``progress(n)`` is called
+    after each chunk with the episodes it played.
     """
     from medc_training.evaluate import play_episodes
 
@@ -313,13 +322,20 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     if count < 1 or batch < 1:
         raise ValueError("play_set needs at least one episode and a batch of at least one")
     bundle, observation = resolve_policy(policy)
+    if isinstance(temperature, bool) or not isinstance(temperature, int | float) \
+            or not 0.0 <= temperature <= 100.0:
+        raise ValueError("temperature must be a number in [0, 100] (0: the most probable move), "
+                         f"got {temperature!r}")
+    sampled = bundle is not None and temperature > 0.0
     out: list[EpisodeResult] = []
     for lo in range(0, count, batch):
         chunk = list(range(lo, min(count, lo + batch)))
         core = BenchCore(bench_set, chunk, device=device, observation=observation, sensing=sensing,
                          threshold=threshold, run=run, departure=departure)
         chosen = core_policy(core, policy, bundle)
-        played = play_episodes(core, chosen, episodes=len(chunk), seed=seed)
+        if sampled:
+            chosen = _tempered(chosen, temperature)
+        played = play_episodes(core, chosen, episodes=len(chunk), seed=seed, greedy=not sampled)
         results = core.results()
         for r, length, success in zip(results, played.lengths, played.successes):
             if (r.length, r.success) != (length, success):
