@@ -7,7 +7,8 @@
 # of the seed-4043 file, as the probes) into validation-STEPS.json and .episodes.jsonl, from which
 # the protocol's steps-to-the-yardstick comparison is read; a run that reaches the budget plays the
 # frozen g20-a3 episodes (the first 40 of every set, count noise run 0, as the searchers' protocol
-# run) into frozen-g20-a3.episodes.jsonl, paired later with
+# run) into frozen-g20-a3.episodes.jsonl, and again with its moves sampled at temperature 0.5
+# (frozen-g20-a3-T0.5.*), paired later with
 #   python -m medc_training.radbench.pairing --reference infotaxis-exact \
 #     docs/reproduction/radbench/searchers/g20-a3.episodes.jsonl DIR/*/frozen-g20-a3.episodes.jsonl
 # A piece killed half-way resumes from the run's last checkpoint; a finished step is skipped. Two
@@ -126,6 +127,13 @@ EOF
       --quiet --out "$dir/frozen-g20-a3.episodes.jsonl" > "$dir/frozen-g20-a3.json.part"
     mv "$dir/frozen-g20-a3.json.part" "$dir/frozen-g20-a3.json"
     echo "$(date +%T) $name: played the frozen g20-a3 episodes"
+  fi
+  # The second decision rule (docs/learned-team.md, addendum 3): moves sampled at temperature 0.5.
+  if [[ ! -s "$dir/frozen-g20-a3-T0.5.json" ]]; then
+    medc-radbench "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 --temperature 0.5 \
+      --quiet --out "$dir/frozen-g20-a3-T0.5.episodes.jsonl" > "$dir/frozen-g20-a3-T0.5.json.part"
+    mv "$dir/frozen-g20-a3-T0.5.json.part" "$dir/frozen-g20-a3-T0.5.json"
+    echo "$(date +%T) $name: played the frozen g20-a3 episodes at temperature 0.5"
   fi
   exec {claim}>&-
 }
