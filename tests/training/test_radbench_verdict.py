@@ -62,6 +62,11 @@ def test_one_seed_over_the_ratio_or_a_worse_count_fails_the_goal():
     worse_at_0 = _episodes({0: [14, 16, 17, 15], 5: [14, 15, 13, 14], 6: [15, 14, 15, 16]})
     v = frozen_verdict(_episodes(YARD), [good, worse_at_0])
     assert v["counts"]["0"]["verdict"] == "loses" and not v["checks"]["non_inferior_at_0"]
+    # an interval across 0 that reaches past the margin is not resolved, and not non-inferior
+    spread = _episodes({0: [4, 22, 6, 20], 5: [14, 15, 13, 14], 6: [15, 14, 15, 16]})
+    v = frozen_verdict(_episodes(YARD), [spread])
+    assert v["counts"]["0"]["pooled_diff"]["lo"] < 0 < 0.05 * 12 < v["counts"]["0"]["pooled_diff"]["hi"]
+    assert v["counts"]["0"]["verdict"] == "not resolved" and not v["checks"]["non_inferior_at_0"]
     assert v["checks"]["every_seed_at_most_ratio"] and not v["goal_met"]
 
 
