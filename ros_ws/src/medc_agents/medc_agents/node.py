@@ -34,6 +34,7 @@ from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.controllers import CONTROLLERS
+from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
@@ -168,7 +169,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         True,
     )
     application = p(
-        "application", "target_localization", "Application a bundle must be trained for", True
+        "application", DEFAULT_APPLICATION, "Application a bundle must be trained for", True
     )
     threads = p(
         "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True

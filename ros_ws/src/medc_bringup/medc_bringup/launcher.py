@@ -195,7 +195,7 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
     grid) and have been trained under its sensing preset, or its agent would refuse it."""
     from medc_training.bundle import BundleError, check_sensing, manifest_observation, read_manifest
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.observation import parse_observation
 
     for path in sorted({p for p in paths if _controller(p) is None}):
         try:
