@@ -92,6 +92,11 @@ class Application:
                              f"(R = window radius, e.g. ego9), not {spec.name!r}")
         return spec
 
+    def obs_shape(self, observation: Any, grid: int) -> tuple[int, int, int]:
+        """(C, H, W) of one agent's view ``observation`` on a ``grid``×``grid`` area."""
+        spec = self.view(observation)
+        return spec.shape(grid, len(self.channels(spec)))
+
     @property
     def views(self) -> tuple[str, ...]:
         """The accepted views ('egoR': any radius)."""

@@ -78,7 +78,13 @@ from medc_training.envs.grid import (
     random_free_cells,
 )
 from medc_training.envs.names import TARGET_LOCALIZATION
-from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory, parse_observation
+from medc_training.envs.tl_observation import (
+    DEFAULT_OBSERVATION,
+    TeamMemory,
+    observation_channels,
+    observation_shape,
+    parse_observation,
+)
 from medc_training.envs.tl_sensing import (
     BACKGROUND,
     CHANNELS,
@@ -306,7 +312,7 @@ class TargetLocalization(BatchedEnv):
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
         self.observation = parse_observation(observation)
-        self.obs_shape = self.observation.shape(self.grid)
+        self.obs_shape = observation_shape(self.observation, self.grid)
         # The paper's maps change in a few cells per step and are updated in place
         # (_observe_step); every other observation is rebuilt from the team memory each step.
         b, n = self.num_envs, self.num_agents
@@ -513,7 +519,7 @@ APPLICATION = register(Application(
     name=TargetLocalization.name,
     core=TargetLocalization,
     default_observation=DEFAULT_OBSERVATION,
-    channels=lambda spec: spec.channels,
+    channels=observation_channels,
     action_names=ACTION_NAMES,
     has_estimate=True,
     sensing_presets=(DEFAULT_SENSING, *sorted(set(SENSING_PRESETS) - {DEFAULT_SENSING})),

@@ -36,6 +36,7 @@ from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.controllers import CONTROLLERS
 from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
+from medc_training.envs.tl_observation import observation_shape
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
@@ -302,8 +303,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.gate = guard.StatusGate(prm.session_hold_s, prm.recover_s)
         self.reading_check = guard.ReadingCheck(self.observer.sensing, num_agents)
         self._pending_since = (None, 0.0)  # (tick, since when it waits)
-        spec = self.observer.observation
-        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, prm.max_forward_s,
+        shape = observation_shape(self.observer.observation, grid)
+        self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).

@@ -285,13 +285,14 @@ class PolicySlot:
         """(shape on this grid, name) of the observation the bundle at ``source`` names."""
         from medc_training.bundle import manifest_observation
         from medc_training.envs.observation import parse_observation
+        from medc_training.envs.tl_observation import observation_shape
 
         manifest = read_policy_manifest(source)
         try:
             spec = parse_observation(manifest_observation(manifest))
         except ValueError as exc:
             raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
-        return spec.shape(self.grid), spec.name
+        return observation_shape(spec, self.grid), spec.name
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, mask: torch.Tensor) -> int:
