@@ -2,9 +2,8 @@
 
 Each application module declares one next to its core and registers it (:func:`register`);
 :func:`applications` and :func:`application` import the paper's three modules first, so the
-registry always holds them.
-Code outside ``envs/`` asks a descriptor (a capability, the default observation, the option
-schema, the manifest fields) instead of testing an application's name.
+registry always holds them. Code outside ``envs/`` asks a descriptor (a capability, the default
+observation, the option schema, the manifest fields) instead of testing an application's name.
 """
 
 from __future__ import annotations
@@ -46,8 +45,9 @@ class Application:
     other_worlds: tuple[tuple[str, str], ...] = ()
     """Worlds besides ``grid``: (world, "module:Class" of its core, imported when asked)."""
     observation_in_config: bool = False
-    """The run config's ``observation`` field always reaches the core (else only when it is not
-    the application's default, or through ``env_options``)."""
+    """The run config's ``observation`` field always reaches the core (else only when it differs
+    from the observation the scales name, the default application's default, or through
+    ``env_options``)."""
     action_names: tuple[str, ...] = ()
     """The name of each action, as bundle manifests list them (none: 'action_0', ...)."""
     manifest_names_view: bool = False
