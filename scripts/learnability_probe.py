@@ -23,12 +23,13 @@ import time
 import torch
 from medc_training.dagger import best_moves, clone_loss
 from medc_training.envs import make_batched
+from medc_training.envs.names import TARGET_LOCALIZATION
 from medc_training.nets import make_actor_critic, masked_logits
 
 
 def collect(args: argparse.Namespace, seed: int, steps: int) -> tuple[torch.Tensor, ...]:
     """(obs, mask, oracle scores) of every agent at every step of ``steps`` batched steps."""
-    env = make_batched("target_localization", num_envs=args.envs, seed=seed, agents=args.agents,
+    env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=seed, agents=args.agents,
                        walls=args.walls, grid=args.grid, max_steps=args.max_steps)
     obs, mask = env.reset(seed=seed)
     gen = torch.Generator().manual_seed(seed)

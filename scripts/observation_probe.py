@@ -21,6 +21,8 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from medc_training.envs.names import DEFAULT_APPLICATION
+
 
 def curve_summary(metrics_csv: Path) -> dict:
     """start/end greedy length (mean of first/last three evaluations) and training lengths."""
@@ -86,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grid", type=int, default=None, help="grid side (default: the CPU scale's)")
     p.add_argument("--max-steps", type=int, default=None)
     p.add_argument("--noise", action="store_true", help="Poisson counting noise on the readings")
-    p.add_argument("--env", default="target_localization",
+    p.add_argument("--env", default=DEFAULT_APPLICATION,
                    help="application; fleet_coordination / maze_cleaning use the reproduction's settings "
                         "(10x10, 400 steps, 3 agents, its target options, sampled evaluation) and take "
                         "'maps' or 'egoR'")
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
             for seed in (int(s) for s in args.seeds.split(",")):
                 cfg = {"agents": args.agents, "walls": args.walls, "observation": variant, "arch": arch,
                        "total_steps": args.steps, "seed": seed, "method": "sparse"}
-                if args.env != "target_localization":
+                if args.env != DEFAULT_APPLICATION:
                     from medc_training.cli import reproduce as r
 
 
@@ -115,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                     cfg["max_steps"] = args.max_steps
                 if args.noise:
                     cfg["env_options"] = {**cfg.get("env_options", {}), "noise": True}
-                short = "" if args.env == "target_localization" else args.env.split("_")[0] + "-"
+                short = "" if args.env == DEFAULT_APPLICATION else args.env.split("_")[0] + "-"
                 name = f"{short}{variant}-{arch}" + ("-noise" if args.noise else "")
                 jobs.append({"name": f"{name}/seed{seed}", "config": cfg,
                              "out": str(args.out / name / f"seed{seed}")})

@@ -10,6 +10,7 @@ the house takes part in an import cycle (function-local imports included).
 from __future__ import annotations
 
 import ast
+import re
 import sys
 import tomllib
 import xml.etree.ElementTree as ET
@@ -269,16 +270,6 @@ def test_every_entry_point_names_a_function_of_its_own_package() -> None:
 #: Source trees whose modules the checks below read (tests may compare names freely).
 SOURCE_ROOTS = (TRAINING / "medc_training", ROS_SRC, REPO_ROOT / "scripts")
 ENVS = TRAINING / "medc_training" / "envs"
-TL = "target_localization"
-#: Comparisons with the application's name that are about its identity, not a capability of its
-#: environment core: (file, enclosing function) -> why it may name the application.
-TL_IDENTITY = {
-    ("training/medc_training/experiments/plan.py", "Plan.planned"): "the primary application is planned",
-    ("training/medc_training/experiments/plan.py", "Plan.run_config"):
-        "the primary application's own config; the others take their catalogue presets",
-    ("scripts/observation_probe.py", "main"): "CLI: the other applications' presets and run-name prefix",
-    ("training/medc_training/controllers.py", "_check"): "the scripted controllers play target localization",
-}
 
 
 def _source_files() -> Iterator[Path]:
@@ -298,27 +289,22 @@ def _scoped_nodes(tree: ast.AST) -> Iterator[tuple[str, ast.AST]]:
     yield from walk(tree, "")
 
 
-def _names_tl(node: ast.AST) -> bool:
-    return isinstance(node, ast.Constant) and node.value == TL
+def test_applications_are_known_only_to_the_environments() -> None:
+    """Outside ``envs/`` no source file names an application in quotes or asks whether it has a
+    source estimate by name (``core_has_estimate``, ``HAS_ESTIMATE``): code asks the application's
+    descriptor (``medc_training.envs.application``) and names one through
+    ``medc_training.envs.names``."""
+    from medc_training.envs.names import ENV_NAMES
 
-
-def test_no_application_name_check_outside_the_environments() -> None:
-    """What an application can do is asked of its core (``core_has_estimate``, ``core_options``,
-    ``attributes``); only the identity cases of TL_IDENTITY compare against its name."""
-    found = set()
+    quoted = re.compile("|".join(rf"[\"']{name}[\"']" for name in ENV_NAMES))
+    found = []
     for path in _source_files():
         if ENVS in path.parents:
             continue
-        rel = path.relative_to(REPO_ROOT).as_posix()
-        for scope, node in _scoped_nodes(ast.parse(path.read_text())):
-            if not isinstance(node, ast.Compare):
-                continue
-            operands = [node.left, *node.comparators]
-            if any(isinstance(op, ast.Eq | ast.NotEq) for op in node.ops) and any(map(_names_tl, operands)):
-                key = (rel, scope.split(".<")[0])
-                assert key in TL_IDENTITY, f"{rel}:{node.lineno} ({scope}) compares with {TL!r}: ask the core"
-                found.add(key)
-    assert found == set(TL_IDENTITY), f"allowed but gone (drop from TL_IDENTITY): {set(TL_IDENTITY) - found}"
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if quoted.search(line) or "core_has_estimate" in line or "HAS_ESTIMATE" in line:
+                found.append(f"{path.relative_to(REPO_ROOT)}:{number}: {line.strip()}")
+    assert found == [], "ask the application's descriptor instead:\n" + "\n".join(found)
 
 
 def _assignments(name: str) -> list[tuple[str, ast.AST]]:

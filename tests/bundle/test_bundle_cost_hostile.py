@@ -219,19 +219,19 @@ def test_a_stalled_strip_does_not_refuse_a_bundle_that_is_not_slow(monkeypatch, 
 
 @pytest.mark.parametrize("grid", [10**6, 256, MAX_BUNDLE_GRID + 1, 0, 12.5])
 def test_a_manifest_grid_beyond_the_bound_is_refused_by_every_reader(grid, tmp_path, capsys) -> None:
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_channels, observation_shape, parse_observation
     from medc_training.nets import make_actor_critic
 
     # A grid-free observation (an agent-centred window), so the grid is not tied to the input size.
     spec = parse_observation("ego4")
-    shape = spec.shape(10)
+    shape = observation_shape(spec, 10)
     torch.manual_seed(0)
     net = make_actor_critic("lenet5", shape, 8)
     _, manifest = valid_parts("lenet5", grid=10)
     manifest = {**manifest, "environment": {**manifest["environment"], "grid": grid},
                 "architecture": net.spec,
                 "observation": {"name": spec.name, "channels": shape[0], "height": shape[1],
-                                "width": shape[2], "channel_names": list(spec.channels)}}
+                                "width": shape[2], "channel_names": list(observation_channels(spec))}}
     data = forge(dict(net.state_dict()), manifest)
     path = tmp_path / "grid.safetensors"
     path.write_bytes(data)

@@ -19,6 +19,7 @@ from medc_training.envs.tl_observation import (
     ObservationSpec,
     SourceEstimator,
     TeamMemory,
+    observation_shape,
     observe,
     parse_observation,
 )
@@ -111,8 +112,8 @@ def test_names_round_trip_and_bad_names_say_what_is_allowed():
     for name in ("maps", "maps+estimate", "ego1", "ego12+estimate"):
         assert parse_observation(name).name == name
         assert parse_observation({"name": name}) == parse_observation(name)
-    assert parse_observation("ego6+estimate").shape(13) == (5, 13, 13)
-    assert parse_observation("maps+estimate").shape(13) == (6, 13, 13)
+    assert observation_shape("ego6+estimate", 13) == (5, 13, 13)
+    assert observation_shape("maps+estimate", 13) == (6, 13, 13)
     for bad in ("ego0", "ego", "maps+", "ego-3", "egocentric", "x" * 100, 7):
         with pytest.raises(ValueError, match="observation"):
             parse_observation(bad)
@@ -152,7 +153,7 @@ def test_core_observations_equal_a_replay_from_scratch_at_any_batch_size(variant
     env = make_batched("target_localization", num_envs=batch, seed=11, agents=3, walls=2, grid=12,
                        max_steps=12, noise=True, observation=variant)
     obs, mask = env.reset()
-    assert tuple(obs.shape[2:]) == parse_observation(variant).shape(12)
+    assert tuple(obs.shape[2:]) == observation_shape(variant, 12)
     memories = _replay_memories(variant, batch)
     for b, m in enumerate(memories):
         m.start(env.walls[b:b + 1], env.positions[b:b + 1], env.readings[b:b + 1])

@@ -42,11 +42,11 @@ def test_a_shared_bundle_says_which_observation_its_model_takes(registry, users)
     import json
 
     from medc_training.bundle import bundle_bytes
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_shape, parse_observation
     from medc_training.nets import make_actor_critic
 
     spec = parse_observation("ego3+estimate")
-    net = make_actor_critic("mlp", spec.shape(13), 8)
+    net = make_actor_critic("mlp", observation_shape(spec, 13), 8)
     data = bundle_bytes(net, {"application": APP, "observation": {"name": spec.name},
                               "environment": {"agents": 1, "walls": 0, "grid": 13}})
     m = users[0].share_model(data, APP, {"agents": 1, "walls": 0}, PRICE)

@@ -23,13 +23,13 @@ def _ego_bundle(path: Path, grid) -> Path:
     """A valid-looking target-localization bundle on an agent-centred 9x9 window (its input does
     not depend on the grid) whose manifest names ``grid``: written by hand, past save_bundle."""
     from medc_training.bundle import MANIFEST_KEY, bundle_bytes
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_shape, parse_observation
     from medc_training.nets import make_actor_critic
     from safetensors.torch import save as st_save
 
     spec = parse_observation("ego4")
     torch.manual_seed(0)
-    net = make_actor_critic("lenet5", spec.shape(10), 8)
+    net = make_actor_critic("lenet5", observation_shape(spec, 10), 8)
     good = bundle_bytes(net, {"application": "target_localization", "observation": {"name": "ego4"},
                               "environment": {"grid": 10, "agents": 3}})
     n = int.from_bytes(good[:8], "little")

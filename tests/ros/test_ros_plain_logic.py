@@ -184,11 +184,11 @@ def test_policy_slot_refuses_bad_bundles_and_keeps_the_old_one(bundles, tmp_path
 
 def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_path):
     from medc_training.bundle import save_bundle
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_shape, parse_observation
     from medc_training.nets import make_actor_critic
 
     spec = parse_observation("ego4+estimate")
-    ego = save_bundle(tmp_path / "ego.safetensors", make_actor_critic("mlp", spec.shape(10), 8),
+    ego = save_bundle(tmp_path / "ego.safetensors", make_actor_critic("mlp", observation_shape(spec, 10), 8),
                       {"application": "target_localization", "observation": {"name": spec.name},
                        "environment": {"grid": 10}})
     follow = PolicySlot((5, 10, 10), 8, grid=10)  # observation None: the bundle's own

@@ -7,7 +7,7 @@ import torch
 from medc_training.bundle import load_bundle, save_bundle
 from medc_training.cli.train import main as train_main
 from medc_training.config import TrainConfig
-from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, parse_observation
+from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, observation_shape
 from medc_training.experts import BundleExpert, ExpertError
 from medc_training.medc import expert_scores_for
 from medc_training.nets import make_actor_critic
@@ -19,7 +19,7 @@ TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, 
 
 def _bundle(tmp_path, arch, grid=6, agents=1, observation=DEFAULT_OBSERVATION):
     torch.manual_seed(len(arch))
-    net = make_actor_critic(arch, parse_observation(observation).shape(grid), 8)
+    net = make_actor_critic(arch, observation_shape(observation, grid), 8)
     path = tmp_path / f"{arch}-{grid}-{observation}.safetensors"
     save_bundle(path, net, {"application": "target_localization", "observation": {"name": observation},
                             "environment": {"agents": agents, "walls": 0, "grid": grid}})

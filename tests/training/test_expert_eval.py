@@ -5,7 +5,7 @@ import json
 
 import torch
 from medc_training.bundle import save_bundle
-from medc_training.envs.tl_observation import parse_observation
+from medc_training.envs.tl_observation import observation_shape
 from medc_training.experiments.expert_eval import evaluate_experts, expert_eval_table
 from medc_training.nets import make_actor_critic
 
@@ -14,7 +14,7 @@ BASE = {"grid": 13, "max_steps": 10, "env_options": {"sensing": "realistic"}}
 
 def _expert(models, name, agents, walls):
     torch.manual_seed(agents + walls)
-    net = make_actor_critic("mlp", parse_observation("ego6+estimate").shape(BASE["grid"]), 8)
+    net = make_actor_critic("mlp", observation_shape("ego6+estimate", BASE["grid"]), 8)
     path = models / "experts" / f"{name}.safetensors"
     path.parent.mkdir(parents=True, exist_ok=True)
     save_bundle(path, net, {"application": "target_localization", "observation": {"name": "ego6+estimate"},

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from .envs.tl_observation import DEFAULT_OBSERVATION
+from .envs import DEFAULT_APPLICATION, application
 
 METHODS = ("sparse", "medc", "rs", "il", "frl")
 
@@ -26,8 +26,8 @@ METHODS = ("sparse", "medc", "rs", "il", "frl")
 class EnvironmentConfig:
     """The environment a run plays (every :class:`RunConfig` holds one)."""
 
-    env: str = "target_localization"
-    """Application: one of medc_training.envs.ENV_NAMES."""
+    env: str = DEFAULT_APPLICATION
+    """Application: one of medc_training.envs.APPLICATIONS."""
     agents: int = 3
     """Team size (the y in AyWz)."""
     walls: int = 2
@@ -38,40 +38,40 @@ class EnvironmentConfig:
     """Episode length limit; reaching it truncates the episode (PPO bootstraps it)."""
     env_options: dict = field(default_factory=dict)
     """Extra keyword options passed to make_batched (e.g. customers for fleet coordination)."""
-    observation: str = DEFAULT_OBSERVATION
+    observation: str | None = None
     """The observation (medc_training.envs.observation): 'maps' (the application's absolute maps),
-    'egoR' (agent-centred windows), and for target localization 'maps+estimate', 'egoR+estimate'.
-    The default is target localization's; fleet coordination and maze cleaning take 'maps' unless
-    this field is set to something else (or ``env_options`` name an observation)."""
+    'egoR' (agent-centred windows), and for an application with a source estimate 'maps+estimate',
+    'egoR+estimate'. None: the application's default (``Application.default_observation``). An
+    application whose observation is not a config field (``Application.observation_in_config``)
+    takes it only when it differs from the default application's default, the value scales name
+    (or through ``env_options``)."""
 
     def make_options(self, reward_shaping: bool = False) -> dict:
         """The keyword options of :func:`medc_training.envs.make_batched` this config describes
         (besides num_envs, device and seed). Raises ValueError when ``observation`` and
         ``env_options['observation']`` disagree."""
-        from .envs import core_has_estimate, core_options
-
-        accepted = core_options(self.env)
+        app = application(self.env)
+        accepted = app.options()
         options = dict(self.env_options)
         options.update(agents=self.agents, grid=self.grid, max_steps=self.max_steps)
         if "walls" in accepted:
             options["walls"] = self.walls
         if "reward_shaping" in accepted:
             options["reward_shaping"] = reward_shaping
-        # The default observation is target localization's; an application without a source
-        # estimate keeps its own default unless told otherwise (configs written before the field
-        # applied to every application hold the default).
-        given = core_has_estimate(self.env) or self.observation != DEFAULT_OBSERVATION
-        if given and options.setdefault("observation", self.observation) != self.observation:
-            raise ValueError(f"observation {self.observation!r} and env_options observation "
+        observation = app.default_observation if self.observation is None else self.observation
+        # The scales name the default application's default observation; another application
+        # keeps its own default unless told otherwise.
+        scale_default = application(DEFAULT_APPLICATION).default_observation
+        given = app.observation_in_config or self.observation not in (None, scale_default)
+        if given and options.setdefault("observation", observation) != observation:
+            raise ValueError(f"observation {observation!r} and env_options observation "
                              f"{options['observation']!r} disagree; give one")
         return options
 
     def env_attributes(self) -> dict:
         """The environment's descriptive features as stored in bundle manifests."""
-        from .envs import core_options
-
         attrs = {"agents": self.agents, "grid": self.grid, "max_steps": self.max_steps}
-        if "walls" in core_options(self.env):
+        if "walls" in application(self.env).options():
             attrs["walls"] = self.walls
         attrs.update(self.env_options)
         return attrs
@@ -153,7 +153,9 @@ class RunConfig(EnvironmentConfig):
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown config fields {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**cls.upgrade(dict(data)))
+        # A dict recorded before ``observation`` existed took the default application's default.
+        data = {"observation": application(DEFAULT_APPLICATION).default_observation, **data}
+        return cls(**cls.upgrade(data))
 
     @classmethod
     def upgrade(cls, data: dict) -> dict:

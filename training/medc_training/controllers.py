@@ -361,13 +361,17 @@ def _background_floor(env) -> torch.Tensor:
 def _check(name: str, env) -> None:
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {str(name)[:40]!r}; choose one of {', '.join(CONTROLLERS)}")
-    if getattr(env, "name", None) != "target_localization" or not hasattr(env, "memory"):
-        raise ValueError(f"the {name} controller plays target localization (a batched core made with "
-                         f"make_batched('target_localization', ...)), not {getattr(env, 'name', env)!r}")
+    from medc_training.envs import APPLICATIONS
+
+    app = APPLICATIONS.get(getattr(env, "name", None))
+    if app is None or not app.controllers or not hasattr(env, "memory"):
+        playable = ", ".join(n.replace("_", " ") for n, a in APPLICATIONS.items() if a.controllers)
+        raise ValueError(f"the {name} controller plays {playable} (a batched core made with make_batched), "
+                         f"not {getattr(env, 'name', env)!r}")
     if name in NEEDS_POSTERIOR and env.memory.log_post is None:
         raise ValueError(f"the {name} controller reads the team's source posterior, but this core keeps "
                          f"none (observation {env.observation_name!r} shows no estimate); make the core "
-                         "with posterior=True, e.g. make_batched('target_localization', ..., posterior=True)")
+                         "with posterior=True, e.g. make_batched(..., posterior=True)")
 
 
 def controller_policy(name: str, env, **options) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
@@ -422,6 +426,7 @@ def main(argv: list[str] | None = None) -> int:
     """``medc-controllers``: evaluate classical controllers (and random moves) on a target
     localization scenario; one JSON line per controller."""
     from medc_training.envs import make_batched
+    from medc_training.envs.names import TARGET_LOCALIZATION
 
     p = argparse.ArgumentParser(
         description="Evaluate classical search controllers on target localization: the first episode "
@@ -441,7 +446,7 @@ def main(argv: list[str] | None = None) -> int:
         if name != "random" and name not in CONTROLLERS:
             p.error(f"unknown controller {name!r}; choose from {', '.join(CONTROLLERS)}, random")
     for name in args.controllers:
-        env = make_batched("target_localization", num_envs=args.num_envs, device=args.device, seed=args.seed,
+        env = make_batched(TARGET_LOCALIZATION, num_envs=args.num_envs, device=args.device, seed=args.seed,
                            agents=args.agents, walls=args.walls, grid=args.grid, max_steps=args.max_steps,
                            sensing=args.sensing, posterior=True)
         policy = None if name == "random" else controller_policy(name, env)

@@ -30,6 +30,7 @@ from collections.abc import Callable
 import torch
 
 from .envs import make_batched
+from .envs.names import TARGET_LOCALIZATION
 from .envs.tl_estimate import DEFAULT_THRESHOLD, check_rule, declare
 from .evaluate import round_seed
 
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             options = dict(attrs, posterior=True, end_on_find=rule == "either")
             if noise is not None:
                 options["noise"] = noise
-            env = make_batched("target_localization", num_envs=args.envs, seed=args.seed, **options)
+            env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=args.seed, **options)
             policy = bundle if bundle is not None else controller_policy(args.policy, env)
             rows = declaration_episodes(env, policy, episodes=args.episodes, seed=args.seed,
                                         radius=args.radius, threshold=args.threshold)

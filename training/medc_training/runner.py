@@ -215,11 +215,14 @@ def _finished(summary: Path) -> bool:
 
 
 def observation_section(env) -> dict:
-    """``{"observation": {"name": ...}}`` for a bundle's manifest: always for an application with
-    estimate views (target localization), for the others only when they do not take the default
-    'maps'."""
+    """``{"observation": {"name": ...}}`` for a bundle's manifest: always for an application whose
+    manifests name their view (``Application.manifest_names_view``), for the others only when
+    they do not take 'maps'."""
+    from .envs import APPLICATIONS
+
     name = getattr(env, "observation_name", "maps")
-    keep = name != "maps" or getattr(env, "HAS_ESTIMATE", False)
+    app = APPLICATIONS.get(getattr(env, "name", None))
+    keep = name != "maps" or (app is not None and app.manifest_names_view)
     return {"observation": {"name": name}} if keep else {}
 
 

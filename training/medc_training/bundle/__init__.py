@@ -8,7 +8,7 @@ entry, ``"medc.manifest"``, a JSON object:
 
     format            "medc-policy-bundle"
     format_version    1
-    application       one of KNOWN_APPLICATIONS ("target_localization", ...)
+    application       the name of an application of medc_training.envs.APPLICATIONS
     description       optional free text (what the registry shows)
     environment       {attribute: number | bool | string}, e.g. {"agents": 3, "walls": 2, "grid": 30}
     observation       {"channels": C, "height": H, "width": W, "channel_names": [C names],

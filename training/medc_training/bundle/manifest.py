@@ -1,13 +1,12 @@
 """The bundle manifest: its schema, how a saved bundle's manifest is completed, and how a stored
 one is validated (every claim cross-checked against the others and against the architecture).
 
-What an application's observations are is asked of its environment core
-(:func:`medc_training.envs.core_has_estimate`), never decided by its name.
+What an application's observations are is asked of its descriptor
+(:func:`medc_training.envs.application`), never decided by its name.
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import subprocess
@@ -17,14 +16,14 @@ from typing import Any
 
 import medc_training
 from medc_training.bundle.fileformat import BundleError
-from medc_training.envs import ENV_NAMES, core_has_estimate
+from medc_training.envs import APPLICATIONS, ENV_NAMES, Application
 from medc_training.nets import ActorCritic, SpecError, safe_names, safe_repr, validate_spec
 
 FORMAT = "medc-policy-bundle"
 FORMAT_VERSION = 1
 
-# A bundle for an application this code does not know cannot be run by it, so it is rejected
-# rather than guessed at.
+# A bundle for an application this code does not know (not in medc_training.envs.APPLICATIONS)
+# cannot be run by it, so it is rejected rather than guessed at.
 KNOWN_APPLICATIONS: tuple[str, ...] = tuple(ENV_NAMES)
 #: The largest ``environment.grid`` and ``environment.agents`` a bundle may name. An agent node
 #: builds its team memory for the grid and subscribes to every agent's topics *from the manifest*,
@@ -42,11 +41,16 @@ _MANIFEST_KEYS = {
 }
 
 
-def _has_estimate(app: Any) -> bool:
-    """Whether ``app`` is a known application whose observation views include the team's source
-    estimate: its bundles always name their view (those made before view names took 'maps'), and
-    the view fixes the channels (``medc_training.envs.tl_observation``)."""
-    return app in KNOWN_APPLICATIONS and core_has_estimate(app)
+def _application(app: Any) -> Application | None:
+    """The descriptor of a known application, else None."""
+    return APPLICATIONS.get(app) if isinstance(app, str) else None
+
+
+def _names_view(app: Any) -> bool:
+    """Whether ``app`` is a known application whose bundles always name their view (those made
+    before view names took 'maps') and whose view fixes the channel names."""
+    desc = _application(app)
+    return desc is not None and desc.manifest_names_view
 
 
 def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str, Any]:
@@ -61,20 +65,25 @@ def complete_manifest(net: ActorCritic, manifest: Mapping[str, Any]) -> dict[str
     except (TypeError, ValueError) as exc:
         raise BundleError(f"manifest must hold JSON values only (str, int, float, bool, None, lists, "
                           f"dicts): {exc}") from None
-    app = full.get("application")
+    desc = _application(full.get("application"))
     c, h, w = net.obs_shape
-    default_channels, default_actions = _env_names(app)
+    default_channels = default_actions = None
     full["format"] = FORMAT
     full["format_version"] = FORMAT_VERSION
     full["architecture"] = net.spec
     obs = dict(full.get("observation") or {})
-    if _has_estimate(app):
-        spec = _observation_spec(obs.get("name", "maps"))
-        obs["name"] = spec.name
-        obs.setdefault("channel_names", list(spec.channels))
-    elif obs.get("name", "maps") != "maps" and default_channels is not None:
-        # An agent-centred window (fleet, maze): channel 0 marks the cells off the grid.
-        default_channels = ["off_grid", *default_channels[1:]]
+    if desc is not None:
+        default_actions = list(desc.action_names) or None
+        if desc.manifest_names_view:
+            spec = _observation_spec(desc, obs.get("name", "maps"))
+            obs["name"] = spec.name
+            obs.setdefault("channel_names", list(desc.channels(spec)))
+        else:
+            try:
+                spec = desc.view(obs.get("name", "maps"))
+            except ValueError:  # validate_manifest reports the name
+                spec = desc.view("maps")
+            default_channels = list(desc.channels(spec))
     obs.setdefault("channels", c)
     obs.setdefault("height", h)
     obs.setdefault("width", w)
@@ -104,7 +113,7 @@ def manifest_observation(manifest: Mapping[str, Any]) -> str | None:
     an application with estimate views (target localization) 'maps' when the manifest predates
     variants; None for another application's manifest without a name (its absolute maps)."""
     name = manifest["observation"].get("name")
-    if name is None and _has_estimate(manifest.get("application")):
+    if name is None and _names_view(manifest.get("application")):
         return "maps"
     return None if name is None else str(name)
 
@@ -142,44 +151,13 @@ def check_sensing(manifest: Mapping[str, Any], sensing: str, what: str = "this b
         )
 
 
-def _grid_task_side(name: Any, grid: int) -> int:
-    """Side of a fleet-coordination / maze-cleaning observation: 'maps' (G) or 'egoR' (2R+1)."""
-    from medc_training.envs.observation import parse_observation
-
+def _observation_spec(desc: Application, name: Any):
+    """The view ``name`` of application ``desc``; BundleError when it takes no such view."""
     try:
-        spec = parse_observation(name)
+        return desc.view(name)
     except ValueError:  # its message holds the name: do not echo it
-        spec = None
-    if spec is None or spec.estimate:
-        raise BundleError("manifest: observation.name must be 'maps' or 'egoR' for this application")
-    return spec.side(grid)
-
-
-def _observation_spec(name: Any):
-    from medc_training.envs.observation import parse_observation
-
-    try:
-        return parse_observation(name)
-    except ValueError:
-        raise BundleError("manifest: observation.name is not an observation variant this code knows "
-                          "(maps, maps+estimate, egoR, egoR+estimate)") from None
-
-
-def _env_names(app: Any) -> tuple[list[str] | None, list[str] | None]:
-    """The application's observation channel and action names, from its environment module.
-
-    Each environment module ``medc_training.envs.<application>`` may define ``CHANNELS`` and
-    ``ACTION_NAMES``; the environment is the single source of truth for what its indices mean.
-    """
-    if app not in KNOWN_APPLICATIONS:
-        return None, None  # validate_manifest reports the unknown application
-    try:
-        module = importlib.import_module(f"medc_training.envs.{app}")
-    except ModuleNotFoundError:
-        return None, None
-    channels = getattr(module, "CHANNELS", None)
-    actions = getattr(module, "ACTION_NAMES", None)
-    return (list(channels) if channels else None), (list(actions) if actions else None)
+        raise BundleError(f"manifest: observation.name is not a view {desc.name} takes "
+                          f"({', '.join(desc.views)})") from None
 
 
 def _git_commit() -> str | None:
@@ -264,9 +242,9 @@ def _check_format(manifest: dict[str, Any]) -> None:
 
 def _check_application(manifest: dict[str, Any]) -> str:
     app = manifest["application"]
-    if app not in KNOWN_APPLICATIONS:
+    if _application(app) is None:
         raise BundleError(f"manifest: unknown application {safe_repr(app)}; known: "
-                          f"{', '.join(KNOWN_APPLICATIONS)}")
+                          f"{', '.join(APPLICATIONS)}")
     if "description" in manifest and not isinstance(manifest["description"], str):
         raise BundleError("manifest: description must be a string")
     return app
@@ -322,23 +300,23 @@ def _check_shapes(manifest: dict[str, Any], spec: dict[str, Any]) -> tuple[int, 
 
 
 def _check_view(app: str, obs: dict[str, Any], shape: tuple[int, int, int], grid: Any) -> None:
-    """The observation's name (its view), channels and size agree with the environment's grid."""
+    """The observation's name (its view), channel names and size agree with the application and
+    the environment's grid."""
     name = obs.get("name")
     has_grid = isinstance(grid, int) and not isinstance(grid, bool)
-    if name is not None and _has_estimate(app):
-        ospec = _observation_spec(name)
-        if list(obs["channel_names"]) != list(ospec.channels):
-            raise BundleError(f"manifest: observation {ospec.name} has channels {list(ospec.channels)}, "
-                              "but channel_names differ")
-        if has_grid and ospec.shape(grid) != shape:
+    if name is None:
+        if grid is not None and (grid != shape[1] or grid != shape[2]):
             raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
-                              f"{shape[1]}x{shape[2]} with {shape[0]} channels; "
-                              f"{ospec.name} on that grid is {list(ospec.shape(grid))}")
-    elif name is not None:
-        side = _grid_task_side(name, grid if has_grid else shape[1])
-        if (shape[1], shape[2]) != (side, side):
-            raise BundleError(f"manifest: observation {safe_repr(name)} is {side}x{side} here, but the "
-                              f"bundle declares {shape[1]}x{shape[2]}")
-    elif grid is not None and (grid != shape[1] or grid != shape[2]):
-        raise BundleError(f"manifest: environment.grid is {safe_repr(grid)} but the observation is "
-                          f"{shape[1]}x{shape[2]}")
+                              f"{shape[1]}x{shape[2]}")
+        return
+    desc = APPLICATIONS[app]
+    spec = _observation_spec(desc, name)
+    channels = list(desc.channels(spec))
+    if desc.manifest_names_view and list(obs["channel_names"]) != channels:
+        raise BundleError(f"manifest: observation {spec.name} has channels {channels}, "
+                          "but channel_names differ")
+    side = spec.side(grid if has_grid else shape[1])
+    if (shape[1], shape[2]) != (side, side):
+        grid_says = f"environment.grid is {safe_repr(grid)} but the observation is " if has_grid else ""
+        raise BundleError(f"manifest: {grid_says}{shape[1]}x{shape[2]} with {shape[0]} channels; "
+                          f"observation {safe_repr(spec.name)} is {side}x{side} here")

@@ -40,7 +40,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..experiments.catalogue import BUDGETS, PHASES
+from ..experiments.catalogue import BUDGETS, OTHER_APPS, PHASES
 from ..experiments.engines import INTERRUPTED, LocalPool, RayCluster
 from ..experiments.plan import Plan
 from ..experiments.report import build_report
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true",
                    help="rerun and replace finished runs of another configuration (refused without it)")
     p.add_argument("--no-other-apps", action="store_true", help="skip fleet/maze experts and Figs. 10-11")
-    p.add_argument("--app", action="append", choices=("fleet_coordination", "maze_cleaning"), default=None,
+    p.add_argument("--app", action="append", choices=tuple(OTHER_APPS), default=None,
                    help="repeatable: plan the experts and runs of only this fleet/maze application "
                         "(default both); target localization is not affected")
     p.add_argument("--device", default="cpu",

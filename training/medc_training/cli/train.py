@@ -31,9 +31,7 @@ from pathlib import Path
 
 from ..config import METHODS, SCALES, scaled_config
 from ..console import QUIET_HELP, HelpFormatter, epilog
-from ..envs import WORLDS, core_has_estimate
-from ..envs.tl_observation import DEFAULT_OBSERVATION
-from ..envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
+from ..envs import DEFAULT_APPLICATION, WORLDS, application
 
 USER_RE = re.compile(r"^A(\d+)W(\d+)(?::(random|biased|malicious))?$")
 
@@ -69,19 +67,20 @@ def parse_env_options(items: list[str]) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    default = application(DEFAULT_APPLICATION)
     p = argparse.ArgumentParser(prog="medc-train", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter, epilog=epilog(__doc__))
-    p.add_argument("--env", default="target_localization", help="application (default target_localization)")
+    p.add_argument("--env", default=default.name, help=f"application (default {default.name})")
     p.add_argument("--agents", type=int, default=3, help="team size (the y in AyWz)")
     p.add_argument("--walls", type=int, default=2, help="number of walls (the z in AyWz)")
     p.add_argument("--grid", type=int, help="grid side (default: the scale's, cpu 13 / paper 30)")
     p.add_argument("--max-steps", type=int, help="episode step limit (default: the scale's)")
     p.add_argument("--observation",
                    help="observation: maps (the application's absolute maps) | egoR (agent-centred "
-                        "windows) | for target localization also maps+estimate | egoR+estimate "
-                        f"(default: {DEFAULT_OBSERVATION} for target localization, maps for the others; "
+                        "windows) | for target localization also maps+estimate | egoR+estimate (default: "
+                        f"{default.default_observation} for target localization, maps for the others; "
                         "docs/environments.md)")
-    p.add_argument("--sensing", choices=sorted(SENSING_PRESETS),
+    p.add_argument("--sensing", choices=sorted(default.sensing_presets),
                    help="target localization's sensing model (default paper-simple; docs/environments.md)")
     p.add_argument("--world", choices=WORLDS,
                    help="target localization's world: grid (the project's layouts, default) | radbench (the "
@@ -156,11 +155,12 @@ def config_from_args(args: argparse.Namespace):
     if args.frl_users:
         overrides["frl_users"] = parse_users(args.frl_users)
     env_options = parse_env_options(args.env_option)
-    if args.observation is not None and not core_has_estimate(args.env):
-        # Given explicitly, it reaches the core even when it is target localization's default
-        # name, so that an application without a source estimate refuses '+estimate' views.
+    app = application(args.env)
+    if args.observation is not None and not app.observation_in_config:
+        # Given explicitly, it reaches the core even when it is the scale's observation, so that
+        # an application refuses a view it does not take.
         env_options.setdefault("observation", args.observation)
-    if args.sensing is not None and args.sensing != DEFAULT_SENSING:
+    if args.sensing is not None and args.sensing != application(DEFAULT_APPLICATION).default_sensing:
         env_options.setdefault("sensing", args.sensing)
     if args.world is not None and args.world != "grid":
         if args.sensing is None:

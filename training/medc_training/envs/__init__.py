@@ -8,59 +8,43 @@ See docs/environments.md.
 
 from __future__ import annotations
 
-import inspect
-from typing import Any
+import importlib
+from typing import TYPE_CHECKING, Any
 
-from medc_training.envs.core import BatchedEnv, StepOutput
+from medc_training.envs.names import DEFAULT_APPLICATION, ENV_NAMES
 
-ENV_NAMES: tuple[str, ...] = ("target_localization", "fleet_coordination", "maze_cleaning")
+if TYPE_CHECKING:
+    from medc_training.envs.core import BatchedEnv
+
 #: Target localization's worlds: ``grid`` (the project's layouts and sensing presets) and
 #: ``radbench`` (the field benchmark's world on fresh episodes, medc_training.radbench.world).
 WORLDS: tuple[str, ...] = ("grid", "radbench")
 
 __all__ = [
-    "ENV_NAMES", "WORLDS", "BatchedEnv", "StepOutput", "core_has_estimate", "core_options", "make_batched",
-    "make_env",
+    "APPLICATIONS", "DEFAULT_APPLICATION", "ENV_NAMES", "WORLDS", "Application", "BatchedEnv", "StepOutput",
+    "application", "core_options", "make_batched", "make_env", "register", "unregister",
 ]
+#: Names imported when first asked (they need torch): name -> its module.
+_LAZY = {"BatchedEnv": "core", "StepOutput": "core", "Application": "descriptor",
+         "application": "descriptor", "register": "descriptor", "unregister": "descriptor"}
 
 
-def _core_class(name: str, world: str = "grid") -> type[BatchedEnv]:
-    if name == "target_localization":
-        if world not in WORLDS:
-            raise ValueError(f"unknown world {str(world)[:40]!r} for target_localization; choose one of "
-                             f"{', '.join(WORLDS)}")
-        if world == "radbench":
-            from medc_training.radbench.world import BenchWorld
+def __getattr__(name: str) -> Any:
+    if name == "APPLICATIONS":
+        from medc_training.envs.descriptor import applications
 
-            return BenchWorld
-        from medc_training.envs.target_localization import TargetLocalization
-
-        return TargetLocalization
-    if world != "grid":
-        raise ValueError(f"only target_localization has other worlds, not {name!r}")
-    if name == "fleet_coordination":
-        from medc_training.envs.fleet_coordination import FleetCoordination
-
-        return FleetCoordination
-    if name == "maze_cleaning":
-        from medc_training.envs.maze_cleaning import MazeCleaning
-
-        return MazeCleaning
-    raise ValueError(f"unknown environment {name!r}; choose one of {', '.join(ENV_NAMES)}")
+        return applications()
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"medc_training.envs.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def core_options(name: str, world: str = "grid") -> tuple[str, ...]:
     """The keyword options application ``name``'s core takes (besides num_envs, device, seed) in
-    ``world``; target localization's include ``world`` itself."""
-    common = ("self", "num_envs", "device", "seed")
-    signature = inspect.signature(_core_class(name, world).__init__)
-    options = tuple(p for p in signature.parameters if p not in common)
-    return (*options, "world") if name == "target_localization" else options
+    ``world`` (:meth:`Application.options`)."""
+    from medc_training.envs.descriptor import application
 
-
-def core_has_estimate(name: str) -> bool:
-    """Whether application ``name`` can show the team's source estimate (``+estimate`` views)."""
-    return _core_class(name).HAS_ESTIMATE
+    return application(name).options(world)
 
 
 def make_batched(
@@ -72,9 +56,12 @@ def make_batched(
     docs/environments.md, e.g. target_localization: agents, walls, grid, max_steps,
     reward_shaping, noise, world ("grid" or "radbench": the field benchmark's world).
     """
+    from medc_training.envs.descriptor import application
+
     world = options.pop("world", "grid")
-    cls = _core_class(name, world)
-    allowed = core_options(name, world)
+    app = application(name)
+    cls = app.core_class(world)
+    allowed = app.options(world)
     unknown = sorted(set(options) - set(allowed))
     if unknown:
         where = f"{name} in the {world} world" if world != "grid" else name

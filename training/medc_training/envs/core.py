@@ -91,8 +91,6 @@ class BatchedEnv(ABC):
     """
 
     name: str = ""
-    #: Whether the application can show the team's source estimate (``+estimate`` observations).
-    HAS_ESTIMATE = False
     num_envs: int
     num_agents: int
     num_actions: int
@@ -222,8 +220,10 @@ class BatchedEnv(ABC):
 
     @property
     def observation_channels(self) -> tuple[str, ...]:
-        """The name of each observation channel, in order."""
-        return self.observation.channels
+        """The name of each observation channel, in order (its application's names for the view)."""
+        from medc_training.envs.descriptor import application
+
+        return application(self.name).channels(self.observation)
 
     def current_obs(self, index: int) -> torch.Tensor:
         """float32 [N,C,H,W]: the current observations of environment ``index`` (a copy)."""
@@ -351,6 +351,14 @@ def check_bool(name: str, value: Any) -> bool:
     return value
 
 
+def maps_channels(channels: tuple[str, ...]):
+    """The channel names of a :class:`MapsObservationEnv` application with absolute maps
+    ``channels`` (channel 0 = own location), per view: in a window channel 0 reads "off the grid"."""
+    def names(spec) -> tuple[str, ...]:
+        return channels if spec.view == "maps" else ("off_grid", *channels[1:])
+    return names
+
+
 class MapsObservationEnv(BatchedEnv):
     """Observation of the cores whose state is drawn as absolute maps (fleet coordination, maze
     cleaning): the maps themselves, or the agent-centred window of each (``observation`` option).
@@ -369,20 +377,11 @@ class MapsObservationEnv(BatchedEnv):
     #: The names of the application's absolute maps (channel 0 = own location).
     CHANNELS: tuple[str, ...] = ()
 
-    @property
-    def observation_channels(self) -> tuple[str, ...]:
-        if self.observation.view == "maps":
-            return self.CHANNELS
-        return ("off_grid", *self.CHANNELS[1:])
-
     def _set_observation(self, observation: Any, channels: int) -> None:
         """Validate the ``observation`` option and set ``observation`` and ``obs_shape``."""
-        from medc_training.envs.observation import parse_observation
+        from medc_training.envs.descriptor import application
 
-        spec = parse_observation(observation)
-        if spec.estimate:
-            raise ValueError(f"{self.name} has no source estimate: use observation 'maps' or 'egoR' "
-                             f"(R = window radius, e.g. ego9), not {spec.name!r}")
+        spec = application(self.name).view(observation)
         self.observation = spec
         self.obs_shape = spec.shape(self.grid, channels)
         self._outside = torch.zeros(channels)

@@ -37,10 +37,19 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import MapsObservationEnv, check_bool, check_core_options, check_int
+from medc_training.envs.core import (
+    MapsObservationEnv,
+    check_bool,
+    check_core_options,
+    check_int,
+    maps_channels,
+)
+from medc_training.envs.descriptor import Application, register
 from medc_training.envs.grid import ACTIONS, action_deltas, pad_blocked, random_free_cells
+from medc_training.envs.names import FLEET_COORDINATION
 
 __all__ = [
+    "APPLICATION",
     "CHANNELS",
     "DELIVERY_BONUS",
     "PICKUP_REWARD",
@@ -112,7 +121,7 @@ class FleetCoordination(MapsObservationEnv):
     customers=8, capacity=2, grid=10, max_steps=100)``.
     """
 
-    name = "fleet_coordination"
+    name = FLEET_COORDINATION
     CHANNELS = CHANNELS
 
     def __init__(
@@ -217,3 +226,7 @@ class FleetCoordination(MapsObservationEnv):
         cheb = cheb.masked_fill(~wanted.unsqueeze(2), float("inf")).amin(-1)
         cheb = torch.where(torch.isinf(cheb), 0.0, cheb)  # nothing to do: every move is as good
         return torch.where(self.mask, -cheb, float("-inf"))
+
+
+APPLICATION = register(Application(name=FleetCoordination.name, core=FleetCoordination,
+                                   default_observation="maps", channels=maps_channels(CHANNELS)))

@@ -34,7 +34,8 @@ from typing import Any
 
 import torch
 
-from medc_training.envs.core import MapsObservationEnv, check_bool, check_core_options
+from medc_training.envs.core import MapsObservationEnv, check_bool, check_core_options, maps_channels
+from medc_training.envs.descriptor import Application, register
 from medc_training.envs.grid import (
     ACTIONS,
     action_deltas,
@@ -43,8 +44,10 @@ from medc_training.envs.grid import (
     pad_blocked,
     random_free_cells,
 )
+from medc_training.envs.names import MAZE_CLEANING
 
 __all__ = [
+    "APPLICATION",
     "CHANNELS",
     "CLEAN_REWARD",
     "TIME_COST",
@@ -108,7 +111,7 @@ class MazeCleaning(MapsObservationEnv):
     complexity=1.0, max_steps=100)``.
     """
 
-    name = "maze_cleaning"
+    name = MAZE_CLEANING
     CHANNELS = CHANNELS
     WALL_CHANNELS = (3,)
 
@@ -189,3 +192,7 @@ class MazeCleaning(MapsObservationEnv):
         idx = neighbour_index(self.positions, self.grid, self._deltas).view(b, -1)
         scores = -dist_pad.view(b, -1).gather(1, idx).view(b, n, -1)
         return torch.where(self.mask, scores, float("-inf"))
+
+
+APPLICATION = register(Application(name=MazeCleaning.name, core=MazeCleaning, default_observation="maps",
+                                   channels=maps_channels(CHANNELS)))

@@ -1,4 +1,4 @@
-"""The one observation spec of the three applications: which view of the state a model takes.
+"""The one observation spec of every application: which view of the state a model takes.
 
 Every core exposes its spec as ``observation`` (and ``observation_name``, ``obs_shape``); bundle
 manifests record its name; the agent node, the experts and the run loop ask the spec instead of
@@ -11,12 +11,10 @@ Names (written on the command line and as ``observation.name`` in every bundle m
 ``egoR``
     Each map in a (2R+1)×(2R+1) window centred on the agent (R = window radius, 1..255).
 ``maps+estimate`` / ``egoR+estimate``
-    The same plus the team's source estimate (target localization only: the other applications
-    refuse it).
+    The same plus the team's source estimate (an application without one refuses them).
 
-Channel names: target localization's are :data:`MAP_CHANNELS` (absolute maps) and
-:data:`EGO_CHANNELS` (its windows), with ``source_estimate`` last when shown; fleet coordination
-and maze cleaning keep their own maps' channels (the first reads "off the grid" in a window).
+Which views an application takes and the names of their channels are its descriptor's
+(:class:`medc_training.envs.Application`).
 """
 
 from __future__ import annotations
@@ -24,23 +22,13 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from medc_training.envs.tl_sensing import CHANNELS
-
 __all__ = [
-    "EGO_CHANNELS",
-    "ESTIMATE_CHANNEL",
-    "MAP_CHANNELS",
     "MAX_RADIUS",
     "OBSERVATION_NAMES",
     "ObservationSpec",
     "parse_observation",
 ]
 
-#: Target localization's absolute maps (the paper's 5).
-MAP_CHANNELS: tuple[str, ...] = CHANNELS
-#: Target localization's agent-centred window.
-EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
-ESTIMATE_CHANNEL = "source_estimate"
 #: Examples of accepted names (any radius 1..MAX_RADIUS is accepted for ego views).
 OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+estimate")
 MAX_RADIUS = 255
@@ -68,21 +56,14 @@ class ObservationSpec:
         base = "maps" if self.view == "maps" else f"ego{self.radius}"
         return base + ("+estimate" if self.estimate else "")
 
-    @property
-    def channels(self) -> tuple[str, ...]:
-        """Target localization's channel names for this view (other applications name their own)."""
-        base = MAP_CHANNELS if self.view == "maps" else EGO_CHANNELS
-        return base + ((ESTIMATE_CHANNEL,) if self.estimate else ())
-
     def side(self, grid: int) -> int:
         """Height and width of one map of this view on a ``grid``×``grid`` area."""
         return grid if self.view == "maps" else 2 * self.radius + 1
 
-    def shape(self, grid: int, channels: int | None = None) -> tuple[int, int, int]:
-        """(C, H, W) of one agent's observation on a ``grid``×``grid`` area; C is ``channels``
-        when given (an application with maps of its own), else target localization's count."""
+    def shape(self, grid: int, channels: int) -> tuple[int, int, int]:
+        """(C, H, W) of one agent's observation with ``channels`` maps on a ``grid``×``grid`` area."""
         side = self.side(grid)
-        return (len(self.channels) if channels is None else int(channels), side, side)
+        return (int(channels), side, side)
 
     def __str__(self) -> str:
         return self.name

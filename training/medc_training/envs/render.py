@@ -105,7 +105,7 @@ def save_observation_png(
     """Write one agent's observation maps (float [C,H,W]) side by side as one PNG (Fig. 5b-f).
 
     ``channel_names``: titles of the C maps (default: the application's paper maps; give the
-    observation's own, e.g. ``env.observation.channels``, for other target-localization variants).
+    observation's own, e.g. ``env.observation_channels``, for other target-localization variants).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -65,6 +65,7 @@ from medc_training.envs.core import (
     check_core_options,
     check_int,
 )
+from medc_training.envs.descriptor import Application, register
 from medc_training.envs.grid import (
     ACTION_NAMES,
     ACTIONS,
@@ -76,11 +77,19 @@ from medc_training.envs.grid import (
     pad_blocked,
     random_free_cells,
 )
-from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory, parse_observation
+from medc_training.envs.names import TARGET_LOCALIZATION
+from medc_training.envs.tl_observation import (
+    DEFAULT_OBSERVATION,
+    TeamMemory,
+    observation_channels,
+    observation_shape,
+    parse_observation,
+)
 from medc_training.envs.tl_sensing import (
     BACKGROUND,
     CHANNELS,
     DEFAULT_SENSING,
+    SENSING_PRESETS,
     SOURCE_STRENGTH,
     VISIT_SATURATION,
     WALL_ATTENUATION,
@@ -100,6 +109,7 @@ from medc_training.envs.tl_sensing import (
 __all__ = [
     "ACTIONS",
     "ACTION_NAMES",
+    "APPLICATION",
     "BACKGROUND",
     "CHANNELS",
     "DEFAULT_OBSERVATION",
@@ -268,8 +278,7 @@ class TargetLocalization(BatchedEnv):
     step and is the fast path for training loops that copy anyway.
     """
 
-    name = "target_localization"
-    HAS_ESTIMATE = True
+    name = TARGET_LOCALIZATION
 
     def __init__(
         self,
@@ -303,7 +312,7 @@ class TargetLocalization(BatchedEnv):
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)
         self.observation = parse_observation(observation)
-        self.obs_shape = self.observation.shape(self.grid)
+        self.obs_shape = observation_shape(self.observation, self.grid)
         # The paper's maps change in a few cells per step and are updated in place
         # (_observe_step); every other observation is rebuilt from the team memory each step.
         b, n = self.num_envs, self.num_agents
@@ -504,3 +513,18 @@ class TargetLocalization(BatchedEnv):
         idx = neighbour_index(self.positions, self.grid, self._deltas).view(b, -1)
         dist = self.dist_pad.view(b, -1).gather(1, idx).view(b, n, -1)
         return torch.where(self.mask, -dist, float("-inf"))
+
+
+APPLICATION = register(Application(
+    name=TargetLocalization.name,
+    core=TargetLocalization,
+    default_observation=DEFAULT_OBSERVATION,
+    channels=observation_channels,
+    action_names=ACTION_NAMES,
+    has_estimate=True,
+    sensing_presets=(DEFAULT_SENSING, *sorted(set(SENSING_PRESETS) - {DEFAULT_SENSING})),
+    controllers=True,
+    other_worlds=(("radbench", "medc_training.radbench.world:BenchWorld"),),
+    observation_in_config=True,
+    manifest_names_view=True,
+))

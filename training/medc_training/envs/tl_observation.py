@@ -54,14 +54,9 @@ import torch
 
 from medc_training.envs.allocator import keep_freed_memory
 from medc_training.envs.grid import grid_cells, team_windows
-from medc_training.envs.observation import (
-    EGO_CHANNELS,
-    MAP_CHANNELS,
-    OBSERVATION_NAMES,
-    ObservationSpec,
-    parse_observation,
-)
+from medc_training.envs.observation import OBSERVATION_NAMES, ObservationSpec, parse_observation
 from medc_training.envs.tl_sensing import (
+    CHANNELS,
     DEFAULT_SENSING,
     build_observations,
     geometric_factor,
@@ -79,12 +74,15 @@ from medc_training.envs.tl_sensing import (
 __all__ = [
     "DEFAULT_OBSERVATION",
     "EGO_CHANNELS",
+    "ESTIMATE_CHANNEL",
     "LOG_FLOOR",
     "MAP_CHANNELS",
     "OBSERVATION_NAMES",
     "ObservationSpec",
     "SourceEstimator",
     "TeamMemory",
+    "observation_channels",
+    "observation_shape",
     "observe",
     "parse_observation",
 ]
@@ -92,6 +90,12 @@ __all__ = [
 #: The observation a target-localization environment produces unless told otherwise. Chosen by
 #: measurement (docs/environments.md, "Observations").
 DEFAULT_OBSERVATION = "ego6+estimate"
+#: The absolute maps (the paper's 5).
+MAP_CHANNELS: tuple[str, ...] = CHANNELS
+#: The agent-centred window.
+EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
+#: Last when the view shows the team's source estimate.
+ESTIMATE_CHANNEL = "source_estimate"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
 #: Below this relative log probability a cell's weight is taken as 0 (exp(-87) is about float32's
@@ -117,6 +121,19 @@ ESTIMATOR_PATH = os.environ.get("MEDC_ESTIMATOR", "fused")
 if ESTIMATOR_PATH not in ESTIMATOR_PATHS:
     raise ValueError(f"MEDC_ESTIMATOR must be one of {ESTIMATOR_PATHS}, got {ESTIMATOR_PATH[:40]!r}")
 _LOG2E = 1.0 / math.log(2.0)
+
+
+def observation_channels(observation) -> tuple[str, ...]:
+    """The channel names of view ``observation`` (a name or spec), in order."""
+    spec = parse_observation(observation)
+    base = MAP_CHANNELS if spec.view == "maps" else EGO_CHANNELS
+    return base + ((ESTIMATE_CHANNEL,) if spec.estimate else ())
+
+
+def observation_shape(observation, grid: int) -> tuple[int, int, int]:
+    """(C, H, W) of one agent's view ``observation`` (a name or spec) on a ``grid``×``grid`` area."""
+    spec = parse_observation(observation)
+    return spec.shape(grid, len(observation_channels(spec)))
 
 
 @contextmanager
@@ -684,7 +701,7 @@ def observe(
     b, n = positions.shape[:2]
     g = walls.shape[-1]
     if spec.view == "maps":
-        c = len(spec.channels)
+        c = len(observation_channels(spec))
         if out is None:
             out = torch.empty((b, n, c, g, g), dtype=torch.float32, device=positions.device)
         if spec.estimate:  # build_observations writes only into a contiguous 5-channel buffer

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..envs.names import FLEET_COORDINATION, MAZE_CLEANING
+
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other", "sweep")
 
 # Per-scale budget: training steps of each experiment run, of each expert, of the team.
@@ -121,7 +123,7 @@ OTHER_EVAL = {"eval_greedy": False, "eval_envs": 16, "eval_steps": 16 * OTHER_MA
 # coordination keeps the paper's maps (it learns with neither in that budget).
 MAZE_OBSERVATION = {"observation": "ego9"}
 OTHER_APPS = {
-    "fleet_coordination": {
+    FLEET_COORDINATION: {
         "short": "fleet",
         "title": "Fleet coordination",
         "target": {"customers": 8},
@@ -129,7 +131,7 @@ OTHER_APPS = {
                     ("fleet-A2C6", 2, {"customers": 6}), ("fleet-A1C8", 1, {"customers": 8}),
                     ("fleet-A3C4", 3, {"customers": 4}), ("fleet-A2C8", 2, {"customers": 8})),
     },
-    "maze_cleaning": {
+    MAZE_CLEANING: {
         "short": "maze",
         "title": "Maze cleaning",
         "target": {"complexity": 1.0, **MAZE_OBSERVATION},

@@ -30,8 +30,8 @@ def _play(path: Path, agents: int, walls: int, base: dict, episodes: int, seed: 
     from ..evaluate import net_policy, play_episodes
 
     bundle = load_bundle(path)
-    env = make_batched("target_localization", num_envs=episodes, seed=seed, agents=agents, walls=walls,
-                       grid=base["grid"], max_steps=base["max_steps"], copy_obs=False,
+    env = make_batched(bundle.manifest["application"], num_envs=episodes, seed=seed, agents=agents,
+                       walls=walls, grid=base["grid"], max_steps=base["max_steps"], copy_obs=False,
                        observation=manifest_observation(bundle.manifest), **base.get("env_options", {}))
     played = play_episodes(env, net_policy(bundle.net), episodes=episodes, seed=seed, greedy=True)
     return {"lengths": [float(x) for x in played.lengths],
@@ -45,7 +45,7 @@ def evaluate_experts(out: Path, models: Path, base: dict, episodes: int = EPISOD
     import hashlib
 
     from ..bundle import BundleError, read_manifest
-    from ..envs import core_has_estimate
+    from ..envs import application
 
     cache_path = out / "expert_eval.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
@@ -54,12 +54,12 @@ def evaluate_experts(out: Path, models: Path, base: dict, episodes: int = EPISOD
         try:
             manifest = read_manifest(path)
             env = manifest["environment"]
-            searches = core_has_estimate(manifest["application"])
+            searches = application(manifest["application"]).has_estimate
         except (BundleError, KeyError, ValueError) as exc:
             print(f"[expert-eval] {path.name}: not evaluated ({exc})", file=sys.stderr)
             continue
         if not searches:
-            continue  # not a target-localization bundle
+            continue  # not a bundle of a source search
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
         own = (int(env["agents"]), int(env.get("walls", 0)))
         for where, (agents, walls) in (("own", own), (f"A{TEAM[0]}W{TEAM[1]}", TEAM)):

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+from ..envs.names import DEFAULT_APPLICATION
 from .catalogue import (
     FAULTY_USERS,
     FRL_USERS,
@@ -42,7 +43,7 @@ class Run:
 
     name: str
     method: str
-    env: str = "target_localization"
+    env: str = DEFAULT_APPLICATION
     walls: int = 2
     experts: tuple[str, ...] = ()
     frl_users: tuple[dict, ...] = ()

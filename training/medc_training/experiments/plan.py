@@ -15,6 +15,7 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
+from ..envs.names import DEFAULT_APPLICATION
 from .catalogue import (
     BUDGETS,
     OTHER_APPS,
@@ -90,7 +91,7 @@ class Plan:
 
     def planned(self, run: Run) -> bool:
         """Whether ``run`` is in this plan's scope (its application, its number of walls)."""
-        if run.env != "target_localization":
+        if run.env != DEFAULT_APPLICATION:
             return run.env in self.apps
         return self.scope.walls is None or run.walls in self.scope.walls
 
@@ -116,7 +117,7 @@ class Plan:
     def run_config(self, run: Run, seed: int, steps: int) -> dict:
         """The TrainConfig (as a dict) of one seed of ``run`` with ``steps`` training steps, the
         run's own ``options`` over the scale's (a field the config does not have is refused)."""
-        if run.env == "target_localization":
+        if run.env == DEFAULT_APPLICATION:
             cfg = self.cfg(env=run.env, agents=run.agents, walls=run.walls, method=run.method,
                            total_steps=steps, seed=seed)
         else:
@@ -150,10 +151,10 @@ class Plan:
         jobs = []
         steps = self.budget["expert_steps"]
         for name, agents, walls, arch in TL_EXPERTS:
-            jobs.append(self._expert_job(name, "target_localization", agents, arch, steps, retrain,
+            jobs.append(self._expert_job(name, DEFAULT_APPLICATION, agents, arch, steps, retrain,
                                          walls=walls))
         if self.scope.team:
-            jobs.append(self._expert_job("A3W2", "target_localization", 3, "mlp", self.budget["team_steps"],
+            jobs.append(self._expert_job("A3W2", DEFAULT_APPLICATION, 3, "mlp", self.budget["team_steps"],
                                          retrain, walls=2, folder="team"))
         return [j for j in jobs if j is not None]
 
@@ -174,24 +175,25 @@ class Plan:
         marks a clone job done: a planned one always runs, and replaces its old training folder."""
         from ..bundle import BundleError, manifest_observation, manifest_sensing, read_manifest
         from ..dagger import CloneConfig
-        from ..envs import core_has_estimate
-        from ..envs.tl_sensing import DEFAULT_SENSING, parse_sensing
+        from ..envs import application
+        from ..envs.tl_sensing import parse_sensing
 
+        app = application(env)
         target = self.models / folder / f"{name}.safetensors"
         grid, max_steps = grid or self.base["grid"], max_steps or self.base["max_steps"]
-        sensing = DEFAULT_SENSING
-        if core_has_estimate(env):  # target localization: the scale's sensing preset
+        sensing = None
+        if app.sensing_presets:  # the scale's sensing preset
             env_options = {**self.base["env_options"], **(env_options or {})}
-            sensing = parse_sensing(env_options.get("sensing", DEFAULT_SENSING)).name
+            sensing = parse_sensing(env_options.get("sensing", app.default_sensing)).name
         if target.exists() and not retrain:
             try:
                 manifest = read_manifest(target)
-                if core_has_estimate(env):  # the observation is the config's own field
-                    wanted = self.base["observation"]
-                else:  # the observation is an env option of fleet coordination / maze cleaning
-                    wanted = (env_options or {}).get("observation", "maps")
+                if app.observation_in_config:
+                    wanted = self.base["observation"] or app.default_observation
+                else:  # an env option, its default the application's
+                    wanted = (env_options or {}).get("observation", app.default_observation)
                 same = (manifest["environment"].get("grid") == grid
-                        and (not core_has_estimate(env) or manifest_sensing(manifest) == sensing)
+                        and (sensing is None or manifest_sensing(manifest) == sensing)
                         and (manifest_observation(manifest) or "maps") == wanted
                         and manifest.get("environment", {}).get("max_steps") == max_steps
                         and manifest.get("training", {}).get("method") == "dagger")

@@ -67,9 +67,10 @@ def play(regime: Regime, policy: str, episodes: int = EPISODES, eval_seed: int =
     results and their summary."""
     from ..controllers import controller_policy
     from ..envs import make_batched
+    from ..envs.names import TARGET_LOCALIZATION
     from ..evaluate import play_episodes
 
-    env = make_batched("target_localization", num_envs=episodes, seed=eval_seed, agents=AGENTS,
+    env = make_batched(TARGET_LOCALIZATION, num_envs=episodes, seed=eval_seed, agents=AGENTS,
                        walls=regime.walls, grid=regime.grid, max_steps=regime.max_steps, sensing="realistic",
                        posterior=policy != "random", copy_obs=False, observation="maps")
     start = time.perf_counter()

@@ -150,11 +150,11 @@ def eval_config(cfg: dict, csv_name: str = "metrics.csv") -> dict:
 def _controllers_refuse(c) -> str | None:
     """Why the classical controllers cannot play the evaluation episodes of config ``c`` (a
     :class:`~medc_training.config.TrainConfig`); None when they can."""
-    from ..envs import core_has_estimate
+    from ..envs import application
 
     if not c.eval_episodes:
         return "a run evaluated with the legacy window has no fixed evaluation episodes"
-    if not core_has_estimate(c.env):
+    if not application(c.env).controllers:
         return f"the classical controllers read the team's source estimate; {c.env!r} keeps none"
     return None
 

@@ -53,8 +53,9 @@ class Scenario:
         depend on the observation (it draws nothing), so a policy that reads no observation gets
         the cheap 'maps' one and a bundle its own; the controllers get the team's posterior kept."""
         from ..envs import make_batched
+        from ..envs.names import TARGET_LOCALIZATION
 
-        return make_batched("target_localization", num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
+        return make_batched(TARGET_LOCALIZATION, num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
                             walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
                             posterior=policy in CLASSICAL, copy_obs=False, observation=observation)
 

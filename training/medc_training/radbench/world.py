@@ -25,7 +25,7 @@ uniform in [0, max]). The non-default ones are in :attr:`BenchWorld.attributes`,
 manifest of every bundle trained there.
 
 Build it through the registry of cores, so that a training config, a bundle's manifest and the
-evaluator name it: ``make_batched("target_localization", world="radbench", grid=20, agents=3,
+evaluator name it: ``make_batched(TARGET_LOCALIZATION, world="radbench", grid=20, agents=3,
 walls=7, max_steps=120, sensing="realistic")`` (``medc-train --world radbench``).
 """
 

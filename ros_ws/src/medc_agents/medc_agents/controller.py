@@ -16,9 +16,10 @@ from dataclasses import dataclass
 
 import torch
 from medc_training.controllers import CONTROLLERS, COORDINATED, SEARCHERS, controller_scores
+from medc_training.envs.names import TARGET_LOCALIZATION
 
 #: The application every controller plays.
-APPLICATION = "target_localization"
+APPLICATION = TARGET_LOCALIZATION
 
 
 def controller_name(source: object) -> str | None:

@@ -34,7 +34,9 @@ from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.controllers import CONTROLLERS
+from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
+from medc_training.envs.tl_observation import observation_shape
 from medc_training.envs.tl_sensing import DEFAULT_SENSING, SENSING_PRESETS
 from medc_training.untrusted import printable
 from nav_msgs.msg import OccupancyGrid
@@ -168,7 +170,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         True,
     )
     application = p(
-        "application", "target_localization", "Application a bundle must be trained for", True
+        "application", DEFAULT_APPLICATION, "Application a bundle must be trained for", True
     )
     threads = p(
         "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
@@ -301,8 +303,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.gate = guard.StatusGate(prm.session_hold_s, prm.recover_s)
         self.reading_check = guard.ReadingCheck(self.observer.sensing, num_agents)
         self._pending_since = (None, 0.0)  # (tick, since when it waits)
-        spec = self.observer.observation
-        self.slot = PolicySlot(spec.shape(grid), NUM_ACTIONS, application or None, prm.max_forward_s,
+        shape = observation_shape(self.observer.observation, grid)
+        self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.envs.tl_sensing import DEFAULT_SENSING
 from medc_training.untrusted import MAX_BUNDLE_BYTES, printable
 
@@ -68,7 +69,7 @@ def load_policy(
     source: str,
     obs_shape: tuple[int, int, int],
     num_actions: int,
-    application: str | None = "target_localization",
+    application: str | None = DEFAULT_APPLICATION,
     max_forward_s: float | None = None,
     observation: str | None = None,
     sensing: str | None = None,
@@ -196,7 +197,7 @@ def load_policy_cached(
     source: str,
     obs_shape: tuple[int, int, int],
     num_actions: int,
-    application: str | None = "target_localization",
+    application: str | None = DEFAULT_APPLICATION,
     max_forward_s: float | None = None,
     observation: str | None = None,
     sensing: str | None = None,
@@ -232,7 +233,7 @@ class PolicySlot:
         self,
         obs_shape: tuple[int, int, int],
         num_actions: int,
-        application: str | None = "target_localization",
+        application: str | None = DEFAULT_APPLICATION,
         max_forward_s: float | None = None,
         observation: str | None = None,
         grid: int | None = None,
@@ -283,14 +284,15 @@ class PolicySlot:
     def _bundle_observation(self, source: str) -> tuple[tuple[int, int, int], str]:
         """(shape on this grid, name) of the observation the bundle at ``source`` names."""
         from medc_training.bundle import manifest_observation
-        from medc_training.envs.tl_observation import parse_observation
+        from medc_training.envs.observation import parse_observation
+        from medc_training.envs.tl_observation import observation_shape
 
         manifest = read_policy_manifest(source)
         try:
             spec = parse_observation(manifest_observation(manifest))
         except ValueError as exc:
             raise PolicyRejected(f"policy bundle {shown(source)} is invalid: {exc}") from exc
-        return spec.shape(self.grid), spec.name
+        return observation_shape(spec, self.grid), spec.name
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, mask: torch.Tensor) -> int:

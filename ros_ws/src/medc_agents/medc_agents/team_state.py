@@ -59,7 +59,7 @@ class TeamObserver:
         Raises:
             ValueError: an unknown sensing preset.
         """
-        from medc_training.envs.tl_observation import parse_observation
+        from medc_training.envs.observation import parse_observation
         from medc_training.envs.tl_sensing import parse_sensing
 
         self.agent_id = agent_id
@@ -128,7 +128,7 @@ class TeamObserver:
 
     def use_observation(self, observation: str | None) -> None:
         """Build ``observation`` from now on (the memory keeps what every variant needs)."""
-        from medc_training.envs.tl_observation import parse_observation
+        from medc_training.envs.observation import parse_observation
 
         if observation:
             self.observation = parse_observation(observation)

@@ -29,16 +29,17 @@ def _bench_bundle(grid: int, folder: Path) -> Path:
     """A lenet5 bundle for the grid (random weights: the cost of a decision does not depend on them)."""
     import torch
     from medc_training.bundle import save_bundle
+    from medc_training.envs.names import DEFAULT_APPLICATION
     from medc_training.envs.target_localization import ACTIONS
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_shape
     from medc_training.nets import make_actor_critic
 
     torch.manual_seed(0)
     # The paper's five maps (a bundle without an observation name takes them).
-    shape = parse_observation("maps").shape(grid)
+    shape = observation_shape("maps", grid)
     net = make_actor_critic("lenet5", obs_shape=shape, num_actions=len(ACTIONS))
     return save_bundle(
-        folder / f"bench_lenet5_{grid}.safetensors", net, {"application": "target_localization"}
+        folder / f"bench_lenet5_{grid}.safetensors", net, {"application": DEFAULT_APPLICATION}
     )
 
 

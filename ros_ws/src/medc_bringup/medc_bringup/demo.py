@@ -32,10 +32,11 @@ from pathlib import Path
 from typing import Any
 
 from medc_common.ros_env import repo_root
+from medc_training.envs.names import DEFAULT_APPLICATION
 
 ETHER = 10**18
 PRICE_WEI = ETHER // 100  # 0.01 ETH per allocated model
-APPLICATION = "target_localization"
+APPLICATION = DEFAULT_APPLICATION
 
 
 class Narrator:

@@ -20,6 +20,7 @@ from typing import Any
 
 from medc_registry.chain import ChainClient
 from medc_registry.registry import MAX_CANDIDATES, deploy_contracts
+from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.qos import ONE
 
 #: The paper's Table III (gas).
@@ -36,7 +37,7 @@ PAPER_GAS = {
 
 #: Representative arguments: a CIDv0 (46 characters), two features, the description the
 #: Registry facade writes for them.
-APPLICATION = "target_localization"
+APPLICATION = DEFAULT_APPLICATION
 CID = "QmT78zSuBmuS4z925WZfrqQ1qHaJ56DQaTfyMUF7F8ff5o"
 DESCRIPTION = '{"features":["agents","walls"]}'
 CANDIDATES = (1, 8, 32, 128, MAX_CANDIDATES + 1)

@@ -195,14 +195,14 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
     grid) and have been trained under its sensing preset, or its agent would refuse it."""
     from medc_training.bundle import BundleError, check_sensing, manifest_observation, read_manifest
-    from medc_training.envs.tl_observation import parse_observation
+    from medc_training.envs.tl_observation import observation_shape
 
     for path in sorted({p for p in paths if _controller(p) is None}):
         try:
             manifest = read_manifest(path)
             obs = manifest["observation"]
             name = manifest_observation(manifest) or "maps"
-            expected = parse_observation(name).shape(cfg.grid)
+            expected = observation_shape(name, cfg.grid)
         except (BundleError, ValueError) as exc:
             raise ValueError(f"policy {path} is not a valid bundle: {exc}") from exc
         shape = (obs.get("channels"), obs.get("height"), obs.get("width"))

@@ -96,14 +96,14 @@ def bundle_summary(data: bytes) -> dict[str, Any]:
     manifest (the weights are never decoded): the observation variant it takes and its
     architecture. {} for bytes that are not a policy bundle (the registry stores any file)."""
     from medc_training.bundle import BundleError, manifest_observation, read_manifest
-    from medc_training.envs import core_has_estimate
+    from medc_training.envs import application
 
     try:
         manifest = read_manifest(data)
     except BundleError:
         return {}
     out: dict[str, Any] = {"architecture": manifest["architecture"].get("name", "?")}
-    if core_has_estimate(manifest["application"]):
+    if application(manifest["application"]).manifest_names_view:
         out["observation"] = manifest_observation(manifest)
     return out
 

@@ -4,10 +4,11 @@ Typical use (embedded chain and a local content store, one call)::
 
     from medc_registry import Registry
     reg = Registry.embedded("/tmp/medc-store")          # deploys both contracts
+    app = DEFAULT_APPLICATION                            # from medc_training.envs
     alice, bob = reg.as_user(1), reg.as_user(2)
     alice.register_user(); bob.register_user()
-    m = alice.share_model(bundle_bytes, "target_localization", {"agents": 1, "walls": 3}, price=10**15)
-    allocs = bob.request_models("target_localization", {"agents": 3, "walls": 2}, count=2)
+    m = alice.share_model(bundle_bytes, app, {"agents": 1, "walls": 3}, price=10**15)
+    allocs = bob.request_models(app, {"agents": 3, "walls": 2}, count=2)
     data = bob.fetch(allocs[0].cid)                      # verified against the CID
     bob.review(allocs[0].allocation_id, 0.9)
     alice.withdraw()
@@ -202,7 +203,7 @@ class Registry:
 
         Args:
             bundle: the model file's bytes (a policy bundle is data to the registry).
-            application: e.g. ``"target_localization"``.
+            application: the application's name (``medc_training.envs.APPLICATIONS``).
             env_features: environment features (mapping name -> int, or ints in the app's order).
             price: wei a requester pays each time the model is allocated.
             description: extra text or JSON-able details stored with the model.

@@ -15,6 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.qos import fixed_weights, to_fixed
 
 from .chain import ContractRevert
@@ -154,16 +155,16 @@ def check_application(application: str) -> None:
     """Refuse an application name that is not a non-empty string of at most
     :data:`MAX_APPLICATION_BYTES` bytes of UTF-8 without control characters."""
     if not isinstance(application, str) or not application.strip():
-        raise ValueError("application must be a non-empty string, e.g. 'target_localization'")
+        raise ValueError(f"application must be a non-empty string, e.g. {DEFAULT_APPLICATION!r}")
     try:
         size = len(application.encode("utf-8"))
     except UnicodeEncodeError:
         raise ValueError("application must be valid Unicode text (no lone surrogates)") from None
     if size > MAX_APPLICATION_BYTES:
         raise ValueError(f"application is {size} bytes, over the {MAX_APPLICATION_BYTES} byte limit "
-                         "(a name such as 'target_localization')")
+                         f"(a name such as {DEFAULT_APPLICATION!r})")
     if any(ord(ch) < 32 or 127 <= ord(ch) < 160 for ch in application):
-        raise ValueError("application must not hold control characters (e.g. 'target_localization')")
+        raise ValueError(f"application must not hold control characters (e.g. {DEFAULT_APPLICATION!r})")
 
 
 def parse_features(features: Features) -> tuple[tuple[str, ...], list[int]]:

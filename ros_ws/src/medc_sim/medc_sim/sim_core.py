@@ -71,6 +71,7 @@ class SimCore:
 
     def __post_init__(self) -> None:
         from medc_training.envs import make_batched
+        from medc_training.envs.names import TARGET_LOCALIZATION
         from medc_training.envs.tl_sensing import parse_sensing
 
         from medc_sim.episode_end import check_end_rule
@@ -79,7 +80,7 @@ class SimCore:
         check_end_rule(c.end_on)
         model = parse_sensing(c.sensing)
         self.env = make_batched(
-            "target_localization",
+            TARGET_LOCALIZATION,
             num_envs=1,
             device="cpu",
             seed=c.seed,
