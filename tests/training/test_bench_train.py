@@ -5,6 +5,7 @@ import json
 
 from medc_training.cli.bench_train import REALISTIC, REALISTIC_40, main
 from medc_training.config import CPU_SCALE, TrainConfig
+from medc_training.envs import application
 
 
 def test_bench_train_reports_the_default_learner_on_both_presets_and_its_ratio_to_maps(capsys) -> None:
@@ -12,7 +13,8 @@ def test_bench_train_reports_the_default_learner_on_both_presets_and_its_ratio_t
     lines = capsys.readouterr().out.strip().splitlines()
     result = json.loads(lines[-1])
     default = result["cpu_sparse"]
-    assert default["observation"] == TrainConfig().observation and default["arch"] == CPU_SCALE["arch"]
+    app = application(TrainConfig().env)  # the default learner plays the default application's default
+    assert default["observation"] == app.default_observation and default["arch"] == CPU_SCALE["arch"]
     assert (default["sensing"], default["grid"], default["max_steps"]) == (
         "paper-simple", CPU_SCALE["grid"], CPU_SCALE["max_steps"])
     assert result["cpu_baseline_maps_mlp"]["observation"] == "maps"
