@@ -57,17 +57,24 @@ except FileNotFoundError:
 EOF
 }
 
+play_once() {  # STEM MESSAGE, then medc-radbench arguments: play into STEM.episodes.jsonl and
+  # STEM.json unless STEM.json exists (it is written last, so a play cut short is played again)
+  local stem=$1 message=$2
+  shift 2
+  [[ -s "$stem.json" ]] && return 0
+  medc-radbench "$@" --quiet --out "$stem.episodes.jsonl" > "$stem.json.part"
+  mv "$stem.json.part" "$stem.json"
+  echo "$(date +%T) $message"
+}
+
 validate() {  # run folder: every piece's bundle that has not played the validation episodes yet
   local dir=$1 bundle steps
   for bundle in "$dir"/policy-*.safetensors; do
     [[ -e "$bundle" ]] || continue
     steps=${bundle##*/policy-}
     steps=${steps%.safetensors}
-    [[ -s "$dir/validation-$steps.json" ]] && continue
-    medc-radbench "$bundle" --sets-file "$val/g20-a3.json" --grid 20 --agents 3 --episodes 16 --quiet \
-      --out "$dir/validation-$steps.episodes.jsonl" > "$dir/validation-$steps.json.part"
-    mv "$dir/validation-$steps.json.part" "$dir/validation-$steps.json"
-    echo "$(date +%T) ${dir##*/}: the $steps-step bundle played the validation episodes"
+    play_once "$dir/validation-$steps" "${dir##*/}: the $steps-step bundle played the validation episodes" \
+      "$bundle" --sets-file "$val/g20-a3.json" --grid 20 --agents 3 --episodes 16
   done
 }
 
@@ -122,19 +129,11 @@ EOF
     cp "$dir/policy.safetensors" "$dir/policy-$done_steps.safetensors"
   fi
   validate "$dir"
-  if [[ ! -s "$dir/frozen-g20-a3.json" ]]; then
-    medc-radbench "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 \
-      --quiet --out "$dir/frozen-g20-a3.episodes.jsonl" > "$dir/frozen-g20-a3.json.part"
-    mv "$dir/frozen-g20-a3.json.part" "$dir/frozen-g20-a3.json"
-    echo "$(date +%T) $name: played the frozen g20-a3 episodes"
-  fi
+  play_once "$dir/frozen-g20-a3" "$name: played the frozen g20-a3 episodes" \
+    "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40
   # The second decision rule (docs/learned-team.md, addendum 3): moves sampled at temperature 0.5.
-  if [[ ! -s "$dir/frozen-g20-a3-T0.5.json" ]]; then
-    medc-radbench "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 --temperature 0.5 \
-      --quiet --out "$dir/frozen-g20-a3-T0.5.episodes.jsonl" > "$dir/frozen-g20-a3-T0.5.json.part"
-    mv "$dir/frozen-g20-a3-T0.5.json.part" "$dir/frozen-g20-a3-T0.5.json"
-    echo "$(date +%T) $name: played the frozen g20-a3 episodes at temperature 0.5"
-  fi
+  play_once "$dir/frozen-g20-a3-T0.5" "$name: played the frozen g20-a3 episodes at temperature 0.5" \
+    "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 --temperature 0.5
   exec {claim}>&-
 }
 

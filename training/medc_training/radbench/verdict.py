@@ -124,12 +124,13 @@ def frozen_verdict(yardstick: dict, seeds: Sequence[dict], max_steps: int = MAX_
             continue
         y = lengths(yardstick, chosen)
         y_mean = sum(y) / len(y)
-        diff = _interval([a - b for a, b in zip(seed_mean(chosen), y)])
+        learned = seed_mean(chosen)
+        diff = _interval([a - b for a, b in zip(learned, y)])
         seed_diffs = [sum(a - b for a, b in zip(lengths(s, chosen), y)) / len(y) for s in seeds]
         verdict = ("beats" if diff["hi"] < 0 else "matches" if diff["hi"] <= MARGIN * y_mean
                    else "loses" if diff["lo"] > 0 else "not resolved")
         counts[str(c)] = {"episodes": len(chosen), "yardstick_mean": y_mean,
-                          "learned_mean": sum(seed_mean(chosen)) / len(chosen), "pooled_diff": diff,
+                          "learned_mean": sum(learned) / len(learned), "pooled_diff": diff,
                           "over_seeds_diff": _interval(seed_diffs), "verdict": verdict}
         if c not in GOAL_COUNTS:
             checks[f"non_inferior_at_{c}"] = verdict in ("beats", "matches")
