@@ -39,6 +39,7 @@ __all__ = [
     "EpisodeResult",
     "median_ci",
     "paired",
+    "scored_length",
     "sign_test",
     "summarize",
     "wilson",
@@ -126,13 +127,18 @@ def sign_test(wins: int, losses: int) -> float:
     return min(1.0, 2.0 * _binom_cdf_half(min(wins, losses), n))
 
 
+def scored_length(result: EpisodeResult, max_steps: int) -> float:
+    """The length an episode counts for in every mean: its moves, or ``max_steps`` when it failed."""
+    return float(result.length if result.success else max_steps)
+
+
 def summarize(results: Iterable[EpisodeResult], max_steps: int) -> dict[str, Any]:
     """The field's figures over ``results`` (module docstring). Numbers that do not exist (a median
     of no completed episode, an interval of one value) are None."""
     rows = list(results)
     n = len(rows)
     done = sorted(r.length for r in rows if r.success)
-    lengths = [float(r.length if r.success else max_steps) for r in rows]
+    lengths = [scored_length(r, max_steps) for r in rows]
     mean, half = mean_ci(lengths)
     lo, hi = wilson(len(done), n)
     med_lo, med_hi = median_ci(done)
@@ -174,10 +180,7 @@ def paired(a: Sequence[EpisodeResult], b: Sequence[EpisodeResult], max_steps: in
     if len(a) != len(b) or any((x.set_id, x.index) != (y.set_id, y.index) for x, y in zip(a, b)):
         raise ValueError("paired comparison needs the same episodes, in the same order, for both policies")
 
-    def length(r: EpisodeResult) -> int:
-        return r.length if r.success else max_steps
-
-    diff = [float(length(x) - length(y)) for x, y in zip(a, b)]
+    diff = [scored_length(x, max_steps) - scored_length(y, max_steps) for x, y in zip(a, b)]
     mean, half = mean_ci(diff)
     wins = sum(1 for d in diff if d < 0)
     losses = sum(1 for d in diff if d > 0)

@@ -46,6 +46,7 @@ from typing import Any
 
 from medc_training.stats import mean_ci
 
+from .metrics import scored_length
 from .pairing import load_episodes, obstructions
 from .scenario import MAX_STEPS, OBSTRUCTION_COUNTS
 
@@ -63,10 +64,6 @@ COMPLETION_SLACK = 0.01
 def _interval(values: Sequence[float]) -> dict[str, float]:
     mean, half = mean_ci(list(values))
     return {"n": len(values), "mean": mean, "lo": mean - half, "hi": mean + half}
-
-
-def _length(result, max_steps: int) -> float:
-    return float(result.length if result.success else max_steps)
 
 
 def _only_policy(path: str | Path) -> dict:
@@ -89,10 +86,10 @@ def frozen_verdict(yardstick: dict, seeds: Sequence[dict], max_steps: int = MAX_
     count_of = {k: obstructions(k[1]) for k in keys}
 
     def lengths(played: dict, chosen: list) -> list[float]:
-        return [_length(played[k], max_steps) for k in chosen]
+        return [scored_length(played[k], max_steps) for k in chosen]
 
     def seed_mean(chosen: list) -> list[float]:  # per episode, the learned length averaged over seeds
-        return [sum(_length(s[k], max_steps) for s in seeds) / len(seeds) for k in chosen]
+        return [sum(scored_length(s[k], max_steps) for s in seeds) / len(seeds) for k in chosen]
 
     goal = [k for k in keys if count_of[k] in GOAL_COUNTS]
     out: dict[str, Any] = {"episodes": len(keys), "seeds": len(seeds), "goal_counts": list(GOAL_COUNTS),
@@ -153,8 +150,8 @@ def _validation_curve(run: Path, reference: dict, max_steps: int) -> list[tuple[
         keys = sorted(set(played) & set(reference), key=lambda k: (k[1], k[2]))
         if not keys:
             raise ValueError(f"{path}: no episode shared with the yardstick (another validation file?)")
-        mine = sum(_length(played[k], max_steps) for k in keys) / len(keys)
-        ref = sum(_length(reference[k], max_steps) for k in keys) / len(keys)
+        mine = sum(scored_length(played[k], max_steps) for k in keys) / len(keys)
+        ref = sum(scored_length(reference[k], max_steps) for k in keys) / len(keys)
         curve.append((int(match.group(1)), mine, ref))
     return sorted(curve)
 
