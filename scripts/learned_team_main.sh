@@ -20,7 +20,10 @@
 #
 # Environment: MEDC_MAIN_BUDGET (training steps per run, default 2000000), MEDC_MAIN_PIECE (default
 # 300000), MEDC_TRAIN_THREADS (torch threads per run, default 1: two runs side by side use both
-# cores), MEDC_MAIN_OUT (default docs/reproduction/learned-team/main).
+# cores), MEDC_MAIN_OUT (default docs/reproduction/learned-team/main), MEDC_MAIN_TRAIN_ARGS (more
+# medc-train arguments, split on spaces, e.g. "--observation ego6+estimate+posterior"),
+# MEDC_MAIN_FROZEN (1, the default: a finished run plays the frozen episodes; 0: it does not, as a
+# probe, which plays validation episodes only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
@@ -29,6 +32,8 @@ budget=${MEDC_MAIN_BUDGET:-2000000}
 piece=${MEDC_MAIN_PIECE:-300000}
 threads=${MEDC_TRAIN_THREADS:-1}
 out=${MEDC_MAIN_OUT:-docs/reproduction/learned-team/main}
+read -r -a train_args <<< "${MEDC_MAIN_TRAIN_ARGS:-}"
+frozen=${MEDC_MAIN_FROZEN:-1}
 expert=controller:infotaxis
 for n in "$budget" "$piece"; do
   if ! [[ "$n" =~ ^[1-9][0-9]*$ ]]; then
@@ -110,7 +115,8 @@ one_run() {  # METHOD-sSEED
     echo "$(date +%T) $name: training to $target steps"
     medc-train --world radbench --grid 20 --agents 3 --walls 7 --max-steps 120 --steps "$target" \
       --seed "$seed" --num-envs 32 --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
-      --threads "$threads" --method "$method" "${extra[@]}" --out "$dir" "${resume[@]}" > /dev/null
+      --threads "$threads" --method "$method" "${extra[@]}" "${train_args[@]}" --out "$dir" "${resume[@]}" \
+      > /dev/null
     python - "$dir" "$(( $(date +%s) - t0 ))" <<'EOF' >> "$dir/pieces.jsonl"
 import json, sys
 s = json.load(open(f"{sys.argv[1]}/summary.json"))
@@ -129,6 +135,10 @@ EOF
     cp "$dir/policy.safetensors" "$dir/policy-$done_steps.safetensors"
   fi
   validate "$dir"
+  if [[ $frozen == 0 ]]; then
+    exec {claim}>&-
+    return 0
+  fi
   play_once "$dir/frozen-g20-a3" "$name: played the frozen g20-a3 episodes" \
     "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40
   # The second decision rule (docs/learned-team.md, addendum 3): moves sampled at temperature 0.5.

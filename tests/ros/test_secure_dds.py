@@ -40,18 +40,25 @@ rclpy.try_shutdown()
 """
 
 #: A talker on chatter until stopped.
+#: A talker that ends cleanly on SIGINT: the signal only sets a flag (rclpy's own handler would shut
+#: the context down under a spinning executor, and a KeyboardInterrupt can land inside a destructor),
+#: so that anything with "Error" in its log comes from the secured participant itself.
 TALKER = """
+import signal, threading
 import rclpy
+from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
-rclpy.init()
+stop = threading.Event()
+rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+signal.signal(signal.SIGINT, lambda *_: stop.set())
 node = rclpy.create_node("secured_talker")
 pub = node.create_publisher(String, "chatter", 10)
 node.create_timer(0.1, lambda: pub.publish(String(data="team secret")))
 print("TALKING", flush=True)
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-    pass
+while not stop.is_set():
+    rclpy.spin_once(node, timeout_sec=0.1)
+node.destroy_node()
+rclpy.shutdown()
 """
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -32,19 +33,29 @@ FORGED_NANOSEC = 424242
 ISOLATE = ["unshare", "--net", "--mount", "--propagation", "private", "sh", "-c",
            'ip link set lo up && mount -t tmpfs -o mode=1777 tmpfs /dev/shm && exec "$@"', "isolate"]
 
-#: Run inside the mission's namespaces: exits 0 once the team's episode status has a publisher and
-#: its declaration topic a reader (the driver's, under end_on: either).
+#: Joins the mission's namespaces (nsenter) and reads its episode status and results, as a tool the
+#: launcher waits for (``--listeners 1``) would: the team's first step waits until it is matched, so
+#: it cannot miss a team that plays its episodes quickly. Exits 0 once the team's status has a
+#: publisher and its declaration topic a reader (the driver's, under end_on: either); it stays
+#: until told to go (stdin closed), so the finished simulator finds its results reader there.
 INSIDER = """
 import sys, time, rclpy
+from medc_common import contract
+from medc_interfaces.msg import EpisodeStatus
 rclpy.init()
 node = rclpy.create_node("insider")
+ns = sys.argv[2]
+node.create_subscription(EpisodeStatus, contract.status_topic(ns), lambda m: None, contract.RELIABLE_QOS)
+node.create_subscription(EpisodeStatus, contract.results_topic(ns), lambda m: None, contract.RESULTS_QOS)
 deadline = time.monotonic() + float(sys.argv[1])
-while time.monotonic() < deadline:
-    if node.count_publishers(sys.argv[2]) > 0 and node.count_subscribers(sys.argv[3]) > 0:
-        print("SEES THE TEAM", flush=True)
-        sys.exit(0)
+seen = False
+while time.monotonic() < deadline and not seen:
+    seen = (node.count_publishers(contract.status_topic(ns)) > 0
+            and node.count_subscribers(contract.declaration_topic(ns)) > 0)
     rclpy.spin_once(node, timeout_sec=0.2)
-sys.exit(1)
+print("SEES THE TEAM" if seen else "SAW NOTHING", flush=True)
+sys.stdin.read()
+sys.exit(0 if seen else 1)
 """
 
 
@@ -160,12 +171,13 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
 
     err = tmp_path / "launch.err"
     launcher = [sys.executable, "-m", "medc_bringup.launcher", "--config", str(config), "--policy", "greedy",
-                "--episodes", str(EPISODES), "--timeout", "240"]
+                "--episodes", str(EPISODES), "--timeout", "240", "--listeners", "1"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     with err.open("w") as log:
         proc = subprocess.Popen([*ISOLATE, *launcher], stdout=subprocess.PIPE, stderr=log, text=True,
                                 env=env, start_new_session=True)
     insider = None
+    insider_log = tmp_path / "insider.log"
     seen_readers: dict[str, int] = {}
     seen_publishers: dict[str, int] = {}
     try:
@@ -174,26 +186,27 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
         while os.readlink(f"/proc/{proc.pid}/ns/net") == own_net:
             assert proc.poll() is None and time.monotonic() < deadline, err.read_text()[-3000:]
             executor.spin_once(timeout_sec=0.05)
-        insider = subprocess.Popen(["nsenter", "-t", str(proc.pid), "--net", "--mount", sys.executable, "-c",
-                                    INSIDER, "120", contract.status_topic(NS),
-                                    contract.declaration_topic(NS)],
-                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        with insider_log.open("w") as log:
+            insider = subprocess.Popen(["nsenter", "-t", str(proc.pid), "--net", "--mount", sys.executable, "-c",
+                                        INSIDER, "240", NS], stdin=subprocess.PIPE, stdout=log,
+                                       stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
         deadline = time.monotonic() + 300
         while proc.poll() is None and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
             seen_readers.update(intruder.matched_readers())
             seen_publishers.update(intruder.team_publishers())
         assert proc.poll() is not None, "the isolated team did not finish its episodes"
-        insider_out, _ = insider.communicate(timeout=150)
+        insider.stdin.close()  # it may go once it has seen the team
+        insider.wait(270)
     finally:
         if insider is not None and insider.poll() is None:
-            insider.kill()
+            os.killpg(insider.pid, signal.SIGKILL)
             insider.wait()
         if proc.poll() is None:
             stop_launcher(proc)
         executor.shutdown()
         node.destroy_node()
-    out = proc.stdout.read()
+    out, insider_out = proc.stdout.read(), insider_log.read_text()
     assert proc.returncode == 0, err.read_text()[-3000:]
     assert insider.returncode == 0 and "SEES THE TEAM" in insider_out, insider_out
     assert intruder.step > 5  # it kept forging while the team played
@@ -204,3 +217,12 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
     result = json.loads(out.strip().splitlines()[-1])
     assert result["episodes"] == EPISODES and all(result["successes"]), result
     assert "intruder" not in err.read_text()
+
+
+def test_listeners_must_not_be_negative(capsys):
+    from medc_bringup.launcher import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--policy", "greedy", "--listeners", "-1", "--episodes", "1"])
+    assert exc.value.code == 2
+    assert "--listeners must be >= 0, got -1" in capsys.readouterr().err

@@ -14,6 +14,8 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --episodes 5 --record run.mcap # and record every topic (rosbag2's MCAP; medc-record)
     medc-launch --foxglove                    # and watch it live in Foxglove: ws://127.0.0.1:8765
     medc-launch --namespace /team2            # the whole team under /team2 (each node: -r __ns:=/team2)
+    medc-launch --listeners 1                 # the first step waits for one more reader of the status
+                                              # and results topics (a tool started on its own)
 
 A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
 file (e.g. ``models/team``) from the repository root. Without ``--policy`` the default config runs
@@ -568,6 +570,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="with --record: replace FILE.mcap if it exists (a link is replaced, never "
                              "written through)")
+    parser.add_argument("--listeners", type=int, default=0, metavar="N",
+                        help="the first step waits (up to 30 s) for N more readers of the episode status "
+                             "and results topics: tools started on their own (e.g. joined to an isolated "
+                             "mission with nsenter) that must hear the whole run")
     parser.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
                         help="serve a live view to Foxglove on ws://127.0.0.1:PORT (default port 8765)")
     parser.add_argument("--foxglove-clients", type=int, default=DEFAULT_MAX_CLIENTS, metavar="N",
@@ -580,9 +586,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse (``parser.error``: usage, status 2) what argparse alone lets through: a negative
-    ``--episodes``, an option given without the one it qualifies, too few Foxglove connections."""
+    ``--episodes`` or ``--listeners``, an option given without the one it qualifies, too few Foxglove connections."""
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
+    if args.listeners < 0:
+        parser.error(f"--listeners must be >= 0, got {args.listeners}")
     if args.overwrite and args.record is None:
         parser.error("--overwrite is only used with --record FILE.mcap")
     if args.foxglove_origin and args.foxglove is None:
@@ -626,7 +634,7 @@ def main(argv: list[str] | None = None) -> int:
     run = run_in_process if args.in_process else run_processes
     try:
         ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout,
-                 extra_listeners=1 if recorder is not None else 0)
+                 extra_listeners=(recorder is not None) + args.listeners)
         # Ctrl-C either raises here or, when it lands while rclpy waits, makes rclpy's own
         # signal handler shut the context down so the run loop ends: both are an interruption.
         interrupted = not ok and not rclpy.ok()
