@@ -43,7 +43,8 @@ def test_every_core_checks_its_common_options_the_same_way(name: str, option, va
 @pytest.mark.parametrize("name", ["fleet_coordination", "maze_cleaning"])
 def test_the_observation_option_works_for_every_application_or_is_refused(name: str) -> None:
     """`medc-train --env maze_cleaning --observation ego9` trains on the 19x19 windows, and a view
-    the application lacks (the source estimate) is refused, never replaced by 'maps' silently."""
+    the application lacks (the source estimate, the source posterior) is refused, never replaced by
+    'maps' silently."""
     from medc_training.cli.train import build_parser, config_from_args
     from medc_training.ppo import make_env_for
 
@@ -52,10 +53,10 @@ def test_the_observation_option_works_for_every_application_or_is_refused(name: 
         env = make_env_for(config_from_args(args), 2, 0, False)
         assert env.observation_name == flag
         assert env.obs_shape[1:] == (side, side)
-    args = build_parser().parse_args(["--out", "x", "--env", name, "--grid", "10",
-                                      "--observation", "ego6+estimate"])
-    with pytest.raises(ValueError, match="has no source estimate"):
-        make_env_for(config_from_args(args), 2, 0, False)
+    for view in ("ego6+estimate", "ego6+posterior", "maps+estimate+posterior"):
+        args = build_parser().parse_args(["--out", "x", "--env", name, "--grid", "10", "--observation", view])
+        with pytest.raises(ValueError, match="has no source estimate"):
+            make_env_for(config_from_args(args), 2, 0, False)
     # Without the flag the application keeps its own default.
     args = build_parser().parse_args(["--out", "x", "--env", name, "--grid", "10"])
     assert make_env_for(config_from_args(args), 2, 0, False).observation_name == "maps"

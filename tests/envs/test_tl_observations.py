@@ -1,5 +1,6 @@
 """Target-localization observation variants: the source posterior against a hand computation, the
-estimate map, the ego windows, and one builder giving the same observations at any batch size."""
+estimate map, the posterior map, the ego windows, and one builder giving the same observations at any
+batch size."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import math
 import pytest
 import torch
 from medc_training.envs import make_batched, make_env
+from medc_training.envs.observation import MAX_NAME_LENGTH
 from medc_training.envs.target_localization import (
     BACKGROUND,
     SOURCE_STRENGTH,
@@ -19,12 +21,14 @@ from medc_training.envs.tl_observation import (
     ObservationSpec,
     SourceEstimator,
     TeamMemory,
+    observation_channels,
     observation_shape,
     observe,
     parse_observation,
 )
 
-VARIANTS = ("maps", "maps+estimate", "ego3", "ego4+estimate", "ego9+estimate")
+VARIANTS = ("maps", "maps+estimate", "ego3", "ego4+estimate", "ego9+estimate", "maps+posterior",
+            "ego6+estimate+posterior")
 
 
 def hand_posterior(grid, wall_col, visits):
@@ -122,6 +126,27 @@ def test_names_round_trip_and_bad_names_say_what_is_allowed():
     assert env.reset()[0].shape == (1, 1, 4, 17, 17)
 
 
+def test_posterior_names_round_trip_in_their_one_order():
+    for name in ("maps+posterior", "maps+estimate+posterior", "ego1+posterior", "ego6+estimate+posterior"):
+        spec = parse_observation(name)
+        assert spec.posterior and spec.name == name
+        assert parse_observation({"name": name}) == spec
+    assert parse_observation("ego6+estimate+posterior") == ObservationSpec("ego", 6, True, True)
+    assert ObservationSpec("ego", 6, True) == parse_observation("ego6+estimate")  # posterior: False
+    assert len("ego255+estimate+posterior") <= MAX_NAME_LENGTH  # the longest name is read
+    assert parse_observation("ego255+estimate+posterior").radius == 255
+    assert observation_shape("ego6+estimate+posterior", 13) == (6, 13, 13)
+    assert observation_shape("maps+estimate+posterior", 13) == (7, 13, 13)
+    assert observation_channels("ego6+estimate+posterior")[-2:] == ("source_estimate", "source_posterior")
+    assert observation_channels("maps+posterior")[-2:] == ("walls", "source_posterior")
+    for bad in ("ego6+posterior+estimate", "maps+posterior+posterior", "ego6+posteriors", "posterior"):
+        with pytest.raises(ValueError, match=r"egoR\+estimate\+posterior") as refused:
+            parse_observation(bad)
+        assert "'maps+posterior'" in str(refused.value)
+    with pytest.raises(ValueError, match=r"name such as .*ego6\+estimate\+posterior"):
+        parse_observation("ego6+estimate+posterior" + "+posterior" * 2)  # past the length read
+
+
 def test_ego_window_centres_the_agent_and_walls_the_outside():
     grid, r = 5, 2
     walls = torch.zeros((1, grid, grid), dtype=torch.bool)
@@ -141,6 +166,58 @@ def test_ego_window_centres_the_agent_and_walls_the_outside():
     assert (a0[4, :2] == 0).all()  # off-grid estimate reads 0
     full = mem.estimate_map()[0]
     assert a0[4, 2:, 2:].tolist() == full[:3, :3].tolist()
+
+
+def _hand_made_posterior(mem, walls, modes, half, ruled_out):
+    """Give ``mem`` (one episode, known strength and background) a posterior of weight 1 at each of
+    ``modes``, 1/2 at ``half``, ~0 on every other free cell and 0 on walls and ``ruled_out``."""
+    g = mem.grid
+    log_post = torch.full((1, g * g), -40.0)
+    for r, c in modes:
+        log_post[0, r * g + c] = 0.0
+    log_post[0, half[0] * g + half[1]] = math.log(0.5)
+    for r, c in ruled_out:
+        log_post[0, r * g + c] = LOG_FLOOR
+    log_post[0, walls[0].flatten()] = LOG_FLOOR
+    mem.log_post = log_post
+
+
+def test_posterior_channel_reads_the_posterior_over_its_mode():
+    """1 at each mode, p/max elsewhere, 0 on walls and ruled-out cells; in an ego window 0 off the grid,
+    and the grid cells are those of the absolute map."""
+    grid, r = 6, 2
+    walls = torch.zeros((1, grid, grid), dtype=torch.bool)
+    walls[0, 3, 1:4] = True
+    pos = torch.tensor([[[0, 0], [5, 5]]])
+    modes, half, ruled_out = [(1, 4), (5, 0)], (2, 2), [(0, 0), (5, 5)]
+    ego = TeamMemory(parse_observation("ego2+estimate+posterior"), 1, grid, "cpu")
+    maps = TeamMemory(parse_observation("maps+posterior"), 1, grid, "cpu")
+    for mem in (ego, maps):
+        mem.start(walls, pos, sensor_reading(pos, torch.tensor([[1, 4]]), walls))
+        _hand_made_posterior(mem, walls, modes, half, ruled_out)
+    full = maps.observe(pos, walls.float())[0, 0, 5]
+    assert full.shape == (grid, grid) and torch.equal(full, maps.posterior_map()[0])
+    assert float(full.min()) >= 0.0 and float(full.max()) == 1.0
+    for r_, c_ in modes:
+        assert full[r_, c_] == 1.0
+    assert full[half] == pytest.approx(0.5, rel=1e-6)
+    assert full[walls[0]].eq(0).all()
+    for cell in ruled_out:
+        assert full[cell] == 0.0
+    assert int((full == 1.0).sum()) == 2 and bool((full[full < 1.0] <= 0.5 + 1e-6).all())
+    obs = ego.observe(pos, walls.float())
+    assert obs.shape == (1, 2, 6, 5, 5)
+    a0, a1 = obs[0, 0, 5], obs[0, 1, 5]  # agent 0 at (0,0), agent 1 at (5,5)
+    assert a0[:r].eq(0).all() and a0[:, :r].eq(0).all()  # off the grid: 0
+    assert torch.equal(a0[r:, r:], full[:r + 1, :r + 1])
+    assert a1[r + 1:].eq(0).all() and a1[:, r + 1:].eq(0).all()
+    assert torch.equal(a1[:r + 1, :r + 1], full[grid - r - 1:, grid - r - 1:])
+    assert a0[r, r] == 0.0 and a1[r, r] == 0.0  # the ruled-out cells the agents stand on
+
+
+def test_a_memory_without_a_posterior_has_no_posterior_map():
+    assert TeamMemory(parse_observation("ego3"), 1, 5, "cpu").posterior_map() is None
+    assert TeamMemory(parse_observation("maps+posterior"), 1, 5, "cpu").estimator is not None
 
 
 def _replay_memories(variant, batch):
@@ -175,7 +252,7 @@ def test_core_observations_equal_a_replay_from_scratch_at_any_batch_size(variant
     assert resets > 0
 
 
-@pytest.mark.parametrize("variant", ["maps+estimate", "ego5+estimate"])
+@pytest.mark.parametrize("variant", ["maps+estimate", "ego5+estimate", "ego6+estimate+posterior"])
 def test_pettingzoo_env_gives_the_core_observations(variant):
     env = make_env("target_localization", seed=4, agents=2, walls=1, grid=10, max_steps=20,
                    observation=variant)
@@ -199,6 +276,10 @@ def test_observe_requires_the_estimate_when_the_variant_shows_it():
     maps = torch.zeros((1, 5, 5))
     with pytest.raises(ValueError, match="needs the source estimate"):
         observe(parse_observation("ego2+estimate"), pos, maps, maps, maps)
+    with pytest.raises(ValueError, match="needs the source posterior map"):
+        observe(parse_observation("ego2+estimate+posterior"), pos, maps, maps, maps, maps)
+    with pytest.raises(ValueError, match="needs the source posterior map"):
+        observe(parse_observation("maps+posterior"), pos, maps, maps, maps)
 
 
 @pytest.mark.parametrize(("grid", "walls"), [(5, 0), (5, 1), (13, 3), (22, 4), (30, 5), (33, 2)])

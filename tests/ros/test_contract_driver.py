@@ -112,8 +112,9 @@ def _replayed_actions(steps: list[dict], policy) -> list[list[int]]:
         else:
             memory.record(walls, positions, readings)
         episode = s["episode"]
-        est = memory.estimate_map() if spec.estimate else None
-        obs = observe(spec, positions, memory.reading_map, memory.visit_map, walls.float(), est)[0]
+        est, post = memory.source_maps(spec)
+        obs = observe(spec, positions, memory.reading_map, memory.visit_map, walls.float(), est,
+                      posterior_map=post)[0]
         mask = move_mask(positions, pad_blocked(walls), action_deltas("cpu"))[0]
         with torch.no_grad():
             out.append([int(a) for a in policy.act(obs, mask, greedy=True)])

@@ -127,8 +127,9 @@ def test_a_new_applications_bundle_passes_the_manifest_check(toy, tmp_path):
     assert bundle.manifest["application"] == TOY and bundle.observation == "ego2"
     with pytest.raises(BundleError, match="'ego3' is 7x7 here"):
         complete_manifest(net, {**manifest, "observation": {"name": "ego3"}})
-    with pytest.raises(BundleError, match="not a view beacon_search takes"):
-        complete_manifest(net, {**manifest, "observation": {"name": "ego2+estimate"}})
+    for view in ("ego2+estimate", "ego2+posterior"):
+        with pytest.raises(BundleError, match="not a view beacon_search takes"):
+            complete_manifest(net, {**manifest, "observation": {"name": view}})
     maps = make_batched(TOY, grid=6)
     assert observation_section(maps) == {}  # 'maps' is not recorded; the manifest reads as maps
     plain = complete_manifest(make_actor_critic("mlp", maps.obs_shape, 8), {"application": TOY,

@@ -41,7 +41,8 @@ class EnvironmentConfig:
     observation: str | None = None
     """The observation (medc_training.envs.observation): 'maps' (the application's absolute maps),
     'egoR' (agent-centred windows), and for an application with a source estimate 'maps+estimate',
-    'egoR+estimate'. None: the application's default (``Application.default_observation``). An
+    'egoR+estimate', 'maps+posterior', 'egoR+posterior', 'maps+estimate+posterior',
+    'egoR+estimate+posterior'. None: the application's default (``Application.default_observation``). An
     application whose observation is not a config field (``Application.observation_in_config``)
     takes it only when it differs from the default application's default, the value scales name
     (or through ``env_options``)."""

@@ -13,8 +13,9 @@ entry, ``"medc.manifest"``, a JSON object:
     environment       {attribute: number | bool | string}, e.g. {"agents": 3, "walls": 2, "grid": 30}
     observation       {"channels": C, "height": H, "width": W, "channel_names": [C names],
                        "name": variant}; "name" is the observation variant the model takes
-                       (target localization: "maps", "maps+estimate", "egoR", "egoR+estimate",
-                       see medc_training.envs.tl_observation); a bundle without it takes "maps"
+                       (target localization: "maps", "egoR", each with "+estimate", "+posterior"
+                       or "+estimate+posterior", see medc_training.envs.tl_observation); a bundle
+                       without it takes "maps"
     actions           [A action names], e.g. ["N", "NE", "E", "SE", "S", "SW", "W", "NW"]
     architecture      the declarative network spec (medc_training.nets), input C x H x W, A actions
     training          {"method", "steps", "seed", "code_version", "git_commit", ...}

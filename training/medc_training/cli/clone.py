@@ -41,8 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--grid", type=int, default=d.grid, help=f"grid side (default {d.grid})")
     p.add_argument("--observation", default=d.observation,
-                   help=f"target-localization observation: maps | maps+estimate | egoR | egoR+estimate "
-                        f"(default {d.observation})")
+                   help=f"target-localization observation: maps | egoR, each optionally with +estimate, "
+                        f"+posterior or +estimate+posterior (default {d.observation})")
     p.add_argument(
         "--max-steps", type=int, default=d.max_steps, help=f"episode step limit (default {d.max_steps})"
     )

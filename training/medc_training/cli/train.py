@@ -77,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, help="episode step limit (default: the scale's)")
     p.add_argument("--observation",
                    help="observation: maps (the application's absolute maps) | egoR (agent-centred "
-                        "windows) | for target localization also maps+estimate | egoR+estimate (default: "
+                        "windows) | for target localization also maps+estimate | egoR+estimate, and any "
+                        "of these four with +posterior (e.g. ego6+estimate+posterior) (default: "
                         f"{default.default_observation} for target localization, maps for the others; "
                         "docs/environments.md)")
     p.add_argument("--sensing", choices=sorted(default.sensing_presets),

@@ -207,7 +207,8 @@ class BatchedEnv(ABC):
     def observes_pictures(self) -> bool:
         """Whether the observations are the absolute maps a picture is drawn from (then a
         finished episode's picture is its final observation)."""
-        return self.observation.view == "maps" and not self.observation.estimate
+        spec = self.observation
+        return spec.view == "maps" and not spec.estimate and not spec.posterior
 
     @abstractmethod
     def oracle_action_scores(self) -> torch.Tensor:
@@ -369,7 +370,8 @@ class MapsObservationEnv(BatchedEnv):
     ``maps`` is the paper's absolute maps; ``egoR`` shows each map in a (2R+1)×(2R+1) window
     centred on the agent, with channel 0 (own location, always the centre in such a window)
     replaced by "off the grid" (1 outside), and the channels named in ``WALL_CHANNELS`` reading 1
-    off the grid. These applications have no source estimate: ``+estimate`` is refused.
+    off the grid. These applications have no source estimate: ``+estimate`` and ``+posterior`` are
+    refused.
     """
 
     #: Channels that mean "cannot go there": off-grid cells read 1 in an ego window.

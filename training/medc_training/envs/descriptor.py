@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from medc_training.envs.names import ENV_NAMES
-from medc_training.envs.observation import ObservationSpec, parse_observation
+from medc_training.envs.observation import OBSERVATION_FORMS, ObservationSpec, parse_observation
 
 __all__ = ["Application", "application", "applications", "register", "unregister"]
 
@@ -37,7 +37,7 @@ class Application:
     channels: Callable[[ObservationSpec], tuple[str, ...]]
     """The channel names of an accepted view, in order."""
     has_estimate: bool = False
-    """It can show the team's source estimate: it accepts the ``+estimate`` views."""
+    """It can show the team's source estimate: it accepts the ``+estimate`` and ``+posterior`` views."""
     sensing_presets: tuple[str, ...] = ()
     """The sensing presets it takes (``sensing`` option), the default first; () when none."""
     controllers: bool = False
@@ -87,7 +87,7 @@ class Application:
         """The view ``observation`` names (a name, manifest dict or spec); ValueError when it is
         not one this application takes."""
         spec = parse_observation(observation)
-        if spec.estimate and not self.has_estimate:
+        if (spec.estimate or spec.posterior) and not self.has_estimate:
             raise ValueError(f"{self.name} has no source estimate: use observation 'maps' or 'egoR' "
                              f"(R = window radius, e.g. ego9), not {spec.name!r}")
         return spec
@@ -100,7 +100,7 @@ class Application:
     @property
     def views(self) -> tuple[str, ...]:
         """The accepted views ('egoR': any radius)."""
-        return ("maps", "egoR", "maps+estimate", "egoR+estimate") if self.has_estimate else ("maps", "egoR")
+        return OBSERVATION_FORMS if self.has_estimate else ("maps", "egoR")
 
 
 def _load() -> None:

@@ -12,6 +12,8 @@ Names (written on the command line and as ``observation.name`` in every bundle m
     Each map in a (2R+1)×(2R+1) window centred on the agent (R = window radius, 1..255).
 ``maps+estimate`` / ``egoR+estimate``
     The same plus the team's source estimate (an application without one refuses them).
+``maps+posterior`` / ``egoR+posterior`` / ``maps+estimate+posterior`` / ``egoR+estimate+posterior``
+    The same plus the team's source posterior itself, last (refused where ``+estimate`` is).
 
 Which views an application takes and the names of their channels are its descriptor's
 (:class:`medc_training.envs.Application`).
@@ -23,25 +25,35 @@ import re
 from dataclasses import dataclass
 
 __all__ = [
+    "MAX_NAME_LENGTH",
     "MAX_RADIUS",
+    "OBSERVATION_FORMS",
     "OBSERVATION_NAMES",
     "ObservationSpec",
     "parse_observation",
 ]
 
 #: Examples of accepted names (any radius 1..MAX_RADIUS is accepted for ego views).
-OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+estimate")
+OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+estimate", "ego6+posterior",
+                                      "ego6+estimate+posterior")
+#: The forms of every accepted name, as error messages list them.
+OBSERVATION_FORMS: tuple[str, ...] = ("maps", "egoR", "maps+estimate", "egoR+estimate", "maps+posterior",
+                                      "egoR+posterior", "maps+estimate+posterior", "egoR+estimate+posterior")
 MAX_RADIUS = 255
-_NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?$")
+#: Longest name parse_observation reads; the longest accepted one, 'ego255+estimate+posterior', fits.
+MAX_NAME_LENGTH = 32
+_NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?(\+posterior)?$")
 
 
 @dataclass(frozen=True)
 class ObservationSpec:
-    """Which observation a model takes: ``view`` 'maps' or 'ego', ego ``radius``, ``estimate``."""
+    """Which observation a model takes: ``view`` 'maps' or 'ego', ego ``radius``, whether it shows
+    the team's source ``estimate`` and its source ``posterior``."""
 
     view: str = "maps"
     radius: int = 0
     estimate: bool = False
+    posterior: bool = False
 
     def __post_init__(self) -> None:
         if self.view not in ("maps", "ego"):
@@ -54,7 +66,7 @@ class ObservationSpec:
     @property
     def name(self) -> str:
         base = "maps" if self.view == "maps" else f"ego{self.radius}"
-        return base + ("+estimate" if self.estimate else "")
+        return base + ("+estimate" if self.estimate else "") + ("+posterior" if self.posterior else "")
 
     def side(self, grid: int) -> int:
         """Height and width of one map of this view on a ``grid``×``grid`` area."""
@@ -75,14 +87,16 @@ def parse_observation(value) -> ObservationSpec:
         return value
     if isinstance(value, dict):
         value = value.get("name")
-    if not isinstance(value, str) or len(value) > 32:
+    if not isinstance(value, str) or len(value) > MAX_NAME_LENGTH:
         raise ValueError(f"observation must be a name such as {', '.join(OBSERVATION_NAMES)}")
     m = _NAME.match(value)
     if m is None:
+        forms = ", ".join(repr(f) for f in OBSERVATION_FORMS)
         raise ValueError(
-            f"unknown observation {value[:32]!r}; use 'maps', 'maps+estimate', 'egoR' or 'egoR+estimate' "
-            "(R = window radius in cells, e.g. ego6+estimate)"
+            f"unknown observation {value[:MAX_NAME_LENGTH]!r}; use one of {forms} (R = window radius in "
+            "cells, e.g. ego6+estimate; +estimate comes before +posterior)"
         )
+    estimate, posterior = bool(m.group(3)), bool(m.group(4))
     if m.group(2):
-        return ObservationSpec("ego", int(m.group(2)), bool(m.group(3)))
-    return ObservationSpec("maps", 0, bool(m.group(3)))
+        return ObservationSpec("ego", int(m.group(2)), estimate, posterior)
+    return ObservationSpec("maps", 0, estimate, posterior)

@@ -18,6 +18,8 @@ every bundle manifest):
     with ``+estimate`` the source estimate (:data:`EGO_CHANNELS`). Off-grid cells read 0 in every
     channel but walls. R = G−1 is the full re-centred view: every cell of the grid is in the window
     wherever the agent stands.
+``maps+posterior`` / ``egoR+posterior`` / ``maps+estimate+posterior`` / ``egoR+estimate+posterior``
+    Any of the above plus one more map, last: the team's source posterior itself (below).
 
 Source estimate (:class:`SourceEstimator`)
     The team's Bayes posterior over the source cell, from every reading the team has taken in the
@@ -42,6 +44,13 @@ Source estimate (:class:`SourceEstimator`)
         estimate(c) = 1 - E(c) / (G - 1)                                  in [0, 1]
 
     Walls are ignored in E (they are in the walls channel); 1 marks the cell the team is sure of.
+
+    The estimate is one number per cell: a posterior with two or more separate modes reads as a
+    smooth bump between them. The ``+posterior`` views show the posterior itself, scaled to its mode::
+
+        posterior(c) = p(c) / max_s p(s)                                    in [0, 1]
+
+    1 at the most probable cell(s), 0 on walls and on cells ruled out (:data:`POSTERIOR_CHANNEL`).
 """
 
 from __future__ import annotations
@@ -78,6 +87,7 @@ __all__ = [
     "LOG_FLOOR",
     "MAP_CHANNELS",
     "OBSERVATION_NAMES",
+    "POSTERIOR_CHANNEL",
     "ObservationSpec",
     "SourceEstimator",
     "TeamMemory",
@@ -94,8 +104,10 @@ DEFAULT_OBSERVATION = "ego6+estimate"
 MAP_CHANNELS: tuple[str, ...] = CHANNELS
 #: The agent-centred window.
 EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
-#: Last when the view shows the team's source estimate.
+#: Last when the view shows the team's source estimate (before the posterior when it shows both).
 ESTIMATE_CHANNEL = "source_estimate"
+#: Last when the view shows the team's source posterior.
+POSTERIOR_CHANNEL = "source_posterior"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
 #: Below this relative log probability a cell's weight is taken as 0 (exp(-87) is about float32's
@@ -127,7 +139,8 @@ def observation_channels(observation) -> tuple[str, ...]:
     """The channel names of view ``observation`` (a name or spec), in order."""
     spec = parse_observation(observation)
     base = MAP_CHANNELS if spec.view == "maps" else EGO_CHANNELS
-    return base + ((ESTIMATE_CHANNEL,) if spec.estimate else ())
+    return (base + ((ESTIMATE_CHANNEL,) if spec.estimate else ())
+            + ((POSTERIOR_CHANNEL,) if spec.posterior else ()))
 
 
 def observation_shape(observation, grid: int) -> tuple[int, int, int]:
@@ -531,10 +544,11 @@ class TeamMemory:
 
     ``reading_map`` float32 [B,G,G] (latest normalised reading per cell, 0 = never visited),
     ``visit_map`` float32 [B,G,G] (raw visit counts), ``log_post`` (the source posterior,
-    :class:`SourceEstimator`; kept when the observation shows the estimate or ``posterior`` is
-    True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact line-of-sight
-    rule). The batched core, the PettingZoo env and the ROS agent node hold one each and feed it the
-    same readings, under the same ``sensing`` model. ``rule_out``, ``path``: :class:`SourceEstimator`'s.
+    :class:`SourceEstimator`; kept when the observation shows the estimate or the posterior, or
+    ``posterior`` is True), ``rects`` float32 [B,Z,4] (each episode's wall rectangles, for the exact
+    line-of-sight rule). The batched core, the PettingZoo env and the ROS agent node hold one each and
+    feed it the same readings, under the same ``sensing`` model. ``rule_out``, ``path``:
+    :class:`SourceEstimator`'s.
 
     A posterior over levels is, on the fused path, a [B, L, G²] view of cells-major memory; readers
     index it as [B, L, G²] either way. The fused path also keeps the marginal posterior it made with
@@ -552,7 +566,7 @@ class TeamMemory:
         g = self.grid
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
-        keep = self.spec.estimate or posterior
+        keep = self.spec.estimate or self.spec.posterior or posterior
         self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out, path) if keep else None
         #: The fused path's marginal posterior [B, G²] of ``log_post`` as it was at (data pointer,
         #: version) ``_post_key``.
@@ -662,23 +676,43 @@ class TeamMemory:
 
     def estimate_map(self) -> torch.Tensor | None:
         """float32 [B,G,G] source-estimate map, or None when the observation has none."""
-        return None if self.estimator is None else self._estimate_map()
+        return None if self.estimator is None else self._estimate_map(self._posterior())
 
-    def _estimate_map(self, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def _estimate_map(self, p: torch.Tensor) -> torch.Tensor:
         est = self.estimator
-        e = (1.0 - est.expected_from_posterior(self._posterior(rows)) * est.scale).clamp_(0.0, 1.0)
+        e = (1.0 - est.expected_from_posterior(p) * est.scale).clamp_(0.0, 1.0)
         return e.view(-1, self.grid, self.grid)
+
+    def posterior_map(self) -> torch.Tensor | None:
+        """float32 [B,G,G] the map the ``+posterior`` views show, p(s) / max_s p(s) per cell, or None
+        when this memory keeps no posterior."""
+        return None if self.estimator is None else self._posterior_map(self._posterior())
+
+    def _posterior_map(self, p: torch.Tensor) -> torch.Tensor:
+        return (p / p.amax(1, keepdim=True)).view(-1, self.grid, self.grid)
+
+    def source_maps(self, spec: ObservationSpec | None = None, rows: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """The source-estimate map and the source-posterior map, float32 [B,G,G] ([R,G,G] of
+        ``rows``), that view ``spec`` (default: this memory's) shows: None for a map it does not
+        show, and for both when this memory keeps no posterior. Both come from one posterior."""
+        spec = self.spec if spec is None else spec
+        if self.estimator is None or not (spec.estimate or spec.posterior):
+            return None, None
+        p = self._posterior(rows)
+        return (self._estimate_map(p) if spec.estimate else None,
+                self._posterior_map(p) if spec.posterior else None)
 
     def observe(self, positions: torch.Tensor, walls: torch.Tensor, out: torch.Tensor | None = None,
                 rows: torch.Tensor | None = None) -> torch.Tensor:
         """Every agent's observation, float32 [B,N,C,H,W] (see :func:`observe`); with ``rows``
         only those episodes' ([R,N,C,H,W]; ``positions`` and ``walls`` are still the whole batch)."""
+        estimate, posterior = self.source_maps(rows=rows)
         if rows is None:
-            return observe(self.spec, positions, self.reading_map, self.visit_map, walls,
-                           self.estimate_map(), out=out)
-        est = None if self.estimator is None else self._estimate_map(rows)
+            return observe(self.spec, positions, self.reading_map, self.visit_map, walls, estimate,
+                           out=out, posterior_map=posterior)
         return observe(self.spec, positions[rows], self.reading_map[rows], self.visit_map[rows], walls[rows],
-                       est, out=out)
+                       estimate, out=out, posterior_map=posterior)
 
 
 def observe(
@@ -689,34 +723,40 @@ def observe(
     walls: torch.Tensor,
     estimate: torch.Tensor | None = None,
     out: torch.Tensor | None = None,
+    posterior_map: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Every agent's observation of variant ``spec``, float32 [B,N,C,H,W] in [0, 1].
 
     positions int64 [B,N,2]; reading_map, visit_map float32 [B,G,G] (:class:`TeamMemory`);
-    walls bool or float [B,G,G]; estimate float32 [B,G,G] (required when ``spec.estimate``).
+    walls bool or float [B,G,G]; estimate float32 [B,G,G] (required when ``spec.estimate``);
+    posterior_map float32 [B,G,G] (:meth:`TeamMemory.posterior_map`; required when
+    ``spec.posterior``).
     """
     spec = parse_observation(spec)
     if spec.estimate and estimate is None:
         raise ValueError(f"observation {spec.name} needs the source estimate map")
+    if spec.posterior and posterior_map is None:
+        raise ValueError(f"observation {spec.name} needs the source posterior map (posterior_map)")
+    # The team's source maps the view shows, in channel order, after the application's own.
+    extra = ([estimate] if spec.estimate else []) + ([posterior_map] if spec.posterior else [])
     b, n = positions.shape[:2]
     g = walls.shape[-1]
     if spec.view == "maps":
         c = len(observation_channels(spec))
         if out is None:
             out = torch.empty((b, n, c, g, g), dtype=torch.float32, device=positions.device)
-        if spec.estimate:  # build_observations writes only into a contiguous 5-channel buffer
+        if extra:  # build_observations writes only into a contiguous 5-channel buffer
             out[:, :, :5].copy_(build_observations(positions, reading_map, visit_map, walls))
-            out[:, :, 5].copy_(estimate.unsqueeze(1))
+            for i, source_map in enumerate(extra):
+                out[:, :, 5 + i].copy_(source_map.unsqueeze(1))
         else:
             build_observations(positions, reading_map, visit_map, walls, out=out)
         return out
     r = spec.radius
     side = 2 * r + 1
-    # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate; each agent
-    # sees them in a window centred on itself (grid.team_windows).
-    layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map)]
-    if spec.estimate:
-        layers.append(estimate)
+    # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate, posterior;
+    # each agent sees them in a window centred on itself (grid.team_windows).
+    layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map), *extra]
     cell = positions[..., 0] * g + positions[..., 1]  # [B,N]
     count = torch.zeros((b, g * g), device=positions.device).scatter_add_(
         1, cell, torch.ones(cell.shape, device=positions.device))

@@ -148,7 +148,8 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     observation = p(
         "observation",
         "",
-        "Observation variant a policy must take (maps, maps+estimate, egoR, egoR+estimate); "
+        "Observation variant a policy must take (maps, maps+estimate, egoR, egoR+estimate, each "
+        "optionally with +posterior); "
         "empty: the one each policy bundle's manifest names",
         True,
     )

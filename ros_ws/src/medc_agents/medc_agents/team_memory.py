@@ -68,8 +68,9 @@ class AgentMemory:
         from medc_training.envs.tl_observation import observe
 
         m = self.memory
-        estimate = m.estimate_map() if observation.estimate else None
-        obs = observe(observation, positions, m.reading_map, m.visit_map, walls.float(), estimate)
+        estimate, posterior = m.source_maps(observation)
+        obs = observe(observation, positions, m.reading_map, m.visit_map, walls.float(), estimate,
+                      posterior_map=posterior)
         team_mask = move_mask(positions, pad_blocked(walls), self._deltas)
         self.positions, self.walls, self.team_mask = positions, walls, team_mask
         return obs[0, index], team_mask[0, index]
