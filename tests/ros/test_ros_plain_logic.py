@@ -28,7 +28,8 @@ GEO10 = GridGeometry(10, 10, 1.0)
 
 @pytest.mark.parametrize(("noise", "observation"),
                          [(False, "maps"), (True, "maps"), (True, "maps+estimate"), (False, "ego4+estimate"),
-                          (True, "ego9+estimate"), (True, "ego3")])
+                          (True, "ego9+estimate"), (True, "ego3"), (True, "maps+posterior"),
+                          (True, "ego6+estimate+posterior")])
 def test_agent_observation_from_messages_equals_training_observation(noise, observation):
     """Messages -> TeamObserver gives bit-identical observations and masks to the env, every step,
     for every observation variant."""
@@ -36,7 +37,8 @@ def test_agent_observation_from_messages_equals_training_observation(noise, obse
     assert steps > 30
 
 
-@pytest.mark.parametrize("observation", ["maps", "maps+estimate", "ego4+estimate", "ego9+estimate"])
+@pytest.mark.parametrize("observation", ["maps", "maps+estimate", "ego4+estimate", "ego9+estimate",
+                                         "ego6+estimate+posterior"])
 def test_agent_observation_equals_training_observation_under_realistic_sensing(observation):
     """The same, under the realistic sensing preset: Poisson counts of an unknown strength and
     background, walls that block the line of sight (two wall segments), success within 1.1 cells;
@@ -187,10 +189,12 @@ def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_pat
     from medc_training.envs.tl_observation import observation_shape, parse_observation
     from medc_training.nets import make_actor_critic
 
-    spec = parse_observation("ego4+estimate")
-    ego = save_bundle(tmp_path / "ego.safetensors", make_actor_critic("mlp", observation_shape(spec, 10), 8),
-                      {"application": "target_localization", "observation": {"name": spec.name},
-                       "environment": {"grid": 10}})
+    def named_bundle(name: str):
+        net = make_actor_critic("mlp", observation_shape(parse_observation(name), 10), 8)
+        return save_bundle(tmp_path / f"{name}.safetensors", net, {"application": "target_localization",
+                           "observation": {"name": name}, "environment": {"grid": 10}})
+
+    ego = named_bundle("ego4+estimate")
     follow = PolicySlot((5, 10, 10), 8, grid=10)  # observation None: the bundle's own
     follow.swap(str(bundles["a"]))
     assert (follow.observation, follow.obs_shape) == ("maps", (5, 10, 10))
@@ -203,6 +207,16 @@ def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_pat
                        match="takes the observation 'ego4\\+estimate', but this environment produces 'maps'"):
         fixed.swap(str(ego))
     assert fixed.current.source == str(bundles["a"])
+    # A bundle that takes the posterior as well: followed, and refused where the estimate alone is made.
+    both = named_bundle("ego4+estimate+posterior")
+    follow.swap(str(both))
+    assert (follow.observation, follow.obs_shape) == ("ego4+estimate+posterior", (6, 9, 9))
+    estimate_only = PolicySlot((5, 9, 9), 8, observation="ego4+estimate")
+    estimate_only.swap(str(ego))
+    with pytest.raises(PolicyRejected, match="takes the observation 'ego4\\+estimate\\+posterior', but this "
+                                             "environment produces 'ego4\\+estimate'"):
+        estimate_only.swap(str(both))
+    assert estimate_only.current.source == str(ego)
 
 
 def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_path):
