@@ -202,6 +202,10 @@ class TrainConfig(RunConfig):
     """PPO clipping parameter ε."""
     ent_coef: float = 0.01
     """Entropy coefficient c2."""
+    lr_anneal_steps: int = 0
+    """Learning-rate schedule: 0 keeps ``lr`` constant (the paper's); N > 0 lowers it linearly from
+    ``lr`` at step 0 to 0 at training step N (CleanRL's annealing, with N the whole budget of a run
+    trained in ``--resume`` pieces), then keeps it at 0."""
     vf_coef: float = 0.5
     """Value-loss coefficient c1 (the paper leaves it at PPO's usual value)."""
     max_grad_norm: float = 0.5
@@ -229,8 +233,9 @@ class TrainConfig(RunConfig):
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
         self.check_run_fields(("num_envs", "horizon", "epochs", "minibatches", "eval_envs", "frl_every"))
         if (self.walls < 0 or self.total_steps < 0 or self.eval_steps < 0 or self.eval_every < 0
-                or self.eval_episodes < 0):
-            raise ValueError("walls, total_steps, eval_episodes, eval_steps and eval_every must be >= 0")
+                or self.eval_episodes < 0 or self.lr_anneal_steps < 0):
+            raise ValueError("walls, total_steps, eval_episodes, eval_steps, eval_every and lr_anneal_steps "
+                             "must be >= 0")
         if self.horizon < self.num_envs:
             raise ValueError(f"horizon ({self.horizon}) must be >= num_envs ({self.num_envs})")
         if not 0.0 <= self.expert_rate <= 1.0:

@@ -228,8 +228,13 @@ class Trainer:
 
     # ------------------------------------------------------------------ update -----
     def update(self) -> dict:
-        """``epochs`` passes of clipped PPO (and BC on IL samples) over the rollout."""
+        """``epochs`` passes of clipped PPO (and BC on IL samples) over the rollout, at the learning
+        rate of the schedule (``lr_anneal_steps``) for the steps trained so far."""
         cfg = self.cfg
+        if cfg.lr_anneal_steps > 0:
+            frac = max(0.0, 1.0 - self.global_step / cfg.lr_anneal_steps)
+            for group in self.optimizer.param_groups:
+                group["lr"] = cfg.lr * frac
         sums: dict[str, float] = {}
         count = 0
         for _ in range(cfg.epochs):

@@ -114,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=int, help="training steps per PPO update")
     p.add_argument("--epochs", type=int, help="PPO epochs per update")
     p.add_argument("--lr", type=float, help="Adam learning rate (default: the scale's)")
+    p.add_argument("--lr-anneal-steps", type=int, metavar="N",
+                   help="lower the learning rate linearly to 0 at training step N (the run's whole budget "
+                        "when it is trained in --resume pieces); default 0: constant")
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
     p.add_argument("--eval-episodes", type=int,
                    help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
@@ -146,7 +149,7 @@ def config_from_args(args: argparse.Namespace):
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
     for name in ("grid", "max_steps", "observation", "arch", "num_envs", "horizon", "epochs", "lr",
-                 "eval_every", "eval_episodes",
+                 "lr_anneal_steps", "eval_every", "eval_episodes",
                  "eval_steps", "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:
