@@ -30,7 +30,7 @@ from itertools import pairwise
 
 import torch
 
-from .declaration_eval import END_RULES, threshold_episodes
+from .declaration_eval import END_RULES, add_episode_arguments, study_policy, study_team, threshold_episodes
 
 #: The thresholds the study checks, in one play.
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999)
@@ -120,28 +120,15 @@ def _pair(text: str, kind=float) -> list:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m medc_training.calibration``: the study per (end rule, noise), printed and as JSON."""
-    from .bundle import load_bundle
-    from .controllers import CONTROLLERS, controller_policy
+    """``python -m medc_training.calibration``: the study per end rule, printed and as JSON."""
     from .envs import make_batched
     from .envs.names import TARGET_LOCALIZATION
 
     p = argparse.ArgumentParser(description="Reliability of the team's declarations on fixed episodes: "
                                             "the right rate per threshold and by declared mass.")
-    p.add_argument("policy", help="a policy bundle, 'random', or a controller's name "
-                                  f"({', '.join(CONTROLLERS)})")
-    p.add_argument("--episodes", type=int, default=400)
-    p.add_argument("--envs", type=int, default=32)
-    p.add_argument("--seed", type=int, default=12345)
-    p.add_argument("--rule", choices=END_RULES, action="append", help="end rule(s) (default: both)")
+    add_episode_arguments(p, episodes=400)
     p.add_argument("--noise", choices=("off", "on"), default="on",
                    help="paper-simple readings without / with Poisson noise (realistic always counts them)")
-    p.add_argument("--sensing", default="realistic")
-    p.add_argument("--grid", type=int, default=20)
-    p.add_argument("--agents", type=int, default=3)
-    p.add_argument("--walls", type=int, default=2)
-    p.add_argument("--max-steps", type=int, default=100)
-    p.add_argument("--radius", type=float, default=None, help="cells (default: the preset's success radius)")
     p.add_argument("--thresholds", type=lambda s: tuple(float(v) for v in s.split(",")), default=THRESHOLDS)
     p.add_argument("--levels", type=lambda s: _pair(s, int), default=None,
                    help="probe: NS,NB estimator levels")
@@ -155,14 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     thresholds = tuple(sorted(args.thresholds))
-    bundle = None if args.policy in (*CONTROLLERS, "random") else load_bundle(args.policy)
-    if bundle is not None:
-        attrs = dict(bundle.manifest.get("environment", {}))
-        if bundle.observation is not None:
-            attrs["observation"] = bundle.observation
-    else:
-        attrs = {"agents": args.agents, "walls": args.walls, "grid": args.grid, "max_steps": args.max_steps,
-                 "sensing": args.sensing}
+    bundle, attrs = study_team(args)
     sensing = attrs.get("sensing", "paper-simple")
     probe = {key: value for key, value in (("levels", args.levels), ("strength", args.strength),
                                            ("background", args.background), ("line", args.line),
@@ -177,8 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         if name == "paper-simple":
             options["noise"] = args.noise == "on"
         env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=args.seed, **options)
-        policy = None if args.policy == "random" else (
-            bundle if bundle is not None else controller_policy(args.policy, env))
+        policy = study_policy(args.policy, bundle, env)
         steps: list = []
         start = time.perf_counter()
         rows = threshold_episodes(env, policy, episodes=args.episodes, seed=args.seed, radius=args.radius,
@@ -188,12 +167,13 @@ def main(argv: list[str] | None = None) -> int:
                   "strength": row["strength"], "background": row["background"]}
                  for row in rows for t, m in zip(thresholds, row["declarations"])
                  if m is not None and not m["correct"] and t == max(thresholds)]
-        record = {"policy": args.policy, "rule": rule, "noise": env.noise, "sensing": env.sensing.to_dict(),
+        record = {"policy": args.policy, "rule": rule, "noise": env.noise,
+                  "sensing_model": env.sensing.to_dict(),
                   "radius": args.radius if args.radius is not None else env.sensing.success_radius,
                   "seed": args.seed, **env.attributes, **study,
                   "wrong_at_highest": wrong, "seconds": round(time.perf_counter() - start, 1)}
         print(f"# {args.policy} {env.sensing.name} levels={list(env.sensing.levels)} grid={env.grid} "
-              f"walls={args.walls} rule={rule} noise={env.noise} episodes={args.episodes} "
+              f"walls={env.attributes.get('walls')} rule={rule} noise={env.noise} episodes={args.episodes} "
               f"{' '.join(f'{k}={v}' for k, v in probe.items())} ({record['seconds']} s)")
         print(format_tables(study), flush=True)
         if args.out:

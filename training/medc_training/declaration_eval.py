@@ -174,37 +174,61 @@ def summarize(rows: list[dict]) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m medc_training.declaration_eval``: one JSON line per (end rule, noise)."""
-    from .bundle import load_bundle
-    from .controllers import CONTROLLERS, controller_policy
+def add_episode_arguments(p: argparse.ArgumentParser, episodes: int) -> None:
+    """The command-line arguments of a declaration study's episodes and team (this module's and
+    :mod:`medc_training.calibration`'s): the policy, the episodes, the end rules, the radius and the
+    scenario of a classical team (a bundle brings its own)."""
+    from .controllers import CONTROLLERS
 
-    p = argparse.ArgumentParser(description="Measure the team's declaration (the source localised) on fixed "
-                                            "episodes: declared cell's distance to the source, steps to it.")
-    p.add_argument("policy", help="a policy bundle, or a classical controller's name "
-                                  f"({', '.join(CONTROLLERS)})")
-    p.add_argument("--episodes", type=int, default=256)
+    p.add_argument("policy", help="a policy bundle, 'random' (uniformly random valid moves) or a classical "
+                                  f"controller's name ({', '.join(CONTROLLERS)})")
+    p.add_argument("--episodes", type=int, default=episodes)
     p.add_argument("--envs", type=int, default=32)
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--rule", choices=END_RULES, action="append", help="end rule(s) (default: both)")
-    p.add_argument("--noise", choices=("off", "on", "both"), default="both",
-                   help="paper-simple readings without / with Poisson noise (realistic always counts them)")
     p.add_argument("--radius", type=float, default=None, help="cells (default: the preset's success radius)")
-    p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD)
     p.add_argument("--agents", type=int, default=3)
     p.add_argument("--walls", type=int, default=2)
     p.add_argument("--grid", type=int, default=20)
     p.add_argument("--max-steps", type=int, default=100)
     p.add_argument("--sensing", default="realistic")
-    args = p.parse_args(argv)
-    bundle = None if args.policy in CONTROLLERS else load_bundle(args.policy)
+
+
+def study_team(args: argparse.Namespace) -> tuple[object | None, dict]:
+    """(bundle or None, environment options) for :func:`add_episode_arguments`' arguments: a bundle's
+    own scenario (and observation), or the arguments' for a classical team or random moves."""
+    from .bundle import load_bundle
+    from .controllers import CONTROLLERS
+
+    if args.policy in (*CONTROLLERS, "random"):
+        return None, {"agents": args.agents, "walls": args.walls, "grid": args.grid,
+                      "max_steps": args.max_steps, "sensing": args.sensing}
+    bundle = load_bundle(args.policy)
+    attrs = dict(bundle.manifest.get("environment", {}))
+    if bundle.observation is not None:
+        attrs["observation"] = bundle.observation
+    return bundle, attrs
+
+
+def study_policy(name: str, bundle, env):
+    """The team that plays a study on ``env``: the bundle, None (random moves) or the controller."""
+    from .controllers import controller_policy
+
     if bundle is not None:
-        attrs = dict(bundle.manifest.get("environment", {}))
-        if bundle.observation is not None:
-            attrs["observation"] = bundle.observation
-    else:
-        attrs = {"agents": args.agents, "walls": args.walls, "grid": args.grid, "max_steps": args.max_steps,
-                 "sensing": args.sensing}
+        return bundle
+    return None if name == "random" else controller_policy(name, env)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m medc_training.declaration_eval``: one JSON line per (end rule, noise)."""
+    p = argparse.ArgumentParser(description="Measure the team's declaration (the source localised) on fixed "
+                                            "episodes: declared cell's distance to the source, steps to it.")
+    add_episode_arguments(p, episodes=256)
+    p.add_argument("--noise", choices=("off", "on", "both"), default="both",
+                   help="paper-simple readings without / with Poisson noise (realistic always counts them)")
+    p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD)
+    args = p.parse_args(argv)
+    bundle, attrs = study_team(args)
     sensing = attrs.get("sensing", "paper-simple")
     choices = {"off": [False], "on": [True], "both": [False, True]}
     noises = [None] if sensing != "paper-simple" else choices[args.noise]
@@ -214,9 +238,8 @@ def main(argv: list[str] | None = None) -> int:
             if noise is not None:
                 options["noise"] = noise
             env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=args.seed, **options)
-            policy = bundle if bundle is not None else controller_policy(args.policy, env)
-            rows = declaration_episodes(env, policy, episodes=args.episodes, seed=args.seed,
-                                        radius=args.radius, threshold=args.threshold)
+            rows = declaration_episodes(env, study_policy(args.policy, bundle, env), episodes=args.episodes,
+                                        seed=args.seed, radius=args.radius, threshold=args.threshold)
             radius = args.radius if args.radius is not None else env.sensing.success_radius
             print(json.dumps({"policy": args.policy, "rule": rule, "noise": env.noise,
                               "sensing": env.sensing.name, "radius": radius, "threshold": args.threshold,
