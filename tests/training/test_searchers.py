@@ -84,10 +84,10 @@ def test_a_level_without_mass_is_pruned_and_changes_nothing():
 
 
 def test_the_quadrature_is_close_to_the_sum_over_every_count_at_realistic_rates():
-    """On the realistic preset (6 x 8 levels, rates up to ~2000), 6 count values against every count
-    up to 2500: within 5% of the expected entropy (the quadrature overestimates it by 2-4%, about
-    evenly across moves), for each move of an agent in an 8 x 8 area, and the same best move."""
-    sensing = parse_sensing("realistic")
+    """On the realistic preset's rates (up to ~2000; 6 x 8 levels), 6 count values against every
+    count up to 2500: within 5% of the expected entropy (the quadrature overestimates it by 2-4%,
+    about evenly across moves), for each move of an agent in an 8 x 8 area, and the same best move."""
+    sensing = parse_sensing({"name": "realistic", "levels": [6, 8]})
     g = 8
     log_post = _random_log_post(48, g, seed=3) * 3.0  # uneven mass
     belief = Belief.from_log_post(log_post, sensing)
@@ -104,7 +104,7 @@ def _two_agents_on_one_cell():
     """Two agents on one cell of an open 7 x 7 area; the source is in the top two rows (uniform),
     nothing else known: both would buy the same reading by moving north."""
     g = 7
-    sensing = parse_sensing("realistic")
+    sensing = parse_sensing({"name": "realistic", "levels": [6, 8]})
     log_post = torch.full((1, 48, g * g), -104.0)
     log_post[0, :, : 2 * g] = 0.0
     positions = torch.tensor([[[4, 3], [4, 3]]])

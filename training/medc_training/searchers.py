@@ -122,6 +122,9 @@ class Belief:
         if log_post.dim() == 2:  # known strength and background: one level
             log_post = log_post.unsqueeze(1)
         level_s, level_b = sensing.level_values(dev)
+        if log_post.shape[1] != len(level_s):
+            raise ValueError(f"the log posterior has {log_post.shape[1]} levels, the sensing model "
+                             f"{sensing.levels[0]} x {sensing.levels[1]} = {len(level_s)}")
         logp = log_post.masked_fill(log_post <= EXP_FLOOR, float("-inf"))
         logp = logp - torch.logsumexp(logp.flatten(1), 1).view(b, 1, 1)
         level_mass = torch.logsumexp(logp, 2).exp()  # [B, L]
