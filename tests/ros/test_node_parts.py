@@ -228,3 +228,79 @@ def test_status_intake_follows_the_gates_verdict(verdict, admitted, level, count
     assert (dropped["held status"] == 1) is (counted == "held status")
     assert (old == ["why"]) is (counted == "old")
     assert (restarts == [1] and health.events == [("status", WARN, "why")]) is (counted == "restart")
+
+
+# ---------------------------------------------------------------- the simulator node's parts
+def test_a_move_fault_is_logged_once_per_period_its_repeats_summed_up_then_ok():
+    from medc_sim.move_watch import MoveFaults
+
+    health, log, clock, timers = _Health(), _Log(), _Clock(), []
+    faults = MoveFaults(health, log, lambda period, tick: timers.append((period, tick)), clock, repeat_s=10.0)
+    assert timers == []  # no timer before the first fault
+    faults.report("conflict agent_0", "conflicting moves: first")
+    for n in range(3):
+        clock.now += 1.0
+        faults.report("conflict agent_0", f"conflicting moves: again {n}")
+    assert [period for period, _ in timers] == [1.0]
+    assert health.states["moves"] == (WARN, "conflicting moves: again 2")
+    clock.now += 7.0
+    faults.tick()  # 10 s after the first: the repeats summed up in one line
+    assert log.said("warning") == ["conflict agent_0: 3 more in the last 10 s (logged once per period; "
+                                   "the latest on /diagnostics)"]
+    assert health.level("moves") == WARN  # the last fault came 7 s ago
+    clock.now += 3.0
+    faults.tick()
+    assert health.states["moves"] == (OK, "no duplicate or conflicting move for 10 s")
+
+
+def _step_watch(**kw):
+    from medc_sim.move_watch import StepWatch
+    from medc_sim.moves import MoveBook
+
+    book = MoveBook(3, 8)
+    book.open(0, 0)
+    calls: list[str] = []
+    clock, perf = _Clock(), _Clock(0.0)
+    args = dict(send=lambda: calls.append("send"), advance=lambda: calls.append("advance"),
+                running=lambda: True, resend_s=0.5, stall_timeout_s=2.0, move_timeout_s=3.0, rate_hz=0.0)
+    args.update(kw)
+    steps = StepWatch(book, IDS, _Health(), _Log(), clock=clock, perf=perf, **args)
+    steps.opened()
+    steps.sent()
+    return steps, book, calls, clock, perf
+
+
+def test_a_step_without_moves_is_resent_every_resend_s_and_its_stall_reported_once():
+    steps, book, calls, clock, perf = _step_watch()
+    clock.now += 0.4
+    steps.resend_tick()
+    assert calls == [] and steps.resends == 0
+    for _ in range(5):  # every 0.5 s, the step re-sent (sent() as the node's send does)
+        clock.now += 0.5
+        perf.now += 0.5
+        steps.resend_tick()
+        steps.sent()
+    assert calls == ["send"] * 5 and steps.resends == 5
+    stalls = [s for s in steps.health.sets if s[0] == "team step"]
+    assert len(stalls) == 1 and stalls[0][1] == WARN
+    assert stalls[0][2].startswith("episode 0 step 0: no move from agent_0, agent_1, agent_2 after 2.0 s; "
+                                   "re-sending the step every 0.5 s")
+    book.open(0, 1)
+    steps.opened()  # the next step: the stall is over
+    assert steps.health.states["team step"] == (OK, "stepping again")
+
+
+def test_an_agent_without_a_move_is_taken_out_after_move_timeout_s_and_the_step_goes_on():
+    steps, book, calls, _, perf = _step_watch()
+    for agent in ("agent_0", "agent_1"):
+        book.offer(agent, 0, 0, 1, "s-" + agent)
+        steps.took()
+    book.known[2] = True  # agent_2 has moved before: no start-up grace
+    perf.now += 2.9
+    steps.move_timeout_tick()
+    assert calls == [] and not book.lost
+    perf.now += 0.2
+    steps.move_timeout_tick()
+    assert book.lost == {2} and calls == ["advance"] and steps.latency() is None
+    level, message = steps.health.states["team"]
+    assert level == WARN and message.startswith("agent_2 lost: no move within move_timeout_s (3 s)")
