@@ -304,3 +304,58 @@ def test_an_agent_without_a_move_is_taken_out_after_move_timeout_s_and_the_step_
     assert book.lost == {2} and calls == ["advance"] and steps.latency() is None
     level, message = steps.health.states["team"]
     assert level == WARN and message.startswith("agent_2 lost: no move within move_timeout_s (3 s)")
+
+
+def test_the_start_gate_counts_its_endpoints_matches_and_expires_after_its_timeout():
+    from medc_sim.start_gate import StartGate
+
+    def endpoint(subscriptions: int = 0, publishers: int = 0):
+        return SimpleNamespace(get_subscription_count=lambda: subscriptions,
+                               get_publisher_count=lambda: publishers)
+
+    clock = _Clock()
+    status = endpoint(subscriptions=3)  # the simulator's own watch and two agents
+    moves = [endpoint(publishers=1), endpoint(publishers=1), endpoint()]
+    gate = StartGate(status, moves, endpoint(subscriptions=0), 3, 1, timeout_s=30.0, clock=clock)
+    assert gate.missing() == ["2 of 3 expected status subscribers", "2 of 3 agents' move publishers",
+                              "0 of 1 expected episode-result readers"]
+    ready = StartGate(endpoint(subscriptions=4), [endpoint(publishers=1)] * 3, endpoint(subscriptions=1),
+                      3, 1, clock=clock)
+    assert ready.missing() == []
+    assert not gate.expired()
+    clock.now += 30.5
+    assert gate.expired()
+    with pytest.raises(ValueError, match="must be >= 0"):
+        StartGate(status, moves, endpoint(), -1, 0)
+
+
+def test_the_graph_watch_reports_another_driver_and_a_foreign_map_then_ok_again():
+    from medc_sim.watch import CLEAR_S, REPUBLISH_DELAY_S, GraphWatch
+
+    made: list = []
+    node = SimpleNamespace(create_subscription=lambda *a: made.append(a[1]),
+                           create_timer=lambda period, tick: made.append((period, tick)))
+    health, clock, republished = _Health(), _Clock(), []
+    watch = GraphWatch(node, None, "/medc", "mine", health, started=lambda: True, finished=lambda: False,
+                       republish=lambda: republished.append(clock.now), clock=clock)
+    assert made[:2] == ["episode", "map"] and [m[0] for m in made[2:]] == [1.0, 0.1]
+    watch.on_status(messages.status_msg(IDS, 0, 0, Time(sec=1), Time(sec=1), session="mine"))
+    assert health.sets == []  # its own status
+    watch.on_status(messages.status_msg(IDS, 0, 0, Time(sec=1), Time(sec=1), session="theirs"))
+    level, message = health.states["graph"]
+    assert level == WARN and message.startswith("another driver publishes on /medc/episode (sessions "
+                                                "theirs; this simulator is mine)")
+    own = messages.grid_msg(torch.zeros((4, 4), dtype=torch.bool), Time(sec=2), 1.0)
+    watch.own_map(own.info.map_load_time)
+    watch.on_map(own)
+    assert "map" not in health.states
+    watch.on_map(messages.grid_msg(torch.zeros((4, 4), dtype=torch.bool), Time(sec=3), 1.0))
+    assert health.level("map") == WARN and watch.foreign_maps == 1
+    watch._republish()
+    assert republished == []  # not yet: the agents see the foreign map first
+    clock.now += REPUBLISH_DELAY_S
+    watch._republish()
+    assert republished == [clock.now]
+    clock.now += CLEAR_S + 0.1
+    watch._clear()
+    assert health.states["graph"] == health.states["map"] == (OK, f"no other driver heard for {CLEAR_S:g} s")

@@ -164,7 +164,8 @@ class SimNode(Node):
         self.latencies: deque[float] = deque(maxlen=100_000)
 
         self._connect(cfg)
-        self.gate = StartGate(self, prm.wait_for, prm.results_readers)
+        self.gate = StartGate(self.status_pub, self.move_subs, self.results_pub, prm.wait_for,
+                              prm.results_readers)
         self._start_timers()
         self.get_logger().info(
             f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
@@ -210,7 +211,9 @@ class SimNode(Node):
                                resend_s=self.resend_s, stall_timeout_s=self.stall_timeout_s,
                                move_timeout_s=self.move_timeout_s, rate_hz=self.rate_hz)
         #: Other drivers' statuses and maps on this namespace (a second graph, a hostile map).
-        self.watch = GraphWatch(self)
+        self.watch = GraphWatch(self, ns, self.namespace_, self.session, self.health,
+                                started=lambda: self.started, finished=lambda: self.finished,
+                                republish=lambda: self.map_pub.publish(self.map_msg()))
         if self.mode == "stepped" and self.move_timeout_s > 0:
             self.create_timer(min(0.1, self.move_timeout_s / 4), self.steps.move_timeout_tick)
 
