@@ -359,3 +359,43 @@ def test_the_graph_watch_reports_another_driver_and_a_foreign_map_then_ok_again(
     clock.now += CLEAR_S + 0.1
     watch._clear()
     assert health.states["graph"] == health.states["map"] == (OK, f"no other driver heard for {CLEAR_S:g} s")
+
+
+def test_a_declaration_ends_the_episode_only_from_the_team_while_no_stranger_publishes():
+    from medc_common import contract
+    from medc_interfaces.msg import SourceDeclaration
+    from medc_sim.declarations import Declarations
+    from medc_sim.moves import MoveBook
+    from medc_sim.sim_core import SimConfig, SimCore
+
+    core = SimCore(SimConfig(agents=3, walls=0, grid=10, max_steps=50, seed=1, end_on="declaration"))
+    topic = contract.declaration_topic("/medc")
+    publishers = {contract.move_topic("/medc", a): [("/medc", f"medc_{a}")] for a in IDS}
+    publishers[topic] = [("/medc", "medc_agent_0"), ("/medc", "spy")]
+
+    def publishers_of(topic: str):
+        return [SimpleNamespace(node_namespace=ns, node_name=name) for ns, name in publishers.get(topic, [])]
+
+    log, health, finished, drops = _Log(), _Health(), [], []
+    node = SimpleNamespace(get_logger=lambda: log, get_publishers_info_by_topic=publishers_of,
+                           create_subscription=lambda *a: None)
+    declarations = Declarations(node, None, "/medc", IDS, core, MoveBook(3, 8), health, running=lambda: True,
+                                map_stamp=lambda: Time(sec=1), finish=finished.append,
+                                drop=lambda: drops.append(1))
+
+    def declaration(**kw):
+        fields = dict(agent_id="agent_0", episode=core.episode, step=core.step, map_stamp=Time(sec=1),
+                      cell_i=2, cell_j=3, mass=0.9)
+        return SourceDeclaration(**{**fields, **kw})
+
+    declarations.on_declaration(declaration())  # a node that moves no agent publishes declarations too
+    level, message = health.states["declarations"]
+    assert level == WARN and message.startswith("declaration refused: 1 node(s) that move no agent publish "
+                                                f"on {topic} (/medc/spy)")
+    assert drops == [1] and declarations.refused == 1 and finished == []
+    declarations.on_declaration(declaration(episode=core.episode + 1))  # not the episode in play
+    assert drops == [1] and log.said("warning")[-1].startswith("dropped declaration for episode 1 step 0")
+    publishers[topic].pop()  # the stranger is gone
+    declarations.on_declaration(declaration())
+    assert [r.episode for r in finished] == [0] and finished[0].ended_by == "declaration"
+    assert health.states["declarations"] == (OK, "declaration of agent_0 taken") and declarations.taken == 1

@@ -191,8 +191,13 @@ class SimNode(Node):
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
+        self.health = Health(self, "driver", self._summary)
+        # The declaration subscription comes before the move subscriptions: a declaration and the
+        # last move of its step that wait together are taken in that order.
         #: The team's declarations, when one may end an episode (medc_sim.declarations).
-        self.declarations = Declarations(self) if cfg.end_on != "source" else None
+        self.declarations = None if cfg.end_on == "source" else Declarations(
+            self, ns, self.namespace_, self.ids, self.core, self.book, self.health, running=self._running,
+            map_stamp=lambda: self._map_stamp, finish=self._finish_episode, drop=self._count_drop)
         self.move_subs = [
             self.create_subscription(
                 AgentMove,
@@ -202,12 +207,11 @@ class SimNode(Node):
             )
             for a in self.ids
         ]
-        self.health = Health(self, "driver", self._summary)
         #: The ``moves`` condition: duplicate agent ids, conflicting and foreign moves.
         self.move_faults = MoveFaults(self.health, self.get_logger(), self.create_timer)
         #: The step in play's timing; in stepped mode, its re-sends, stalls and agents taken out.
         self.steps = StepWatch(self.book, self.ids, self.health, self.get_logger(), send=self._send_state,
-                               advance=self._advance, running=lambda: self.started and not self.finished,
+                               advance=self._advance, running=self._running,
                                resend_s=self.resend_s, stall_timeout_s=self.stall_timeout_s,
                                move_timeout_s=self.move_timeout_s, rate_hz=self.rate_hz)
         #: Other drivers' statuses and maps on this namespace (a second graph, a hostile map).
@@ -319,6 +323,13 @@ class SimNode(Node):
             self.latencies.append(latency)
         if self.mode == "stepped" and self.rate_hz <= 0 and self.book.complete:
             self._advance()
+
+    def _running(self) -> bool:
+        """Whether the simulator has started and not finished."""
+        return self.started and not self.finished
+
+    def _count_drop(self) -> None:
+        self.dropped += 1
 
     @property
     def resends(self) -> int:
