@@ -16,17 +16,21 @@ path. A bundle that
 fails validation is refused (the parameter set fails with the reason) and the old one keeps
 running. No file and no message can take the node down: every exception of a swap (a
 RecursionError or MemoryError from a hostile file included) ends as a logged refusal.
+
+:class:`AgentNode` owns its parts, each built from what it reads and reports to and tested without a
+node: the team observer and guards (medc_agents.team_state, medc_agents.guard), the policy slot and
+its swaps (medc_agents.policy_swaps), the team's estimate (medc_agents.estimate), the map faults
+(medc_agents.map_faults), the watches over its team (medc_agents.team_watch) and its moves out
+(:class:`MoveOut`).
 """
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
 from medc_common.health import Health, run_id
@@ -53,10 +57,19 @@ from medc_agents.policy import (
     read_policy_manifest,
     shown,
 )
-from medc_agents.policy_swaps import PolicySwaps, refusal_reason
+from medc_agents.policy_swaps import BridgeFetch, PolicySwaps, refusal_reason
 from medc_agents.team_messages import EDGE_TOLERANCE_CELLS, stamp_key
 from medc_agents.team_state import TeamObserver
-from medc_agents.team_watch import TeamWatch
+from medc_agents.team_watch import (
+    ClaimWatch,
+    DriverWatch,
+    NoteLog,
+    OldStatuses,
+    ReadingWatch,
+    StallWatch,
+    StatusIntake,
+    TeamWatch,
+)
 
 #: Moves a target-localization agent chooses from (N, NE, E, ..., NW): the environment's own.
 NUM_ACTIONS = len(ACTIONS)
@@ -134,9 +147,9 @@ def default_node_name(agent_id: str | None) -> str:
     return "medc_agent"
 
 
-def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameters:
-    """Declare every parameter of an agent node on ``node`` and return their values (ValueError for a
-    bad sensing preset)."""
+def _declare_scenario(node: Node, agent_id: str | None) -> dict:
+    """Declare the parameters of an agent node that say its team, scenario, registry and policy limits
+    (the first part of :func:`declare_agent_parameters`); returns their values by AgentParameters field."""
     p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
     agent_id = p(
         "agent_id", agent_id or "agent_0", "This agent's id: agent_<i>, i = env index", True
@@ -183,6 +196,18 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         "longer (seconds) is refused",
         True,
     )
+    return dict(
+        agent_id=agent_id, namespace=namespace, agents=int(num_agents), grid=int(grid),
+        observation=str(observation), resolution=float(resolution), sensing=sensing,
+        bridge_service=bridge_service, application=application, threads=int(threads),
+        max_forward_s=float(max_forward_s))
+
+
+def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameters:
+    """Declare every parameter of an agent node on ``node`` and return their values (ValueError for a
+    bad sensing preset)."""
+    scenario = _declare_scenario(node, agent_id)
+    p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
     stall_timeout_s = float(p(
         "stall_timeout_s",
         STALL_TIMEOUT_S,
@@ -228,10 +253,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
         f"({', '.join(CONTROLLERS)}; needs agents and grid); set it to swap policies")
     return AgentParameters(
-        agent_id=agent_id, namespace=namespace, agents=int(num_agents), grid=int(grid),
-        observation=str(observation), resolution=float(resolution), sensing=sensing,
-        bridge_service=bridge_service, application=application, threads=int(threads),
-        max_forward_s=float(max_forward_s), stall_timeout_s=stall_timeout_s, lost_timeout_s=lost_timeout_s,
+        **scenario, stall_timeout_s=stall_timeout_s, lost_timeout_s=lost_timeout_s,
         session_hold_s=session_hold_s, recover_s=recover_s, edge_tolerance=edge_tolerance, noise=noise,
         rule_out=rule_out, policy=str(initial))
 
@@ -262,16 +284,56 @@ class AgentParameters:
     policy: str
 
 
-class AgentNode(TeamWatch, PolicySwaps, Node):
-    """One agent of the team (see the module docstring)."""
+class MoveOut:
+    """This agent's moves on its move topic: each decided step's move, the last one published again
+    when the driver re-sends its step, and the inputs of a step the policy failed on kept to decide
+    again then."""
 
-    def __init__(
-        self,
-        node_name: str | None = None,
-        agent_id: str | None = None,
-        feed: TeamFeed | None = None,
-        **kwargs,
-    ) -> None:
+    def __init__(self, agent_id: str, sender: str, publish: Callable[[AgentMove], None],
+                 stamp: Callable[[], object]) -> None:
+        """``sender``: the node's per-run id; ``publish``: sends a move; ``stamp``: the time now, as a
+        message stamp."""
+        self.agent_id = agent_id
+        self.sender = sender
+        self.publish_msg = publish
+        self.stamp = stamp
+        self.last: AgentMove | None = None
+        #: (obs, mask, tick) the policy failed on, until a move is published.
+        self.unanswered: tuple | None = None
+        #: Moves decided (a move published again is not counted).
+        self.count = 0
+
+    def publish(self, tick, action: int) -> None:
+        """Publish the move ``action`` for ``tick``."""
+        self.unanswered = None
+        move = AgentMove()
+        move.header.stamp = self.stamp()
+        move.header.frame_id = contract.MAP_FRAME
+        move.agent_id = self.agent_id
+        move.sender = self.sender
+        move.episode, move.step, move.action = tick.episode, tick.step, int(action)
+        self.last = move
+        self.count += 1
+        self.publish_msg(move)
+
+    def again(self, tick) -> tuple | None:
+        """``tick`` is re-sent by the driver (it has not got every move for it: ours may have been
+        lost, or the policy failed on it): publish its move again, or return the inputs the policy
+        failed on to decide again (None when there are none)."""
+        last = self.last
+        if last is not None and (last.episode, last.step) == (tick.episode, tick.step):
+            self.publish_msg(last)
+            return None
+        if self.unanswered is not None and self.unanswered[2] == tick:
+            return self.unanswered
+        return None
+
+
+class AgentNode(Node):
+    """One agent of the team, made of the parts the module docstring lists."""
+
+    def __init__(self, node_name: str | None = None, agent_id: str | None = None,
+                 feed: TeamFeed | None = None, **kwargs) -> None:
         """``feed``: take the team's messages from a :class:`TeamFeed` shared by the agent nodes of
         this process, instead of subscribing to them itself.
 
@@ -303,25 +365,17 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.lost_watch = guard.LostWatch(num_agents, self.observer.index, prm.lost_timeout_s)
         self.gate = guard.StatusGate(prm.session_hold_s, prm.recover_s)
         self.reading_check = guard.ReadingCheck(self.observer.sensing, num_agents)
-        self._pending_since = (None, 0.0)  # (tick, since when it waits)
         shape = observation_shape(self.observer.observation, grid)
         self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
-        self.decisions = 0
-        self.swap_listeners: list[Callable[[str, str | None], None]] = []
-        self._last_move: AgentMove | None = None
-        self._unanswered: tuple | None = None  # (obs, mask, tick) the policy failed on
-        self._fetch_client = None
-        #: Stall reports logged (one per stalled step), for tests and monitoring.
-        self.stalls_reported = 0
-        self._stall_since: tuple[object, float] | None = None  # (what, since when)
-        self._stall_report: tuple[object, str] | None = None  # (what, report) once logged
-        self._noted: set[str] = set()
-        self._old_statuses = 0  # statuses below the step answered since the last summary
-        self._old_since = 0.0
+        self.old_statuses = OldStatuses(self.get_logger(), self.dropped_by, OLD_STATUS_SUMMARY_S)
+        fetch = BridgeFetch(self.create_client, self.bridge_service, self.agent_id, self.get_logger())
+        self.swaps = PolicySwaps(self.slot, self.observer, self.get_logger(), self.dropped_by, fetch)
+        #: Called with (source, None) after each swap and (source, reason) after each refusal.
+        self.swap_listeners = self.swaps.listeners
 
         try:
             self.slot.swap(str(initial))
@@ -332,40 +386,79 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
                                f"{self.observer.observation.name}), sensing {sensing}")
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_on_set_parameters_callback(self.swaps.on_set_parameters)
 
         self._connect(feed, num_agents)
 
     def _connect(self, feed: TeamFeed | None, num_agents: int) -> None:
-        """Publishers, subscriptions (the team's messages directly or through ``feed``) and timers."""
-        ns = self.names_ns
+        """Publishers, the watches, subscriptions (the team's messages directly or through ``feed``)
+        and timers."""
+        ns, log = self.names_ns, self.get_logger()
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
+        self.moves = MoveOut(self.agent_id, self.sender, self.move_pub.publish,
+                             lambda: self.get_clock().now().to_msg())
         self.health = Health(self, self.agent_id, self._summary)
+        self.statuses = StatusIntake(self.gate, self.health, self.dropped_by, self.old_statuses.drop,
+                                     self.observer.restart)
+        self.readings = ReadingWatch(self.reading_check, self.health)
         #: The ``map`` condition: maps refused or from elsewhere, and the checks of maps taken.
-        self.map_faults = MapFaults(self.observer, self.health, self.get_logger())
+        self.map_faults = MapFaults(self.observer, self.health, log)
         # Another process publishing moves as this agent (a duplicate id) is reported here too.
-        self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self._on_own_move,
+        self.claims = ClaimWatch(self.agent_id, self.sender, self.health)
+        self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self.claims.on_move,
                                  contract.RELIABLE_QOS)
         #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
         self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing,
                                      self.lost_watch.timeout_s, num_agents)
+        self.team = TeamWatch(self.agent_id, self.observer, self.lost_watch, self.estimate, self.health, log,
+                              self._maybe_decide)
+        self.stalls = StallWatch(self.observer, self.health, self.stall_timeout_s,
+                                 lambda: self.slot.current is not None)
+        self.drivers = DriverWatch(self.gate, self.health, contract.status_topic(self.namespace_))
+        self.notes = NoteLog(self.observer, self.health)
         if feed is None:
             subscribe_team(self, ns, num_agents, [self])
         else:
-            if (feed.namespace, feed.num_agents) != (self.namespace_, num_agents):
-                raise ValueError(
-                    f"team feed serves {feed.num_agents} agents on {feed.namespace}, "
-                    f"agent {self.agent_id} is one of {num_agents} on {self.namespace_}"
-                )
-            feed.agents.append(self)
+            feed.add(self, num_agents)
         for topic in (contract.policy_topic(ns, self.agent_id), contract.team_policy_topic(ns)):
-            self.create_subscription(String, topic, self._on_policy_msg, contract.LATCHED_QOS)
+            self.create_subscription(String, topic, self.swaps.on_message, contract.LATCHED_QOS)
         if self.stall_timeout_s > 0:
             self.create_timer(min(0.25, self.stall_timeout_s / 4), self._watch)
 
-    # -- stalls and diagnostics ----------------------------------------------------------------
+    def swap_policy(self, source: str) -> str:
+        """Validate and run the bundle at ``source``; returns its description (PolicyRejected: refused,
+        the previous policy keeps running)."""
+        return self.swaps.swap(source)
+
+    @property
+    def stalls_reported(self) -> int:
+        """Stall reports logged (one per stalled step), for tests and monitoring."""
+        return self.stalls.reported
+
+    def _watch(self) -> None:
+        """Take silent teammates out; report, once, a team step this agent has not been able to
+        decide for stall_timeout_s (and the other watches' due reports)."""
+        self.notes.flush()
+        self.team.check_lost()
+        self.old_statuses.sum_up()
+        self.map_faults.check_due()
+        self.claims.check()
+        self.drivers.check()
+        self.stalls.check()
+
+    def _summary(self) -> dict[str, str]:
+        o = self.observer
+        return {"namespace": self.namespace_, "sender": self.sender, "session": self.gate.session or "",
+                "episode": str(o.clock.episode), "step": str(o.clock.step),
+                "decisions": str(self.moves.count), "dropped": str(self.dropped),
+                "old_statuses": str(self.dropped_by["old status"]),
+                "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
+                "policy": self.slot.current.description if self.slot.current is not None else "none",
+                "estimate": ("publishing" if self.estimate.publishing else "standby") if self.estimate.enabled
+                else "off"}
+
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
         try:
@@ -373,7 +466,7 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         except ValueError as exc:
             self._drop("pose", exc)
             return
-        self._heard("pose", agent_id)
+        self.team.heard("pose", agent_id)
         self._maybe_decide()
 
     def on_reading(self, agent_id: str, msg: RadiationReading) -> None:
@@ -382,13 +475,8 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
         except ValueError as exc:
             self._drop("radiation", exc)
             return
-        self._heard("reading", agent_id)
-        warning = self.reading_check.check(self.observer.index_of(agent_id), agent_id, float(msg.value))
-        if warning:
-            self.health.set("readings", DiagnosticStatus.WARN, warning)
-        elif not self.reading_check.warned and self.health.level("readings") != DiagnosticStatus.OK:
-            self.health.set("readings", DiagnosticStatus.OK, f"the last {guard.LOW_WINDOW} readings of every "
-                            "agent warned about are plausible again")
+        self.team.heard("reading", agent_id)
+        self.readings.take(self.observer.index_of(agent_id), agent_id, float(msg.value))
         self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
@@ -399,31 +487,13 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             self.dropped_by["map"] += 1
             self.map_faults.refused(key, exc)
             return
-        self._flush_notes()
+        self.notes.flush()
         self.map_faults.taken(key)
         self._maybe_decide()
 
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
         self.get_logger().warning(f"dropped {what} message: {exc}")
-
-    def _old_status(self, why: str) -> None:
-        """A status below the step answered (normal: a re-send that crossed the next step): logged
-        at DEBUG, counted, and summed up at most every OLD_STATUS_SUMMARY_S seconds."""
-        self.dropped_by["old status"] += 1
-        self._old_statuses += 1
-        self.get_logger().debug(f"dropped status: {why}")
-
-    def _sum_old_statuses(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if self._old_statuses and (force or now - self._old_since >= OLD_STATUS_SUMMARY_S):
-            self.get_logger().info(
-                f"{self._old_statuses} statuses below the step answered dropped in the last "
-                f"{now - self._old_since:.0f} s (a driver's re-sends that crossed its next step: normal; "
-                f"{self.dropped_by['old status']} in all)")
-            self._old_statuses = 0
-        if not self._old_statuses:
-            self._old_since = now
 
     def on_status(self, msg: EpisodeStatus, defer: bool = False):
         """Take an episode status; decide if everything for the step is there.
@@ -436,35 +506,18 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
             listed = list(msg.agent_ids)[:8]
             self._drop("status", ValueError(f"status lists agents {listed}, this team is {o.ids}"))
             return None
-        c = o.clock
-        verdict, why = self.gate.admit(msg, c.episode, c.map, c.step, stamp_key(msg.map_stamp))
-        if verdict == "hold":
-            self.dropped_by["held status"] += 1
-            if why:
-                self.health.set("status", DiagnosticStatus.WARN, why)
+        if not self.statuses.admit(msg, o.clock):
             return None
-        if verdict == "drop":
-            self._old_status(why)
-            return None
-        if verdict == "restart":
-            self.health.event("status", DiagnosticStatus.WARN, why)
-            o.restart()
-        elif self.health.level("status") != DiagnosticStatus.OK:
-            self.health.set("status", DiagnosticStatus.OK, "following the driver's statuses")
         try:
             tick = self.observer.add_status(msg)
         except ValueError as exc:
             self._drop("status", exc)
             return
-        self._readmit()
+        self.team.readmit()
         if tick is not None and self.observer.answered_tick(tick):
-            # The simulator re-sent a step it has not got every move for: ours may have been lost,
-            # or the policy failed on it.
-            last = self._last_move
-            if last is not None and (last.episode, last.step) == (tick.episode, tick.step):
-                self.move_pub.publish(last)
-            elif self._unanswered is not None and self._unanswered[2] == tick:
-                self._decide(*self._unanswered)
+            unanswered = self.moves.again(tick)
+            if unanswered is not None:
+                self._decide(*unanswered)
             return None
         if defer:
             if not self._ready():
@@ -500,39 +553,31 @@ class AgentNode(TeamWatch, PolicySwaps, Node):
                 f"policy failed on episode {tick.episode} step {tick.step}: "
                 f"{refusal_reason(PolicyRejected(exc))}"
             )
-            self._unanswered = (obs, mask, tick)
+            self.moves.unanswered = (obs, mask, tick)
             return
         self.publish_move(tick, action)
 
     def publish_move(self, tick, action: int) -> None:
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""
-        self._unanswered = None
-        self._stall_over(tick)
+        self.stalls.over(tick)
         self.map_faults.decided(tick)
-        self._flush_notes()
+        self.notes.flush()
         try:  # the estimate goes out before the move: a driver ending on the declaration sees it first
             self.estimate.on_step(self.observer, tick)
         except Exception as exc:  # never let the estimate cost the team its move
             self.get_logger().error(f"team estimate not published for episode {tick.episode} step "
                                     f"{tick.step}: {type(exc).__name__}: {printable(str(exc), 300)}")
         try:
-            self._report_silent(tick)
+            self.team.report_silent(tick)
         except Exception as exc:  # a report must never cost the team its move
             self.get_logger().error(f"silent teammates not checked: {type(exc).__name__}")
-        move = AgentMove()
-        move.header.stamp = self.get_clock().now().to_msg()
-        move.header.frame_id = contract.MAP_FRAME
-        move.agent_id = self.agent_id
-        move.sender = self.sender
-        move.episode, move.step, move.action = tick.episode, tick.step, int(action)
-        self._last_move = move
-        self.decisions += 1
-        self.move_pub.publish(move)
+        self.moves.publish(tick, action)
 
     @property
     def dropped(self) -> int:
         """Messages dropped as invalid, in all."""
         return sum(self.dropped_by.values())
+
 
 def subscribe_team(node: Node, namespace: str | None, num_agents: int, agents: list[AgentNode]) -> None:
     """Subscribe ``node`` to the team's poses, readings, map and status, for ``agents`` (names under
@@ -612,3 +657,12 @@ class TeamFeed(Node):
         self.num_agents = num_agents
         self.agents: list[AgentNode] = []
         subscribe_team(self, contract.RELATIVE, num_agents, self.agents)
+
+    def add(self, agent: AgentNode, num_agents: int) -> None:
+        """Feed ``agent`` (one of ``num_agents`` in its namespace; ValueError for another team)."""
+        if (self.namespace, self.num_agents) != (agent.namespace_, num_agents):
+            raise ValueError(
+                f"team feed serves {self.num_agents} agents on {self.namespace}, "
+                f"agent {agent.agent_id} is one of {num_agents} on {agent.namespace_}"
+            )
+        self.agents.append(agent)

@@ -11,18 +11,21 @@ pay twice (the nonce is fixed). Reverts with the contracts' custom errors become
 :class:`ContractRevert` with the error's name, its arguments and a readable message.
 
 Every chain call (a read, a contract call, or one transaction from signing to its receipt) has
-one total deadline, :attr:`ChainClient.deadline` seconds (default :data:`DEFAULT_DEADLINE`),
-retries included: each HTTP request's timeout is cut to what is left of it, and web3's own
-HTTP retries are switched off so they never nest inside the client's.
+one total deadline, the client's :class:`RetryPolicy`'s ``deadline`` seconds (default
+:data:`DEFAULT_DEADLINE`), retries included: each HTTP request's timeout is cut to what is left of
+it, and web3's own HTTP retries are switched off so they never nest inside the client's. The client
+owns its retry policy and its :class:`TxSender` (signed bytes to a receipt), each built from what
+it needs and tested without a chain.
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
 import http.client
 import json
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
@@ -232,24 +235,6 @@ class SignedTx:
     value: int
 
 
-class _Deadline:
-    """The time left of the current chain call (nested operations share the outermost one)."""
-
-    def __init__(self, client: RetryPolicy) -> None:
-        self.client = client
-        self.outer = False
-
-    def __enter__(self) -> _Deadline:
-        if self.client._until is None:
-            self.client._until = time.monotonic() + self.client.deadline
-            self.outer = True
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.outer:
-            self.client._until = None
-
-
 #: Largest JSON-RPC answer read (a page of logs or a block is far smaller); refused past it.
 MAX_RPC_ANSWER_BYTES = 32 << 20
 #: Deepest nesting of a JSON-RPC answer parsed (web3's answers nest 5 levels or so).
@@ -260,10 +245,10 @@ class MalformedAnswer(ChainError):
     """The node's answer is too large, not JSON, or not what the call returns; never retried."""
 
 
-def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
+def _deadline_provider(url: str, timeout: float, retry: RetryPolicy) -> Any:
     """An HTTPProvider without web3's retries whose every request, headers and body included,
-    ends within what is left of the client's deadline (or ``timeout``), and whose answers are
-    size-capped and depth-checked before parsing (:mod:`medc_registry.bounded_http`)."""
+    ends within what is left of the ``retry`` policy's current call (or ``timeout``), and whose
+    answers are size-capped and depth-checked before parsing (:mod:`medc_registry.bounded_http`)."""
     from web3 import HTTPProvider
 
     from . import bounded_http
@@ -273,7 +258,7 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
 
     class DeadlineHTTPProvider(HTTPProvider):
         def _make_request(self, method: str, request_data: bytes) -> bytes:
-            left = client_ref[0].time_left() if client_ref else None
+            left = retry.time_left()
             until = time.monotonic() + (timeout if left is None else max(0.05, min(timeout, left)))
             headers = dict(self.get_request_headers())
             try:
@@ -307,77 +292,98 @@ def _deadline_provider(url: str, timeout: float, client_ref: list) -> Any:
     return DeadlineHTTPProvider(url, request_kwargs={"timeout": timeout}, exception_retry_configuration=None)
 
 
+#: The options of a RetryPolicy a ChainClient's constructors take.
+RETRY_OPTIONS = ("retries", "backoff", "deadline", "is_transient", "clock", "sleep")
+
+
 class RetryPolicy:
-    """One total deadline per chain call, retries and backoff included (the base of ChainClient).
+    """One total deadline per chain call, retries and backoff included (a ChainClient's).
 
     ``deadline``: seconds one call may take in all; ``retries``: most extra attempts within it;
-    ``backoff``: the first pause between attempts, doubled after each.
+    ``backoff``: the first pause between attempts, doubled after each; ``is_transient``: whether an
+    error is worth another attempt; ``clock`` and ``sleep``: the time (seconds) and the pause.
     """
 
-    def __init__(self, *, retries: int, backoff: float, deadline: float) -> None:
+    def __init__(self, *, retries: int = 3, backoff: float = 0.25, deadline: float = DEFAULT_DEADLINE,
+                 is_transient: Callable[[BaseException], bool] | None = None,
+                 clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], Any] = time.sleep) -> None:
         if not (isinstance(deadline, int | float) and 0 < deadline < float("inf")):
             raise ValueError(f"deadline must be a positive number of seconds, got {deadline!r}")
         self.retries = retries
         self.backoff = backoff
         self.deadline = float(deadline)
+        self.is_transient = is_transient or _is_transient
+        self.clock = clock
+        self.sleep = sleep
         self._until: float | None = None
+
+    @contextlib.contextmanager
+    def window(self) -> Iterator[None]:
+        """One chain call: operations nested in it share the outermost one's deadline."""
+        outer = self._until is None
+        if outer:
+            self._until = self.clock() + self.deadline
+        try:
+            yield
+        finally:
+            if outer:
+                self._until = None
 
     def time_left(self) -> float | None:
         """Seconds left of the current call's deadline (None outside a call)."""
-        return None if self._until is None else self._until - time.monotonic()
+        return None if self._until is None else self._until - self.clock()
 
-    def _expired(self) -> bool:
+    def expired(self) -> bool:
         left = self.time_left()
         return left is not None and left <= 0
 
-    def _pause(self, attempt: int) -> None:
+    def pause(self, attempt: int) -> None:
         """Back off before the next attempt, never past the deadline."""
         left = self.time_left()
         delay = self.backoff * 2**attempt
-        time.sleep(max(0.0, delay if left is None else min(delay, left)))
+        self.sleep(max(0.0, delay if left is None else min(delay, left)))
 
-    def _retry(self, op: Callable[[], Any], what: str) -> Any:
+    def call(self, op: Callable[[], Any], what: str) -> Any:
+        """``op()``, tried again after each transient error while attempts and time are left."""
         last: BaseException | None = None
-        with _Deadline(self):
+        with self.window():
             for attempt in range(self.retries + 1):
                 try:
                     return op()
                 except Exception as exc:
-                    if not _is_transient(exc):
+                    if not self.is_transient(exc):
                         raise
                     last = exc
-                if self._expired():
+                if self.expired():
                     raise ChainError(f"could not {what} within the {self.deadline:g} s deadline: {last}")
                 if attempt < self.retries:
-                    self._pause(attempt)
+                    self.pause(attempt)
         raise ChainError(f"could not {what} after {self.retries + 1} attempts: {last}")
 
 
-class ChainClient(RetryPolicy):
+class ChainClient:
     """Signs and sends transactions to the MEDC contracts; reads their state.
 
-    Use :meth:`embedded` or :meth:`connect` rather than the constructor. ``deadline`` is the total
-    time in seconds one call may take (retries included); ``retries`` caps the attempts within it.
+    Use :meth:`embedded` or :meth:`connect` rather than the constructor. ``retry``: the
+    :class:`RetryPolicy` of its calls, or ``retry_options`` for one (``deadline``: the total time
+    in seconds one call may take, retries included; ``retries`` caps the attempts within it;
+    ``backoff``).
     """
 
-    def __init__(
-        self,
-        w3: Web3,
-        private_keys: Sequence[str],
-        *,
-        description: str,
-        retries: int = 3,
-        receipt_timeout: float = 120.0,
-        backoff: float = 0.25,
-        deadline: float = DEFAULT_DEADLINE,
-    ) -> None:
+    def __init__(self, w3: Web3, private_keys: Sequence[str], *, description: str,
+                 receipt_timeout: float = 120.0, retry: RetryPolicy | None = None,
+                 **retry_options: Any) -> None:
         if not private_keys:
             raise ValueError("at least one private key is needed to sign transactions")
-        super().__init__(retries=retries, backoff=backoff, deadline=deadline)
+        if retry is not None and retry_options:
+            raise TypeError(f"pass a retry policy or its options, not both ({', '.join(retry_options)})")
+        self.retry = retry if retry is not None else RetryPolicy(**retry_options)
         self.w3 = w3
         self.accounts = [Account.from_key(k) for k in private_keys]
         self.description = description
-        self.receipt_timeout = receipt_timeout
+        #: Sends signed bytes and waits for their receipt.
+        self.txs = TxSender(w3, self.retry, receipt_timeout)
         #: When set, transactions use this gas limit after a revert check by eth_call.
         self.fixed_gas: int | None = None
 
@@ -409,13 +415,15 @@ class ChainClient(RetryPolicy):
 
         if not url.startswith(("http://", "https://")):
             raise ValueError(f"JSON-RPC URL must start with http:// or https://, got {url!r}")
-        client_ref: list[ChainClient] = []
-        w3 = Web3(_deadline_provider(url, timeout, client_ref))
+        retry = kwargs.pop("retry", None)
+        if retry is None:  # the policy's options, if any, are the client's
+            retry = RetryPolicy(**{k: kwargs.pop(k) for k in RETRY_OPTIONS if k in kwargs})
+        w3 = Web3(_deadline_provider(url, timeout, retry))
         if poa:
             w3.middleware_onion.inject(ExtraDataToPOAMiddleware, layer=0)
-        client = cls(w3, private_keys, description=f"JSON-RPC {url}" + (" (PoA)" if poa else ""), **kwargs)
-        client_ref.append(client)
-        client._retry(lambda: w3.eth.chain_id, f"reach the node at {url}")
+        client = cls(w3, private_keys, description=f"JSON-RPC {url}" + (" (PoA)" if poa else ""), retry=retry,
+                     **kwargs)
+        retry.call(lambda: w3.eth.chain_id, f"reach the node at {url}")
         return client
 
     # ------------------------------------------------------------ accounts
@@ -438,7 +446,8 @@ class ChainClient(RetryPolicy):
 
     def balance(self, address: str) -> int:
         """Balance in wei."""
-        return self._retry(lambda: self.w3.eth.get_balance(to_checksum_address(address)), "read a balance")
+        return self.retry.call(lambda: self.w3.eth.get_balance(to_checksum_address(address)),
+                               "read a balance")
 
     # ------------------------------------------------------------ contracts
     def contract(self, name: str, address: str | None = None) -> Any:
@@ -457,7 +466,8 @@ class ChainClient(RetryPolicy):
 
     def has_code(self, address: str) -> bool:
         """Whether a contract is deployed at ``address``."""
-        return len(self._retry(lambda: self.w3.eth.get_code(to_checksum_address(address)), "read code")) > 0
+        code = self.retry.call(lambda: self.w3.eth.get_code(to_checksum_address(address)), "read code")
+        return len(code) > 0
 
     def call(self, fn: Any, sender: int | str | None = None, value: int = 0) -> Any:
         """Run a view / simulated call; reverts raise :class:`ContractRevert`."""
@@ -467,7 +477,7 @@ class ChainClient(RetryPolicy):
         if value:
             tx["value"] = value
         try:
-            return self._retry(lambda: fn.call(tx), "call a contract")
+            return self.retry.call(lambda: fn.call(tx), "call a contract")
         except ChainError:
             raise
         except Exception as exc:
@@ -480,13 +490,13 @@ class ChainClient(RetryPolicy):
         failing call raises :class:`ContractRevert` without spending anything. Transient node
         failures are retried with the same signed transaction. One deadline covers it all.
         """
-        with _Deadline(self):
+        with self.retry.window():
             signed = self.sign(fn, sender, value, gas)
             return self.send_raw(signed.raw, fn=fn, sender=signed.sender, value=value)
 
     def sign(self, fn: Any, sender: int | str = 0, value: int = 0, gas: int | None = None) -> SignedTx:
         """Check ``fn`` for a revert, then build and sign it (nothing is sent)."""
-        with _Deadline(self):
+        with self.retry.window():
             return self._sign(fn, sender, value, gas)
 
     def _sign(self, fn: Any, sender: int | str, value: int, gas: int | None) -> SignedTx:
@@ -497,13 +507,13 @@ class ChainClient(RetryPolicy):
                 self.call(fn, sender=acct.address, value=value)
             gas = self.fixed_gas
         try:
-            params["nonce"] = self._retry(
+            params["nonce"] = self.retry.call(
                 lambda: self.w3.eth.get_transaction_count(acct.address, "pending"), "read the nonce"
             )
-            params["chainId"] = self._retry(lambda: self.w3.eth.chain_id, "read the chain id")
+            params["chainId"] = self.retry.call(lambda: self.w3.eth.chain_id, "read the chain id")
             if gas is not None:
                 params["gas"] = gas
-            tx = self._retry(lambda: fn.build_transaction(params), "prepare a transaction")
+            tx = self.retry.call(lambda: fn.build_transaction(params), "prepare a transaction")
         except ChainError:
             raise
         except Exception as exc:
@@ -516,55 +526,8 @@ class ChainClient(RetryPolicy):
 
     def send_raw(self, raw: bytes, fn: Any = None, sender: str | None = None, value: int = 0) -> TxResult:
         """Send signed bytes (re-sent unchanged on transient failures) and wait for the receipt."""
-        with _Deadline(self):
-            return self._send_raw(bytes(raw), fn, sender, value)
-
-    def _send_raw(self, raw: bytes, fn: Any, sender: str | None, value: int) -> TxResult:
-        tx_hash = "0x" + keccak(raw).hex()
-        last: BaseException | None = None
-        for attempt in range(self.retries + 1):
-            if attempt and self._expired():
-                break
-            try:
-                self.w3.eth.send_raw_transaction(raw)
-            except Exception as exc:
-                msg = str(exc).lower()
-                # Already in the pool or mined by an earlier attempt (the same signed bytes): fine,
-                # go on to the receipt. Anything else transient: wait and re-send the same bytes.
-                mined = self._receipt_or_none(tx_hash) is not None
-                if not mined and not any(s in msg for s in _ALREADY_SENT):
-                    if not _is_transient(exc):
-                        revert = decode_revert(exc)
-                        if revert is not None:
-                            raise revert from None
-                        raise ChainError(f"transaction rejected by the node: {exc}") from None
-                    last = exc
-                    self._pause(attempt)
-                    if self._receipt_or_none(tx_hash) is None:
-                        continue
-            try:
-                wait = min(self.receipt_timeout, max(0.1, self.time_left() or self.receipt_timeout))
-                receipt = self.w3.eth.wait_for_transaction_receipt(tx_hash, timeout=wait, poll_latency=0.1)
-            except Exception as exc:
-                if not _is_transient(exc):
-                    raise
-                last = exc
-                self._pause(attempt)
-                receipt = self._receipt_or_none(tx_hash)
-                if receipt is None:
-                    continue
-            return self._result(receipt, fn, sender, value)
-        raise ChainError(
-            f"transaction {tx_hash} not confirmed within the {self.deadline:g} s deadline "
-            f"({self.retries + 1} attempts at most; last error: {last})"
-        )
-
-    def _result(self, receipt: Any, fn: Any, sender: str | None, value: int) -> TxResult:
-        if receipt["status"] != 1:
-            raise self._failure(receipt, fn, sender, value)
-        address = receipt.get("contractAddress")
-        tx_hash = "0x" + bytes(receipt["transactionHash"]).hex()
-        return TxResult(tx_hash, receipt["gasUsed"], receipt["blockNumber"], receipt, address)
+        with self.retry.window():
+            return self.txs.send(bytes(raw), fn, sender, value)
 
     def lookup(
         self, tx_hash: str, fn: Any = None, sender: str | None = None, value: int = 0
@@ -573,10 +536,11 @@ class ChainClient(RetryPolicy):
         while the node holds it unmined, ``"unknown"`` when the node has never seen it (or lost
         it). A mined transaction that reverted raises its :class:`ContractRevert`.
         """
-        with _Deadline(self):
-            receipt = self._retry(lambda: self._receipt_or_none(tx_hash, quiet=False), "look up a receipt")
+        with self.retry.window():
+            receipt = self.retry.call(lambda: self.txs.receipt_or_none(tx_hash, quiet=False),
+                                      "look up a receipt")
             if receipt is not None:
-                return self._result(receipt, fn, sender, value)
+                return self.txs.result(receipt, fn, sender, value)
 
             def pending() -> bool:
                 try:
@@ -585,19 +549,19 @@ class ChainClient(RetryPolicy):
                     return False
                 return True
 
-            return "pending" if self._retry(pending, "look up a transaction") else "unknown"
+            return "pending" if self.retry.call(pending, "look up a transaction") else "unknown"
 
     def chain_id(self) -> int:
         """The chain's id."""
-        return self._retry(lambda: self.w3.eth.chain_id, "read the chain id")
+        return self.retry.call(lambda: self.w3.eth.chain_id, "read the chain id")
 
     def block_number(self) -> int:
         """The latest block's number."""
-        return self._retry(lambda: self.w3.eth.block_number, "read the block number")
+        return self.retry.call(lambda: self.w3.eth.block_number, "read the block number")
 
     def receipt(self, tx_hash: str | bytes) -> Any:
         """The receipt of mined transaction ``tx_hash`` (ChainError when there is none)."""
-        receipt = self._retry(lambda: self._receipt_or_none(tx_hash, quiet=False), "read a receipt")
+        receipt = self.retry.call(lambda: self.txs.receipt_or_none(tx_hash, quiet=False), "read a receipt")
         if receipt is None:
             raise ChainError(f"no receipt for transaction {tx_hash!r}")
         return receipt
@@ -605,26 +569,87 @@ class ChainClient(RetryPolicy):
     def logs(self, event: Any, from_block: int, to_block: int | str = "latest", **filters: Any) -> list[Any]:
         """The logs of contract event ``event`` (e.g. ``contract.events.Withdrawn``) mined in the
         blocks ``from_block`` to ``to_block``, whose indexed arguments equal ``filters``."""
-        return self._retry(
+        return self.retry.call(
             lambda: event().get_logs(argument_filters=filters, from_block=from_block, to_block=to_block),
             "read the contract's logs",
         )
 
     def pending_nonce(self, address: str) -> int:
         """The next nonce the node would accept from ``address``."""
-        return self._retry(
+        return self.retry.call(
             lambda: self.w3.eth.get_transaction_count(to_checksum_address(address), "pending"),
             "read the nonce",
         )
 
-    # ------------------------------------------------------------ helpers
-    def _receipt_or_none(self, tx_hash: str, quiet: bool = True) -> Any:
+
+class TxSender:
+    """Sends signed transaction bytes and waits for their receipt, re-sending the same bytes after a
+    transient failure (a retry can never pay twice: the nonce is fixed), within the current call
+    of ``retry``; a reverted transaction becomes its :class:`ContractRevert`."""
+
+    def __init__(self, w3: Web3, retry: RetryPolicy, receipt_timeout: float = 120.0) -> None:
+        """``receipt_timeout``: the longest wait for one receipt (cut to what is left of the call)."""
+        self.w3 = w3
+        self.retry = retry
+        self.receipt_timeout = receipt_timeout
+
+    def send(self, raw: bytes, fn: Any, sender: str | None, value: int) -> TxResult:
+        """Send ``raw`` (the transaction of ``fn`` by ``sender``, paying ``value``) and wait for it."""
+        tx_hash = "0x" + keccak(raw).hex()
+        last: BaseException | None = None
+        for attempt in range(self.retry.retries + 1):
+            if attempt and self.retry.expired():
+                break
+            try:
+                self.w3.eth.send_raw_transaction(raw)
+            except Exception as exc:
+                msg = str(exc).lower()
+                # Already in the pool or mined by an earlier attempt (the same signed bytes): fine,
+                # go on to the receipt. Anything else transient: wait and re-send the same bytes.
+                mined = self.receipt_or_none(tx_hash) is not None
+                if not mined and not any(s in msg for s in _ALREADY_SENT):
+                    if not self.retry.is_transient(exc):
+                        revert = decode_revert(exc)
+                        if revert is not None:
+                            raise revert from None
+                        raise ChainError(f"transaction rejected by the node: {exc}") from None
+                    last = exc
+                    self.retry.pause(attempt)
+                    if self.receipt_or_none(tx_hash) is None:
+                        continue
+            try:
+                wait = min(self.receipt_timeout, max(0.1, self.retry.time_left() or self.receipt_timeout))
+                receipt = self.w3.eth.wait_for_transaction_receipt(tx_hash, timeout=wait, poll_latency=0.1)
+            except Exception as exc:
+                if not self.retry.is_transient(exc):
+                    raise
+                last = exc
+                self.retry.pause(attempt)
+                receipt = self.receipt_or_none(tx_hash)
+                if receipt is None:
+                    continue
+            return self.result(receipt, fn, sender, value)
+        raise ChainError(
+            f"transaction {tx_hash} not confirmed within the {self.retry.deadline:g} s deadline "
+            f"({self.retry.retries + 1} attempts at most; last error: {last})"
+        )
+
+    def result(self, receipt: Any, fn: Any, sender: str | None, value: int) -> TxResult:
+        """The TxResult of a mined ``receipt`` (its ContractRevert or a ChainError when it failed)."""
+        if receipt["status"] != 1:
+            raise self._failure(receipt, fn, sender, value)
+        address = receipt.get("contractAddress")
+        tx_hash = "0x" + bytes(receipt["transactionHash"]).hex()
+        return TxResult(tx_hash, receipt["gasUsed"], receipt["blockNumber"], receipt, address)
+
+    def receipt_or_none(self, tx_hash: str, quiet: bool = True) -> Any:
+        """The receipt of ``tx_hash``, or None while it is not mined (or, ``quiet``, unreachable)."""
         try:
             return self.w3.eth.get_transaction_receipt(tx_hash)
         except TransactionNotFound:
             return None
         except Exception as exc:
-            if quiet and _is_transient(exc):
+            if quiet and self.retry.is_transient(exc):
                 return None
             raise
 

@@ -3,11 +3,15 @@ that names the episode in play, comes from a member of the team and cannot be to
 ends the episode; the others are dropped, a refused one reported on /diagnostics (part
 ``declarations``) until one is taken.
 
-Owned by :class:`medc_sim.node.SimNode`, whose episode state (core, map stamp, move book) it reads
-and whose episode it ends; the cell rule is :func:`medc_sim.episode_end.declared_cell`.
+Owned by :class:`medc_sim.node.SimNode` and built from what it reads (the core, the move book, the
+episode's map stamp, the graph's publishers) and callables that end the episode and count a drop;
+the cell rule is :func:`medc_sim.episode_end.declared_cell`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from medc_common import contract
@@ -19,36 +23,52 @@ from medc_sim.episode_end import declared_cell
 class Declarations:
     """The declaration subscription of a simulator node, and its verdicts."""
 
-    def __init__(self, sim) -> None:
-        """Subscribe ``sim`` (a SimNode) to the team's declaration topic."""
+    def __init__(self, node, names_ns: str | None, namespace: str, ids: list[str], core, book, health, *,
+                 running: Callable[[], bool], map_stamp: Callable[[], Any],
+                 finish: Callable[[Any], None], drop: Callable[[], None]) -> None:
+        """Subscribe ``node`` (the simulator's; its graph tells who publishes) to the team's
+        declaration topic under ``names_ns``; ``namespace``: the team's, fully qualified; ``core``,
+        ``book``: the simulator's SimCore and MoveBook; ``running``: whether it has started and not
+        finished; ``map_stamp``: the episode's map stamp; ``finish``: ends the episode with its
+        EpisodeResult; ``drop``: counts a dropped message."""
         from medc_interfaces.msg import SourceDeclaration
 
-        self.sim = sim
+        self.ids = ids
+        self.core = core
+        self.book = book
+        self.health = health
+        self.logger = node.get_logger()
+        self.publishers_of = node.get_publishers_info_by_topic
+        self.running = running
+        self.map_stamp = map_stamp
+        self.finish = finish
+        self.drop = drop
+        self.namespace = namespace
         #: The declaration topic, fully qualified (its publishers are looked up in the graph).
-        self.topic = contract.declaration_topic(sim.namespace_)
+        self.topic = contract.declaration_topic(namespace)
         #: Declarations that ended an episode, and those refused as not the team's.
         self.taken = 0
         self.refused = 0
-        sim.create_subscription(SourceDeclaration, contract.declaration_topic(sim.names_ns),
-                                self.on_declaration, contract.RELIABLE_QOS)
+        node.create_subscription(SourceDeclaration, contract.declaration_topic(names_ns),
+                                 self.on_declaration, contract.RELIABLE_QOS)
 
     def refusal(self, msg) -> str | None:
         """Why a declaration is not the team's, or None. It must name an agent of the team that is
         not taken out, and every node that publishes declarations must be one that publishes an
         agent's moves (a message does not say which node sent it: while another node publishes
         declarations, none can be told from its own)."""
-        sim = self.sim
+        ids = self.ids
         agent = str(msg.agent_id)
-        if agent not in sim.ids:
+        if agent not in ids:
             return (f"it names {printable(agent, 40)!r}, not an agent of this team "
-                    f"({', '.join(sim.ids)}); a declaration counts only from a team member")
-        if sim.ids.index(agent) in sim.book.lost:
+                    f"({', '.join(ids)}); a declaration counts only from a team member")
+        if ids.index(agent) in self.book.lost:
             return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
                     "again")
-        publishers_of = sim.get_publishers_info_by_topic
+        publishers_of = self.publishers_of
         try:
-            movers = {(i.node_namespace, i.node_name) for a in sim.ids
-                      for i in publishers_of(contract.move_topic(sim.namespace_, a))}
+            movers = {(i.node_namespace, i.node_name) for a in ids
+                      for i in publishers_of(contract.move_topic(self.namespace, a))}
             publishers = {(i.node_namespace, i.node_name) for i in publishers_of(self.topic)}
         except Exception as exc:  # the graph unreadable (shutting down): nothing to tell it from
             return f"the publishers of {self.topic} could not be read ({type(exc).__name__})"
@@ -61,14 +81,13 @@ class Declarations:
 
     def on_declaration(self, msg) -> None:
         """End the episode on the team's declaration."""
-        sim = self.sim
-        if not sim.started or sim.finished:
+        if not self.running():
             return
-        core, log = sim.core, sim.get_logger()
+        core, log, map_stamp = self.core, self.logger, self.map_stamp()
         if int(msg.episode) < core.episode:
             return  # the episode has ended already (e.g. a UAV found the source under 'either')
         if int(msg.episode) != core.episode or (msg.map_stamp.sec, msg.map_stamp.nanosec) != (
-                sim._map_stamp.sec, sim._map_stamp.nanosec) or int(msg.step) > core.step:
+                map_stamp.sec, map_stamp.nanosec) or int(msg.step) > core.step:
             log.warning(
                 f"dropped declaration for episode {msg.episode} step {msg.step}: the simulator is at episode "
                 f"{core.episode} step {core.step} (its map_stamp must be this episode's map)")
@@ -77,20 +96,20 @@ class Declarations:
             cell = declared_cell(msg.cell_i, msg.cell_j, core.config.grid)
             refusal = self.refusal(msg)
         except ValueError as exc:
-            sim.dropped += 1
+            self.drop()
             log.warning(f"dropped declaration: {exc}")
             return
         if refusal:
-            sim.dropped += 1
+            self.drop()
             self.refused += 1
-            sim.health.set("declarations", DiagnosticStatus.WARN, f"declaration refused: {refusal}")
+            self.health.set("declarations", DiagnosticStatus.WARN, f"declaration refused: {refusal}")
             return
-        if sim.health.level("declarations") != DiagnosticStatus.OK:
-            sim.health.set("declarations", DiagnosticStatus.OK, f"declaration of {msg.agent_id} taken")
+        if self.health.level("declarations") != DiagnosticStatus.OK:
+            self.health.set("declarations", DiagnosticStatus.OK, f"declaration of {msg.agent_id} taken")
         self.taken += 1
         finished = core.end_by_declaration(cell)
         log.info(
             f"episode {finished.episode} ended by the team's declaration at step {finished.length} "
             f"(declared at step {msg.step}, posterior mass {msg.mass:.3f}): {finished.error:.2f} cells "
             f"from the source, {'found' if finished.success else 'wrong cell'}")
-        sim._finish_episode(finished)
+        self.finish(finished)

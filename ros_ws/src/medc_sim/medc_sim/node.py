@@ -18,12 +18,11 @@ Modes:
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
-from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
 from medc_common.health import Health, run_id
@@ -34,103 +33,139 @@ from rclpy.node import Node
 
 from medc_sim import messages
 from medc_sim.declarations import Declarations
-from medc_sim.move_watch import MoveWatch
+from medc_sim.move_watch import MoveFaults, StepWatch
 from medc_sim.moves import ConflictingMove, DuplicateAgent, MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.start_gate import StartGate
 from medc_sim.watch import GraphWatch
 
 
-class SimNode(MoveWatch, Node):
-    """The simulator node (see the module docstring)."""
+@dataclass(frozen=True)
+class SimParameters:
+    """A simulator node's parameters as declared (:func:`declare_sim_parameters`; their descriptions
+    are there and in ``medc-sim --help``)."""
+
+    namespace: str
+    cfg: SimConfig
+    mode: str
+    rate_hz: float
+    resolution: float
+    resend_s: float
+    max_episodes: int
+    stall_timeout_s: float
+    move_timeout_s: float
+    threads: int
+    wait_for: int
+    results_readers: int
+
+
+def declare_sim_parameters(node: Node) -> SimParameters:
+    """Declare every parameter of a simulator node on ``node`` and return their values (ValueError for
+    a bad mode or rate)."""
+    p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
+    namespace = p("namespace", "", contract.NAMESPACE_HELP, True)
+    cfg = SimConfig(
+        agents=p("agents", 3, "Number of agents in the team", True),
+        walls=p("walls", 2, "Number of wall segments", True),
+        grid=p("grid", 30, "Grid side in cells", True),
+        max_steps=p("max_steps", 100, "Steps before an episode is truncated", True),
+        seed=p("seed", 0, "Seed of the environment: same seed = same episodes as training", True),
+        noise=p("noise", False, "Poisson noise on readings (paper-simple; realistic always counts it)",
+                True),
+        sensing=p(
+            "sensing",
+            "paper-simple",
+            "Sensing model, a preset (paper-simple, realistic; docs/ros-reference.md, "
+            "'Sensor model'): how readings are made and how near an agent must come to the source",
+            True,
+        ),
+        end_on=p(
+            "end_on", "source",
+            "What ends an episode besides max_steps: 'source' (a UAV finds it, as in training), "
+            "'declaration' (the team's SourceDeclaration; agents need source_ends_episode:=false) or "
+            "'either' (whichever comes first)",
+            True,
+        ),
+    )
+    mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
+    if mode not in ("stepped", "realtime"):
+        raise ValueError(f"mode must be 'stepped' or 'realtime', got {mode!r}")
+    rate_hz = float(p("rate_hz", 0.0, "Team steps per second (stepped: upper limit, 0 = none; "
+                      "realtime: the step rate, must be > 0)", True))
+    if mode == "realtime" and rate_hz <= 0:
+        raise ValueError("realtime mode needs rate_hz > 0")
+    return _declare_stepping(p, namespace, cfg, mode, rate_hz)
+
+
+def _declare_stepping(p, namespace: str, cfg: SimConfig, mode: str, rate_hz: float) -> SimParameters:
+    """The rest of :func:`declare_sim_parameters` (``p`` declares one parameter)."""
+    resolution = float(p("resolution", 1.0, "Cell side in metres (map frame)", True))
+    resend_s = float(p("resend_s", 0.5, "Stepped mode: re-publish a step whose moves are missing "
+                       "after this many seconds", True))
+    max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
+    stall_timeout_s = float(p(
+        "stall_timeout_s", 2.0,
+        "Stepped mode: a step whose moves are missing for this long is logged once, naming the agents",
+        True,
+    ))
+    move_timeout_s = float(p(
+        "move_timeout_s", 3.0,
+        "Stepped mode: an agent with no move this long (seconds) after the step's first move stays "
+        "in place and is taken out of the team (later steps do not wait for it) until it moves "
+        "again; 0: wait for ever",
+        True,
+    ))
+    threads = int(p("torch_threads", 1, "CPU threads for the environment", True))
+    wait_for = int(p(
+        "wait_for_subscribers", cfg.agents,
+        "Publish the first step once this many other nodes subscribe to the episode status (the "
+        "agents; a recorder adds itself) and, when > 0, every agent's move publisher is there (a "
+        "recorder is no agent)", True))
+    results_readers = int(p(
+        "wait_for_results_readers", 0,
+        "Also wait before the first step until this many nodes read the episode results (the "
+        "launcher's monitor, a recorder), and before a finished simulator exits (at least 1)", True))
+    return SimParameters(namespace, cfg, mode, rate_hz, resolution, resend_s, max_episodes, stall_timeout_s,
+                         move_timeout_s, threads, wait_for, results_readers)
+
+
+class SimNode(Node):
+    """The simulator node (see the module docstring), made of parts each built from what it needs:
+    the core (medc_sim.sim_core), the move book (medc_sim.moves), the move faults and the step watch
+    (medc_sim.move_watch), the graph watch (medc_sim.watch), the declarations
+    (medc_sim.declarations) and the start gate (medc_sim.start_gate)."""
 
     def __init__(self, node_name: str = "medc_sim", **kwargs) -> None:
         kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
         super().__init__(node_name, **kwargs)
-        p = lambda *a, **k: declare(self, *a, **k)  # noqa: E731
+        prm = declare_sim_parameters(self)
+        cfg = prm.cfg
         #: The team's namespace (fully qualified, for messages) and the one names are built with
         #: (None: relative to the node's namespace; contract.team_namespace).
-        self.namespace_, self.names_ns = contract.team_namespace(self.get_namespace(), p(
-            "namespace", "", contract.NAMESPACE_HELP, True))
-        cfg = SimConfig(
-            agents=p("agents", 3, "Number of agents in the team", True),
-            walls=p("walls", 2, "Number of wall segments", True),
-            grid=p("grid", 30, "Grid side in cells", True),
-            max_steps=p("max_steps", 100, "Steps before an episode is truncated", True),
-            seed=p("seed", 0, "Seed of the environment: same seed = same episodes as training", True),
-            noise=p("noise", False, "Poisson noise on readings (paper-simple; realistic always counts it)",
-                    True),
-            sensing=p(
-                "sensing",
-                "paper-simple",
-                "Sensing model, a preset (paper-simple, realistic; docs/ros-reference.md, "
-                "'Sensor model'): how readings are made and how near an agent must come to the source",
-                True,
-            ),
-            end_on=p(
-                "end_on", "source",
-                "What ends an episode besides max_steps: 'source' (a UAV finds it, as in training), "
-                "'declaration' (the team's SourceDeclaration; agents need source_ends_episode:=false) or "
-                "'either' (whichever comes first)",
-                True,
-            ),
-        )
-        self.mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
-        if self.mode not in ("stepped", "realtime"):
-            raise ValueError(f"mode must be 'stepped' or 'realtime', got {self.mode!r}")
-        self.rate_hz = float(p("rate_hz", 0.0, "Team steps per second (stepped: upper limit, 0 = none; "
-                               "realtime: the step rate, must be > 0)", True))
-        if self.mode == "realtime" and self.rate_hz <= 0:
-            raise ValueError("realtime mode needs rate_hz > 0")
-        self.resolution = float(p("resolution", 1.0, "Cell side in metres (map frame)", True))
-        self.resend_s = float(p("resend_s", 0.5, "Stepped mode: re-publish a step whose moves are missing "
-                                "after this many seconds", True))
-        self.max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
-        self.stall_timeout_s = float(p(
-            "stall_timeout_s", 2.0,
-            "Stepped mode: a step whose moves are missing for this long is logged once, naming the agents",
-            True,
-        ))
-        self._stall_logged: tuple[int, int] | None = None
-        self.move_timeout_s = float(p(
-            "move_timeout_s", 3.0,
-            "Stepped mode: an agent with no move this long (seconds) after the step's first move stays "
-            "in place and is taken out of the team (later steps do not wait for it) until it moves "
-            "again; 0: wait for ever",
-            True,
-        ))
+        self.namespace_, self.names_ns = contract.team_namespace(self.get_namespace(), prm.namespace)
+        self.mode, self.rate_hz, self.resolution = prm.mode, prm.rate_hz, prm.resolution
+        self.resend_s, self.max_episodes = prm.resend_s, prm.max_episodes
+        self.stall_timeout_s, self.move_timeout_s = prm.stall_timeout_s, prm.move_timeout_s
         #: Per-run id of this driver, sent with every status (EpisodeStatus.session).
         self.session = run_id()
 
         # The environment's tensors are tiny; threads only add contention with the agent nodes.
-        torch.set_num_threads(max(1, int(p("torch_threads", 1, "CPU threads for the environment", True))))
+        torch.set_num_threads(max(1, prm.threads))
         self.core = SimCore(cfg)  # an unknown sensing preset: ValueError naming the presets
         self.ids = contract.agent_ids(self.core.num_agents)
         self.book = MoveBook(self.core.num_agents, self.core.num_actions)
         #: The grid in the map frame (REP 103): at the origin, identity orientation.
         self.geometry = contract.GridGeometry(cfg.grid, cfg.grid, self.resolution)
         self.dropped = 0
-        self.resends = 0
         self.finished = False
         self.episode_listeners: list[Callable[[EpisodeResult], None]] = []
         self._step_stamp = None
-        self._published_at = 0.0
-        self._step_t0: float | None = None
-        self._first_move_at: float | None = None  # when the step's first move came
         #: Seconds from publishing a step to receiving the team's last move, per step (latest 100k).
         self.latencies: deque[float] = deque(maxlen=100_000)
 
         self._connect(cfg)
-        wait_for = int(p(
-            "wait_for_subscribers", cfg.agents,
-            "Publish the first step once this many other nodes subscribe to the episode status (the "
-            "agents; a recorder adds itself) and, when > 0, every agent's move publisher is there (a "
-            "recorder is no agent)", True))
-        results_readers = int(p(
-            "wait_for_results_readers", 0,
-            "Also wait before the first step until this many nodes read the episode results (the "
-            "launcher's monitor, a recorder), and before a finished simulator exits (at least 1)", True))
-        self.gate = StartGate(self, wait_for, results_readers)
+        self.gate = StartGate(self.status_pub, self.move_subs, self.results_pub, prm.wait_for,
+                              prm.results_readers)
         self._start_timers()
         self.get_logger().info(
             f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
@@ -156,8 +191,13 @@ class SimNode(MoveWatch, Node):
         self.status_pub = self.create_publisher(
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
+        self.health = Health(self, "driver", self._summary)
+        # The declaration subscription comes before the move subscriptions: a declaration and the
+        # last move of its step that wait together are taken in that order.
         #: The team's declarations, when one may end an episode (medc_sim.declarations).
-        self.declarations = Declarations(self) if cfg.end_on != "source" else None
+        self.declarations = None if cfg.end_on == "source" else Declarations(
+            self, ns, self.namespace_, self.ids, self.core, self.book, self.health, running=self._running,
+            map_stamp=lambda: self._map_stamp, finish=self._finish_episode, drop=self._count_drop)
         self.move_subs = [
             self.create_subscription(
                 AgentMove,
@@ -167,12 +207,19 @@ class SimNode(MoveWatch, Node):
             )
             for a in self.ids
         ]
-        self.health = Health(self, "driver", self._summary)
+        #: The ``moves`` condition: duplicate agent ids, conflicting and foreign moves.
+        self.move_faults = MoveFaults(self.health, self.get_logger(), self.create_timer)
+        #: The step in play's timing; in stepped mode, its re-sends, stalls and agents taken out.
+        self.steps = StepWatch(self.book, self.ids, self.health, self.get_logger(), send=self._send_state,
+                               advance=self._advance, running=self._running,
+                               resend_s=self.resend_s, stall_timeout_s=self.stall_timeout_s,
+                               move_timeout_s=self.move_timeout_s, rate_hz=self.rate_hz)
         #: Other drivers' statuses and maps on this namespace (a second graph, a hostile map).
-        self.watch = GraphWatch(self)
+        self.watch = GraphWatch(self, ns, self.namespace_, self.session, self.health,
+                                started=lambda: self.started, finished=lambda: self.finished,
+                                republish=lambda: self.map_pub.publish(self.map_msg()))
         if self.mode == "stepped" and self.move_timeout_s > 0:
-            self.create_timer(min(0.1, self.move_timeout_s / 4), self._move_timeout_tick)
-
+            self.create_timer(min(0.1, self.move_timeout_s / 4), self.steps.move_timeout_tick)
 
     def _start_timers(self) -> None:
         """The start gate, and the stepping timers of the mode."""
@@ -181,7 +228,7 @@ class SimNode(MoveWatch, Node):
         if self.mode == "realtime":
             self.create_timer(1.0 / self.rate_hz, self._realtime_tick)
         else:
-            self.create_timer(max(self.resend_s, 0.01), self._resend_tick)
+            self.create_timer(max(self.resend_s, 0.01), self.steps.resend_tick)
             if self.rate_hz > 0:
                 self.create_timer(1.0 / self.rate_hz, self._rate_tick)
 
@@ -211,19 +258,16 @@ class SimNode(MoveWatch, Node):
     def _summary(self) -> dict[str, str]:
         return {"namespace": self.namespace_, "session": self.session, "episode": str(self.core.episode),
                 "step": str(self.core.step),
-                "episodes_done": str(len(self.core.results)), "resends": str(self.resends),
+                "episodes_done": str(len(self.core.results)), "resends": str(self.steps.resends),
                 "dropped_moves": str(self.dropped), "resent_moves_ignored": str(self.book.resent),
                 "conflicting_moves": str(self.book.conflicts),
                 "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none"}
 
     def _publish_step(self) -> None:
         """Publish the current state as a new step and wait for its moves."""
-        if self._stall_logged is not None and self.health.level("team step") != DiagnosticStatus.OK:
-            self.health.set("team step", DiagnosticStatus.OK, "stepping again")
         self._step_stamp = self.get_clock().now().to_msg()
         self.book.open(self.core.episode, self.core.step)
-        self._step_t0 = time.perf_counter()
-        self._first_move_at = None
+        self.steps.opened()
         self._send_state()
 
     def _send_state(self) -> None:
@@ -239,7 +283,7 @@ class SimNode(MoveWatch, Node):
             messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp,
                                 session=self.session)
         )
-        self._published_at = time.monotonic()
+        self.steps.sent()
 
     def _publish_done(self, result: EpisodeResult) -> None:
         stamp = self.get_clock().now().to_msg()
@@ -255,30 +299,42 @@ class SimNode(MoveWatch, Node):
                 raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")
             taken = self.book.offer(msg.agent_id, int(msg.episode), int(msg.step), int(msg.action),
                                     str(msg.sender))
-            if taken is not None and self._first_move_at is None:
-                self._first_move_at = time.perf_counter()
-            self._report_returned()
+            if taken is not None:
+                self.steps.took()
+            self.steps.report_returned()
             if taken is None:
                 return  # a re-sent move, or one for the step just applied: executed once already
         except DuplicateAgent as exc:
             self.dropped += 1
-            self._move_fault(f"duplicate {msg.agent_id}", f"duplicate agent id: {exc}")
+            self.move_faults.report(f"duplicate {msg.agent_id}", f"duplicate agent id: {exc}")
             return
         except ConflictingMove as exc:
-            self._move_fault(f"conflict {msg.agent_id}", f"conflicting moves: {exc}")
+            self.move_faults.report(f"conflict {msg.agent_id}", f"conflicting moves: {exc}")
             return
         except MoveRejected as exc:
             self.dropped += 1
             self.get_logger().warning(f"dropped move: {exc}")
             if "another graph" in str(exc):
-                self._move_fault(f"foreign {msg.agent_id}", f"foreign move: {exc}", log=False)
+                self.move_faults.report(f"foreign {msg.agent_id}", f"foreign move: {exc}", log=False)
             return
-        if self.book.complete and self._step_t0 is not None:
-            # Team decision latency: this step's state published -> the last move received.
-            self.latencies.append(time.perf_counter() - self._step_t0)
-            self._step_t0 = None
+        # Team decision latency: this step's state published -> the last move received.
+        latency = self.steps.latency() if self.book.complete else None
+        if latency is not None:
+            self.latencies.append(latency)
         if self.mode == "stepped" and self.rate_hz <= 0 and self.book.complete:
             self._advance()
+
+    def _running(self) -> bool:
+        """Whether the simulator has started and not finished."""
+        return self.started and not self.finished
+
+    def _count_drop(self) -> None:
+        self.dropped += 1
+
+    @property
+    def resends(self) -> int:
+        """Steps re-published for moves missing."""
+        return self.steps.resends
 
     def _rate_tick(self) -> None:
         if self.started and self.book.complete:

@@ -21,6 +21,7 @@ After ``timeout_s`` the simulator starts anyway and logs what was missing.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 #: Seconds the first step waits for the readers and writers above before it starts anyway.
 START_WAIT_S = 30.0
@@ -29,28 +30,33 @@ OWN_STATUS_READERS = 1
 
 
 class StartGate:
-    """Counts what the simulator node ``sim`` has matched (see the module docstring)."""
+    """Counts what a simulator's endpoints have matched (see the module docstring)."""
 
-    def __init__(self, sim, listeners: int, results_readers: int, timeout_s: float = START_WAIT_S) -> None:
+    def __init__(self, status_pub, move_subs: list, results_pub, listeners: int, results_readers: int,
+                 timeout_s: float = START_WAIT_S, clock: Callable[[], float] = time.monotonic) -> None:
+        """``status_pub``, ``move_subs`` (one per agent), ``results_pub``: the simulator's endpoints
+        whose matches are counted; ``listeners`` and ``results_readers``: the counts waited for."""
         if listeners < 0 or results_readers < 0:
             raise ValueError(f"wait_for_subscribers and wait_for_results_readers must be >= 0, got "
                              f"{listeners} and {results_readers}")
-        self.sim = sim
+        self.status_pub = status_pub
+        self.move_subs = move_subs
+        self.results_pub = results_pub
         self.listeners = listeners
         self.results_readers = results_readers
-        self.deadline = time.monotonic() + timeout_s
+        self.clock = clock
+        self.deadline = clock() + timeout_s
 
     def counts(self) -> tuple[int, int, int]:
         """(status listeners, agents' move publishers, results readers) matched now."""
-        sim = self.sim
-        listeners = max(0, sim.status_pub.get_subscription_count() - OWN_STATUS_READERS)
-        movers = sum(1 for sub in sim.move_subs if sub.get_publisher_count() > 0)
-        return listeners, movers, sim.results_pub.get_subscription_count()
+        listeners = max(0, self.status_pub.get_subscription_count() - OWN_STATUS_READERS)
+        movers = sum(1 for sub in self.move_subs if sub.get_publisher_count() > 0)
+        return listeners, movers, self.results_pub.get_subscription_count()
 
     def missing(self) -> list[str]:
         """What the first step still waits for, in words (empty: ready)."""
         listeners, movers, readers = self.counts()
-        agents = len(self.sim.move_subs) if self.listeners > 0 else 0
+        agents = len(self.move_subs) if self.listeners > 0 else 0
         out = []
         if listeners < self.listeners:
             out.append(f"{listeners} of {self.listeners} expected status subscribers")
@@ -61,4 +67,4 @@ class StartGate:
         return out
 
     def expired(self) -> bool:
-        return time.monotonic() > self.deadline
+        return self.clock() > self.deadline

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from medc_common import contract
@@ -31,22 +32,34 @@ def _key(stamp) -> int:
 
 
 class GraphWatch:
-    """Subscriptions of a SimNode to its own status and map topics (see the module docstring)."""
+    """Subscriptions of a simulator to its own status and map topics (see the module docstring)."""
 
-    def __init__(self, sim) -> None:
-        self.sim = sim
-        ns = sim.names_ns
+    def __init__(self, node, names_ns: str | None, namespace: str, session: str, health, *,
+                 started: Callable[[], bool], finished: Callable[[], bool],
+                 republish: Callable[[], None], clock: Callable[[], float] = time.monotonic) -> None:
+        """``node``: the simulator node its subscriptions and timers are made on, under ``names_ns``
+        (contract.team_namespace); ``namespace``: the team's, fully qualified, for the reports;
+        ``session``: the simulator's own; ``health``: its Health; ``started``, ``finished``: whether
+        the simulator has started and finished; ``republish``: publishes the episode's map again."""
+        self.namespace = namespace
+        self.session = session
+        self.health = health
+        self.started = started
+        self.finished = finished
+        self.republish = republish
+        self.clock = clock
+        ns = names_ns
         self.foreign_sessions: dict[str, float] = {}
         self.foreign_maps = 0
         self._own_maps: deque[int] = deque(maxlen=16)
         self._republished = 0.0
         self._republish_at: float | None = None
         self._last_foreign = 0.0
-        sim.create_subscription(EpisodeStatus, contract.status_topic(ns), self.on_status,
-                                contract.RELIABLE_QOS)
-        sim.create_subscription(OccupancyGrid, contract.map_topic(ns), self.on_map, contract.MAP_READER_QOS)
-        sim.create_timer(1.0, self._clear)
-        sim.create_timer(0.1, self._republish)
+        node.create_subscription(EpisodeStatus, contract.status_topic(ns), self.on_status,
+                                 contract.RELIABLE_QOS)
+        node.create_subscription(OccupancyGrid, contract.map_topic(ns), self.on_map, contract.MAP_READER_QOS)
+        node.create_timer(1.0, self._clear)
+        node.create_timer(0.1, self._republish)
 
     def own_map(self, stamp) -> None:
         """The simulator published a map with ``info.map_load_time`` ``stamp``."""
@@ -54,25 +67,25 @@ class GraphWatch:
 
     def on_status(self, msg: EpisodeStatus) -> None:
         session = str(msg.session)
-        if session == self.sim.session:
+        if session == self.session:
             return
-        now = time.monotonic()
+        now = self.clock()
         self.foreign_sessions[session] = now
         self._last_foreign = now
         sessions = ", ".join(sorted(s or "(none)" for s in self.foreign_sessions))
-        self.sim.health.set("graph", DiagnosticStatus.WARN, (
-            f"another driver publishes on {contract.status_topic(self.sim.namespace_)} (sessions "
-            f"{sessions}; this simulator is {self.sim.session}): a second graph shares this ROS_DOMAIN_ID "
+        self.health.set("graph", DiagnosticStatus.WARN, (
+            f"another driver publishes on {contract.status_topic(self.namespace)} (sessions "
+            f"{sessions}; this simulator is {self.session}): a second graph shares this ROS_DOMAIN_ID "
             "and namespace; give each graph its own ROS_DOMAIN_ID or namespace"))
 
     def on_map(self, msg: OccupancyGrid) -> None:
-        if not self.sim.started or _key(msg.info.map_load_time) in self._own_maps:
+        if not self.started() or _key(msg.info.map_load_time) in self._own_maps:
             return
-        now = time.monotonic()
+        now = self.clock()
         self.foreign_maps += 1
         self._last_foreign = now
-        self.sim.health.set("map", DiagnosticStatus.WARN, (
-            f"a map this simulator did not publish came on {contract.map_topic(self.sim.namespace_)} "
+        self.health.set("map", DiagnosticStatus.WARN, (
+            f"a map this simulator did not publish came on {contract.map_topic(self.namespace)} "
             f"(map_load_time {msg.info.map_load_time.sec}.{msg.info.map_load_time.nanosec:09d}, origin "
             f"({msg.info.origin.position.x:g}, {msg.info.origin.position.y:g})); re-publishing the "
             "episode's map"))
@@ -80,18 +93,18 @@ class GraphWatch:
             self._republish_at = max(now + REPUBLISH_DELAY_S, self._republished + REPUBLISH_S)
 
     def _republish(self) -> None:
-        if self._republish_at is None or time.monotonic() < self._republish_at:
+        if self._republish_at is None or self.clock() < self._republish_at:
             return
         self._republish_at = None
-        self._republished = time.monotonic()
-        if not self.sim.finished:
-            self.sim.map_pub.publish(self.sim.map_msg())
+        self._republished = self.clock()
+        if not self.finished():
+            self.republish()
 
     def _clear(self) -> None:
-        if self._last_foreign and time.monotonic() - self._last_foreign > CLEAR_S:
+        if self._last_foreign and self.clock() - self._last_foreign > CLEAR_S:
             self._last_foreign = 0.0
             self.foreign_sessions.clear()
             for part in ("graph", "map"):
-                if self.sim.health.level(part) != DiagnosticStatus.OK:
-                    self.sim.health.set(part, DiagnosticStatus.OK, "no other driver heard for "
+                if self.health.level(part) != DiagnosticStatus.OK:
+                    self.health.set(part, DiagnosticStatus.OK, "no other driver heard for "
                                         f"{CLEAR_S:g} s")
