@@ -187,9 +187,10 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
             assert proc.poll() is None and time.monotonic() < deadline, err.read_text()[-3000:]
             executor.spin_once(timeout_sec=0.05)
         with insider_log.open("w") as log:
-            insider = subprocess.Popen(["nsenter", "-t", str(proc.pid), "--net", "--mount", sys.executable, "-c",
-                                        INSIDER, "240", NS], stdin=subprocess.PIPE, stdout=log,
-                                       stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
+            join = ["nsenter", "-t", str(proc.pid), "--net", "--mount"]
+            insider = subprocess.Popen([*join, sys.executable, "-c", INSIDER, "240", NS], stdin=subprocess.PIPE,
+                                       stdout=log, stderr=subprocess.STDOUT, text=True, env=env,
+                                       start_new_session=True)
         deadline = time.monotonic() + 300
         while proc.poll() is None and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)

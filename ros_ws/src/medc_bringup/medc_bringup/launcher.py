@@ -586,7 +586,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Refuse (``parser.error``: usage, status 2) what argparse alone lets through: a negative
-    ``--episodes`` or ``--listeners``, an option given without the one it qualifies, too few Foxglove connections."""
+    ``--episodes`` or ``--listeners``, an option given without the one it qualifies, too few Foxglove
+    connections."""
     if args.episodes < 0:
         parser.error("--episodes must be >= 0")
     if args.listeners < 0:
