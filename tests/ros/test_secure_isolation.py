@@ -188,9 +188,9 @@ def test_an_outside_node_neither_reaches_nor_reads_an_isolated_team(tmp_path, rc
             executor.spin_once(timeout_sec=0.05)
         with insider_log.open("w") as log:
             join = ["nsenter", "-t", str(proc.pid), "--net", "--mount"]
-            insider = subprocess.Popen([*join, sys.executable, "-c", INSIDER, "240", NS], stdin=subprocess.PIPE,
-                                       stdout=log, stderr=subprocess.STDOUT, text=True, env=env,
-                                       start_new_session=True)
+            insider = subprocess.Popen([*join, sys.executable, "-c", INSIDER, "240", NS],
+                                       stdin=subprocess.PIPE, stdout=log, stderr=subprocess.STDOUT, text=True,
+                                       env=env, start_new_session=True)
         deadline = time.monotonic() + 300
         while proc.poll() is None and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
