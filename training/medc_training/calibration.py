@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from itertools import pairwise
 
 import torch
 
 from .declaration_eval import END_RULES, add_episode_arguments, study_policy, study_team, threshold_episodes
+from .radbench.metrics import wilson as proportion_interval
 
 #: The thresholds the study checks, in one play.
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999)
@@ -39,14 +39,10 @@ MASS_BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 1.0)
 
 
 def wilson(right: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """The Wilson score interval (95 % for the default z) of a right rate of ``right`` in ``n``;
-    (0, 1) when n = 0."""
-    if n == 0:
-        return 0.0, 1.0
-    q = right / n
-    centre = (q + z * z / (2 * n)) / (1 + z * z / n)
-    half = z / (1 + z * z / n) * math.sqrt(q * (1 - q) / n + z * z / (4 * n * n))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    """The Wilson score interval (95 % for the default z) of a right rate of ``right`` in ``n``
+    (:func:`medc_training.radbench.metrics.wilson`); (0, 1) when n = 0: with nothing declared,
+    any rate is possible."""
+    return (0.0, 1.0) if n == 0 else proportion_interval(right, n, z)
 
 
 def _group(masses: list[float], rights: list[bool]) -> list[dict]:
