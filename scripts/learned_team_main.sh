@@ -23,7 +23,10 @@
 # cores), MEDC_MAIN_OUT (default docs/reproduction/learned-team/main), MEDC_MAIN_TRAIN_ARGS (more
 # medc-train arguments, split on spaces, e.g. "--observation ego6+estimate+posterior"),
 # MEDC_MAIN_FROZEN (1, the default: a finished run plays the frozen episodes; 0: it does not, as a
-# probe, which plays validation episodes only).
+# probe, which plays validation episodes only), MEDC_MAIN_INIT (a folder of finished runs: run
+# METHOD-sSEED starts from FOLDER/METHOD-sSEED/policy.safetensors with --init-from),
+# MEDC_MAIN_SEED_OFFSET (added to the training seed, default 0: a run started from a bundle trains on
+# a fresh stream of episodes).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
@@ -34,7 +37,13 @@ threads=${MEDC_TRAIN_THREADS:-1}
 out=${MEDC_MAIN_OUT:-docs/reproduction/learned-team/main}
 read -r -a train_args <<< "${MEDC_MAIN_TRAIN_ARGS:-}"
 frozen=${MEDC_MAIN_FROZEN:-1}
+init=${MEDC_MAIN_INIT:-}
+seed_offset=${MEDC_MAIN_SEED_OFFSET:-0}
 expert=controller:infotaxis
+if ! [[ "$seed_offset" =~ ^[0-9]+$ ]]; then
+  echo "learned_team_main: MEDC_MAIN_SEED_OFFSET must be a non-negative integer, got '$seed_offset'" >&2
+  exit 2
+fi
 for n in "$budget" "$piece"; do
   if ! [[ "$n" =~ ^[1-9][0-9]*$ ]]; then
     echo "learned_team_main: budget and piece must be positive step counts, got '$n'" >&2
@@ -90,7 +99,7 @@ one_run() {  # METHOD-sSEED
     return 2
   fi
   method=${BASH_REMATCH[1]}
-  seed=${BASH_REMATCH[2]}
+  seed=$(( BASH_REMATCH[2] + seed_offset ))
   dir=$out/$name
   local claim
   exec {claim}>"$out/.$name.claim"
@@ -104,6 +113,14 @@ one_run() {  # METHOD-sSEED
     medc|il) extra=(--expert "$expert") ;;
     medc-exact) method=medc; extra=(--expert controller:infotaxis-exact) ;;
   esac
+  if [[ -n $init ]]; then
+    if [[ ! -s "$init/$name/policy.safetensors" ]]; then
+      echo "learned_team_main: MEDC_MAIN_INIT: no bundle at $init/$name/policy.safetensors" >&2
+      exec {claim}>&-
+      return 2
+    fi
+    extra+=(--init-from "$init/$name/policy.safetensors")
+  fi
   local done_steps
   done_steps=$(steps_done "$dir")
   while (( done_steps < budget )); do

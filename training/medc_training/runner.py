@@ -237,6 +237,7 @@ def bundle_manifest(trainer, cfg: TrainConfig, metrics: dict) -> dict:
         **observation_section(trainer.env),
         "training": {"method": cfg.method, "steps": int(trainer.global_step), "seed": cfg.seed,
                      "arch": cfg.arch, "horizon": cfg.horizon, "epochs": cfg.epochs,
-                     "evaluation": cfg.evaluation},
+                     "evaluation": cfg.evaluation,
+                     **({"init_from": trainer.init_from} if getattr(trainer, "init_from", None) else {})},
         "metrics": {k: float(v) for k, v in metrics.items()},
     }

@@ -105,6 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.safetensors")
+    p.add_argument("--init-from", metavar="BUNDLE",
+                   help="start from this bundle's network (same application, observation and "
+                        "architecture) with a fresh optimiser, instead of a fresh network")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a run already in OUT (refused without it; a sweep: seeds of another config)")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu",
@@ -196,6 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.seeds is None and (args.ray is not None or args.jobs is not None):
         p.error("--ray and --jobs run a sweep: give the seeds with --seeds")
+    if args.seeds is not None and args.init_from is not None:
+        p.error("--init-from starts one run: give one --seed (a run per seed, each with its bundle)")
     try:
         if args.seeds is not None:
             return _sweep(args)
@@ -203,11 +208,16 @@ def main(argv: list[str] | None = None) -> int:
         from ..experiments.jobs import make_learner
         from ..runner import run_training
         from ..runs import run_inputs
+        from ..warmstart import init_from_bundle
 
         learner = make_learner(cfg, args.expert, args.expert_weight)
+        inputs = run_inputs(args.expert, args.expert_weight)
+        if args.init_from is not None:
+            # Recorded with the inputs, so --resume refuses a run started from another bundle.
+            inputs["init_from"] = init_from_bundle(learner, args.init_from)
         summary = run_training(learner, cfg, args.out, resume=args.resume, progress=not args.quiet,
                                tensorboard=not args.no_tensorboard, overwrite=args.overwrite,
-                               inputs=run_inputs(args.expert, args.expert_weight))
+                               inputs=inputs)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"medc-train: error: {exc}", file=sys.stderr)
         return 2
