@@ -8,7 +8,8 @@ thread:
   decisions (one agent's move) per second, at B = 1 and at a large batch;
 * **an agent node's decision** (B = 1): the work ``medc-agent`` does per step for the team's last
   agent, which is the most for a coordinated searcher (it computes its teammates' choices before
-  its own); a bundle's forward pass on one observation. DDS transport is not in it (``medc-bench
+  its own); for a bundle, building the team's observations from its memory and one forward pass
+  for that agent. DDS transport is not in it (``medc-bench
   ros`` measures the graph: a few milliseconds);
 * **the work per decision**: for the information-driven searchers the likelihood terms evaluated
   (hypothesis x count value x candidate move, :data:`medc_training.searchers.STATS`), for a bundle
@@ -46,8 +47,12 @@ def _node_call(policy: Any, bundle: Any, core: BenchCore):
         net = bundle.net
 
         def forward(obs: torch.Tensor, mask: torch.Tensor) -> None:
+            # The observation is built from the team memory first (its source maps from the
+            # posterior the step left, as a searcher's scores are; every agent's window, as the
+            # node's observer builds them), then the last agent's row goes through the network.
             with torch.no_grad():
-                net(obs[n - 1:n])
+                views = core.memory.observe(core.positions, core.walls)
+                net(views[:, n - 1])
 
         return forward
     if isinstance(policy, str) and policy in CONTROLLERS:
