@@ -2,16 +2,19 @@
 # The model mismatch sweep of docs/learned-team.md: the searchers (and the policies given as
 # arguments, e.g. a learned team's bundle) on the first 12 episodes of every g20-a3 set, in the
 # nominal world and in each departure of the protocol. Each run's JSON and episode lines go to
-# docs/reproduction/learned-team/mismatch/; a run whose JSON exists is skipped (resumable).
+# docs/reproduction/learned-team/mismatch/ (or $MISMATCH_OUT); a run whose JSON exists is skipped
+# (resumable). $MISMATCH_SEARCHERS narrows the searchers when a budget calls for it.
 #
 #   scripts/radbench_mismatch.sh [BUNDLE ...]
+#   MISMATCH_SEARCHERS="infotaxis infotaxis-exact" scripts/radbench_mismatch.sh BUNDLE ...
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
 source scripts/env.sh
-out=docs/reproduction/learned-team/mismatch
+out=${MISMATCH_OUT:-docs/reproduction/learned-team/mismatch}
 mkdir -p "$out"
-policies=(infotaxis infotaxis-exact space-aware "$@")
+read -r -a searchers <<< "${MISMATCH_SEARCHERS:-infotaxis infotaxis-exact space-aware}"
+policies=("${searchers[@]}" "$@")
 departures=(nominal background=5 background=80 transmission=0.1 transmission=0.3 strength_scale=2
             efficiency=0.7 efficiency=1.3 position_noise=0.2)
 for d in "${departures[@]}"; do
