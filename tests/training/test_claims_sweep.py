@@ -7,10 +7,10 @@ import math
 from pathlib import Path
 
 import pytest
-from medc_training.experiments.catalogue import PHASES, SCOPES, SIX
-from medc_training.experiments.figures import sweep
-from medc_training.experiments.plan import Plan
-from medc_training.experiments.report import (
+from medc_lab.catalogue import PHASES, SCOPES, SIX
+from medc_lab.figures import sweep
+from medc_lab.plan import Plan
+from medc_lab.report import (
     CONTROLLER_PLAY,
     Report,
     _episodes_key,
@@ -19,7 +19,7 @@ from medc_training.experiments.report import (
     random_play_length,
     report_figures,
 )
-from medc_training.experiments.sweep_report import CellResult, SweepCell, compare_lower, guided_share, within
+from medc_lab.sweep_report import CellResult, SweepCell, compare_lower, guided_share, within
 from medc_training.metrics import CSV_COLUMNS
 from medc_training.stats import t95
 
@@ -79,7 +79,7 @@ def test_no_other_scale_plans_the_sweep(tmp_path):
 
 
 def test_run_options_are_refused_unless_they_are_config_fields(tmp_path):
-    from medc_training.experiments.figures import Run
+    from medc_lab.figures import Run
 
     plan = _claims(tmp_path)
     assert plan.run_config(Run("x", "sparse", options=(("grid", 24),)), 300, 10)["grid"] == 24
@@ -266,7 +266,7 @@ def test_random_play_keeps_the_success_rate_and_reads_old_length_only_entries(tm
 
 def test_hypothesis_rules_answer_from_the_cis():
     def cell(scores, sparse=(30.0, 30.0, 30.0)):
-        from medc_training.experiments.sweep_report import Area, Arm
+        from medc_lab.sweep_report import Area, Arm
 
         arm = Arm(steps=((0.0, 1.0),) * len(scores), curves=tuple((50.0, s) for s in scores),
                   budgets=(1.0,) * len(scores), guided=(0.1,) * len(scores), follow=(1.0,) * len(scores))
@@ -291,7 +291,7 @@ def test_no_sweep_section_or_figure_without_a_run_of_its_own(tmp_path):
 
 
 def test_medc_reproduce_report_adds_the_sweep_after_the_protocols_figures(tmp_path, monkeypatch):
-    from medc_training.cli.reproduce import main
+    from medc_lab.cli.reproduce import main
 
     plan = _sweep_folder(tmp_path, episodes=256)  # the claims scope's gate episodes
     monkeypatch.chdir(tmp_path)

@@ -1,6 +1,6 @@
-"""The classical controllers on a run's own evaluation episodes (medc_training.experiments.report
+"""The classical controllers on a run's own evaluation episodes (medc_lab.report
 controller_play) and the report's paired comparison of final policies with them
-(medc_training.experiments.references.versus_best): the controllers play exactly the episodes the
+(medc_lab.references.versus_best): the controllers play exactly the episodes the
 run's evaluations played, the cache is reused, and the paired difference is the hand-computed one."""
 
 from __future__ import annotations
@@ -10,9 +10,8 @@ import math
 
 import pytest
 import torch
-from medc_training.config import TrainConfig
-from medc_training.experiments.references import CONTROLLERS, versus_best
-from medc_training.experiments.report import (
+from medc_lab.references import CONTROLLERS, versus_best
+from medc_lab.report import (
     CONTROLLER_PLAY,
     _episodes_key,
     controller_env,
@@ -20,6 +19,7 @@ from medc_training.experiments.report import (
     controller_play,
     eval_config,
 )
+from medc_training.config import TrainConfig
 from medc_training.metrics import CSV_COLUMNS
 from medc_training.ppo import EVAL_SEED_OFFSET, make_env_for
 from medc_training.stats import t95
@@ -111,7 +111,7 @@ def _fake_seed(out, name: str, cfg: dict, curve: list[float]) -> None:
 
 def test_final_policies_are_compared_with_the_controllers_on_each_seeds_own_episodes(tmp_path, monkeypatch):
     import medc_training.evaluate as evaluate
-    from medc_training.experiments.report import load_curves
+    from medc_lab.report import load_curves
 
     monkeypatch.setattr(evaluate, "play_episodes", lambda *a, **k: pytest.fail("nothing is played"))
     base = TrainConfig(agents=3, walls=2, grid=8, max_steps=50, eval_envs=2, eval_episodes=2,

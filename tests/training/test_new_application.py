@@ -145,9 +145,9 @@ def test_a_new_applications_bundle_passes_the_manifest_check(toy, tmp_path):
 
 
 def test_the_report_and_the_plan_take_a_new_application(toy, tmp_path):
+    from medc_lab.plan import Plan
+    from medc_lab.report import _controllers_refuse, expert_table
     from medc_training.config import TrainConfig
-    from medc_training.experiments.plan import Plan
-    from medc_training.experiments.report import _controllers_refuse, expert_table
 
     cfg = TrainConfig(env=TOY, agents=2, grid=6, eval_episodes=8)
     assert cfg.observation is None and cfg.make_options() == {"agents": 2, "grid": 6, "max_steps": 100}

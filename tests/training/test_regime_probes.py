@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from medc_training.experiments import regime_probes as rp
+from medc_lab.studies import regimes as rp
 
 
 def test_regime_names_round_trip_and_bad_ones_are_refused():

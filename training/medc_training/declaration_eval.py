@@ -176,7 +176,7 @@ def summarize(rows: list[dict]) -> dict:
 
 def add_episode_arguments(p: argparse.ArgumentParser, episodes: int) -> None:
     """The command-line arguments of a declaration study's episodes and team (this module's and
-    :mod:`medc_training.calibration`'s): the policy, the episodes, the end rules, the radius and the
+    :mod:`medc_lab.studies.calibration`'s): the policy, the episodes, the end rules, the radius and the
     scenario of a classical team (a bundle brings its own)."""
     from .controllers import CONTROLLERS
 

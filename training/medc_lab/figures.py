@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
-from ..envs.names import DEFAULT_APPLICATION
+from medc_training.envs.names import DEFAULT_APPLICATION
+
 from .catalogue import (
     FAULTY_USERS,
     FRL_USERS,

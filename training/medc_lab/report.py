@@ -11,7 +11,8 @@ import math
 from collections.abc import Collection, Sequence
 from pathlib import Path
 
-from ..stats import compare, learning_score, mean_ci
+from medc_training.stats import compare, learning_score, mean_ci
+
 from .catalogue import OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS, Scope, long_tags_on_disk, tl_architectures
 from .figures import FIGURES, TAGGED, Figure, Panel, tag_markers
 from .plan import Plan
@@ -39,7 +40,7 @@ def load_curves(out: Path, name: str, csv_name: str = "metrics.csv", seeds: Coll
                 ) -> tuple[list[float], list[list[float]], list]:
     """(steps, [episode-length curve per seed], [summary per seed]) of one run name (``seeds``:
     only those seeds)."""
-    from ..metrics import read_metrics
+    from medc_training.metrics import read_metrics
 
     curves, summaries, steps = [], [], []
     for seed_dir in seed_dirs(out, name, seeds):
@@ -63,8 +64,8 @@ GATE_RANDOM_EPISODES = 256
 def _episodes_key(cfg: dict, episodes: int | None) -> str:
     """The key of a run's evaluation episodes (or of ``episodes`` fixed episodes of its evaluation
     seed) in OUT/random_play.json and OUT/controller_play.json."""
-    from ..config import TrainConfig
-    from ..ppo import EVAL_SEED_OFFSET
+    from medc_training.config import TrainConfig
+    from medc_training.ppo import EVAL_SEED_OFFSET
 
     c = TrainConfig.from_dict(cfg)
     key = (f"{c.env}|agents={c.agents}|walls={c.walls}|grid={c.grid}|max_steps={c.max_steps}|"
@@ -84,9 +85,9 @@ def random_play(out: Path, cfg: dict, episodes: int | None = None) -> dict:
     that many fixed episodes of the run's evaluation seed instead of its own evaluation's. A cache
     entry written before success rates were kept holds the mean length alone: asked for both, the
     same episodes are played again (random play is seeded) and the entry holds both from then on."""
-    from ..config import TrainConfig
-    from ..evaluate import play, play_episodes
-    from ..ppo import EVAL_SEED_OFFSET, make_env_for
+    from medc_training.config import TrainConfig
+    from medc_training.evaluate import play, play_episodes
+    from medc_training.ppo import EVAL_SEED_OFFSET, make_env_for
 
     key = _episodes_key(cfg, episodes)
     cache_path = out / "random_play.json"
@@ -126,7 +127,7 @@ def controller_env(c, seed: int):
     classical controllers play its evaluation episodes: the run's own evaluation environment
     (:func:`medc_training.ppo.make_env_for`, ``eval_envs`` environments, seeded ``seed``) with the
     team's source posterior kept, which the controllers read and which changes no episode."""
-    from ..ppo import make_env_for
+    from medc_training.ppo import make_env_for
 
     return make_env_for(c, c.eval_envs, seed, False, posterior=True)
 
@@ -150,7 +151,7 @@ def eval_config(cfg: dict, csv_name: str = "metrics.csv") -> dict:
 def _controllers_refuse(c) -> str | None:
     """Why the classical controllers cannot play the evaluation episodes of config ``c`` (a
     :class:`~medc_training.config.TrainConfig`); None when they can."""
-    from ..envs import application
+    from medc_training.envs import application
 
     if not c.eval_episodes:
         return "a run evaluated with the legacy window has no fixed evaluation episodes"
@@ -167,10 +168,10 @@ def controller_play(out: Path, cfg: dict, controllers: Sequence[str] = CONTROLLE
     them (:func:`medc_training.evaluate.play_episodes`). Cached in OUT/controller_play.json by the
     episodes' key and controller; only what the cache lacks is played. Raises ValueError for a run
     evaluated with the legacy window (no fixed episodes) or of another application."""
-    from ..config import TrainConfig
-    from ..controllers import controller_policy
-    from ..evaluate import play_episodes
-    from ..ppo import EVAL_SEED_OFFSET
+    from medc_training.config import TrainConfig
+    from medc_training.controllers import controller_policy
+    from medc_training.evaluate import play_episodes
+    from medc_training.ppo import EVAL_SEED_OFFSET
 
     c = TrainConfig.from_dict(cfg)
     refused = _controllers_refuse(c)
@@ -198,7 +199,7 @@ def controller_lengths(out: Path, summaries: Sequence[dict], csv_name: str = "me
     """Per seed (``summaries``: one summary.json each), each classical controller's mean episode
     length on the evaluation episodes behind that seed's ``csv_name`` (:func:`controller_play`);
     None when a seed has no fixed evaluation episodes or its application keeps no source estimate."""
-    from ..config import TrainConfig
+    from medc_training.config import TrainConfig
 
     lengths = []
     for summary in summaries:
@@ -217,7 +218,7 @@ def learnability_gate(out: Path, sparse_run: str, min_seeds: int = GATE_MIN_SEED
     episodes (or on ``random_episodes`` fixed episodes of the same seed); passed when >= ``min_seeds``
     seeds ran and the 95% CI of the mean difference lies entirely below 0 (``seeds``: only those
     seeds count). Returns {"passed", "n", "sparse", "random", "diff", "half", "text"}."""
-    from ..metrics import read_metrics
+    from medc_training.metrics import read_metrics
 
     finals, randoms = [], []
     for seed_dir in seed_dirs(out, sparse_run, seeds):
@@ -352,7 +353,7 @@ class Report:
 
     def figure(self, png: str, title: str, names: dict[str, str], csv_name: str = "metrics.csv",
                ylabel: str = "mean episode length (greedy eval)") -> dict:
-        from ..plots import plot_methods
+        from medc_training.plots import plot_methods
 
         data = self.series(names, csv_name)
         if data:
@@ -427,7 +428,7 @@ class Report:
 
     def seed_rows(self, name: str, seeds: tuple[int, ...] | None = None) -> list[tuple[dict, list[dict]]]:
         """(summary, metrics.csv rows) of every finished seed of run ``name`` (``seeds``: only those)."""
-        from ..metrics import read_metrics
+        from medc_training.metrics import read_metrics
 
         return [(json.loads((d / "summary.json").read_text()), read_metrics(d / "metrics.csv"))
                 for d in seed_dirs(self.out, name, seeds) if (d / "metrics.csv").exists()]
@@ -456,7 +457,7 @@ class Report:
 def expert_table(models: Path) -> str:
     """One row per shipped expert/team bundle: how its DAgger evaluation compares with a random
     team on the same episodes (read from the bundle manifests; empty if there are none)."""
-    from ..bundle import BundleError, read_manifest
+    from medc_training.bundle import BundleError, read_manifest
 
     rows = []
     for path in [f for d in ("experts", "team") for f in sorted((models / d).glob("*.safetensors"))]:
@@ -494,7 +495,7 @@ def panel_section(r: Report, panel: Panel, seeds: tuple[int, ...] | None = None,
                   gate_min_seeds: int | None = None) -> str | None:
     """A panel's plot and section (its table, gate and claims), or None when none of its runs exist
     (``seeds``: only those seeds are read; ``gate_min_seeds``: the gate's need, None: the scope's)."""
-    from ..plots import plot_methods
+    from medc_training.plots import plot_methods
 
     data: dict = {}
     for s in panel.series:
@@ -581,7 +582,7 @@ def expert_quality(r: Report, plan: Plan) -> str:
 
 
 def build_report(out: Path, scale: str, seeds: int, command: str, plan: Plan, elapsed: dict) -> Path:
-    from ..config import SCALES
+    from medc_training.config import SCALES
 
     r = Report(out, scale, seeds, command, plan.scope, plan.base)
     first = plan.scope.first_seed

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from ..stats import (
+from medc_training.stats import (
     ALPHA,
     censored_mean,
     detectable_delta,
@@ -28,6 +28,7 @@ from ..stats import (
     t_power,
     welch,
 )
+
 from .references import final_level, steps_to_level
 
 #: Verdict words of a claim that was judged (the others: not testable, incomplete, not run).

@@ -12,7 +12,7 @@ calibrated at p when the right rate of its declarations is at least p; the study
 whose interval lies wholly below it. It also tallies every step's verdict (the mass at the MAP cell
 and whether the source is within the radius of it, declared or not) in the same bins.
 
-``python -m medc_training.calibration CONTROLLER_OR_BUNDLE --sensing realistic --grid 20`` prints
+``python -m medc_lab.studies.calibration CONTROLLER_OR_BUNDLE --sensing realistic --grid 20`` prints
 the tables and writes one JSON record per configuration (``--out``). The probe options change one
 part of the model at a time: ``--levels NS,NB`` the estimator's strength and background levels (the
 simulator still draws both from the preset's continuous ranges), ``--strength LO,HI`` and
@@ -28,9 +28,14 @@ import time
 from itertools import pairwise
 
 import torch
-
-from .declaration_eval import END_RULES, add_episode_arguments, study_policy, study_team, threshold_episodes
-from .radbench.metrics import wilson as proportion_interval
+from medc_training.declaration_eval import (
+    END_RULES,
+    add_episode_arguments,
+    study_policy,
+    study_team,
+    threshold_episodes,
+)
+from medc_training.radbench.metrics import wilson as proportion_interval
 
 #: The thresholds the study checks, in one play.
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999)
@@ -116,9 +121,9 @@ def _pair(text: str, kind=float) -> list:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m medc_training.calibration``: the study per end rule, printed and as JSON."""
-    from .envs import make_batched
-    from .envs.names import TARGET_LOCALIZATION
+    """``python -m medc_lab.studies.calibration``: the study per end rule, printed and as JSON."""
+    from medc_training.envs import make_batched
+    from medc_training.envs.names import TARGET_LOCALIZATION
 
     p = argparse.ArgumentParser(description="Reliability of the team's declarations on fixed episodes: "
                                             "the right rate per threshold and by declared mass.")

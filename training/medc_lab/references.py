@@ -24,7 +24,7 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..stats import mean_ci
+from medc_training.stats import mean_ci
 
 #: The controllers a user would pick instead of a learned team (random play is a reference line,
 #: not a controller to beat).

@@ -7,7 +7,7 @@ candidate regimes of the realistic sensing preset, each policy on the same fixed
 their end (:func:`medc_training.evaluate.play_episodes`). Sparse's probes are ordinary ``medc-train``
 runs (``scripts/claims_probes.sh``).
 
-``python -m medc_training.experiments.regime_probes play --out docs/reproduction/claims/probes``
+``python -m medc_lab.studies.regimes play --out docs/reproduction/claims/probes``
 plays what is missing (one JSON per regime and policy; finished ones are skipped, so it resumes);
 ``report`` prints the table (success rate and mean episode length with 95% CIs).
 """
@@ -22,8 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-
-from ..stats import mean_ci
+from medc_training.stats import mean_ci
 
 AGENTS = 3
 EPISODES = 256
@@ -65,10 +64,10 @@ def parse_regime(text: str) -> Regime:
 def play(regime: Regime, policy: str, episodes: int = EPISODES, eval_seed: int = EVAL_SEED) -> dict:
     """Play ``policy`` on the regime's ``episodes`` fixed episodes of ``eval_seed``; the per-episode
     results and their summary."""
-    from ..controllers import controller_policy
-    from ..envs import make_batched
-    from ..envs.names import TARGET_LOCALIZATION
-    from ..evaluate import play_episodes
+    from medc_training.controllers import controller_policy
+    from medc_training.envs import make_batched
+    from medc_training.envs.names import TARGET_LOCALIZATION
+    from medc_training.evaluate import play_episodes
 
     env = make_batched(TARGET_LOCALIZATION, num_envs=episodes, seed=eval_seed, agents=AGENTS,
                        walls=regime.walls, grid=regime.grid, max_steps=regime.max_steps, sensing="realistic",
