@@ -40,8 +40,8 @@ def curve_summary(metrics_csv: Path) -> dict:
 
 def plot_probe(out: Path) -> None:
     """OUT/probe.png: every variant's greedy evaluation curve (mean over its seeds, 95% band)."""
+    from medc_lab.plots import plot_methods
     from medc_training.metrics import read_metrics
-    from medc_training.plots import plot_methods
 
     series = {}
     for run in sorted(p for p in out.iterdir() if p.is_dir()):

@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from medc_lab.posthoc import analyse, changes, speed_table
+from medc_lab.report.posthoc import analyse, changes, speed_table
 from medc_training.stats import t95
 
 REPO = Path(__file__).resolve().parents[2]
