@@ -15,7 +15,7 @@ from pathlib import Path
 
 from medc_training.stats import mean_ci
 
-#: The fixed episodes of the claims protocol's reference lines (regime_probes --episodes 512
+#: The fixed episodes of the claims protocol's reference lines (python -m medc_lab.cli.regimes --episodes 512
 #: --eval-seed 20261204).
 EPISODES = 512
 EVAL_SEED = 20261204

@@ -7,7 +7,7 @@ learner, trained by ``scripts/realistic_runs.sh`` into ``<out>/runs/g{grid}w{wal
 each play the same 512 seeded episodes per scenario to their end
 (:func:`medc_training.evaluate.play_episodes`).
 
-``python -m medc_lab.studies.realistic evaluate --out docs/reproduction/realistic``
+``python -m medc_lab.cli.realistic evaluate --out docs/reproduction/realistic``
 plays what is missing (one JSON of per-episode results per scenario and policy under
 ``<out>/eval``; finished ones are skipped, so the command resumes), and ``report`` writes the table
 with 95% CIs and the protocol's verdicts (``<out>/table.md``, ``<out>/table.json``) and one figure
@@ -16,14 +16,12 @@ of learning curves with the controllers as reference lines (``<out>/curves.png``
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
 from medc_training.stats import mean_ci
 
 #: The protocol's fixed values.
@@ -244,28 +242,3 @@ def report(out: Path) -> dict:
     (out / "table.json").write_text(json.dumps(rows, indent=1))
     figure(out, rows, out / "curves.png")
     return {"scenarios": len(rows), "verdicts": {r["scenario"]: r["verdict"] for r in rows}}
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m medc_lab.studies.realistic",
-                                description=__doc__.split("\n\n")[0])
-    p.add_argument("command", choices=("evaluate", "report"))
-    p.add_argument("--out", type=Path, default=Path("docs/reproduction/realistic"))
-    p.add_argument("--policy", action="append", help="only these policies (random, gradient, greedy, "
-                   "infotaxis, learned, learned-seed0, ...)")
-    p.add_argument("--scenario", action="append", help="only these scenarios (g20w0, g30w5, ...)")
-    p.add_argument("--probe", action="append", help="also play the probe <out>/probes/NAME/seed0 on "
-                   "the --scenario given (its file: eval/<scenario>/probe-NAME.json)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    if args.command == "evaluate":
-        written = evaluate(args.out, args.policy, args.scenario, args.probe)
-        print(json.dumps({"written": [str(w) for w in written]}))
-    else:
-        print(json.dumps(report(args.out)))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
