@@ -19,14 +19,11 @@ from dataclasses import dataclass
 
 from medc_training.stats import mean_ci
 
-AGENTS = 3
-EPISODES = 256
-EVAL_SEED = 20261203
-POLICIES = ("random", "gradient", "greedy", "infotaxis")
-
 
 @dataclass(frozen=True)
 class Regime:
+    """A candidate regime: the grid side, the walls and the step limit of its episodes."""
+
     grid: int
     walls: int
     max_steps: int
@@ -35,6 +32,11 @@ class Regime:
     def name(self) -> str:
         return f"g{self.grid}w{self.walls}t{self.max_steps}"
 
+
+AGENTS = 3
+EPISODES = 256
+EVAL_SEED = 20261203
+POLICIES = ("random", "gradient", "greedy", "infotaxis")
 
 #: The candidates: the study's 30x30 (random play succeeds in ~30% of its episodes), shorter
 #: episodes on it, and larger areas up to the estimator's pair-table limit (48 cells a side).
