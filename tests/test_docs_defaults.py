@@ -186,9 +186,9 @@ def _parser_of(main, monkeypatch) -> argparse.ArgumentParser:
 
 
 def test_training_md_states_medc_controllers_defaults(monkeypatch):
-    from medc_training import controllers
+    from medc_training.cli import play_controllers
 
-    defaults = {a.dest: a.default for a in _parser_of(controllers.main, monkeypatch)._actions}
+    defaults = {a.dest: a.default for a in _parser_of(play_controllers.main, monkeypatch)._actions}
     text = TRAINING_MD.read_text()
     example = re.search(r"medc-controllers +# every controller on ([a-z-]+) (\d+)x(\d+), walls (\d+)", text)
     assert example, "the medc-controllers example line"

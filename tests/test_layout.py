@@ -4,7 +4,8 @@ Packages (docs/ros-reference.md, "Packages"): ``medc_common`` (topic contract an
 node packages share; ``medc_sim``, ``medc_agents`` and ``medc_registry`` are leaves that never
 import each other; ``medc_bringup`` (launcher, demo, benches, gas report) may import them all and
 nothing imports it. Every package.xml declares exactly what its package imports, and no module of
-the house takes part in an import cycle (function-local imports included).
+the house takes part in an import cycle (function-local imports included). In training/, the
+research harness ``medc_lab`` imports the product ``medc_training``, never the reverse.
 """
 
 from __future__ import annotations
@@ -29,7 +30,10 @@ LEAVES = ("medc_sim", "medc_agents", "medc_registry")
 SHARED = "medc_common"
 BRINGUP = "medc_bringup"
 #: Packages of this repository that a package may import (medc_interfaces: the messages).
-HOUSE = {*AMENT_PYTHON, "medc_interfaces", "medc_training"}
+HOUSE = {*AMENT_PYTHON, "medc_interfaces", "medc_training", "medc_lab"}
+#: The Python packages of training/ (its pyproject.toml ships both): the product and the harness.
+PRODUCT, HARNESS = "medc_training", "medc_lab"
+TRAINING_PACKAGES = (PRODUCT, HARNESS)
 
 #: rosdep keys of the third-party Python modules the ROS packages import.
 ROSDEP_KEYS = {
@@ -67,7 +71,8 @@ def test_ament_python_package_is_valid(pkg: str) -> None:
 # ---------------------------------------------------------------- modules and their imports
 def _house_modules() -> dict[str, tuple[Path, bool]]:
     """Every module of the house: dotted name -> (file, is a package __init__)."""
-    roots = [(TRAINING, TRAINING / "medc_training")] + [(ROS_SRC / p, ROS_SRC / p / p) for p in AMENT_PYTHON]
+    roots = [(TRAINING, TRAINING / pkg) for pkg in TRAINING_PACKAGES]
+    roots += [(ROS_SRC / p, ROS_SRC / p / p) for p in AMENT_PYTHON]
     modules: dict[str, tuple[Path, bool]] = {}
     for base, package in roots:
         for path in sorted(package.rglob("*.py")):
@@ -224,10 +229,35 @@ def test_the_gas_report_is_an_offline_tool() -> None:
 def test_training_never_imports_ros_web3_or_nodes() -> None:
     forbidden = {"rclpy", "web3", "medc_interfaces", *AMENT_PYTHON}
     for module, (path, is_package) in MODULES.items():
-        if module.split(".")[0] != "medc_training":
+        if module.split(".")[0] not in TRAINING_PACKAGES:
             continue
         bad = {name.split(".")[0] for name, _ in _imports(path, is_package, module)} & forbidden
         assert not bad, f"{path.relative_to(REPO_ROOT)} imports {sorted(bad)}"
+
+
+def _importers_of(package: str, among: str) -> list[tuple[str, int, str]]:
+    """``(module, line, imported name)`` of every import of ``package`` by a module of ``among``
+    (function-local and relative imports included)."""
+    return [(module, line, name) for module, (path, is_package) in MODULES.items()
+            if module.split(".")[0] == among
+            for name, line in _imports(path, is_package, module) if name.split(".")[0] == package]
+
+
+def test_the_product_never_imports_the_harness() -> None:
+    """The research harness (experiments, report, studies) depends on the product, not the reverse:
+    whatever medc-train, the bundles and the nodes need lives in medc_training."""
+    assert _importers_of(PRODUCT, HARNESS), "no harness module imports the product: is medc_lab there?"
+    for owner in (PRODUCT, *AMENT_PYTHON):
+        found = [f"{MODULES[m][0].relative_to(REPO_ROOT)}:{line} imports {name}"
+                 for m, line, name in _importers_of(HARNESS, owner)]
+        assert found == [], f"{owner} imports the research harness:\n" + "\n".join(found)
+
+
+def test_the_harness_check_finds_a_function_local_relative_import(tmp_path, monkeypatch) -> None:
+    fake = tmp_path / "fake.py"
+    fake.write_text("def f():\n    from medc_lab import plan\n")
+    monkeypatch.setitem(MODULES, "medc_training.fake", (fake, False))
+    assert _importers_of(HARNESS, PRODUCT) == [("medc_training.fake", 2, "medc_lab.plan")]
 
 
 # ---------------------------------------------------------------- console scripts
@@ -242,11 +272,13 @@ def _entry_points() -> Iterator[tuple[str, str, str, str]]:
                         name, _, target = (s.strip() for s in spec.partition("="))
                         yield pkg, group, name, target
     project = tomllib.loads((TRAINING / "pyproject.toml").read_text())["project"]
-    for name, target in project["scripts"].items():
-        yield "medc_training", "console_scripts", name, target
-    for group, specs in project["entry-points"].items():
-        for name, target in specs.items():
-            yield "medc_training", group, name, target
+    specs = [("console_scripts", name, target) for name, target in project["scripts"].items()]
+    specs += [(group, name, target) for group, entries in project["entry-points"].items()
+              for name, target in entries.items()]
+    for group, name, target in specs:
+        # training/pyproject.toml ships the product and the harness: each owns its own scripts.
+        top = target.split(".")[0]
+        yield (top if top in TRAINING_PACKAGES else PRODUCT), group, name, target
 
 
 def test_every_entry_point_names_a_function_of_its_own_package() -> None:
@@ -268,7 +300,7 @@ def test_every_entry_point_names_a_function_of_its_own_package() -> None:
 
 # ---------------------------------------------------------------- one definition of each name
 #: Source trees whose modules the checks below read (tests may compare names freely).
-SOURCE_ROOTS = (TRAINING / "medc_training", ROS_SRC, REPO_ROOT / "scripts")
+SOURCE_ROOTS = (*(TRAINING / pkg for pkg in TRAINING_PACKAGES), ROS_SRC, REPO_ROOT / "scripts")
 ENVS = TRAINING / "medc_training" / "envs"
 
 

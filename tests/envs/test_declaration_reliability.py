@@ -1,4 +1,4 @@
-"""The team's declarations are right as often as they claim (medc_training.calibration): on fixed
+"""The team's declarations are right as often as they claim (medc_lab.studies.calibration): on fixed
 episodes of both sensing presets, the declarations at thresholds 0.9, 0.95 and 0.99 are right at a
 rate whose Wilson 95 % interval reaches the threshold."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from medc_training.calibration import reliability, wilson
+from medc_lab.studies.calibration import reliability, wilson
 from medc_training.controllers import controller_policy
 from medc_training.declaration_eval import threshold_episodes
 from medc_training.envs import make_batched

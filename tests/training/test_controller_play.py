@@ -1,6 +1,6 @@
-"""The classical controllers on a run's own evaluation episodes (medc_training.experiments.report
+"""The classical controllers on a run's own evaluation episodes (medc_lab.report.reference_play
 controller_play) and the report's paired comparison of final policies with them
-(medc_training.experiments.references.versus_best): the controllers play exactly the episodes the
+(medc_lab.report.references.versus_best): the controllers play exactly the episodes the
 run's evaluations played, the cache is reused, and the paired difference is the hand-computed one."""
 
 from __future__ import annotations
@@ -10,16 +10,16 @@ import math
 
 import pytest
 import torch
-from medc_training.config import TrainConfig
-from medc_training.experiments.references import CONTROLLERS, versus_best
-from medc_training.experiments.report import (
+from medc_lab.report.finder import eval_config
+from medc_lab.report.reference_play import (
     CONTROLLER_PLAY,
-    _episodes_key,
     controller_env,
     controller_lengths,
     controller_play,
-    eval_config,
+    episodes_key,
 )
+from medc_lab.report.references import CONTROLLERS, versus_best
+from medc_training.config import TrainConfig
 from medc_training.metrics import CSV_COLUMNS
 from medc_training.ppo import EVAL_SEED_OFFSET, make_env_for
 from medc_training.stats import t95
@@ -84,7 +84,7 @@ def test_controllers_play_the_runs_own_evaluation_episodes_and_the_cache_is_reus
         assert len(played[name]["lengths"]) == len(played[name]["successes"]) == 6
         assert all(1 <= n <= 12 for n in played[name]["lengths"])
     cache = json.loads((tmp_path / CONTROLLER_PLAY).read_text())
-    assert list(cache) == [_episodes_key(cfg, None)] and cache[_episodes_key(cfg, None)] == played
+    assert list(cache) == [episodes_key(cfg, None)] and cache[episodes_key(cfg, None)] == played
 
     # A second time nothing is played: everything comes from the cache.
     def refuse(*args, **kwargs):
@@ -111,7 +111,7 @@ def _fake_seed(out, name: str, cfg: dict, curve: list[float]) -> None:
 
 def test_final_policies_are_compared_with_the_controllers_on_each_seeds_own_episodes(tmp_path, monkeypatch):
     import medc_training.evaluate as evaluate
-    from medc_training.experiments.report import load_curves
+    from medc_lab.report.finder import load_curves
 
     monkeypatch.setattr(evaluate, "play_episodes", lambda *a, **k: pytest.fail("nothing is played"))
     base = TrainConfig(agents=3, walls=2, grid=8, max_steps=50, eval_envs=2, eval_episodes=2,
@@ -124,7 +124,7 @@ def test_final_policies_are_compared_with_the_controllers_on_each_seeds_own_epis
     for k, curve in curves.items():
         cfg = {**base, "seed": k}
         _fake_seed(tmp_path, "team", cfg, curve)
-        cache[_episodes_key(cfg, None)] = {
+        cache[episodes_key(cfg, None)] = {
             "infotaxis": {"lengths": infotaxis[k], "successes": [True, True]},
             "greedy": {"lengths": [25, 25], "successes": [True, True]},
             "gradient": {"lengths": [40, 40], "successes": [False, False]}}

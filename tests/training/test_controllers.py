@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from medc_training.cli.play_controllers import main
 from medc_training.controllers import (
     CONTROLLERS,
     controller_policy,
@@ -16,7 +17,6 @@ from medc_training.controllers import (
     gradient_scores,
     greedy_scores,
     infotaxis_scores,
-    main,
 )
 from medc_training.envs import make_batched
 from medc_training.envs.grid import ACTION_NAMES, action_deltas, move_mask, pad_blocked

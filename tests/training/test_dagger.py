@@ -152,8 +152,8 @@ def test_eval_every_counts_training_steps_as_in_medc_train(tmp_path):
     iteration of 6,400 steps and after the last, as when the field counted iterations."""
     from pathlib import Path
 
+    from medc_lab.plan import Plan
     from medc_training.config import RunConfig, TrainConfig
-    from medc_training.experiments.plan import Plan
 
     shared = {f for f in RunConfig.__dataclass_fields__}
     assert shared <= set(TrainConfig.__dataclass_fields__) and shared <= set(CloneConfig.__dataclass_fields__)

@@ -4,9 +4,9 @@ episodes of its own environment and of the A3W2 team, cached by bundle content."
 import json
 
 import torch
+from medc_lab.report.expert_eval import evaluate_experts, expert_eval_table
 from medc_training.bundle import save_bundle
 from medc_training.envs.tl_observation import observation_shape
-from medc_training.experiments.expert_eval import evaluate_experts, expert_eval_table
 from medc_training.nets import make_actor_critic
 
 BASE = {"grid": 13, "max_steps": 10, "env_options": {"sensing": "realistic"}}

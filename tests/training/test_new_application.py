@@ -145,13 +145,14 @@ def test_a_new_applications_bundle_passes_the_manifest_check(toy, tmp_path):
 
 
 def test_the_report_and_the_plan_take_a_new_application(toy, tmp_path):
+    from medc_lab.plan import Plan
+    from medc_lab.report.markdown import expert_table
+    from medc_lab.report.reference_play import controllers_refuse
     from medc_training.config import TrainConfig
-    from medc_training.experiments.plan import Plan
-    from medc_training.experiments.report import _controllers_refuse, expert_table
 
     cfg = TrainConfig(env=TOY, agents=2, grid=6, eval_episodes=8)
     assert cfg.observation is None and cfg.make_options() == {"agents": 2, "grid": 6, "max_steps": 100}
-    assert "keeps none" in _controllers_refuse(cfg)
+    assert "keeps none" in controllers_refuse(cfg)
     models = tmp_path / "models"
     plan = Plan("cpu", 1, tmp_path / "out", models)
     job = plan._expert_job("beacon-A2", TOY, 2, "mlp", 64, False, env_options={"observation": "ego2"},

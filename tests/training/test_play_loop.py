@@ -55,7 +55,7 @@ def test_committed_runs_read_as_window_evaluated():
 def test_random_play_reproduces_the_committed_random_baseline(repo_root, tmp_path):
     """The gate's random baseline for a window-evaluated run is still the committed number; a run
     evaluated on fixed episodes gets random play on exactly its evaluation episodes."""
-    from medc_training.experiments.report import random_play_length
+    from medc_lab.report.reference_play import random_play_length
 
     folder = repo_root / "docs" / "reproduction" / "runs" / "A3W2-sparse" / "seed0"
     config = json.loads((folder / "summary.json").read_text())["config"]

@@ -10,8 +10,8 @@ import pytest
 import torch
 from medc_training.cli.train import build_parser, config_from_args
 from medc_training.config import TrainConfig
-from medc_training.experiments.jobs import make_learner
 from medc_training.experts import BiasedExpert, RandomExpert
+from medc_training.jobs import make_learner
 from medc_training.ppo import Trainer
 from medc_training.qos import (
     INITIAL_REPUTATION,

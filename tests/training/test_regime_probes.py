@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from medc_training.experiments import regime_probes as rp
+from medc_lab.cli import regimes as regimes_cli
+from medc_lab.studies import regimes as rp
 
 
 def test_regime_names_round_trip_and_bad_ones_are_refused():
@@ -15,10 +16,10 @@ def test_regime_names_round_trip_and_bad_ones_are_refused():
         rp.parse_regime("40x40")
 
 
-def test_play_writes_every_episode_and_skips_finished_files(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(rp, "EPISODES", 6)
-    argv = ["play", "--out", str(tmp_path), "--regime", "g8w1t12", "--policy", "random", "--policy", "greedy"]
-    assert rp.main(argv) == 0
+def test_play_writes_every_episode_and_skips_finished_files(tmp_path, capsys):
+    argv = ["play", "--out", str(tmp_path), "--regime", "g8w1t12", "--policy", "random", "--policy", "greedy",
+            "--episodes", "6"]
+    assert regimes_cli.main(argv) == 0
     random_rec = json.loads((tmp_path / "g8w1t12" / "random.json").read_text())
     greedy_rec = json.loads((tmp_path / "g8w1t12" / "greedy.json").read_text())
     for rec in (random_rec, greedy_rec):
@@ -29,9 +30,9 @@ def test_play_writes_every_episode_and_skips_finished_files(tmp_path, monkeypatc
     # The greedy walk down the posterior finds the source at least as often as random moves here.
     assert sum(greedy_rec["successes"]) >= sum(random_rec["successes"])
     capsys.readouterr()
-    assert rp.main(argv) == 0  # finished: nothing is played again
+    assert regimes_cli.main(argv) == 0  # finished: nothing is played again
     assert capsys.readouterr().out == ""
-    assert rp.main(["report", "--out", str(tmp_path), "--regime", "g8w1t12", "--policy", "random",
+    assert regimes_cli.main(["report", "--out", str(tmp_path), "--regime", "g8w1t12", "--policy", "random",
                     "--policy", "infotaxis"]) == 0
     table = capsys.readouterr().out
     assert "| g8w1t12 |" in table and "not run" in table

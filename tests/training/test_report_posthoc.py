@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from medc_training.experiments.posthoc import analyse, changes, speed_table
+from medc_lab.report.posthoc import analyse, changes, speed_table
 from medc_training.stats import t95
 
 REPO = Path(__file__).resolve().parents[2]
@@ -83,8 +83,8 @@ def _header_inputs(report: str) -> tuple[str, dict]:
 
 def test_committed_claims_report_is_rebuilt_from_its_runs_with_the_protocols_part_unchanged(tmp_path,
                                                                                          monkeypatch):
-    from medc_training.experiments.plan import Plan
-    from medc_training.experiments.report import build_report
+    from medc_lab.plan import Plan
+    from medc_lab.report import build_report
 
     report = (CLAIMS / "report.md").read_text()
     assert report.count(ADDED) == 1

@@ -12,7 +12,7 @@ COMMITTED = REPO / "docs" / "reproduction"
 
 
 def test_committed_report_is_rebuilt_byte_for_byte_from_the_committed_runs(tmp_path, monkeypatch):
-    from medc_training.cli.reproduce import main
+    from medc_lab.cli.reproduce import main
 
     report = (COMMITTED / "report.md").read_text()
     marker = "# report rebuilt with: medc-reproduce "

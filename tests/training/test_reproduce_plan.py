@@ -1,13 +1,13 @@
-"""medc-reproduce (medc_training.experiments): the plan matches the paper's figures; verdicts are honest."""
+"""medc-reproduce (medc_lab): the plan matches the paper's figures; verdicts are honest."""
 
 import json
 from pathlib import Path
 
 import pytest
+from medc_lab.catalogue import FRL_USERS, SIX
+from medc_lab.plan import Plan
+from medc_lab.report.judge import verdict
 from medc_training.cli.train import parse_users
-from medc_training.experiments.catalogue import FRL_USERS, SIX
-from medc_training.experiments.plan import Plan
-from medc_training.experiments.report import verdict
 from medc_training.stats import compare, t95
 
 
@@ -79,7 +79,7 @@ def test_device_reaches_every_run_and_bad_devices_are_refused(tmp_path):
 
 
 def test_fleet_and_maze_run_on_the_papers_10x10_grid_with_sampled_evaluation(tmp_path):
-    from medc_training.experiments.catalogue import OTHER_GRID, OTHER_MAX_STEPS
+    from medc_lab.catalogue import OTHER_GRID, OTHER_MAX_STEPS
 
     plan = _plan(tmp_path, seeds=1)
     jobs = plan.jobs("fig10")
@@ -152,9 +152,9 @@ def test_long_other_supplement_pits_medc_against_sparse_and_il_truthful_and_faul
 
 
 def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exists(tmp_path):
+    from medc_lab.catalogue import TL_EXPERTS
     from medc_training.bundle import load_bundle, read_manifest
-    from medc_training.experiments.catalogue import TL_EXPERTS
-    from medc_training.experiments.jobs import run_job
+    from medc_training.jobs import run_job
 
     models = tmp_path / "models"
     plan = Plan("cpu", 1, tmp_path / "out", models)
@@ -177,7 +177,7 @@ def test_experts_are_dagger_clones_retrained_unless_an_equal_dagger_bundle_exist
     assert not (Path(job["out"]) / "policy.safetensors").exists()
     assert (Path(job["out"]) / "metrics.csv").exists()
     # The report's expert table reads the bundle's own evaluation from its manifest.
-    from medc_training.experiments.report import expert_table
+    from medc_lab.report.markdown import expert_table
 
     (models / "team").mkdir()
     (models / "team" / "broken.safetensors").write_bytes(b"not a bundle")
@@ -206,8 +206,9 @@ def _fake_runs(out, name, finals, cfg):
 
 
 def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
+    from medc_lab.report.build import Report
+    from medc_lab.report.judge import learnability_gate
     from medc_training.config import TrainConfig
-    from medc_training.experiments.report import Report, learnability_gate
 
     cfg = TrainConfig(agents=1, walls=0, grid=6, max_steps=20, eval_envs=8, observation="maps").to_dict()
     _fake_runs(tmp_path, "learned-sparse", [3.0, 4.0, 3.5], cfg)
@@ -222,24 +223,25 @@ def test_learnability_gate_blocks_claims_where_sparse_did_not_learn(tmp_path):
     assert json.loads((tmp_path / "random_play.json").read_text())  # random play is measured once
     r = Report(tmp_path, "cpu", 3, "test")
     r.series({"a": "medc", "b": "learned-sparse", "c": "flat-sparse"})
-    assert "— held" in r.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
-    blocked = r.claim("medc beats sparse", "medc", "flat-sparse", gate="flat-sparse")
+    assert "— held" in r.judge.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
+    blocked = r.judge.claim("medc beats sparse", "medc", "flat-sparse", gate="flat-sparse")
     assert "not testable (MDRL-sparse did not pass the learnability gate" in blocked
-    assert "NOT passed" in r.gate("flat-sparse") and "passed" in r.gate("learned-sparse")
-    assert r.verdict_counts() == "2 claims: 1 held, 1 not testable"
+    assert "NOT passed" in r.judge.gate("flat-sparse") and "passed" in r.judge.gate("learned-sparse")
+    assert r.judge.verdict_counts() == "2 claims: 1 held, 1 not testable"
     # A scope that judges a claim only once each side has its seeds: fewer read "incomplete".
-    from medc_training.experiments.catalogue import Scope
+    from medc_lab.catalogue import Scope
 
     _fake_runs(tmp_path, "medc-two-seeds", [0.5, 0.6], cfg)
     strict = Report(tmp_path, "cpu", 3, "test", Scope(claim_min_seeds=3))
     strict.series({"a": "medc", "b": "learned-sparse", "c": "medc-two-seeds"})
-    assert "— held" in strict.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
-    partial = strict.claim("medc beats sparse", "medc-two-seeds", "learned-sparse", gate="learned-sparse")
+    judge = strict.judge
+    assert "— held" in judge.claim("medc beats sparse", "medc", "learned-sparse", gate="learned-sparse")
+    partial = judge.claim("medc beats sparse", "medc-two-seeds", "learned-sparse", gate="learned-sparse")
     assert "— incomplete (2 and 3 of 3 seeds ran; no verdict yet)" in partial
-    no_worse = strict.claim_no_worse("no worse", "medc-two-seeds", "learned-sparse", 1.0,
+    no_worse = strict.judge.claim_no_worse("no worse", "medc-two-seeds", "learned-sparse", 1.0,
                                      gate="learned-sparse")
     assert "— incomplete (2 and 3 of 3 seeds ran" in no_worse
-    assert strict.verdict_counts() == "3 claims: 1 held, 2 incomplete"
+    assert strict.judge.verdict_counts() == "3 claims: 1 held, 2 incomplete"
 
 
 def test_a_reproduction_keeps_the_evaluator_its_runs_were_made_with(tmp_path):
@@ -294,7 +296,7 @@ def test_a_wide_unresolved_claim_is_labelled_under_powered():
 
 
 def test_references_compare_final_policies_and_steps_to_sparses_level(tmp_path):
-    from medc_training.experiments.references import (
+    from medc_lab.report.references import (
         load_references,
         speed_section,
         steps_to_level,

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from medc_training.bundle import load_state
 from medc_training.config import TrainConfig
-from medc_training.experiments.engines import LocalPool, run_jobs
-from medc_training.experiments.jobs import SUMMARY, job_done
+from medc_training.engines import LocalPool, run_jobs
+from medc_training.jobs import SUMMARY, job_done
 from medc_training.ppo import Trainer
 from medc_training.runner import CHECKPOINT, run_training
 from medc_training.runs import RunMismatch, run_inputs
@@ -117,8 +117,8 @@ def test_medc_train_sweep_and_single_run_refuse_another_configuration(tmp_path, 
 
 def test_the_committed_reproduction_runs_still_count_as_done():
     """docs/reproduction's summaries (recorded before inputs were) match the committed plan."""
-    from medc_training.experiments.catalogue import PHASES
-    from medc_training.experiments.plan import Plan
+    from medc_lab.catalogue import PHASES
+    from medc_lab.plan import Plan
 
     root = Path("docs/reproduction")
     done = set()

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from medc_training.experiments import search_study as study
+from medc_lab.studies import realistic as study
 
 
 def _write(out: Path, scenario: str, policy: str, lengths: list[int]) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from medc_training.bundle import load_state
-from medc_training.experiments.jobs import partial_dir
+from medc_training.jobs import partial_dir
 from medc_training.runner import CHECKPOINT
 
 TINY_ARGS = ["--agents", "2", "--walls", "0", "--grid", "6", "--max-steps", "12", "--num-envs", "4",

@@ -18,8 +18,8 @@ from medc_training.runner import CHECKPOINT
 ray = pytest.importorskip("ray", reason="ray is installed by scripts/setup.sh (requirements.txt)")
 
 from medc_training.config import TrainConfig  # noqa: E402
-from medc_training.experiments.engines import LocalPool, RayCluster, run_jobs  # noqa: E402
-from medc_training.experiments.jobs import SUMMARY, partial_dir, run_job  # noqa: E402
+from medc_training.engines import LocalPool, RayCluster, run_jobs  # noqa: E402
+from medc_training.jobs import SUMMARY, partial_dir, run_job  # noqa: E402
 
 TINY = dict(env="target_localization", agents=2, walls=0, grid=6, max_steps=12, num_envs=4, horizon=32,
             epochs=1, minibatches=2, eval_every=128, eval_steps=16, eval_envs=4, eval_episodes=4)
@@ -118,7 +118,7 @@ def _wait_for_checkpoint(proc, ckpt: Path, updates: int = 2, timeout: float = 12
 @pytest.mark.timing
 def test_a_killed_job_leaves_no_run_folder_and_the_rerun_resumes_it(tmp_path):
     job = _plan(tmp_path, steps=100_000)[0]
-    code = ("import json; from medc_training.experiments.jobs import run_job; "
+    code = ("import json; from medc_training.jobs import run_job; "
             f"run_job(json.loads({json.dumps(job)!r}))")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     out = Path(job["out"])

@@ -165,7 +165,7 @@ class RunConfig(EnvironmentConfig):
 
 
 #: The evaluator every run recorded before ``eval_episodes`` existed used (and the committed
-#: reproduction keeps using, see medc_training.experiments.plan): the window of eval_steps.
+#: reproduction keeps using, see medc_lab.plan): the window of eval_steps.
 LEGACY_EVAL = {"eval_episodes": 0}
 
 

@@ -68,8 +68,6 @@ strategy for searching without gradients", Nature 445, 406-409 (2007)
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 from collections.abc import Callable
@@ -95,7 +93,6 @@ __all__ = [
     "gradient_scores",
     "greedy_scores",
     "infotaxis_scores",
-    "main",
     "posterior_mean_levels",
 ]
 
@@ -420,41 +417,3 @@ def first_episodes(env, policy=None, seed: int = 12345) -> dict:
     if policy is not None:
         result["decisions_per_s"] = spent[1] / max(spent[0], 1e-9)
     return result
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``medc-controllers``: evaluate classical controllers (and random moves) on a target
-    localization scenario; one JSON line per controller."""
-    from medc_training.envs import make_batched
-    from medc_training.envs.names import TARGET_LOCALIZATION
-
-    p = argparse.ArgumentParser(
-        description="Evaluate classical search controllers on target localization: the first episode "
-                    "of every environment, played to its end; one JSON line each.")
-    p.add_argument("controllers", nargs="*", default=list(CONTROLLERS),
-                   help=f"any of {', '.join(CONTROLLERS)}, random (default: every controller)")
-    p.add_argument("--agents", type=int, default=3)
-    p.add_argument("--walls", type=int, default=2)
-    p.add_argument("--grid", type=int, default=20)
-    p.add_argument("--max-steps", type=int, default=100)
-    p.add_argument("--sensing", default="realistic")
-    p.add_argument("--num-envs", type=int, default=256)
-    p.add_argument("--seed", type=int, default=12345)
-    p.add_argument("--device", default="cpu")
-    args = p.parse_args(argv)
-    for name in args.controllers:
-        if name != "random" and name not in CONTROLLERS:
-            p.error(f"unknown controller {name!r}; choose from {', '.join(CONTROLLERS)}, random")
-    for name in args.controllers:
-        env = make_batched(TARGET_LOCALIZATION, num_envs=args.num_envs, device=args.device, seed=args.seed,
-                           agents=args.agents, walls=args.walls, grid=args.grid, max_steps=args.max_steps,
-                           sensing=args.sensing, posterior=True)
-        policy = None if name == "random" else controller_policy(name, env)
-        result = first_episodes(env, policy, seed=args.seed)
-        print(json.dumps({"controller": name, **env.attributes, "sensing": env.sensing.name,
-                          "num_envs": args.num_envs, "seed": args.seed, **result}), flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

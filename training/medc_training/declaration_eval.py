@@ -16,21 +16,18 @@ simulator's ``end_on`` parameter:
 
 Per episode: how it ended, its length (moves applied), and for a declaration the distance in
 cells from the declared cell to the true source and whether a UAV on that cell would find it (the
-preset's success radius). ``python -m medc_training.declaration_eval BUNDLE_OR_CONTROLLER ...``
+preset's success radius). ``python -m medc_training.cli.declaration_accuracy BUNDLE_OR_CONTROLLER ...``
 prints one JSON line per configuration.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Callable
 
 import torch
 
-from .envs import make_batched
-from .envs.names import TARGET_LOCALIZATION
 from .envs.tl_estimate import DEFAULT_THRESHOLD, check_rule, declare
 from .evaluate import round_seed
 
@@ -176,7 +173,7 @@ def summarize(rows: list[dict]) -> dict:
 
 def add_episode_arguments(p: argparse.ArgumentParser, episodes: int) -> None:
     """The command-line arguments of a declaration study's episodes and team (this module's and
-    :mod:`medc_training.calibration`'s): the policy, the episodes, the end rules, the radius and the
+    :mod:`medc_lab.studies.calibration`'s): the policy, the episodes, the end rules, the radius and the
     scenario of a classical team (a bundle brings its own)."""
     from .controllers import CONTROLLERS
 
@@ -217,35 +214,3 @@ def study_policy(name: str, bundle, env):
     if bundle is not None:
         return bundle
     return None if name == "random" else controller_policy(name, env)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m medc_training.declaration_eval``: one JSON line per (end rule, noise)."""
-    p = argparse.ArgumentParser(description="Measure the team's declaration (the source localised) on fixed "
-                                            "episodes: declared cell's distance to the source, steps to it.")
-    add_episode_arguments(p, episodes=256)
-    p.add_argument("--noise", choices=("off", "on", "both"), default="both",
-                   help="paper-simple readings without / with Poisson noise (realistic always counts them)")
-    p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD)
-    args = p.parse_args(argv)
-    bundle, attrs = study_team(args)
-    sensing = attrs.get("sensing", "paper-simple")
-    choices = {"off": [False], "on": [True], "both": [False, True]}
-    noises = [None] if sensing != "paper-simple" else choices[args.noise]
-    for rule in args.rule or list(END_RULES):
-        for noise in noises:
-            options = dict(attrs, posterior=True, end_on_find=rule == "either")
-            if noise is not None:
-                options["noise"] = noise
-            env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=args.seed, **options)
-            rows = declaration_episodes(env, study_policy(args.policy, bundle, env), episodes=args.episodes,
-                                        seed=args.seed, radius=args.radius, threshold=args.threshold)
-            radius = args.radius if args.radius is not None else env.sensing.success_radius
-            print(json.dumps({"policy": args.policy, "rule": rule, "noise": env.noise,
-                              "sensing": env.sensing.name, "radius": radius, "threshold": args.threshold,
-                              **env.attributes, **summarize(rows)}), flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -7,10 +7,10 @@ Two play loops share one move chooser:
   played from the same seed, and no episode is left out for being long. Every evaluation in the
   project plays through it: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`)
   and the reproduction's random baseline (unless a config asks for the legacy window), DAgger's
-  evaluations, the demo's expert reviews and random floor, and this module's command line, which
-  checks shipped bundles against a random team, e.g.::
+  evaluations, the demo's expert reviews and random floor, and :mod:`medc_training.cli.play_bundle`,
+  which checks shipped bundles against a random team, e.g.::
 
-      python -m medc_training.evaluate models/team/A3W2.safetensors --episodes 512
+      python -m medc_training.cli.play_bundle models/team/A3W2.safetensors --episodes 512
 
 - :func:`play` plays a number of batched steps, or until a number of episodes finished, and
   keeps the episodes that finished, in the order they finished, optionally showing every step to
@@ -21,8 +21,6 @@ Two play loops share one move chooser:
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -258,29 +256,3 @@ def env_for_bundle(bundle, num_envs: int = 32, seed: int = 12345):
     if bundle.observation is not None:
         attrs["observation"] = bundle.observation
     return make_batched(bundle.manifest["application"], num_envs=num_envs, seed=seed, **attrs)
-
-
-def main(argv: list[str] | None = None) -> int:
-    from .bundle import load_bundle
-
-    p = argparse.ArgumentParser(description="Evaluate a policy bundle against a random team on the same "
-                                            "fixed episodes, each played to its end (play_episodes).")
-    p.add_argument("bundle")
-    p.add_argument("--episodes", type=int, default=256, help="episodes (default 256)")
-    p.add_argument("--envs", type=int, default=32,
-                   help="environments the episodes are split over (default 32)")
-    p.add_argument("--seed", type=int, default=12345)
-    args = p.parse_args(argv)
-    bundle = load_bundle(args.bundle)
-
-    def run(policy, greedy):
-        env = env_for_bundle(bundle, num_envs=args.envs, seed=args.seed)
-        return evaluate_policy(env, policy, args.episodes, greedy, args.seed)
-
-    result = {"greedy": run(bundle, True), "sampled": run(bundle, False), "random": run(None, False)}
-    print(json.dumps(result))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -97,7 +97,7 @@ def run_inputs(experts=(), expert_weights=None, side_users=()) -> dict[str, Any]
 
 
 def job_inputs(job: dict) -> dict[str, Any]:
-    """:func:`run_inputs` of an experiment job dict (medc_training.experiments.plan)."""
+    """:func:`run_inputs` of an experiment job dict (medc_lab.plan)."""
     return run_inputs(job.get("experts", ()), job.get("expert_weights"), job.get("side_users", ()))
 
 

@@ -1,5 +1,5 @@
 """Probe: the estimator's levels on geometric bins (equal ratios), each weighted by its bin's share of
-the uniform prior; otherwise ``python -m medc_training.calibration``.
+the uniform prior; otherwise ``python -m medc_lab.cli.calibrate``.
 
     python docs/reproduction/calibration/probe_geometric_levels.py sb random --episodes 1000 \\
         --rule declaration --levels 6,8

@@ -140,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = default)")
     p.add_argument("--no-tensorboard", action="store_true", help="write metrics.csv only (no tb/ folder)")
     p.add_argument("--quiet", action="store_true", help=QUIET_HELP)
-    from .reproduce import add_engine_arguments
+    from ..engines import add_engine_arguments
 
     add_engine_arguments(p)
     return p
@@ -180,7 +180,7 @@ def config_from_args(args: argparse.Namespace):
 
 def sweep_jobs(args: argparse.Namespace) -> list[dict]:
     """One job per ``--seeds`` seed: the run medc-train would make with ``--seed N --out OUT/seed-N``."""
-    from ..experiments.jobs import check_experts
+    from ..jobs import check_experts
 
     jobs = []
     for seed in dict.fromkeys(args.seeds):
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.seeds is not None:
             return _sweep(args)
         cfg = config_from_args(args)
-        from ..experiments.jobs import make_learner
+        from ..jobs import make_learner
         from ..runner import run_training
         from ..runs import run_inputs
         from ..warmstart import init_from_bundle
@@ -226,9 +226,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _sweep(args: argparse.Namespace) -> int:
-    from ..experiments.engines import INTERRUPTED, run_jobs
-    from ..experiments.jobs import SUMMARY
-    from .reproduce import engine_from_args
+    from ..engines import INTERRUPTED, engine_from_args, run_jobs
+    from ..jobs import SUMMARY
 
     jobs = sweep_jobs(args)
     try:

@@ -13,9 +13,9 @@ import json
 import sys
 from pathlib import Path
 
-from ..stats import mean_ci
+from medc_training.stats import mean_ci
 
-#: The fixed episodes of the claims protocol's reference lines (regime_probes --episodes 512
+#: The fixed episodes of the claims protocol's reference lines (python -m medc_lab.cli.regimes --episodes 512
 #: --eval-seed 20261204).
 EPISODES = 512
 EVAL_SEED = 20261204
@@ -25,9 +25,9 @@ TEAM = (3, 2)
 
 def _play(path: Path, agents: int, walls: int, base: dict, episodes: int, seed: int) -> dict:
     """Greedy play of the bundle at ``path`` with ``agents`` agents among ``walls`` walls."""
-    from ..bundle import load_bundle, manifest_observation
-    from ..envs import make_batched
-    from ..evaluate import net_policy, play_episodes
+    from medc_training.bundle import load_bundle, manifest_observation
+    from medc_training.envs import make_batched
+    from medc_training.evaluate import net_policy, play_episodes
 
     bundle = load_bundle(path)
     env = make_batched(bundle.manifest["application"], num_envs=episodes, seed=seed, agents=agents,
@@ -44,8 +44,8 @@ def evaluate_experts(out: Path, models: Path, base: dict, episodes: int = EPISOD
     target-localization bundle in ``models/experts``; plays what the cache lacks."""
     import hashlib
 
-    from ..bundle import BundleError, read_manifest
-    from ..envs import application
+    from medc_training.bundle import BundleError, read_manifest
+    from medc_training.envs import application
 
     cache_path = out / "expert_eval.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from ..stats import (
+from medc_training.stats import (
     ALPHA,
     censored_mean,
     detectable_delta,
@@ -28,6 +28,7 @@ from ..stats import (
     t_power,
     welch,
 )
+
 from .references import final_level, steps_to_level
 
 #: Verdict words of a claim that was judged (the others: not testable, incomplete, not run).
@@ -92,7 +93,7 @@ def _pairs(first: dict[int, float], second: dict[int, float]) -> tuple[list[floa
 
 def analyse(records: Sequence[dict]) -> tuple[list[dict], list[dict]]:
     """(directional rows, non-inferiority rows) of a report's judged claims (``records``:
-    :attr:`.report.Report.claim_records`): each row the record with "welch" and "paired" (their
+    :attr:`.judge.Judge.claim_records`): each row the record with "welch" and "paired" (their
     dicts), for directional claims "power", "mdd", "paired_power", "paired_mdd" and the Holm-adjusted
     "holm" and "paired_holm" across the directional rows."""
     detectable = _Detectable()
@@ -237,15 +238,16 @@ def planning_text(planning_sd: float | None, seeds: int) -> str:
             "compared a CI half-width with the normal-quantile figure; the power columns below replace it.")
 
 
-def posthoc_section(r, date: str, planning_sd: float | None = None,
-                    fixed_episodes: bool = True) -> str | None:
-    """The section (``r``: the :class:`.report.Report` whose panels were written; ``planning_sd``:
+def posthoc_section(claim_records: Sequence[dict], speeds: Sequence[tuple[str, dict, str]], date: str,
+                    planning_sd: float | None = None, fixed_episodes: bool = True) -> str | None:
+    """The section (``claim_records``: the claims judged, :attr:`.judge.Judge.claim_records`;
+    ``speeds``: the panels with a steps-to-sparse's-level line, :attr:`.build.Report.speeds`; ``planning_sd``:
     the SD the protocol planned its power with; ``fixed_episodes``: whether the runs were evaluated
     on fixed episodes, the same for every method of a seed, rather than the legacy window); None
     when no claim was judged."""
     shared = ("that seed's fixed evaluation episodes and seeding" if fixed_episodes
               else "that seed's seeding (of the networks, the training and the evaluation environments)")
-    directional, non_inferior = analyse(r.claim_records)
+    directional, non_inferior = analyse(claim_records)
     if not directional and not non_inferior:
         return None
     seeds = max((row["welch"]["df"] + 1 for row in directional), default=0)
@@ -263,7 +265,7 @@ def posthoc_section(r, date: str, planning_sd: float | None = None,
              + (" Learned teams keep only each evaluation's mean episode length, so they are paired by "
                 "seed, not by episode; the comparison with the classical controllers on each seed's own "
                 "evaluation episodes (under each panel) is the paired one there, the protocol's is on the "
-                "reference episodes." if r.speeds else "")]
+                "reference episodes." if speeds else "")]
     if directional:
         parts.append(directional_tables(directional))
     if non_inferior:
@@ -271,12 +273,12 @@ def posthoc_section(r, date: str, planning_sd: float | None = None,
                      "bound is within the margin, did not hold when its lower bound is beyond it, and is "
                      "inconclusive otherwise (the protocol judged the mean):\n\n"
                      + non_inferiority_table(non_inferior))
-    if r.speeds:
+    if speeds:
         parts.append("**Steps to MDRL-sparse's final level, censored.** The panels' lines average the seeds "
                      "that reach the level; here a seed that never does counts its whole training budget, "
                      "so a mean with such a seed is a lower bound, and the ratio to sparse's is a lower "
                      "bound (\"≥\", the method's side), an upper bound (\"≤\", sparse's side) or bounded "
-                     "neither way (\"?\", both):\n\n" + speed_table(r.speeds))
+                     "neither way (\"?\", both):\n\n" + speed_table(speeds))
     changed = changes(directional, non_inferior)
     parts.append("**Readings that change** under pairing, power or Holm:\n\n"
                  + ("\n".join(changed) if changed else "none."))

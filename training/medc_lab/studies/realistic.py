@@ -7,7 +7,7 @@ learner, trained by ``scripts/realistic_runs.sh`` into ``<out>/runs/g{grid}w{wal
 each play the same 512 seeded episodes per scenario to their end
 (:func:`medc_training.evaluate.play_episodes`).
 
-``python -m medc_training.experiments.search_study evaluate --out docs/reproduction/realistic``
+``python -m medc_lab.cli.realistic evaluate --out docs/reproduction/realistic``
 plays what is missing (one JSON of per-episode results per scenario and policy under
 ``<out>/eval``; finished ones are skipped, so the command resumes), and ``report`` writes the table
 with 95% CIs and the protocol's verdicts (``<out>/table.md``, ``<out>/table.json``) and one figure
@@ -16,16 +16,13 @@ of learning curves with the controllers as reference lines (``<out>/curves.png``
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
-from ..stats import mean_ci
+from medc_training.stats import mean_ci
 
 #: The protocol's fixed values.
 GRIDS = (20, 30)
@@ -52,8 +49,8 @@ class Scenario:
         """The 512 environments the fixed episodes are played in (one round). The episodes do not
         depend on the observation (it draws nothing), so a policy that reads no observation gets
         the cheap 'maps' one and a bundle its own; the controllers get the team's posterior kept."""
-        from ..envs import make_batched
-        from ..envs.names import TARGET_LOCALIZATION
+        from medc_training.envs import make_batched
+        from medc_training.envs.names import TARGET_LOCALIZATION
 
         return make_batched(TARGET_LOCALIZATION, num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
                             walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
@@ -73,18 +70,18 @@ def _bundle_path(name: str, out: Path, scenario: Scenario) -> Path:
 def _play(name: str, out: Path, scenario: Scenario):
     """Play policy ``name`` ('random', a controller, 'learned-seed{k}' or 'probe-{name}') on the
     scenario's fixed episodes."""
-    from ..evaluate import net_policy, play_episodes
+    from medc_training.evaluate import net_policy, play_episodes
 
     if name == "random" or name in CLASSICAL:
         env = scenario.make_env(name)
         if name == "random":
             policy, greedy = None, False
         else:
-            from ..controllers import controller_policy
+            from medc_training.controllers import controller_policy
 
             policy, greedy = controller_policy(name, env), True
     else:
-        from ..bundle import load_bundle, manifest_observation
+        from medc_training.bundle import load_bundle, manifest_observation
 
         bundle = load_bundle(_bundle_path(name, out, scenario))
         env = scenario.make_env(name, manifest_observation(bundle.manifest))
@@ -203,9 +200,8 @@ def figure(out: Path, rows: list[dict], png: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
-
-    from ..metrics import read_metrics
-    from ..stats import curve_band
+    from medc_training.metrics import read_metrics
+    from medc_training.stats import curve_band
 
     fig, axes = plt.subplots(len(GRIDS), len(WALLS), figsize=(4.2 * len(WALLS), 3.4 * len(GRIDS)),
                              squeeze=False)
@@ -246,28 +242,3 @@ def report(out: Path) -> dict:
     (out / "table.json").write_text(json.dumps(rows, indent=1))
     figure(out, rows, out / "curves.png")
     return {"scenarios": len(rows), "verdicts": {r["scenario"]: r["verdict"] for r in rows}}
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m medc_training.experiments.search_study",
-                                description=__doc__.split("\n\n")[0])
-    p.add_argument("command", choices=("evaluate", "report"))
-    p.add_argument("--out", type=Path, default=Path("docs/reproduction/realistic"))
-    p.add_argument("--policy", action="append", help="only these policies (random, gradient, greedy, "
-                   "infotaxis, learned, learned-seed0, ...)")
-    p.add_argument("--scenario", action="append", help="only these scenarios (g20w0, g30w5, ...)")
-    p.add_argument("--probe", action="append", help="also play the probe <out>/probes/NAME/seed0 on "
-                   "the --scenario given (its file: eval/<scenario>/probe-NAME.json)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    if args.command == "evaluate":
-        written = evaluate(args.out, args.policy, args.scenario, args.probe)
-        print(json.dumps({"written": [str(w) for w in written]}))
-    else:
-        print(json.dumps(report(args.out)))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

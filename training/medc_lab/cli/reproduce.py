@@ -29,51 +29,27 @@ another (say a different step count) is refused, naming the fields, unless ``--o
 The figures and OUT/report.md are written at the end from whatever runs exist. The runs go to a
 local process pool (``--jobs``) or, with ``--ray``, to Ray: a local cluster, or with
 ``--ray HEAD:6379`` an existing one (docs/training.md). The experiments themselves are declared in
-medc_training.experiments.
+medc_lab.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
-from ..experiments.catalogue import BUDGETS, OTHER_APPS, PHASES
-from ..experiments.engines import INTERRUPTED, LocalPool, RayCluster
-from ..experiments.plan import Plan
-from ..experiments.report import build_report
-from ..experiments.reproduction import record_command, reproduce
-from ..runs import RunMismatch
+from medc_training.engines import INTERRUPTED, add_engine_arguments, engine_from_args
+from medc_training.runs import RunMismatch
 
-
-def add_engine_arguments(p: argparse.ArgumentParser) -> None:
-    """--jobs / --ray / --cpus-per-run / --gpus-per-run: where the runs of a sweep go."""
-    p.add_argument("--jobs", type=int,
-                   help="runs at once on this machine: worker processes (default 2, or the CPU count if "
-                        "lower); with a local --ray, the CPUs of the local cluster (default all)")
-    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
-                   help="run each run as a Ray task: alone, on a local Ray cluster; with ADDRESS (HEAD:6379, "
-                        "or auto), on that existing cluster")
-    p.add_argument("--cpus-per-run", type=int, default=1, help="with --ray: CPUs (torch threads) per run")
-    p.add_argument("--gpus-per-run", type=float, default=1.0,
-                   help="with --ray: GPUs per run whose device is cuda (fractions share a GPU; default 1)")
-
-
-def engine_from_args(args: argparse.Namespace):
-    """The engine the parsed --jobs / --ray arguments name."""
-    if args.ray is None:
-        return LocalPool(args.jobs or min(2, os.cpu_count() or 1))
-    if args.cpus_per_run < 1 or args.gpus_per_run < 0:
-        raise ValueError("--cpus-per-run must be >= 1 and --gpus-per-run >= 0")
-    return RayCluster(address=None if args.ray == "local" else args.ray,
-                      num_cpus=args.jobs if args.ray == "local" else None,
-                      cpus_per_run=args.cpus_per_run, gpus_per_run=args.gpus_per_run)
+from ..catalogue import BUDGETS, OTHER_APPS, PHASES
+from ..plan import Plan
+from ..report import build_report
+from ..reproduction import record_command, reproduce
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..console import HelpFormatter, epilog
+    from medc_training.console import HelpFormatter, epilog
 
     p = argparse.ArgumentParser(prog="medc-reproduce", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter, epilog=epilog(__doc__))

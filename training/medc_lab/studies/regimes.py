@@ -7,32 +7,23 @@ candidate regimes of the realistic sensing preset, each policy on the same fixed
 their end (:func:`medc_training.evaluate.play_episodes`). Sparse's probes are ordinary ``medc-train``
 runs (``scripts/claims_probes.sh``).
 
-``python -m medc_training.experiments.regime_probes play --out docs/reproduction/claims/probes``
+``python -m medc_lab.cli.regimes play --out docs/reproduction/claims/probes``
 plays what is missing (one JSON per regime and policy; finished ones are skipped, so it resumes);
 ``report`` prints the table (success rate and mean episode length with 95% CIs).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
-import torch
-
-from ..stats import mean_ci
-
-AGENTS = 3
-EPISODES = 256
-EVAL_SEED = 20261203
-POLICIES = ("random", "gradient", "greedy", "infotaxis")
+from medc_training.stats import mean_ci
 
 
 @dataclass(frozen=True)
 class Regime:
+    """A candidate regime: the grid side, the walls and the step limit of its episodes."""
+
     grid: int
     walls: int
     max_steps: int
@@ -41,6 +32,11 @@ class Regime:
     def name(self) -> str:
         return f"g{self.grid}w{self.walls}t{self.max_steps}"
 
+
+AGENTS = 3
+EPISODES = 256
+EVAL_SEED = 20261203
+POLICIES = ("random", "gradient", "greedy", "infotaxis")
 
 #: The candidates: the study's 30x30 (random play succeeds in ~30% of its episodes), shorter
 #: episodes on it, and larger areas up to the estimator's pair-table limit (48 cells a side).
@@ -65,10 +61,10 @@ def parse_regime(text: str) -> Regime:
 def play(regime: Regime, policy: str, episodes: int = EPISODES, eval_seed: int = EVAL_SEED) -> dict:
     """Play ``policy`` on the regime's ``episodes`` fixed episodes of ``eval_seed``; the per-episode
     results and their summary."""
-    from ..controllers import controller_policy
-    from ..envs import make_batched
-    from ..envs.names import TARGET_LOCALIZATION
-    from ..evaluate import play_episodes
+    from medc_training.controllers import controller_policy
+    from medc_training.envs import make_batched
+    from medc_training.envs.names import TARGET_LOCALIZATION
+    from medc_training.evaluate import play_episodes
 
     env = make_batched(TARGET_LOCALIZATION, num_envs=episodes, seed=eval_seed, agents=AGENTS,
                        walls=regime.walls, grid=regime.grid, max_steps=regime.max_steps, sensing="realistic",
@@ -89,53 +85,3 @@ def summary(record: dict) -> dict:
     length, length_ci = mean_ci(record["lengths"])
     success, success_ci = mean_ci(record["successes"])
     return {"length": length, "length_ci": length_ci, "success": success, "success_ci": success_ci}
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("command", choices=("play", "report"))
-    p.add_argument("--out", type=Path, default=Path("docs/reproduction/claims/probes"))
-    p.add_argument("--regime", action="append", help="only these regimes, e.g. g40w2t100 (repeatable)")
-    p.add_argument("--policy", action="append", choices=POLICIES, help="only these policies (repeatable)")
-    p.add_argument("--episodes", type=int, default=EPISODES, help="fixed episodes per regime and policy")
-    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="seed of the fixed episodes")
-    p.add_argument("--threads", type=int, default=1, help="torch threads")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    try:
-        regimes = [parse_regime(r) for r in args.regime] if args.regime else list(REGIMES)
-    except ValueError as exc:
-        p.error(str(exc))
-    policies = args.policy or list(POLICIES)
-    if args.command == "play":
-        for regime in regimes:
-            for policy in policies:
-                path = args.out / regime.name / f"{policy}.json"
-                if path.exists():
-                    continue
-                record = play(regime, policy, args.episodes, args.eval_seed)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(json.dumps(record) + "\n")
-                s = summary(record)
-                print(f"{regime.name} {policy}: {s['success']:.0%} found, {s['length']:.1f} steps "
-                      f"({record['seconds']:.0f} s)", flush=True)
-        return 0
-    print(f"| regime | {' | '.join(policies)} |")
-    print(f"| --- |{' --- |' * len(policies)}")
-    for regime in regimes:
-        cells = []
-        for policy in policies:
-            path = args.out / regime.name / f"{policy}.json"
-            if not path.exists():
-                cells.append("not run")
-                continue
-            s = summary(json.loads(path.read_text()))
-            cells.append(f"{s['success']:.0%} ± {s['success_ci']:.0%}, "
-                         f"{s['length']:.1f} ± {s['length_ci']:.1f}")
-        print(f"| {regime.name} | {' | '.join(cells)} |")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

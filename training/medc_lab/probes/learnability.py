@@ -8,7 +8,7 @@ states are not only the oracle's), labels every observation with the oracle's be
 fits each architecture by plain supervised learning. A move counts as correct when it is one
 of the oracle's equally best moves (ties are common: N and NE can both shorten a path).
 
-    python scripts/learnability_probe.py --agents 1 --walls 0 --grid 13 --arch mlp --arch lenet5
+    python -m medc_lab.cli.learnability_probe --agents 1 --walls 0 --grid 13 --arch mlp --arch lenet5
 
 Prints one line per quarter of the training, then one JSON line with the held-out accuracies
 and the accuracy of always picking a random valid move.
@@ -17,7 +17,6 @@ and the accuracy of always picking a random valid move.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import torch
@@ -51,18 +50,9 @@ def accuracy(net, obs, mask, scores) -> float:
     return best_moves(mask, scores).gather(1, chosen[:, None]).float().mean().item()
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--agents", type=int, default=1)
-    p.add_argument("--walls", type=int, default=0)
-    p.add_argument("--grid", type=int, default=13)
-    p.add_argument("--max-steps", type=int, default=50)
-    p.add_argument("--envs", type=int, default=64)
-    p.add_argument("--train-steps", type=int, default=400, help="batched steps of training data")
-    p.add_argument("--arch", action="append", help="architecture(s) to probe (default mlp, lenet5)")
-    p.add_argument("--iterations", type=int, default=2000, help="minibatches of 256 (Adam, lr 1e-3)")
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
+def probe(args: argparse.Namespace) -> dict:
+    """Collect the training and held-out observations, fit each architecture (``args.arch``) by
+    supervised cloning of the oracle's best moves, print progress, and return the accuracies."""
     torch.set_num_threads(1)
     train = collect(args, args.seed + 1, args.train_steps)
     test = collect(args, args.seed + 2, max(1, args.train_steps // 8))
@@ -89,9 +79,4 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{arch:>14} {it:>6} loss {loss.item():.3f} held-out accuracy "
                       f"{accuracy(net, *test):.3f} ({time.perf_counter() - start:.0f}s)", flush=True)
         result["held_out_accuracy"][arch] = round(accuracy(net, *test), 4)
-    print(json.dumps(result))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    return result

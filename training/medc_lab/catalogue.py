@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..envs.names import FLEET_COORDINATION, MAZE_CLEANING
+from medc_training.envs.names import FLEET_COORDINATION, MAZE_CLEANING
 
 PHASES = ("experts", "fig6", "fig7", "fig8", "fig9", "fig10", "long", "long-other", "sweep")
 

@@ -15,7 +15,8 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
-from ..envs.names import DEFAULT_APPLICATION
+from medc_training.envs.names import DEFAULT_APPLICATION
+
 from .catalogue import (
     BUDGETS,
     OTHER_APPS,
@@ -33,7 +34,7 @@ def window_evaluated(runs: Path) -> bool:
     """Whether the finished runs under ``runs`` (``<name>/seed<k>/summary.json``) were evaluated
     with the legacy window (False when there are none). Raises ValueError when some were and
     some were not: such a folder's report would compare numbers of two evaluators."""
-    from ..config import TrainConfig
+    from medc_training.config import TrainConfig
 
     kinds: dict[bool, str] = {}
     for summary in sorted(runs.glob("*/seed*/summary.json")):
@@ -52,7 +53,7 @@ class Plan:
 
     def __init__(self, scale: str, seeds: int, out: Path, models: Path, budget: dict | None = None,
                  other_seeds: int | None = None, device: str = "cpu", apps=None) -> None:
-        from ..config import LEGACY_EVAL, scaled_config
+        from medc_training.config import LEGACY_EVAL, scaled_config
 
         self.scale, self.seeds, self.out, self.models = scale, seeds, out, models
         #: What this scale's reproduction covers (seeds, panels, team, applications).
@@ -139,7 +140,7 @@ class Plan:
         they are evaluated at the paper's interval; at the CPU scale, where one evaluation
         (up to 12,800 steps; 6,400 with the window) would outweigh 4,096 training steps, about six
         times per run."""
-        from ..config import LEGACY_EVAL
+        from medc_training.config import LEGACY_EVAL
 
         every = self.base["eval_every"]
         if self.scale == "cpu":
@@ -173,10 +174,10 @@ class Plan:
         """A DAgger job for one bundle, or None when a DAgger bundle for the same grid and step
         limit is already there (bundles made any other way are retrained). The bundle is what
         marks a clone job done: a planned one always runs, and replaces its old training folder."""
-        from ..bundle import BundleError, manifest_observation, manifest_sensing, read_manifest
-        from ..dagger import CloneConfig
-        from ..envs import application
-        from ..envs.tl_sensing import parse_sensing
+        from medc_training.bundle import BundleError, manifest_observation, manifest_sensing, read_manifest
+        from medc_training.dagger import CloneConfig
+        from medc_training.envs import application
+        from medc_training.envs.tl_sensing import parse_sensing
 
         app = application(env)
         target = self.models / folder / f"{name}.safetensors"

@@ -36,12 +36,12 @@ def make_learner(cfg, expert_specs=(), expert_weights=None, side_users=()):
     whose own evaluation curves are logged too)."""
     import torch
 
-    from ..experts import parse_expert
-    from ..ppo import Trainer
+    from .experts import parse_expert
+    from .ppo import Trainer
 
     check_experts(cfg.method, expert_specs, expert_weights)
     if cfg.method == "frl":
-        from ..frl import FederatedGroup
+        from .frl import FederatedGroup
 
         return FederatedGroup(cfg, side_users=tuple(side_users))
     gen = torch.Generator().manual_seed(cfg.seed + 13)
@@ -66,7 +66,7 @@ def job_done(job: dict) -> bool:
         the fields), unless the job says ``overwrite``: then it is not done, and running it
         replaces that run.
     """
-    from ..runs import RunMismatch, check_finished, job_inputs
+    from .runs import RunMismatch, check_finished, job_inputs
 
     summary = Path(job["out"]) / SUMMARY
     if job.get("kind") == "clone" or not summary.exists():
@@ -86,7 +86,7 @@ def run_job(job: dict) -> dict:
         return json.loads((out / SUMMARY).read_text())
     work = partial_dir(out)
     if job.get("kind") == "clone":
-        from ..dagger import BUNDLE, CloneConfig, clone_oracle
+        from .dagger import BUNDLE, CloneConfig, clone_oracle
 
         shutil.rmtree(work, ignore_errors=True)  # DAgger has no checkpoint to resume from
         summary = clone_oracle(CloneConfig.from_dict(job["config"]), work, bundle_to=job["bundle_to"])
@@ -100,13 +100,13 @@ def run_job(job: dict) -> dict:
 
 
 def _train(job: dict, out: Path, work: Path) -> dict:
-    from ..config import TrainConfig
-    from ..runner import CHECKPOINT, run_training
+    from .config import TrainConfig
+    from .runner import CHECKPOINT, run_training
 
     if out.exists() and not work.exists() and not (out / SUMMARY).exists():
         out.rename(work)  # an unfinished run left in place by an older version
     # A finished run of another config (replaced with overwrite) stays until the new one finishes.
-    from ..runs import RunFolderBusy, job_inputs
+    from .runs import RunFolderBusy, job_inputs
 
     cfg = TrainConfig.from_dict(job["config"]).validate()
     learner = make_learner(cfg, job.get("experts", ()), job.get("expert_weights"), job.get("side_users", ()))

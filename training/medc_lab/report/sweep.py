@@ -17,10 +17,8 @@ MDRL-sparse at the same area on the sweep's seeds:
 - **Reward rarity**: random valid moves' success rate on the learnability gate's episodes of the area.
 
 Hypotheses H1–H3 are answered "supported", "not supported" or "not resolved" from the CIs, as the
-amendment states them, and the section closes with a paragraph for a lab deciding whether to buy
-experts, written from the numbers. The section reads the runs through the report being built
-(:class:`.report.Report`, passed in), so this module imports neither the report nor the figure
-declarations (which import it); it adds no claim to the report's verdict counts.
+amendment states them. The section reads the runs through the report being built
+(:class:`.build.Report`, passed in); it adds no claim to the report's verdict counts.
 """
 
 from __future__ import annotations
@@ -29,28 +27,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from ..stats import compare, learning_score
-from .catalogue import SWEEP_GRIDS, SWEEP_PROTOCOL, SWEEP_QS, SWEEP_RATES, SWEEP_UNDERPOWERED
+from medc_training.stats import compare, learning_score
+
+from ..catalogue import SWEEP_GRIDS, SWEEP_PROTOCOL, SWEEP_QS, SWEEP_RATES, SWEEP_UNDERPOWERED
+from ..figures import SweepCell
 from .references import final_level, steps_to_level
 
 #: The heat map written next to the report.
 HEATMAP = "sweep.png"
-
-
-@dataclass(frozen=True)
-class SweepCell:
-    """One MEDC configuration of the sweep: its area (grid side), R_E and Q, its run and the
-    MDRL-sparse run of its area."""
-
-    grid: int
-    rate: float
-    q: float
-    run: str
-    sparse: str
-
-    @property
-    def setting(self) -> str:
-        return f"{self.grid}×{self.grid}, R_E {self.rate:g}, Q {self.q:g}"
 
 
 @dataclass(frozen=True)
@@ -137,7 +121,7 @@ class Speedup:
 @dataclass(frozen=True)
 class Area:
     """MDRL-sparse at one area: its seeds, final level L_G, steps to L_G (and how many of its seeds
-    reached it), learnability gate (:meth:`.report.Report.gate_result`) and random play's success
+    reached it), learnability gate (:meth:`.judge.Judge.gate_result`) and random play's success
     rate on the gate's episodes."""
 
     grid: int
@@ -300,49 +284,6 @@ def cell_table(results: Sequence[CellResult]) -> str:
     return "\n".join(lines)
 
 
-def _speedup_words(s: Speedup) -> str:
-    words = {"": "", "≥": "at least ", "≤": "at most ", "?": "(bounded neither way) "}[s.bound]
-    return f"{words}{s.value:.2f} times as fast as"
-
-
-def lab_paragraph(results: Sequence[CellResult]) -> str:
-    """The closing paragraph for a lab deciding whether to buy experts, from the numbers: where the
-    speed-up was largest and what guided share it took, where the advantage resolved, where not."""
-    head = "**For a lab deciding whether to buy experts.** "
-    usable = [r for r in results if r.ran and r.area.testable and not math.isnan(r.speedup().value)]
-    untestable = sorted({r.area.name for r in results if r.area.arm is not None and not r.area.testable})
-    skipped = (f" ({', '.join(untestable)}: not testable, MDRL-sparse did not pass the learnability gate.)"
-               if untestable else "")
-    if not usable:
-        return head + "No cell of a testable area has run yet: the sweep has nothing to act on." + skipped
-    best = max(usable, key=lambda r: r.speedup().value)
-    guided, follow = best.guided()
-    speed = best.speedup()
-    where = (f"Buying experts paid most at {best.cell.setting}" if speed.value > 1 else
-             f"In no cell did MEDC reach MDRL-sparse's final level sooner than sparse itself; the best was "
-             f"{best.cell.setting}")
-    text = (f"{where}: MEDC reached sparse's final level {_speedup_words(speed)} sparse (learning-score "
-            f"difference {best.difference_text()} steps), with expert-guided episodes making up "
-            f"{_percent(guided)} of the training experience (the expert's move taken on "
-            f"{_percent(follow, 0)} of their agent-steps).")
-    diffs = {r.cell: r.difference() for r in usable}
-    better = [r for r in usable if diffs[r.cell]["diff"] + diffs[r.cell]["half"] < 0]
-    worse = [r for r in usable if diffs[r.cell]["diff"] - diffs[r.cell]["half"] > 0]
-    weak = sum(r.underpowered for r in usable if r not in better and r not in worse)
-
-    def names(cells: Sequence[CellResult]) -> str:
-        return (": " + "; ".join(c.cell.setting for c in cells)) if cells else ""
-
-    text += (f" MEDC's learning score was resolved better than sparse's (95% CI below 0) in {len(better)} "
-             f"of {len(usable)} cells{names(better)}, and resolved worse in {len(worse)}{names(worse)}; the "
-             f"rest are not resolved ({weak} of them under-powered at 3 seeds).")
-    shares = [r.guided()[0] for r in usable if not math.isnan(r.guided()[0])]
-    if shares:
-        text += (f" Across these cells the experts' guided episodes made up {min(shares):.1%} to "
-                 f"{max(shares):.1%} of the experience.")
-    return head + text + skipped
-
-
 def heat_map(results: Sequence[CellResult], png) -> None:
     """The speed-up over (area, R_E) at the protocol's Q, and the Q strip at the protocol's area and
     R_E; each cell annotated with the speed-up, the learning-score difference and the guided share
@@ -378,8 +319,8 @@ def heat_map(results: Sequence[CellResult], png) -> None:
 
 
 def sweep_section(cells: tuple[SweepCell, ...], report, figure) -> str | None:
-    """The sweep's section (Figure.extra of the sweep): None until a run of the sweep's own (not
-    one it borrows from Figs. 6 and 8) has finished on the sweep's seeds."""
+    """The sweep's section (the sweep's :class:`~medc_lab.figures.SweepMap`): None until a run of the
+    sweep's own (not one it borrows from Figs. 6 and 8) has finished on the sweep's seeds."""
     seeds = report.figure_seeds(figure)
     names = dict.fromkeys([n for c in cells for n in (c.sparse, c.run)])
     arms = {name: read_arm(report.seed_rows(name, seeds)) for name in names}
@@ -388,7 +329,7 @@ def sweep_section(cells: tuple[SweepCell, ...], report, figure) -> str | None:
     areas = {}
     for c in cells:
         if c.grid not in areas:
-            gate = report.gate_result(c.sparse, figure.gate_min_seeds, seeds)
+            gate = report.judge.gate_result(c.sparse, figure.gate_min_seeds, seeds)
             rarity = report.random_success(c.sparse, seeds) if arms[c.sparse] else math.nan
             areas[c.grid] = Area(c.grid, c.sparse, arms[c.sparse], gate, rarity)
     results = [CellResult(c, arms[c.run], areas[c.grid]) for c in cells]
@@ -417,5 +358,4 @@ def sweep_section(cells: tuple[SweepCell, ...], report, figure) -> str | None:
         "\n".join(hypotheses({(r.cell.grid, r.cell.rate, r.cell.q): r for r in results})),
         "The experts were cloned at the protocol's area; their window observation has the same shape on "
         "every area, so they guide unchanged at the smaller ones, but their quality there is not measured.",
-        lab_paragraph(results),
     ])

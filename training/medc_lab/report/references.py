@@ -1,7 +1,7 @@
 """The yardsticks a report of the claims protocol puts beside its learned teams.
 
 - **Reference lines**: random moves and the classical controllers (:mod:`medc_training.controllers`)
-  on fixed episodes of the regime, as :mod:`.regime_probes` writes them
+  on fixed episodes of the regime, as :mod:`medc_lab.studies.regimes` writes them
   (``<folder>/<regime>/<policy>.json``).
 - **Final policy against the best controller**, as the claims protocol fixed it: a run's final level
   per seed against the best controller's mean episode length on the reference episodes, the
@@ -9,7 +9,7 @@
   half-widths (:func:`versus_reference`); and, added after the protocol, on the same episodes
   (:func:`versus_best`): per seed, a run's final level (the mean of its last three evaluations,
   each on the seed's fixed evaluation episodes) minus a classical controller's mean episode length
-  on those same episodes (as :func:`.report.controller_play` plays them); the mean of these paired
+  on those same episodes (as :func:`.reference_play.controller_play` plays them); the mean of these paired
   differences over the seeds with a 95% Student-t CI, against the controller with the lowest mean
   length on them.
 - **Steps to sparse's final level**: the training steps at which a run's evaluation first reaches
@@ -24,7 +24,7 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
-from ..stats import mean_ci
+from medc_training.stats import mean_ci
 
 #: The controllers a user would pick instead of a learned team (random play is a reference line,
 #: not a controller to beat).
@@ -34,7 +34,7 @@ FINAL_EVALS = 3
 
 
 def regime_name(grid: int, walls: int, max_steps: int) -> str:
-    """The regime's folder name, as :mod:`.regime_probes` names it (g40w2t50)."""
+    """The regime's folder name, as :mod:`medc_lab.studies.regimes` names it (g40w2t50)."""
     return f"g{grid}w{walls}t{max_steps}"
 
 

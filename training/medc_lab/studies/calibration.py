@@ -12,7 +12,7 @@ calibrated at p when the right rate of its declarations is at least p; the study
 whose interval lies wholly below it. It also tallies every step's verdict (the mass at the MAP cell
 and whether the source is within the radius of it, declared or not) in the same bins.
 
-``python -m medc_training.calibration CONTROLLER_OR_BUNDLE --sensing realistic --grid 20`` prints
+``python -m medc_lab.cli.calibrate CONTROLLER_OR_BUNDLE --sensing realistic --grid 20`` prints
 the tables and writes one JSON record per configuration (``--out``). The probe options change one
 part of the model at a time: ``--levels NS,NB`` the estimator's strength and background levels (the
 simulator still draws both from the preset's continuous ranges), ``--strength LO,HI`` and
@@ -22,15 +22,10 @@ simulator still draws both from the preset's continuous ranges), ``--strength LO
 
 from __future__ import annotations
 
-import argparse
-import json
-import time
 from itertools import pairwise
 
 import torch
-
-from .declaration_eval import END_RULES, add_episode_arguments, study_policy, study_team, threshold_episodes
-from .radbench.metrics import wilson as proportion_interval
+from medc_training.radbench.metrics import wilson as proportion_interval
 
 #: The thresholds the study checks, in one play.
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999)
@@ -106,77 +101,3 @@ def format_tables(study: dict) -> str:
                          f"{'':<{34 - len(str(g['bin'][0])) - len(str(g['bin'][1])) - 4}}  {g['n']:>6} "
                          f"{g['right']:>6}  {rate}  [{g['wilson'][0]:.4f}, {g['wilson'][1]:.4f}]  {mm}")
     return "\n".join(lines)
-
-
-def _pair(text: str, kind=float) -> list:
-    parts = text.split(",")
-    if len(parts) != 2:
-        raise argparse.ArgumentTypeError(f"expected two comma-separated values, got {text!r}")
-    return [kind(v) for v in parts]
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m medc_training.calibration``: the study per end rule, printed and as JSON."""
-    from .envs import make_batched
-    from .envs.names import TARGET_LOCALIZATION
-
-    p = argparse.ArgumentParser(description="Reliability of the team's declarations on fixed episodes: "
-                                            "the right rate per threshold and by declared mass.")
-    add_episode_arguments(p, episodes=400)
-    p.add_argument("--noise", choices=("off", "on"), default="on",
-                   help="paper-simple readings without / with Poisson noise (realistic always counts them)")
-    p.add_argument("--thresholds", type=lambda s: tuple(float(v) for v in s.split(",")), default=THRESHOLDS)
-    p.add_argument("--levels", type=lambda s: _pair(s, int), default=None,
-                   help="probe: NS,NB estimator levels")
-    p.add_argument("--strength", type=_pair, default=None, help="probe: LO,HI source strength range")
-    p.add_argument("--background", type=_pair, default=None, help="probe: LO,HI background range")
-    p.add_argument("--line", choices=("sampled", "exact"), default=None, help="probe: line-of-sight rule")
-    p.add_argument("--success-radius", type=float, default=None,
-                   help="probe: the preset's success radius (cells), claimed and judged by a declaration")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default=None, help="append one JSON record per configuration to this file")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    thresholds = tuple(sorted(args.thresholds))
-    bundle, attrs = study_team(args)
-    sensing = attrs.get("sensing", "paper-simple")
-    probe = {key: value for key, value in (("levels", args.levels), ("strength", args.strength),
-                                           ("background", args.background), ("line", args.line),
-                                           ("success_radius", args.success_radius))
-             if value is not None}
-    if probe:
-        base = sensing if isinstance(sensing, dict) else {"name": sensing}
-        attrs["sensing"] = sensing = dict(base, **probe)
-    name = sensing["name"] if isinstance(sensing, dict) else sensing
-    for rule in args.rule or list(END_RULES):
-        options = dict(attrs, posterior=True, end_on_find=rule == "either")
-        if name == "paper-simple":
-            options["noise"] = args.noise == "on"
-        env = make_batched(TARGET_LOCALIZATION, num_envs=args.envs, seed=args.seed, **options)
-        policy = study_policy(args.policy, bundle, env)
-        steps: list = []
-        start = time.perf_counter()
-        rows = threshold_episodes(env, policy, episodes=args.episodes, seed=args.seed, radius=args.radius,
-                                  thresholds=thresholds, step_masses=steps)
-        study = reliability(rows, thresholds, steps)
-        wrong = [{"threshold": t, "error": m["error"], "mass": m["mass"], "step": m["step"],
-                  "strength": row["strength"], "background": row["background"]}
-                 for row in rows for t, m in zip(thresholds, row["declarations"])
-                 if m is not None and not m["correct"] and t == max(thresholds)]
-        record = {"policy": args.policy, "rule": rule, "noise": env.noise,
-                  "sensing_model": env.sensing.to_dict(),
-                  "radius": args.radius if args.radius is not None else env.sensing.success_radius,
-                  "seed": args.seed, **env.attributes, **study,
-                  "wrong_at_highest": wrong, "seconds": round(time.perf_counter() - start, 1)}
-        print(f"# {args.policy} {env.sensing.name} levels={list(env.sensing.levels)} grid={env.grid} "
-              f"walls={env.attributes.get('walls')} rule={rule} noise={env.noise} episodes={args.episodes} "
-              f"{' '.join(f'{k}={v}' for k, v in probe.items())} ({record['seconds']} s)")
-        print(format_tables(study), flush=True)
-        if args.out:
-            with open(args.out, "a") as fh:
-                fh.write(json.dumps(record) + "\n")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,8 +5,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from medc_training.engines import run_jobs
+
 from .catalogue import PHASES
-from .engines import run_jobs
 from .plan import Plan
 
 #: Phases of fleet coordination and maze cleaning (skipped with other_apps=False).

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 from typing import Any
 
-from ..envs.names import DEFAULT_APPLICATION
+from medc_training.envs.names import DEFAULT_APPLICATION
+
 from .catalogue import (
     FAULTY_USERS,
     FRL_USERS,
@@ -29,10 +29,25 @@ from .catalogue import (
     SWEEP_RATES,
     SWEEP_SEEDS,
 )
-from .sweep_report import SweepCell, sweep_section
 
 GREEDY = "mean episode length (greedy eval)"
 SAMPLED = "mean episode length (sampled eval)"
+
+
+@dataclass(frozen=True)
+class SweepCell:
+    """One MEDC configuration of the sweep: its area (grid side), R_E and Q, its run and the
+    MDRL-sparse run of its area."""
+
+    grid: int
+    rate: float
+    q: float
+    run: str
+    sparse: str
+
+    @property
+    def setting(self) -> str:
+        return f"{self.grid}×{self.grid}, R_E {self.rate:g}, Q {self.q:g}"
 
 
 @dataclass(frozen=True)
@@ -102,11 +117,25 @@ class Panel:
 
 
 @dataclass(frozen=True)
+class WallTimeRatio:
+    """A section on training wall time: per (RS run, MDRL-sparse run) pair, RS's over sparse's."""
+
+    pairs: tuple[tuple[Run, Run], ...]
+
+
+@dataclass(frozen=True)
+class SweepMap:
+    """The sweep's section (:mod:`.report.sweep`): its cells mapped over area, R_E and Q."""
+
+    cells: tuple[SweepCell, ...]
+
+
+@dataclass(frozen=True)
 class Figure:
     """A phase of ``medc-reproduce``: its panels, how many seeds (``seeds``: the plan's "seeds"
     or "other_seeds", at most ``max_seeds``) and which budget (``steps``) its runs get.
-    ``extra(report, figure)`` may add a section after the panels (``report``: the
-    :class:`.report.Report` being built, which reads the runs).
+    ``extra`` declares a section the report adds after the panels (:class:`WallTimeRatio`,
+    :class:`SweepMap`).
 
     The report's rules for the figure: ``gate_min_seeds``, the seeds its panels' learnability gate
     needs (None: the scope's); ``planned_seeds_only``, whether the report reads only the seeds the
@@ -119,7 +148,7 @@ class Figure:
     steps: str = "steps"
     seeds: str = "seeds"
     max_seeds: int | None = None
-    extra: Callable[[Any, Figure], str | None] | None = field(default=None, compare=False)
+    extra: WallTimeRatio | SweepMap | None = field(default=None, compare=False)
     gate_min_seeds: int | None = None
     planned_seeds_only: bool = False
     borrowed: tuple[str, ...] = ()
@@ -214,23 +243,7 @@ def fig8() -> Figure:
                 Claim(f"A3W{w}: MEDC matches or beats RS (paper: slight outperformance)", six, rs)),
             note="FRL wall time is for all 8 users together (they train in one process).", wall=True))
 
-    def rs_overhead(report, figure: Figure) -> str | None:
-        ratios = []
-        for rs, sparse in rs_pairs:
-            s_sparse, s_rs = report.summaries(sparse.name), report.summaries(rs.name)
-            if s_sparse and s_rs:
-                ratios.append((f"A3W{rs.walls}", (sum(s["train_seconds"] for s in s_rs) / len(s_rs))
-                               / (sum(s["train_seconds"] for s in s_sparse) / len(s_sparse))))
-        if not ratios:
-            return None
-        measured = ", ".join(f"{x:.2f} ({team})" for team, x in ratios)
-        return ("### RS wall-time overhead\n\n- **The paper: RS needed double the wall time of sparse** — "
-                f"here RS / sparse training wall time = {measured} ("
-                "measured in the same worker pool, so it is noisy on a shared machine; `medc-bench train` "
-                "gives a cleaner figure). The BFS distance field is computed once per episode on reset, so "
-                "shaping costs little: the paper's 2x is not expected here, by design.")
-
-    return Figure("fig8", tuple(panels), extra=rs_overhead)
+    return Figure("fig8", tuple(panels), extra=WallTimeRatio(tuple(rs_pairs)))
 
 
 def fig9() -> Figure:
@@ -343,7 +356,7 @@ def sweep() -> Figure:
     """The when-do-experts-help sweep (docs/reproduction/claims/SWEEP.md): per area (grid side),
     MDRL-sparse and MEDC with the six users' experts at each R_E (Q 0.05); at the protocol's area
     also each Q (R_E 0.1); 3 seeds. Its panels have no claims (the sweep adds no verdicts to the
-    protocol's): its section (:func:`.sweep_report.sweep_section`) maps the effects. The protocol's
+    protocol's): its section (:func:`.report.sweep.sweep_section`) maps the effects. The protocol's
     own cell is Fig. 8's MEDC run and its area's sparse Fig. 6's, the same runs (not run again)."""
     grid0, rate0, q0 = SWEEP_PROTOCOL
 
@@ -374,7 +387,7 @@ def sweep() -> Figure:
             note=note, grid=grid))
     return Figure("sweep", tuple(panels), max_seeds=SWEEP_SEEDS, gate_min_seeds=SWEEP_SEEDS,
                   planned_seeds_only=True, borrowed=(_sparse(2).name, _six(2).name),
-                  extra=partial(sweep_section, tuple(cells)))
+                  extra=SweepMap(tuple(cells)))
 
 
 #: The figures of each phase; the long supplements take the tag of their step count.

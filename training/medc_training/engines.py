@@ -8,6 +8,7 @@ finished), so rerunning the same command resumes.
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import time
@@ -203,7 +204,7 @@ def run_jobs(jobs: list[dict], engine, label: str) -> list[dict]:
     if not todo:
         return finished
     start = time.time()
-    from ..console import progress_bar
+    from .console import progress_bar
 
     with progress_bar(len(jobs), initial=len(jobs) - len(todo), unit="run", desc=label) as bar:
         def done(job: dict, summary: dict) -> None:
@@ -213,3 +214,27 @@ def run_jobs(jobs: list[dict], engine, label: str) -> list[dict]:
 
         engine.run(todo, done)
     return finished
+
+
+def add_engine_arguments(p: argparse.ArgumentParser) -> None:
+    """--jobs / --ray / --cpus-per-run / --gpus-per-run: where the runs of a sweep go."""
+    p.add_argument("--jobs", type=int,
+                   help="runs at once on this machine: worker processes (default 2, or the CPU count if "
+                        "lower); with a local --ray, the CPUs of the local cluster (default all)")
+    p.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                   help="run each run as a Ray task: alone, on a local Ray cluster; with ADDRESS (HEAD:6379, "
+                        "or auto), on that existing cluster")
+    p.add_argument("--cpus-per-run", type=int, default=1, help="with --ray: CPUs (torch threads) per run")
+    p.add_argument("--gpus-per-run", type=float, default=1.0,
+                   help="with --ray: GPUs per run whose device is cuda (fractions share a GPU; default 1)")
+
+
+def engine_from_args(args: argparse.Namespace):
+    """The engine the parsed --jobs / --ray arguments name."""
+    if args.ray is None:
+        return LocalPool(args.jobs or min(2, os.cpu_count() or 1))
+    if args.cpus_per_run < 1 or args.gpus_per_run < 0:
+        raise ValueError("--cpus-per-run must be >= 1 and --gpus-per-run >= 0")
+    return RayCluster(address=None if args.ray == "local" else args.ray,
+                      num_cpus=args.jobs if args.ray == "local" else None,
+                      cpus_per_run=args.cpus_per_run, gpus_per_run=args.gpus_per_run)

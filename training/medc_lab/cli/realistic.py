@@ -1,0 +1,39 @@
+"""``python -m medc_lab.cli.realistic evaluate|report``: the realistic-search study
+(:mod:`medc_lab.studies.realistic`): ``evaluate`` plays what is missing (finished scenarios and
+policies are skipped, so it resumes), ``report`` writes the table and the figure."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from ..studies.realistic import evaluate, report
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m medc_lab.cli.realistic",
+                                description="The realistic-search study: the learned team against the "
+                                            "classical controllers on fixed episodes.")
+    p.add_argument("command", choices=("evaluate", "report"))
+    p.add_argument("--out", type=Path, default=Path("docs/reproduction/realistic"))
+    p.add_argument("--policy", action="append", help="only these policies (random, gradient, greedy, "
+                   "infotaxis, learned, learned-seed0, ...)")
+    p.add_argument("--scenario", action="append", help="only these scenarios (g20w0, g30w5, ...)")
+    p.add_argument("--probe", action="append", help="also play the probe <out>/probes/NAME/seed0 on "
+                   "the --scenario given (its file: eval/<scenario>/probe-NAME.json)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.command == "evaluate":
+        written = evaluate(args.out, args.policy, args.scenario, args.probe)
+        print(json.dumps({"written": [str(w) for w in written]}))
+    else:
+        print(json.dumps(report(args.out)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
