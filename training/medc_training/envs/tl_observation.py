@@ -61,6 +61,7 @@ from contextlib import contextmanager
 
 import torch
 
+from medc_training.envs import tl_native
 from medc_training.envs.allocator import keep_freed_memory
 from medc_training.envs.grid import grid_cells, team_windows
 from medc_training.envs.observation import OBSERVATION_NAMES, ObservationSpec, parse_observation
@@ -202,6 +203,16 @@ class _FusedLevels:
             table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
             self._bag_factor = factor  # [Q]
         q_rows = table.shape[0] - 2
+        out = walls.reshape(k, -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
+        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
+        if tl_native.usable(phys, d2, crossed):  # the same steps in one C pass per episode
+            tl_native.levels_update(phys, table[:q_rows], self._bag_factor, self.level_strength,
+                                    self.level_background, d2, crossed, span,
+                                    readings.to(torch.float32).contiguous(), out.contiguous(),
+                                    posterior_out, self._dead_cell)
+            return
         # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
         # row weighted by -sum_n factor_n, the background row by -N.
         index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
@@ -215,11 +226,7 @@ class _FusedLevels:
         weights[..., n].neg_()
         weights[..., n + 1] = -float(n)
         bags, weights = bags.view(k * cells, n + 2), weights.view(k * cells, n + 2)
-        out = walls.reshape(k, -1).bool()
-        if self.rule_out:
-            out = out | self.ruled_out(positions)
         episode, cell = out.nonzero(as_tuple=True)  # in episode order
-        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
         step = self.block(k)
         starts = list(range(0, k, step))
         cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
@@ -487,6 +494,9 @@ class SourceEstimator(_FusedLevels):
             k, levels, cells = log_post.shape
             phys = log_post.transpose(1, 2)
             p = torch.empty((k, cells), device=log_post.device)
+            if tl_native.usable(phys):
+                tl_native.levels_marginal(phys, p, self._dead_cell)
+                return p
             step = self.block(k)
             scratch = torch.empty((min(k, step), cells, levels), device=log_post.device)
             for s in range(0, k, step):

@@ -1,0 +1,159 @@
+"""The estimator's native kernel (``tl_native.c``) against the torch path it stands in for: hand cases
+and 100-step traces of both presets within the stated tolerance, the same ruled-out zeros, batch-size
+independence; the build cache, the fallback to torch and the checks on bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from medc_training.envs import make_batched, tl_native
+from medc_training.envs.tl_observation import LOG_FLOOR, SourceEstimator, estimator_path
+from medc_training.envs.tl_sensing import parse_sensing
+
+#: The stated tolerance between the kernel and the torch fused path (docs/environments.md, "Speed"):
+#: max abs difference of posterior probabilities and of observation values over a trace.
+POSTERIOR_TOLERANCE = 1e-3
+OBSERVATION_TOLERANCE = 1e-4
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _kernel_built() -> None:
+    """These tests measure the kernel itself: the machine that runs them has a C compiler."""
+    assert tl_native.enabled() and tl_native.library() is not None
+
+
+def _steps(est: SourceEstimator, native: bool, readings, walls,
+           monkeypatch) -> tuple[torch.Tensor, torch.Tensor]:
+    monkeypatch.setenv("MEDC_NATIVE", "1" if native else "0")
+    log_post = est.prior(walls)
+    post = torch.empty((walls.shape[0], est.grid * est.grid))
+    for positions, counts in readings:
+        assert est.update(log_post, walls, positions, counts, posterior_out=post)
+    return log_post.clone(), post
+
+
+@pytest.mark.parametrize("levels", [[4, 3], [12, 16], [3, 2], [5, 7]])
+def test_the_kernel_equals_the_torch_path_on_hand_cases(levels, monkeypatch) -> None:
+    grid = 9
+    sensing = parse_sensing({"name": "realistic", "levels": levels})
+    est = SourceEstimator(grid, "cpu", sensing, path="fused")
+    walls = torch.zeros((2, grid, grid), dtype=torch.bool)
+    walls[1, 4, 2:7] = True  # one episode with a wall between the readings
+    nan = float("nan")
+    readings = [
+        (torch.tensor([[[0, 0], [8, 8]], [[0, 4], [8, 4]]]), torch.tensor([[40.0, 14.0], [22.0, 9.0]])),
+        (torch.tensor([[[3, 1], [5, 2]], [[2, 2], [6, 6]]]), torch.tensor([[75.0, 30.0], [0.0, 1e9]])),
+        (torch.tensor([[[7, 1], [1, 7]], [[0, 8], [8, 0]]]), torch.tensor([[nan, 3.0], [5.0, 18.0]])),
+    ]
+    got_log, got = _steps(est, True, readings, walls, monkeypatch)
+    want_log, want = _steps(est, False, readings, walls, monkeypatch)
+    assert float((got - want).abs().max()) < 1e-6
+    assert torch.equal(got == 0, want == 0)  # the ruled-out cells and the walls: exact zeros in both
+    assert float((got_log - want_log).abs().max()) < 1e-3
+    assert float(got_log.amax((1, 2)).abs().max()) == 0.0 and float(got_log.min()) >= LOG_FLOOR
+    assert float(got.sum(1).sub(1).abs().max()) < 1e-5
+    # The marginal of a kept posterior, read again without an update.
+    monkeypatch.setenv("MEDC_NATIVE", "1")
+    assert float((est.posterior(got_log) - got).abs().max()) < 1e-6
+
+
+def _trace(sensing: str, grid: int, native: bool, monkeypatch, steps: int = 100) -> list[tuple]:
+    monkeypatch.setenv("MEDC_NATIVE", "1" if native else "0")
+    with estimator_path("fused"):
+        env = make_batched("target_localization", num_envs=16, seed=5, agents=3, walls=2, grid=grid,
+                           max_steps=40, sensing=sensing, observation="ego6+estimate+posterior",
+                           posterior=True)
+    gen = torch.Generator().manual_seed(8)
+    obs, mask = env.reset()
+    seen = [(obs.clone(), env.memory.posterior(), mask.clone())]
+    for _ in range(steps):
+        b, n, a = mask.shape
+        out = env.step(torch.multinomial(mask.view(-1, a).float(), 1, generator=gen).view(b, n))
+        obs, mask = out.obs, out.mask
+        seen.append((obs.clone(), env.memory.posterior(), mask.clone()))
+    return seen
+
+
+@pytest.mark.parametrize(("sensing", "grid"), [("realistic", 14), ("paper-simple", 13)])
+def test_a_100_step_trace_on_the_kernel_agrees_with_the_torch_path(sensing, grid, monkeypatch) -> None:
+    native = _trace(sensing, grid, True, monkeypatch)
+    torch_path = _trace(sensing, grid, False, monkeypatch)
+    assert all(torch.equal(f[2], r[2]) for f, r in zip(native, torch_path, strict=True))  # same episodes
+    d_obs = max(float((f[0] - r[0]).abs().max()) for f, r in zip(native, torch_path, strict=True))
+    d_post = max(float((f[1] - r[1]).abs().max()) for f, r in zip(native, torch_path, strict=True))
+    assert d_post <= POSTERIOR_TOLERANCE and d_obs <= OBSERVATION_TOLERANCE
+    # A zero in one path is at most a dead cell's mass in the other.
+    for f, r in zip(native, torch_path, strict=True):
+        assert bool((r[1][f[1] == 0] < 1e-30).all()) and bool((f[1][r[1] == 0] < 1e-30).all())
+    if sensing == "paper-simple":  # one level: the kernel takes no part
+        assert d_post == 0.0 and d_obs == 0.0
+    else:
+        assert d_post > 0.0  # the kernel did run: its rounding is not torch's
+
+
+def test_one_episode_gets_the_same_posterior_at_any_batch_size(monkeypatch) -> None:
+    monkeypatch.setenv("MEDC_NATIVE", "1")
+    grid, batch = 11, 5
+    est = SourceEstimator(grid, "cpu", "realistic", path="fused")
+    gen = torch.Generator().manual_seed(2)
+    walls = torch.zeros((batch, grid, grid), dtype=torch.bool)
+    together, alone = est.prior(walls), [est.prior(walls[:1]) for _ in range(batch)]
+    for _ in range(6):
+        positions = torch.randint(0, grid, (batch, 3, 2), generator=gen)
+        counts = torch.poisson(torch.full((batch, 3), 25.0), generator=gen)
+        est.update(together, walls, positions, counts)
+        for b in range(batch):
+            est.update(alone[b], walls[:1], positions[b:b + 1], counts[b:b + 1])
+    for b in range(batch):
+        assert torch.equal(together[b], alone[b][0])
+
+
+def test_the_library_is_cached_under_its_sources_hash(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("MEDC_NATIVE_CACHE", str(tmp_path))
+    path = tl_native.build()
+    assert path.parent == tmp_path and path.exists() and path.name.startswith("tl_native-")
+    stamp = path.stat().st_mtime_ns
+    assert tl_native.build() == path and path.stat().st_mtime_ns == stamp  # kept, not rebuilt
+    edited = tmp_path / "tl_native.c"
+    edited.write_text(tl_native.SOURCE.read_text() + "\n/* edited */\n")
+    monkeypatch.setattr(tl_native, "SOURCE", edited)
+    assert tl_native.library_path() != path  # an edited kernel is another library
+    assert tl_native.main([]) == 0 and tl_native.library_path().exists()
+
+
+def test_without_a_compiler_or_with_native_off_the_torch_path_runs(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("MEDC_NATIVE", "0")
+    assert tl_native.library() is None and not tl_native.usable(torch.zeros(2))
+    monkeypatch.setenv("MEDC_NATIVE", "1")
+    monkeypatch.setenv("MEDC_NATIVE_CACHE", str(tmp_path))  # nothing built here yet
+    monkeypatch.setattr(tl_native, "_compiler", lambda: None)
+    monkeypatch.setattr(tl_native, "_lib", None)
+    monkeypatch.setattr(tl_native, "_tried", False)
+    with pytest.warns(RuntimeWarning, match="native kernel is unavailable .*no C compiler"):
+        assert tl_native.library() is None
+    assert tl_native.library() is None  # warned once
+    with pytest.raises(RuntimeError, match="no C compiler"):
+        tl_native.build()
+    assert tl_native.main([]) == 1
+    est = SourceEstimator(8, "cpu", "realistic", path="fused")
+    walls = torch.zeros((1, 8, 8), dtype=torch.bool)
+    log_post = est.prior(walls)
+    est.update(log_post, walls, torch.tensor([[[0, 0]]]), torch.tensor([[20.0]]))
+    assert float(est.posterior(log_post).sum()) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_bad_input_gets_a_clear_error() -> None:
+    k, n, cells, levels, q = 2, 3, 16, 8, 40
+    pairs = torch.zeros((k, n, cells), dtype=torch.int64)
+    args = dict(post=torch.zeros((k, cells, levels)), log_rate=torch.zeros((q, levels)),
+                factor=torch.zeros(q), strength=torch.ones(levels), background=torch.ones(levels),
+                d2=pairs, crossed=pairs,
+                span=10, readings=torch.ones((k, n)), out=torch.zeros((k, cells), dtype=torch.bool),
+                marginal=torch.empty((k, cells)), dead_cell=0.0)
+    tl_native.levels_update(**args)
+    with pytest.raises(ValueError, match=r"d2 must be a contiguous CPU torch.int64 tensor of shape"):
+        tl_native.levels_update(**{**args, "d2": torch.zeros((k, n, cells), dtype=torch.int32)})
+    with pytest.raises(ValueError, match="post must be a contiguous"):
+        tl_native.levels_update(**{**args, "post": torch.zeros((k, levels, cells)).transpose(1, 2)})
+    with pytest.raises(ValueError, match="outside the estimator's tables"):
+        tl_native.levels_update(**{**args, "crossed": torch.full((k, n, cells), 4, dtype=torch.int64)})
