@@ -9,7 +9,7 @@ import math
 
 import pytest
 import torch
-from medc_training.envs import make_batched
+from medc_training.envs import make_batched, tl_native
 from medc_training.envs import tl_observation as tlo
 from medc_training.envs.target_localization import max_walls
 from medc_training.envs.tl_observation import (
@@ -143,11 +143,10 @@ def test_a_100_step_trace_agrees_within_the_stated_tolerance(sensing, grid) -> N
     d_post = max(float((f[1] - r[1]).abs().max()) for f, r in zip(fused, reference, strict=True))
     assert all(torch.equal(f[2], r[2]) for f, r in zip(fused, reference, strict=True))  # the same episodes
     assert d_post <= POSTERIOR_TOLERANCE and d_obs <= OBSERVATION_TOLERANCE
-    # The cells each path rules out are exact zeros in both.
+    # A zero in one path is at most a dead cell's mass in the other.
     for f, r in zip(fused, reference, strict=True):
-        assert torch.equal(f[1] == 0, r[1] == 0) or sensing == "realistic"
-        assert bool((r[1][f[1] == 0] < 1e-30).all())
-    if sensing == "paper-simple":  # one level: the two paths are one
+        assert bool((r[1][f[1] == 0] < 1e-30).all()) and bool((f[1][r[1] == 0] < 1e-30).all())
+    if sensing == "paper-simple" and not tl_native.usable():  # one level, no kernel: the same code
         assert d_post == 0.0 and d_obs == 0.0
 
 

@@ -11,8 +11,9 @@
  *      sum is at most dead_cell is exactly 0; the row is normalised to sum 1.
  * The torch path runs the same arithmetic as about ten separate passes over the batch.
  *
- * Built with -O3 -march=x86-64-v2 -fopenmp-simd -ffinite-math-only -fno-signed-zeros (tl_native.FLAGS;
- * any x86-64 machine of the last decade runs it);
+ * Built with -O3 -march=x86-64-v2 -fopenmp-simd -ffinite-math-only -fno-signed-zeros -ffp-contract=off
+ * (tl_native.FLAGS: no fused multiply-adds, so each product and sum rounds as torch's do; any x86-64
+ * machine of the last decade runs it);
  * the hot loops are also cloned for x86-64-v3 (AVX2, FMA) and picked at load time where the CPU
  * has it.
  */
@@ -162,4 +163,131 @@ int medc_levels_update(float *post, const float *log_rate, const float *factor,
         shift_and_marginal(block, m, cells, levels, marginal ? marginal + e * cells : NULL, dead_cell, 1);
     }
     return 0;
+}
+
+/* exp(x) of a one-level log posterior row, cells at or below EXP_FLOOR exactly 0, normalised. */
+INLINE void single_posterior(const float *restrict row, int64_t cells, float *restrict p) {
+    float total = 0.0f;
+#pragma omp simd reduction(+ : total)
+    for (int64_t c = 0; c < cells; ++c) {
+        const float x = row[c];
+        const float w = x <= EXP_FLOOR ? 0.0f : exp_floored(x < EXP_FLOOR ? EXP_FLOOR : x);
+        p[c] = w;
+        total += w;
+    }
+    const float inv = total > 0.0f ? 1.0f / total : 0.0f;
+    for (int64_t c = 0; c < cells; ++c) p[c] *= inv;
+}
+
+/* The one-level estimator (paper-simple) for K episodes on a G×G grid, C = G² cells, in place:
+ * each reading's walls crossed from the sampled rule's crossing tables and the episode's wall
+ * segments (tl_sensing.segment_crossings), d² from the positions, the rate and its log looked up per
+ * q = crossed * span + d², sum_n (r_n log rate - rate) added to the log posterior, ruled-out cells
+ * floored, the episode shifted by its maximum and floored: the torch path's arithmetic in its order,
+ * so the log posterior is bit for bit the torch path's; (posterior != NULL) the posterior exp(x),
+ * cells at or below EXP_FLOOR exactly 0, normalised.
+ *   post      float32 [K, C]
+ *   rate, log_rate float32 [Q]
+ *   positions int64 [K, N, 2]
+ *   table     int8 [2, C, G, 2, C] crossing tables; segments int64 [K, Z, 4] (row0, col0, row1, col1)
+ *   readings  float32 [K, N]; out bool [K, C]; posterior float32 [K, C] or NULL
+ * Returns 0, or 1 when a pair or a segment falls outside the tables. */
+MEDC_CLONES
+int medc_single_update(float *post, const float *rate, const float *log_rate, int64_t q_rows, int64_t span,
+                       const int64_t *positions, const int8_t *table, const int64_t *segments, int64_t z,
+                       const float *readings, const uint8_t *out, float *posterior, int64_t k, int64_t n,
+                       int64_t g) {
+    const int64_t cells = g * g;
+    int32_t crossed[cells];
+    float loglik[cells];
+    for (int64_t e = 0; e < k; ++e) {
+        float *restrict row = post + e * cells;
+        const uint8_t *eout = out + e * cells;
+        for (int64_t c = 0; c < cells; ++c) loglik[c] = 0.0f;
+        for (int64_t j = 0; j < n; ++j) {
+            const int64_t pr = positions[(e * n + j) * 2], pc = positions[(e * n + j) * 2 + 1];
+            const int64_t cell = pr * g + pc;
+            for (int64_t c = 0; c < cells; ++c) crossed[c] = 0;
+            for (int64_t s = 0; s < z; ++s) {
+                const int64_t *seg = segments + (e * z + s) * 4;
+                const int horizontal = seg[0] == seg[2];
+                int64_t line = horizontal ? seg[0] : seg[1];
+                line = line < 0 ? 0 : line;
+                if (line >= g) return 1;
+                const int8_t lo = (int8_t)(horizontal ? seg[1] : seg[0]);
+                const int8_t hi = (int8_t)(horizontal ? seg[3] : seg[2]);
+                const int8_t *span_lo = table + (((int64_t)(!horizontal) * cells + cell) * g + line) * 2 * cells;
+                const int8_t *span_hi = span_lo + cells;
+                for (int64_t c = 0; c < cells; ++c) crossed[c] += (span_lo[c] <= hi) & (span_hi[c] >= lo);
+            }
+            const float r = readings[e * n + j];
+            for (int64_t i = 0; i < g; ++i) {
+                const int64_t dr2 = (i - pr) * (i - pr);
+                for (int64_t c = i * g; c < (i + 1) * g; ++c) {
+                    const int64_t dc = c - i * g - pc;
+                    const int64_t q = crossed[c] * span + dr2 + dc * dc;
+                    if (q >= q_rows) return 1;
+                    loglik[c] += log_rate[q] * r - rate[q];
+                }
+            }
+        }
+        float m = LOG_FLOOR;
+        for (int64_t c = 0; c < cells; ++c) {
+            const float x = eout[c] ? LOG_FLOOR : row[c] + loglik[c];
+            row[c] = x;
+            m = x > m ? x : m;
+        }
+        for (int64_t c = 0; c < cells; ++c) {
+            const float x = row[c] - m;
+            row[c] = x < LOG_FLOOR ? LOG_FLOOR : x;
+        }
+        if (posterior) single_posterior(row, cells, posterior + e * cells);
+    }
+    return 0;
+}
+
+/* The posterior of K one-level log posteriors [K, C] (the update's last step alone). */
+MEDC_CLONES
+void medc_single_posterior(const float *post, int64_t k, int64_t cells, float *posterior) {
+    for (int64_t e = 0; e < k; ++e) single_posterior(post + e * cells, cells, posterior + e * cells);
+}
+
+/* E(c), the posterior-expected Chebyshev distance from each cell to the source, for K posteriors
+ * float32 [K, G²] (rows summing to 1) into expected [K, G²]: max(|dr|, |dc|) = (|du| + |dv|) / 2 on
+ * the diagonals u = row + col, v = row - col + G - 1, so E(c) = (A_u(u_c) + A_v(v_c)) / 2 with
+ * A_u(x) = sum_u P_u(u) |x - u| over the posterior's marginal on each diagonal, by prefix sums
+ * (O(G²) per map). */
+MEDC_CLONES
+void medc_expected_moves(const float *posterior, int64_t k, int64_t g, float *expected) {
+    const int64_t cells = g * g, lines = 2 * g - 1;
+    float pu[lines], pv[lines], au[lines], av[lines];
+    for (int64_t e = 0; e < k; ++e) {
+        const float *p = posterior + e * cells;
+        for (int64_t i = 0; i < lines; ++i) pu[i] = pv[i] = 0.0f;
+        for (int64_t r = 0; r < g; ++r)
+            for (int64_t c = 0; c < g; ++c) {
+                pu[r + c] += p[r * g + c];
+                pv[r - c + g - 1] += p[r * g + c];
+            }
+        /* A(0) = sum_i P(i) i; A(x + 1) = A(x) + P(<= x) - P(> x). */
+        float su = 0.0f, sv = 0.0f, tu = 0.0f, tv = 0.0f;
+        for (int64_t i = 0; i < lines; ++i) {
+            su += pu[i] * (float)i;
+            sv += pv[i] * (float)i;
+            tu += pu[i];
+            tv += pv[i];
+        }
+        float cu = 0.0f, cv = 0.0f;
+        for (int64_t x = 0; x < lines; ++x) {
+            au[x] = su;
+            av[x] = sv;
+            cu += pu[x];
+            cv += pv[x];
+            su += cu - (tu - cu);
+            sv += cv - (tv - cv);
+        }
+        float *out = expected + e * cells;
+        for (int64_t r = 0; r < g; ++r)
+            for (int64_t c = 0; c < g; ++c) out[r * g + c] = 0.5f * (au[r + c] + av[r - c + g - 1]);
+    }
 }

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -31,7 +32,10 @@ SOURCE = Path(__file__).with_name("tl_native.c")
 #: loops are cloned for x86-64-v3 inside the library (target_clones), picked at load time. The kernel
 #: sees no NaN or infinity (its inputs are clamped) and no signed zero matters to it: telling the
 #: compiler so lets it vectorise the floors (max) and the exp, about 8x the scalar loop.
-_COMMON = ("-O3", "-fopenmp-simd", "-ffinite-math-only", "-fno-signed-zeros", "-fPIC", "-shared")
+#: No fused multiply-add contraction: every product and sum rounds on its own, as torch's element-wise
+#: ops do, so the one-level update is bit for bit the torch path's on any machine.
+_COMMON = ("-O3", "-fopenmp-simd", "-ffinite-math-only", "-fno-signed-zeros", "-ffp-contract=off", "-fPIC",
+           "-shared")
 FLAGS = ("-march=x86-64-v2", *_COMMON)
 PORTABLE_FLAGS = _COMMON  # a compiler for another architecture
 
@@ -41,9 +45,33 @@ _tried = False
 _i64, _f32, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_void_p
 
 
+_off = 0
+
+
 def enabled() -> bool:
-    """Whether the kernel may be used: ``MEDC_NATIVE`` is not ``0``."""
-    return os.environ.get("MEDC_NATIVE", "1").strip() != "0"
+    """Whether the kernel may be used: ``MEDC_NATIVE`` is not ``0`` and no :func:`turned_off` block
+    is running."""
+    return _off == 0 and os.environ.get("MEDC_NATIVE", "1").strip() != "0"
+
+
+@contextmanager
+def turned_off():
+    """Inside the block every estimator takes its torch path (the benchmarks time both in one run)."""
+    global _off
+    _off += 1
+    try:
+        yield
+    finally:
+        _off -= 1
+
+
+def status() -> str:
+    """One line for the benchmarks: whether the kernel is in use, and where from or why not."""
+    if not enabled():
+        return "torch path (MEDC_NATIVE=0)"
+    if library() is None:
+        return "torch path (no kernel: see the warning)"
+    return "native kernel (tl_native.c)"
 
 
 def _flags() -> tuple[str, ...]:
@@ -94,6 +122,13 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
                                        _i64, _i64, _i64, _i64, _f32]
     lib.medc_levels_marginal.restype = None
     lib.medc_levels_marginal.argtypes = [_ptr, _i64, _i64, _i64, _ptr, _f32]
+    lib.medc_single_update.restype = ctypes.c_int
+    lib.medc_single_update.argtypes = [_ptr, _ptr, _ptr, _i64, _i64, _ptr, _ptr, _ptr, _i64, _ptr, _ptr, _ptr,
+                                       _i64, _i64, _i64]
+    lib.medc_single_posterior.restype = None
+    lib.medc_single_posterior.argtypes = [_ptr, _i64, _i64, _ptr]
+    lib.medc_expected_moves.restype = None
+    lib.medc_expected_moves.argtypes = [_ptr, _i64, _i64, _ptr]
     return lib
 
 
@@ -112,6 +147,13 @@ def library() -> ctypes.CDLL | None:
                           "using the torch path", RuntimeWarning, stacklevel=2)
             _lib = None
     return _lib
+
+
+def _library_or_raise() -> ctypes.CDLL:
+    lib = library()
+    if lib is None:
+        raise RuntimeError("the estimator's native kernel is unavailable")
+    return lib
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -138,9 +180,7 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
     readings float32 [K, N]; out bool [K, C] (cells ruled out); marginal float32 [K, C] or None
     (written: the normalised marginal posterior, cells whose sum is at most ``dead_cell`` exactly 0).
     """
-    lib = library()
-    if lib is None:
-        raise RuntimeError("the estimator's native kernel is unavailable")
+    lib = _library_or_raise()
     k, cells, levels = post.shape
     n = readings.shape[1] if readings.dim() == 2 else -1
     q = log_rate.shape[0]
@@ -166,12 +206,64 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
 def levels_marginal(post: torch.Tensor, marginal: torch.Tensor, dead_cell: float) -> None:
     """The normalised marginal posterior float32 [K, C] of cells-major ``post`` float32 [K, C, L]
     into ``marginal`` (the update's step 3 alone)."""
-    lib = library()
-    if lib is None:
-        raise RuntimeError("the estimator's native kernel is unavailable")
+    lib = _library_or_raise()
     k, cells, levels = post.shape
     lib.medc_levels_marginal(_check(post, torch.float32, (k, cells, levels), "post"), k, cells, levels,
                              _check(marginal, torch.float32, (k, cells), "marginal"), float(dead_cell))
+
+
+def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor, span: int,
+                  positions: torch.Tensor, table: torch.Tensor, segments: torch.Tensor,
+                  readings: torch.Tensor, out: torch.Tensor, posterior: torch.Tensor | None) -> None:
+    """One step of the one-level estimator (the sampled line rule, maps made of wall segments), in
+    place (``tl_native.c``): walls crossed from the crossing ``table`` (int8 [2, G², G, 2, G²],
+    :func:`~medc_training.envs.tl_sensing.segment_crossings`) and ``segments`` (int64 [K, Z, 4]),
+    rate and log rate float32 [Q] per q = crossed * span + d², readings float32 [K, N] at
+    ``positions`` int64 [K, N, 2]; post float32 [K, G²]; out bool [K, G²] (cells ruled out);
+    ``posterior`` float32 [K, G²] or None (written: the normalised posterior)."""
+    lib = _library_or_raise()
+    k, cells = post.shape
+    g = table.shape[2] if table.dim() == 5 else -1
+    n, z, q = positions.shape[1], segments.shape[1], rate.shape[0]
+    args = [
+        _check(post, torch.float32, (k, g * g), "post"),
+        _check(rate, torch.float32, (q,), "rate"),
+        _check(log_rate, torch.float32, (q,), "log_rate"),
+        q, int(span),
+        _check(positions, torch.int64, (k, n, 2), "positions"),
+        _check(table, torch.int8, (2, cells, g, 2, cells), "table"),
+        _check(segments, torch.int64, (k, z, 4), "segments"),
+        z,
+        _check(readings, torch.float32, (k, n), "readings"),
+        _check(out, torch.bool, (k, cells), "out"),
+        None if posterior is None else _check(posterior, torch.float32, (k, cells), "posterior"),
+        k, n, g,
+    ]
+    if bool(((positions < 0) | (positions >= g)).any()):
+        raise ValueError(f"positions must lie on the {g}x{g} grid")
+    if lib.medc_single_update(*args) != 0:
+        raise ValueError("a (walls crossed, d²) pair or a wall segment falls outside the estimator's tables")
+
+
+def single_posterior(post: torch.Tensor) -> torch.Tensor:
+    """float32 [K, C]: the posterior of one-level log posteriors ``post`` float32 [K, C] (exp, cells
+    at or below EXP_FLOOR exactly 0, normalised), as :func:`single_update` writes it."""
+    lib = _library_or_raise()
+    k, cells = post.shape
+    p = torch.empty((k, cells))
+    lib.medc_single_posterior(_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr())
+    return p
+
+
+def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
+    """float32 [K, G²]: the posterior-expected Chebyshev distance from each cell to the source, of
+    posteriors float32 [K, G²] (``SourceEstimator.expected_from_posterior``)."""
+    lib = _library_or_raise()
+    k = posterior.shape[0]
+    expected = torch.empty((k, grid * grid))
+    lib.medc_expected_moves(_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid,
+                            expected.data_ptr())
+    return expected
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -69,6 +69,7 @@ from medc_training.envs.tl_sensing import (
     CHANNELS,
     DEFAULT_SENSING,
     build_observations,
+    crossing_tables,
     geometric_factor,
     parse_sensing,
     rates_from_every_cell,
@@ -348,6 +349,10 @@ class SourceEstimator(_FusedLevels):
         crossed = None
         loglik = None  # float32 [K,G²] or [K,L,G²]; or made block by block by `block_loglik`
         block_loglik = None
+        if (self.sensing.line == "sampled" and segments is not None and self.levels == 1
+                and self.path == "fused"
+                and self._native_single(log_post, walls, positions, readings, segments, posterior_out)):
+            return posterior_out is not None
         if self.sensing.line == "sampled" and segments is not None:
             crossed = segment_crossings(positions, segments, self.grid)  # [K,N,G²] or None
         if crossed is not None and self.levels == 1:
@@ -412,6 +417,27 @@ class SourceEstimator(_FusedLevels):
                 block[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
             block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
         return False
+
+    def _native_single(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                       readings: torch.Tensor, segments: torch.Tensor,
+                       posterior_out: torch.Tensor | None) -> bool:
+        """:meth:`update` of a one-level posterior under the sampled rule in one C pass per episode
+        (``tl_native.c``: the crossings, the rate lookups, the shift and the posterior), when the kernel
+        and the grid's crossing tables are there; returns whether it ran."""
+        table = crossing_tables(self.grid, self.device)
+        positions, segments = positions.contiguous(), segments.contiguous()
+        if table is None or not tl_native.usable(log_post, positions, segments):
+            return False
+        most = max(1, segments.shape[1])
+        if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
+            self._sampled = sampled_rate_table(self.grid, most, self.device)
+        out = walls.reshape(log_post.shape[0], -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
+        tl_native.single_update(log_post, self._sampled[0], self._sampled[1], self._span, positions, table,
+                                segments, readings.to(torch.float32).contiguous(), out.contiguous(),
+                                posterior_out)
+        return True
 
     def block(self, k: int) -> int:
         """Episodes per block of a posterior over levels (:data:`BLOCK_BYTES`), for a batch of ``k``."""
@@ -488,6 +514,8 @@ class SourceEstimator(_FusedLevels):
         the most probable cell's 1."""
         # Entries at or below the floor are written as exact zeros after an exp of the floor itself:
         # exp(-inf), and exp near float32's underflow, take a slow path (3-30x a plain exp).
+        if log_post.dim() == 2 and self.path == "fused" and tl_native.usable(log_post):
+            return tl_native.single_posterior(log_post)  # as the one-level kernel's update writes it
         if log_post.dim() == 2:
             p = log_post.clamp(min=EXP_FLOOR).exp_().masked_fill_(log_post <= EXP_FLOOR, 0.0)
         elif self.path == "fused" and self.cells_major(log_post):
@@ -535,6 +563,8 @@ class SourceEstimator(_FusedLevels):
     def expected_from_posterior(self, p: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²]: :meth:`expected_moves` of a posterior float32 [K, G²] (rows summing to 1)."""
         k, g = p.shape[0], self.grid
+        if self.path == "fused" and p.dtype == torch.float32 and tl_native.usable(p):
+            return tl_native.expected_moves(p, g)
         diagonals = 2 * g - 1
         marginal_u = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._u, p)
         marginal_v = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._v, p)
@@ -642,7 +672,8 @@ class TeamMemory:
         self._keep_posterior(post)
 
     def _posterior_buffer(self, k: int) -> torch.Tensor | None:
-        return torch.empty((k, self.grid * self.grid), device=self.device) if self.estimator.fused else None
+        fused = self.estimator.path == "fused"  # the levels' pass, or the one-level native kernel
+        return torch.empty((k, self.grid * self.grid), device=self.device) if fused else None
 
     def _keep_posterior(self, post: torch.Tensor | None) -> None:
         self._post = post
