@@ -8,8 +8,9 @@ import contextlib
 
 import pytest
 import torch
-from medc_training.envs import make_batched, tl_native
-from medc_training.envs.tl_observation import LOG_FLOOR, SourceEstimator, estimator_path
+from env_scenarios import estimator_trace
+from medc_training.envs import tl_native
+from medc_training.envs.tl_observation import LOG_FLOOR, SourceEstimator
 from medc_training.envs.tl_sensing import parse_sensing, wall_segments
 
 #: The stated tolerance between the kernel and the torch fused path (docs/environments.md, "Speed"):
@@ -105,27 +106,11 @@ def test_the_expected_distance_kernel_equals_the_torch_arithmetic() -> None:
     assert float((got[0] - chebyshev).abs().max()) < 1e-5
 
 
-def _trace(sensing: str, grid: int, native: bool, monkeypatch, steps: int = 100) -> list[tuple]:
-    monkeypatch.setenv("MEDC_NATIVE", "1" if native else "0")
-    with estimator_path("fused"):
-        env = make_batched("target_localization", num_envs=16, seed=5, agents=3, walls=2, grid=grid,
-                           max_steps=40, sensing=sensing, observation="ego6+estimate",
-                           posterior=True)
-    gen = torch.Generator().manual_seed(8)
-    obs, mask = env.reset()
-    seen = [(obs.clone(), env.memory.posterior(), mask.clone())]
-    for _ in range(steps):
-        b, n, a = mask.shape
-        out = env.step(torch.multinomial(mask.view(-1, a).float(), 1, generator=gen).view(b, n))
-        obs, mask = out.obs, out.mask
-        seen.append((obs.clone(), env.memory.posterior(), mask.clone()))
-    return seen
-
-
 @pytest.mark.parametrize(("sensing", "grid"), [("realistic", 14), ("paper-simple", 13)])
-def test_a_100_step_trace_on_the_kernel_agrees_with_the_torch_path(sensing, grid, monkeypatch) -> None:
-    native = _trace(sensing, grid, True, monkeypatch)
-    torch_path = _trace(sensing, grid, False, monkeypatch)
+def test_a_100_step_trace_on_the_kernel_agrees_with_the_torch_path(sensing, grid) -> None:
+    native = estimator_trace(sensing, grid, "fused", batch=16)
+    with tl_native.turned_off():
+        torch_path = estimator_trace(sensing, grid, "fused", batch=16)
     assert all(torch.equal(f[2], r[2]) for f, r in zip(native, torch_path, strict=True))  # same episodes
     d_obs = max(float((f[0] - r[0]).abs().max()) for f, r in zip(native, torch_path, strict=True))
     d_post = max(float((f[1] - r[1]).abs().max()) for f, r in zip(native, torch_path, strict=True))
