@@ -173,20 +173,25 @@ def test_without_a_compiler_or_with_native_off_the_torch_path_runs(tmp_path, mon
 
 
 def test_bad_input_gets_a_clear_error() -> None:
-    k, n, cells, levels, q = 2, 3, 16, 8, 40
-    pairs = torch.zeros((k, n, cells), dtype=torch.int64)
+    k, n, side, levels, q = 2, 3, 4, 8, 40
+    cells = side * side
     args = dict(post=torch.zeros((k, cells, levels)), log_rate=torch.zeros((q, levels)),
                 factor=torch.zeros(q), strength=torch.ones(levels), background=torch.ones(levels),
-                d2=pairs, crossed=pairs,
-                span=10, readings=torch.ones((k, n)), out=torch.zeros((k, cells), dtype=torch.bool),
-                marginal=torch.empty((k, cells)), dead_cell=0.0)
+                positions=torch.zeros((k, n, 2), dtype=torch.int64), rects=torch.full((k, 1, 4), -10.0),
+                count=True, span=19, readings=torch.ones((k, n)),
+                out=torch.zeros((k, cells), dtype=torch.bool), marginal=torch.empty((k, cells)),
+                dead_cell=0.0)
     tl_native.levels_update(**args)
-    with pytest.raises(ValueError, match=r"d2 must be a contiguous CPU torch.int64 tensor of shape"):
-        tl_native.levels_update(**{**args, "d2": torch.zeros((k, n, cells), dtype=torch.int32)})
+    with pytest.raises(ValueError, match=r"positions must be a contiguous CPU torch.int64 tensor of shape"):
+        tl_native.levels_update(**{**args, "positions": torch.zeros((k, n, 2), dtype=torch.int32)})
     with pytest.raises(ValueError, match="post must be a contiguous"):
         tl_native.levels_update(**{**args, "post": torch.zeros((k, levels, cells)).transpose(1, 2)})
-    with pytest.raises(ValueError, match="outside the estimator's tables"):
-        tl_native.levels_update(**{**args, "crossed": torch.full((k, n, cells), 4, dtype=torch.int64)})
+    with pytest.raises(ValueError, match="positions must lie on the 4x4 grid"):
+        tl_native.levels_update(**{**args, "positions": torch.full((k, n, 2), 4, dtype=torch.int64)})
+    wall = torch.tensor([[[0.5, -0.5, 1.5, 3.5]]]).expand(k, 1, 4).contiguous()  # row 1: crossed once
+    with pytest.raises(ValueError, match="outside the estimator's tables"):  # tables for no crossing
+        tl_native.levels_update(**{**args, "rects": wall, "log_rate": torch.zeros((19, levels)),
+                                   "factor": torch.zeros(19)})
     grid = 6
     one = dict(post=torch.zeros((1, grid * grid)), rate=torch.ones(200), log_rate=torch.zeros(200), span=51,
                positions=torch.tensor([[[0, 0]]]), table=torch.zeros((2, 36, grid, 2, 36), dtype=torch.int8),

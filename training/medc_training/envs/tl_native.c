@@ -1,24 +1,24 @@
-/* The source estimator's per-step pass over a cells-major posterior over levels, in one loop.
+/* The source estimator's per-step work in C: one pass per episode instead of about ten torch kernels.
  *
  * medc_training.envs.tl_native builds this file into a shared library and calls it through ctypes
  * on contiguous float32 / int64 / bool torch tensors (tl_observation.SourceEstimator, fused path).
- * Per episode, while its [cells, levels] block is in a core's cache:
- *   1. each cell's row of L log-likelihoods, sum_n r_n log rate_n - S sum_n factor_n - N B (rate
- *      and factor looked up per (d², walls crossed) pair), is added to the log posterior; cells
- *      ruled out (walls, where an agent stood) are floored;
- *   2. the episode is shifted by its maximum and floored at LOG_FLOOR;
- *   3. (marginal != NULL) each cell's sum over the levels of exp(max(x, EXP_FLOOR)); a cell whose
- *      sum is at most dead_cell is exactly 0; the row is normalised to sum 1.
- * The torch path runs the same arithmetic as about ten separate passes over the batch.
+ * Per episode, while its memory is in a core's cache:
+ *   medc_levels_update (a posterior over levels, cells-major [cells, levels]): the line of sight of
+ *     every reading to every cell; each cell's row of L log-likelihoods, sum_n r_n log rate_n -
+ *     S sum_n factor_n - N B (rate and factor looked up per (d², walls crossed) pair), added to the
+ *     log posterior, cells ruled out (walls, where an agent stood) floored; the shift by the
+ *     episode's maximum and the floor at LOG_FLOOR; the marginal over the levels, normalised;
+ *   medc_single_update (one level): walls crossed from the sampled rule's crossing tables, the rate
+ *     lookups, the same update and the posterior;
+ *   medc_expected_moves: the expected-distance map of a posterior.
  *
  * Built with -O3 -march=x86-64-v2 -fopenmp-simd -ffinite-math-only -fno-signed-zeros -ffp-contract=off
  * (tl_native.FLAGS: no fused multiply-adds, so each product and sum rounds as torch's do; any x86-64
- * machine of the last decade runs it);
- * the hot loops are also cloned for x86-64-v3 (AVX2, FMA) and picked at load time where the CPU
- * has it.
+ * machine of the last decade runs it); the hot loops are also cloned for x86-64-v3 (AVX2) and picked
+ * at load time where the CPU has it.
  */
+#include <stddef.h>
 #include <stdint.h>
-#include <string.h>
 
 #define LOG_FLOOR (-104.0f)
 #define EXP_FLOOR (-87.0f)
@@ -116,12 +116,55 @@ void medc_levels_marginal(const float *post, int64_t k, int64_t cells, int64_t l
                            marginal + e * cells, dead_cell, 0);
 }
 
+/* For one sensor at `position` (row, col), every cell s of the G×G grid as a candidate source:
+ * q = d² + span * k, k the wall rectangles the closed segment from the sensor to s runs through
+ * (count) or whether any does, by the separating-axis test in exact arithmetic
+ * (tl_sensing._blocked_exact: every quantity a multiple of 1/2 below 2^22, so float32 is exact):
+ * the margin min(|dx| hy + |dy| hx - |dx cy - dy cx|, the four side margins) is positive exactly when
+ * the segment runs through the open rectangle. */
+INLINE void sight_pairs(const int64_t *position, const float *rects, int64_t z, int count, int64_t g,
+                        int64_t span, int32_t *restrict q) {
+    const float py = (float)position[0], px = (float)position[1];
+    const int64_t cells = g * g;
+    for (int64_t c = 0; c < cells; ++c) {
+        const float dy = (float)(c / g) - py, dx = (float)(c % g) - px;
+        q[c] = (int32_t)(dy * dy + dx * dx);
+    }
+    for (int64_t s = 0; s < z; ++s) {
+        const float t = rects[s * 4], l = rects[s * 4 + 1], b = rects[s * 4 + 2], rt = rects[s * 4 + 3];
+        const float cy = (t + b) * 0.5f - py, cx = (l + rt) * 0.5f - px;
+        const float hy = (b - t) * 0.5f, hx = (rt - l) * 0.5f;
+        for (int64_t i = 0; i < g; ++i) {
+            const float row = (float)i, dy = row - py;
+            const float m_top = (row > py ? row : py) - t, m_bottom = b - (row < py ? row : py);
+            int32_t *restrict qi = q + i * g;
+            for (int64_t j = 0; j < g; ++j) {
+                const float col = (float)j, dx = col - px;
+                const float ady = dy < 0.0f ? -dy : dy, adx = dx < 0.0f ? -dx : dx;
+                const float cross = dx * cy - dy * cx;
+                float m = (adx * hy + ady * hx) - (cross < 0.0f ? -cross : cross);
+                m = m < m_top ? m : m_top;
+                m = m < m_bottom ? m : m_bottom;
+                const float m_left = (col > px ? col : px) - l, m_right = rt - (col < px ? col : px);
+                m = m < m_left ? m : m_left;
+                m = m < m_right ? m : m_right;
+                const int32_t hit = m > 0.0f;
+                qi[j] += count ? hit * (int32_t)span : 0;
+                if (!count && hit && qi[j] < span) qi[j] += (int32_t)span;
+            }
+        }
+    }
+}
+
 /* Steps 1-3 for K episodes.
  *   post      float32 [K, C, L]   log posterior, cells-major, updated in place
  *   log_rate  float32 [Q, L]      log rate of each level per (d², walls crossed) pair q
  *   factor    float32 [Q]         geometric factor A^k / (1 + d²) per pair
  *   strength, background float32 [L]
- *   d2, crossed int64 [K, N, C]   the pair of each (episode, reading, cell): q = d2 + span * crossed
+ *   positions int64 [K, N, 2]     the readings' cells on the G×G grid (C = G²)
+ *   rects     float32 [K, Z, 4]   each episode's wall rectangles (top, left, bottom, right)
+ *   count     walls crossed are counted (else 0 or 1: whether any is)
+ *             the pair of each (episode, reading, cell) is q = d² + span * walls crossed
  *   readings  float32 [K, N]
  *   out       bool [K, C]         cells ruled out
  *   marginal  float32 [K, C] or NULL
@@ -129,14 +172,17 @@ void medc_levels_marginal(const float *post, int64_t k, int64_t cells, int64_t l
 MEDC_CLONES
 int medc_levels_update(float *post, const float *log_rate, const float *factor,
                        const float *strength, const float *background, int64_t q_rows,
-                       const int64_t *d2, const int64_t *crossed, int64_t span,
-                       const float *readings, const uint8_t *out, float *marginal,
-                       int64_t k, int64_t n, int64_t cells, int64_t levels, float dead_cell) {
+                       const int64_t *positions, const float *rects, int64_t z, int count, int64_t g,
+                       int64_t span, const float *readings, const uint8_t *out, float *marginal,
+                       int64_t k, int64_t n, int64_t levels, float dead_cell) {
+    const int64_t cells = g * g;
     float top[levels], acc[levels];
     const float *rows[n > 0 ? n : 1];
+    int32_t pairs[(n > 0 ? n : 1) * cells];
     for (int64_t e = 0; e < k; ++e) {
         float *restrict block = post + e * cells * levels;
-        const int64_t *ed2 = d2 + e * n * cells, *ecr = crossed + e * n * cells;
+        for (int64_t j = 0; j < n; ++j)
+            sight_pairs(positions + (e * n + j) * 2, rects + e * z * 4, z, count, g, span, pairs + j * cells);
         const float *r = readings + e * n;
         const uint8_t *eout = out + e * cells;
         for (int64_t l = 0; l < levels; ++l) top[l] = LOG_FLOOR;
@@ -148,7 +194,7 @@ int medc_levels_update(float *post, const float *log_rate, const float *factor,
             }
             float fsum = 0.0f;
             for (int64_t j = 0; j < n; ++j) {
-                const int64_t q = ed2[j * cells + c] + span * ecr[j * cells + c];
+                const int64_t q = pairs[j * cells + c];
                 if (q < 0 || q >= q_rows) return 1;
                 rows[j] = log_rate + q * levels;
                 fsum += factor[q];

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -118,8 +119,8 @@ def build(force: bool = False) -> Path:
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.medc_levels_update.restype = ctypes.c_int
-    lib.medc_levels_update.argtypes = [_ptr, _ptr, _ptr, _ptr, _ptr, _i64, _ptr, _ptr, _i64, _ptr, _ptr, _ptr,
-                                       _i64, _i64, _i64, _i64, _f32]
+    lib.medc_levels_update.argtypes = [_ptr, _ptr, _ptr, _ptr, _ptr, _i64, _ptr, _ptr, _i64, ctypes.c_int,
+                                       _i64, _i64, _ptr, _ptr, _ptr, _i64, _i64, _i64, _f32]
     lib.medc_levels_marginal.restype = None
     lib.medc_levels_marginal.argtypes = [_ptr, _i64, _i64, _i64, _ptr, _f32]
     lib.medc_single_update.restype = ctypes.c_int
@@ -170,35 +171,40 @@ def _check(t: torch.Tensor, dtype: torch.dtype, shape: tuple[int, ...], name: st
 
 
 def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tensor, strength: torch.Tensor,
-                  background: torch.Tensor, d2: torch.Tensor, crossed: torch.Tensor, span: int,
-                  readings: torch.Tensor, out: torch.Tensor, marginal: torch.Tensor | None,
+                  background: torch.Tensor, positions: torch.Tensor, rects: torch.Tensor, count: bool,
+                  span: int, readings: torch.Tensor, out: torch.Tensor, marginal: torch.Tensor | None,
                   dead_cell: float) -> None:
-    """One step of the estimator over a cells-major posterior over levels, in place (``tl_native.c``).
+    """One step of the estimator over a cells-major posterior over levels, in place (``tl_native.c``),
+    the line of sight included (the exact rule, :func:`~medc_training.envs.tl_sensing.sight_lines`).
 
-    post float32 [K, C, L]; log_rate float32 [Q, L] and factor float32 [Q] per (d², walls crossed)
-    pair q = d² + span * crossed; strength, background float32 [L]; d2, crossed int64 [K, N, C];
-    readings float32 [K, N]; out bool [K, C] (cells ruled out); marginal float32 [K, C] or None
-    (written: the normalised marginal posterior, cells whose sum is at most ``dead_cell`` exactly 0).
+    post float32 [K, G², L]; log_rate float32 [Q, L] and factor float32 [Q] per (d², walls crossed)
+    pair q = d² + span * crossed; strength, background float32 [L]; positions int64 [K, N, 2] on the
+    G×G grid; rects float32 [K, Z, 4] (:func:`~medc_training.envs.tl_sensing.wall_rectangles`);
+    ``count``: walls crossed are counted (else whether any is); readings float32 [K, N]; out bool
+    [K, G²] (cells ruled out); marginal float32 [K, G²] or None (written: the normalised marginal
+    posterior, cells whose sum is at most ``dead_cell`` exactly 0).
     """
     lib = _library_or_raise()
     k, cells, levels = post.shape
-    n = readings.shape[1] if readings.dim() == 2 else -1
-    q = log_rate.shape[0]
+    g = math.isqrt(cells)
+    n, z, q = positions.shape[1], rects.shape[1], log_rate.shape[0]
     args = [
-        _check(post, torch.float32, (k, cells, levels), "post"),
+        _check(post, torch.float32, (k, g * g, levels), "post"),
         _check(log_rate, torch.float32, (q, levels), "log_rate"),
         _check(factor, torch.float32, (q,), "factor"),
         _check(strength, torch.float32, (levels,), "strength"),
         _check(background, torch.float32, (levels,), "background"),
         q,
-        _check(d2, torch.int64, (k, n, cells), "d2"),
-        _check(crossed, torch.int64, (k, n, cells), "crossed"),
-        int(span),
+        _check(positions, torch.int64, (k, n, 2), "positions"),
+        _check(rects, torch.float32, (k, z, 4), "rects"),
+        z, int(bool(count)), g, int(span),
         _check(readings, torch.float32, (k, n), "readings"),
         _check(out, torch.bool, (k, cells), "out"),
         None if marginal is None else _check(marginal, torch.float32, (k, cells), "marginal"),
-        k, n, cells, levels, float(dead_cell),
+        k, n, levels, float(dead_cell),
     ]
+    if bool(((positions < 0) | (positions >= g)).any()):
+        raise ValueError(f"positions must lie on the {g}x{g} grid")
     if lib.medc_levels_update(*args) != 0:
         raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
 

@@ -192,28 +192,11 @@ class _FusedLevels:
         log2(e) (float32's exp2 is about 3x faster than its exp here)."""
         k, n = readings.shape
         cells, levels = self.grid * self.grid, self.levels
-        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
-        most = int(crossed.max()) if crossed.numel() else 0
-        table = self._bag_table
-        if table is None or table.shape[0] < span * (most + 1) + 2:
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
-            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
-            self._bag_factor = factor  # [Q]
+        span = self._span  # d² takes the values 0 .. span - 1
+        table = self._levels_table(int(crossed.max()) if crossed.numel() else 0)
         q_rows = table.shape[0] - 2
-        out = walls.reshape(k, -1).bool()
-        if self.rule_out:
-            out = out | self.ruled_out(positions)
+        out = self._ruled_out_cells(walls, positions)
         phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
-        if tl_native.usable(phys, d2, crossed):  # the same steps in one C pass per episode
-            tl_native.levels_update(phys, table[:q_rows], self._bag_factor, self.level_strength,
-                                    self.level_background, d2, crossed, span,
-                                    readings.to(torch.float32).contiguous(), out.contiguous(),
-                                    posterior_out, self._dead_cell)
-            return
         # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
         # row weighted by -sum_n factor_n, the background row by -N.
         index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
@@ -246,6 +229,48 @@ class _FusedLevels:
                 self._marginal(block, loglik.view(kb, cells, levels), posterior_out[s:e])
         if posterior_out is not None:
             self._normalise(posterior_out)
+
+    def _levels_table(self, most: int) -> torch.Tensor:
+        """The fused path's [Q + 2, L] table for up to ``most`` walls crossed: log rates per (d², walls
+        crossed) pair q = d² + span * crossed, then the levels' strengths and backgrounds; also keeps
+        the pairs' geometric factors [Q] (``_bag_factor``)."""
+        span, table = self._span, self._bag_table
+        if table is None or table.shape[0] < span * (most + 1) + 2:
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
+            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
+            self._bag_factor = factor  # [Q]
+        return table
+
+    def _ruled_out_cells(self, walls: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """bool [K, G²]: walls, and (``rule_out``) the cells an agent stands within reach of."""
+        out = walls.reshape(walls.shape[0], -1).bool()
+        return out | self.ruled_out(positions) if self.rule_out else out
+
+    def _native_levels(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                       readings: torch.Tensor, rects: torch.Tensor | None,
+                       posterior_out: torch.Tensor | None) -> bool:
+        """:meth:`update` of a cells-major posterior over levels under the exact line rule in one C pass
+        per episode (``tl_native.c``: the line of sight, the log-likelihood rows, the shift and the
+        marginal), when the kernel is there; returns whether it ran."""
+        phys = log_post.transpose(1, 2)  # [K,G²,L]
+        if rects is None:
+            rects = wall_rectangles(walls)
+        positions, rects = positions.contiguous(), rects.to(torch.float32).contiguous()
+        if not tl_native.usable(phys, positions, rects):
+            return False
+        count = self.sensing.attenuation > 0.0
+        table = self._levels_table(rects.shape[1] if count else 1)
+        q_rows = table.shape[0] - 2
+        tl_native.levels_update(phys, table[:q_rows], self._bag_factor, self.level_strength,
+                                self.level_background, positions, rects, count, self._span,
+                                readings.to(torch.float32).contiguous(),
+                                self._ruled_out_cells(walls, positions).contiguous(), posterior_out,
+                                self._dead_cell)
+        return True
 
     def _marginal(self, block: torch.Tensor, scratch: torch.Tensor, out: torch.Tensor) -> None:
         """Sum over the levels of exp(``block``) (cells-major [k, G², L]) into ``out`` [k, G²], through
@@ -368,6 +393,10 @@ class SourceEstimator(_FusedLevels):
         elif self.sensing.line == "sampled" and self.levels == 1:
             rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
+        elif (self.sensing.line == "exact" and self.levels > 1 and self.path == "fused"
+              and self.cells_major(log_post)
+              and self._native_levels(log_post, walls, positions, readings, rects, posterior_out)):
+            return posterior_out is not None
         elif (lines := self._sight_lines(positions, walls, rects)) is not None:
             d2, crossed = lines
             if self.levels > 1 and self.path == "fused" and self.cells_major(log_post):
