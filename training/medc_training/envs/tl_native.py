@@ -1,8 +1,10 @@
 """The source estimator's native kernel (``tl_native.c``): build, cache, load, call.
 
-The fused estimator path (:class:`~medc_training.envs.tl_observation.SourceEstimator`) folds a step's
-readings into a cells-major posterior over levels, renormalises it and sums its marginal in one C
-pass per episode instead of about ten torch kernels over the batch. The library is built with the
+On the fused estimator path (:class:`~medc_training.envs.tl_observation.SourceEstimator`) a step's
+work runs in one C pass per episode instead of about ten torch kernels over the batch: with levels,
+the line of sight, the log-likelihood rows, the update, the renormalisation and the marginal over the
+levels; with one level, the crossings, the rate lookups, the update and the posterior; and the
+expected-distance map. The library is built with the
 system C compiler (``$CC``, else ``cc``) into ``~/.cache/medc/native/tl_native-<hash>.so``
 (``$MEDC_NATIVE_CACHE`` overrides the folder), keyed by the source's and the flags' hash, so an
 edited kernel is rebuilt and a stale one never loaded. ``scripts/setup.sh`` builds it
@@ -18,6 +20,7 @@ import ctypes
 import hashlib
 import math
 import os
+import platform
 import shutil
 import subprocess
 import sys
@@ -76,8 +79,6 @@ def status() -> str:
 
 
 def _flags() -> tuple[str, ...]:
-    import platform
-
     return FLAGS if platform.machine() in {"x86_64", "AMD64"} else PORTABLE_FLAGS
 
 
