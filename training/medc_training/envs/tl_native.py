@@ -257,7 +257,7 @@ def single_posterior(post: torch.Tensor) -> torch.Tensor:
     at or below EXP_FLOOR exactly 0, normalised), as :func:`single_update` writes it."""
     lib = _library_or_raise()
     k, cells = post.shape
-    p = torch.empty((k, cells))
+    p = torch.empty((k, cells), device=post.device)
     lib.medc_single_posterior(_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr())
     return p
 
@@ -267,7 +267,7 @@ def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     posteriors float32 [K, G²] (``SourceEstimator.expected_from_posterior``)."""
     lib = _library_or_raise()
     k = posterior.shape[0]
-    expected = torch.empty((k, grid * grid))
+    expected = torch.empty((k, grid * grid), device=posterior.device)
     lib.medc_expected_moves(_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid,
                             expected.data_ptr())
     return expected
