@@ -2,6 +2,7 @@
 # One idempotent set-up step for `make demo` and `make test`.
 #   - .venv with the pinned Python dependencies (requirements.txt, constraints.txt)
 #   - the project's packages installed editable into it
+#   - the source estimator's native kernel (a C library, cached by its source's hash)
 #   - npm tools (solc, anvil, js-ipfs) under tools/node_modules
 #   - the medc_interfaces message package built with colcon into ros_ws/install
 # Each stage is skipped when the inputs it was built from have not changed, so a second run
@@ -47,7 +48,13 @@ if ! stage_current pkgs "$d"; then
   mark pkgs "$d"
 fi
 
-# 3. npm tools (solc compiler, anvil node, js-ipfs daemon)
+# 3. The source estimator's native kernel (C), built with the system compiler into
+#    ~/.cache/medc/native under its source's hash (medc_training.envs.tl_native); seconds.
+if ! "$VENV/bin/python" -m medc_training.envs.tl_native >/dev/null; then
+  say "the estimator's native kernel was not built (no C compiler?): the torch path will be used"
+fi
+
+# 4. npm tools (solc compiler, anvil node, js-ipfs daemon)
 if [[ -f tools/package.json ]]; then
   d=$(digest tools/package.json tools/package-lock.json)
   if ! stage_current npm "$d" || [[ ! -d tools/node_modules ]]; then
@@ -58,7 +65,7 @@ if [[ -f tools/package.json ]]; then
   fi
 fi
 
-# 4. ROS interface package (custom messages), built with colcon
+# 5. ROS interface package (custom messages), built with colcon
 if [[ -f scripts/build_interfaces.sh ]]; then
   d=$(digest scripts/build_interfaces.sh $(find ros_ws/src/medc_interfaces -type f 2>/dev/null | sort))
   if ! stage_current interfaces "$d" || [[ ! -d ros_ws/install/medc_interfaces ]]; then

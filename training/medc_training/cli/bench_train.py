@@ -39,6 +39,7 @@ import time
 import torch
 
 from ..config import scaled_config
+from ..envs import tl_native
 from ..envs.tl_observation import estimator_path
 from ..envs.tl_sensing import DEFAULT_SENSING
 from ..ppo import Trainer
@@ -133,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    result: dict = {"torch_threads": torch.get_num_threads()}
+    result: dict = {"torch_threads": torch.get_num_threads(), "native_kernel": tl_native.usable()}
+    print(f"medc-bench train: torch threads {result['torch_threads']}; estimator: {tl_native.status()}")
     learners = _learners(args)
     cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2,
                   **({"horizon": args.horizon} if args.horizon else {}))

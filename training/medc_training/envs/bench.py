@@ -11,7 +11,9 @@ source estimate) and with the observation on the reference estimator (``referenc
 path the fused one replaced, :data:`~medc_training.envs.tl_observation.ESTIMATOR_PATHS`) in the
 same run, interleaved round by round with the default, and every figure is printed as a ratio to
 them too (A/B: fused / reference): absolute figures on a shared machine move with the other jobs'
-load, the ratios much less. ``--no-reference`` skips the reference. ``--grid``, ``--sensing``,
+load, the ratios much less. Where the estimator's native kernel is loaded
+(:mod:`~medc_training.envs.tl_native`) the fused path is also measured on torch alone (``torch``:
+the A/B of the kernel). ``--no-reference`` skips the reference and the torch twin. ``--grid``, ``--sensing``,
 ``--walls``, ``--agents`` or ``--observation`` measure one custom scenario instead;
 ``--one-by-one-steps N`` adds B separate ``make_env`` ParallelEnvs stepped in turn through the
 PettingZoo API (the batched / one-by-one ratio).
@@ -35,7 +37,7 @@ import time
 import numpy as np
 import torch
 
-from medc_training.envs import make_batched, make_env
+from medc_training.envs import make_batched, make_env, tl_native
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, estimator_path
 
 #: The measured scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
@@ -47,8 +49,9 @@ class _Batched:
     """A batched core stepped with random valid moves sampled from its mask."""
 
     def __init__(self, args: argparse.Namespace, sensing: str, grid: int, observation: str,
-                 copy_obs: bool = False, path: str = "fused") -> None:
+                 copy_obs: bool = False, path: str = "fused", native: bool = True) -> None:
         start = time.perf_counter()
+        self.native = native
         with estimator_path(path):
             self.env = self._make(args, sensing, grid, observation, copy_obs)
         self.gen = torch.Generator(device=self.env.device).manual_seed(args.seed)
@@ -74,7 +77,13 @@ class _Batched:
 
     def run(self, seconds: float, min_steps: int = 1, max_steps: int = 0) -> tuple[float, int]:
         """Step for ``seconds`` (at least ``min_steps``, at most ``max_steps`` when > 0):
-        (agent-steps/s, steps)."""
+        (agent-steps/s, steps); without the native kernel when this path was made without it."""
+        if not self.native:
+            with tl_native.turned_off():
+                return self._run(seconds, min_steps, max_steps)
+        return self._run(seconds, min_steps, max_steps)
+
+    def _run(self, seconds: float, min_steps: int, max_steps: int) -> tuple[float, int]:
         b, n, a = self.mask.shape
         if self.cuda:
             torch.cuda.synchronize()
@@ -132,9 +141,11 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
           + ("" if args.no_reference else f", and {observation} on the reference estimator"))
     paths = {"default": _Batched(args, sensing, grid, observation)}
     labels = {"default": observation, "reference": f"{observation} (reference)",
-              "baseline": BASELINE_OBSERVATION}
+              "torch": f"{observation} (fused, torch)", "baseline": BASELINE_OBSERVATION}
     if not args.no_reference:
         paths["reference"] = _Batched(args, sensing, grid, observation, path="reference")
+    if not args.no_reference and tl_native.usable():
+        paths["torch"] = _Batched(args, sensing, grid, observation, native=False)
     if observation != BASELINE_OBSERVATION:
         paths["baseline"] = _Batched(args, sensing, grid, BASELINE_OBSERVATION)
     one = _OneByOne(args, sensing, grid, observation) if args.one_by_one_steps > 0 else None
@@ -143,9 +154,10 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
     if one is not None:
         one.run(1)
     per_round = args.seconds / args.rounds
-    keys = ("default", "reference", "baseline", "one", "ratio", "ratio_reference", "ratio_one")
+    keys = ("default", "reference", "torch", "baseline", "one", "ratio", "ratio_reference", "ratio_torch",
+            "ratio_one")
     rounds: dict[str, list[float]] = {k: [] for k in keys}
-    steps = {"default": 0, "reference": 0, "baseline": 0, "one": 0}
+    steps = {"default": 0, "reference": 0, "torch": 0, "baseline": 0, "one": 0}
     for r in range(args.rounds):
         parts = []
         for key, path in paths.items():
@@ -156,6 +168,9 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         if "reference" in paths:
             rounds["ratio_reference"].append(rounds["default"][-1] / rounds["reference"][-1])
             parts.append(f"fused / reference {rounds['ratio_reference'][-1]:.3f}x")
+        if "torch" in paths:
+            rounds["ratio_torch"].append(rounds["default"][-1] / rounds["torch"][-1])
+            parts.append(f"kernel / torch {rounds['ratio_torch'][-1]:.3f}x")
         if "baseline" in paths:
             rounds["ratio"].append(rounds["default"][-1] / rounds["baseline"][-1])
             parts.append(f"ratio to maps {rounds['ratio'][-1]:.4f}x")
@@ -196,6 +211,11 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         result.update(reference_agent_steps_per_s=round(reference), reference_ms_per_step=ms(reference),
                       reference_timed_steps=steps["reference"],
                       speedup_over_reference=round(median("ratio_reference"), 3))
+    if "torch" in paths:
+        torch_rate = median("torch")
+        result.update(torch_agent_steps_per_s=round(torch_rate), torch_ms_per_step=ms(torch_rate),
+                      torch_timed_steps=steps["torch"],
+                      speedup_kernel_over_torch=round(median("ratio_torch"), 3))
     counts = ", ".join(f"{steps[k]} {labels[k]}" for k in paths)
     print(f"  median of {args.rounds} rounds (timed steps: {counts}):")
     line = f"  {observation:<28} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
@@ -207,6 +227,10 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         print(f"  {labels['reference']:<28} {result['reference_agent_steps_per_s']:12,} agent-steps/s "
               f"({result['reference_ms_per_step']:.1f} ms/step)")
         print(f"  A/B fused / reference estimator: {result['speedup_over_reference']:.3f}x")
+    if "torch" in paths:
+        print(f"  {labels['torch']:<28} {result['torch_agent_steps_per_s']:12,} agent-steps/s "
+              f"({result['torch_ms_per_step']:.1f} ms/step)")
+        print(f"  A/B native kernel / torch fused path: {result['speedup_kernel_over_torch']:.3f}x")
     print(f"  {BASELINE_OBSERVATION:<28} {baseline:12,.0f} agent-steps/s "
           f"({result['baseline_ms_per_step']:.1f} ms/step)")
     print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
@@ -264,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
         scenarios = [(s, g, t if args.num_envs == 256 else None) for s, g, t in SCENARIOS]
     load = " ".join(f"{x:.2f}" for x in _loadavg())
     print(f"medc-bench env: target localization, B={args.num_envs}, device={args.device}, "
-          f"torch threads={args.threads}, load average {load}")
+          f"torch threads={args.threads}, load average {load}; estimator: {tl_native.status()}")
     start = time.perf_counter()
     results = {f"{s}_{g}x{g}": measure(args, s, g, t) for s, g, t in scenarios}
     wall = time.perf_counter() - start
@@ -276,9 +300,12 @@ def main(argv: list[str] | None = None) -> int:
         ab = "" if "speedup_over_reference" not in r else (
             f", {r['speedup_over_reference']:.3f}x the reference estimator at "
             f"{r['reference_agent_steps_per_s']:,}")
+        if "speedup_kernel_over_torch" in r:
+            ab += f", {r['speedup_kernel_over_torch']:.3f}x the torch fused path"
         print(f"  {name:<20} {r['agent_steps_per_s']:>10,} ({r['ratio_to_baseline']:.4f}x "
               f"{BASELINE_OBSERVATION} at {r['baseline_agent_steps_per_s']:,}{ab}){target}")
     print(json.dumps({"scenarios": results, "device": args.device, "threads": args.threads,
+                      "native_kernel": tl_native.usable(),
                       "seconds_per_path": args.seconds, "rounds": args.rounds, "load_average": _loadavg(),
                       "wall_s": round(wall, 1)}))
     return 0

@@ -61,6 +61,7 @@ from contextlib import contextmanager
 
 import torch
 
+from medc_training.envs import tl_native
 from medc_training.envs.allocator import keep_freed_memory
 from medc_training.envs.grid import grid_cells, team_windows
 from medc_training.envs.observation import OBSERVATION_NAMES, ObservationSpec, parse_observation
@@ -68,6 +69,7 @@ from medc_training.envs.tl_sensing import (
     CHANNELS,
     DEFAULT_SENSING,
     build_observations,
+    crossing_tables,
     geometric_factor,
     parse_sensing,
     rates_from_every_cell,
@@ -190,18 +192,11 @@ class _FusedLevels:
         log2(e) (float32's exp2 is about 3x faster than its exp here)."""
         k, n = readings.shape
         cells, levels = self.grid * self.grid, self.levels
-        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
-        most = int(crossed.max()) if crossed.numel() else 0
-        table = self._bag_table
-        if table is None or table.shape[0] < span * (most + 1) + 2:
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
-            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
-            self._bag_factor = factor  # [Q]
+        span = self._span  # d² takes the values 0 .. span - 1
+        table = self._levels_table(int(crossed.max()) if crossed.numel() else 0)
         q_rows = table.shape[0] - 2
+        out = self._ruled_out_cells(walls, positions)
+        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
         # Each (episode, cell)'s bag: the readings' log-rate rows weighted by the readings, the strength
         # row weighted by -sum_n factor_n, the background row by -N.
         index = torch.add(d2, crossed, alpha=span)  # [K,N,G²]
@@ -215,11 +210,7 @@ class _FusedLevels:
         weights[..., n].neg_()
         weights[..., n + 1] = -float(n)
         bags, weights = bags.view(k * cells, n + 2), weights.view(k * cells, n + 2)
-        out = walls.reshape(k, -1).bool()
-        if self.rule_out:
-            out = out | self.ruled_out(positions)
         episode, cell = out.nonzero(as_tuple=True)  # in episode order
-        phys = log_post.transpose(1, 2)  # [K,G²,L], contiguous per episode
         step = self.block(k)
         starts = list(range(0, k, step))
         cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
@@ -238,6 +229,48 @@ class _FusedLevels:
                 self._marginal(block, loglik.view(kb, cells, levels), posterior_out[s:e])
         if posterior_out is not None:
             self._normalise(posterior_out)
+
+    def _levels_table(self, most: int) -> torch.Tensor:
+        """The fused path's [Q + 2, L] table for up to ``most`` walls crossed: log rates per (d², walls
+        crossed) pair q = d² + span * crossed, then the levels' strengths and backgrounds; also keeps
+        the pairs' geometric factors [Q] (``_bag_factor``)."""
+        span, table = self._span, self._bag_table
+        if table is None or table.shape[0] < span * (most + 1) + 2:
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
+            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
+            self._bag_factor = factor  # [Q]
+        return table
+
+    def _ruled_out_cells(self, walls: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+        """bool [K, G²]: walls, and (``rule_out``) the cells an agent stands within reach of."""
+        out = walls.reshape(walls.shape[0], -1).bool()
+        return out | self.ruled_out(positions) if self.rule_out else out
+
+    def _native_levels(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                       readings: torch.Tensor, rects: torch.Tensor | None,
+                       posterior_out: torch.Tensor | None) -> bool:
+        """:meth:`update` of a cells-major posterior over levels under the exact line rule in one C pass
+        per episode (``tl_native.c``: the line of sight, the log-likelihood rows, the shift and the
+        marginal), when the kernel is there; returns whether it ran."""
+        phys = log_post.transpose(1, 2)  # [K,G²,L]
+        if rects is None:
+            rects = wall_rectangles(walls)
+        positions, rects = positions.contiguous(), rects.to(torch.float32).contiguous()
+        if not tl_native.usable(phys, positions, rects):
+            return False
+        count = self.sensing.attenuation > 0.0
+        table = self._levels_table(rects.shape[1] if count else 1)
+        q_rows = table.shape[0] - 2
+        tl_native.levels_update(phys, table[:q_rows], self._bag_factor, self.level_strength,
+                                self.level_background, positions, rects, count, self._span,
+                                readings.to(torch.float32).contiguous(),
+                                self._ruled_out_cells(walls, positions).contiguous(), posterior_out,
+                                self._dead_cell)
+        return True
 
     def _marginal(self, block: torch.Tensor, scratch: torch.Tensor, out: torch.Tensor) -> None:
         """Sum over the levels of exp(``block``) (cells-major [k, G², L]) into ``out`` [k, G²], through
@@ -341,6 +374,10 @@ class SourceEstimator(_FusedLevels):
         crossed = None
         loglik = None  # float32 [K,G²] or [K,L,G²]; or made block by block by `block_loglik`
         block_loglik = None
+        if (self.sensing.line == "sampled" and segments is not None and self.levels == 1
+                and self.path == "fused"
+                and self._native_single(log_post, walls, positions, readings, segments, posterior_out)):
+            return posterior_out is not None
         if self.sensing.line == "sampled" and segments is not None:
             crossed = segment_crossings(positions, segments, self.grid)  # [K,N,G²] or None
         if crossed is not None and self.levels == 1:
@@ -356,6 +393,10 @@ class SourceEstimator(_FusedLevels):
         elif self.sensing.line == "sampled" and self.levels == 1:
             rate = rates_from_every_cell(positions, walls)  # [K,N,G²]: the simulator's sensor model
             loglik = (readings.unsqueeze(-1) * torch.log(rate) - rate).sum(1)  # [K,G²]
+        elif (self.sensing.line == "exact" and self.levels > 1 and self.path == "fused"
+              and self.cells_major(log_post)
+              and self._native_levels(log_post, walls, positions, readings, rects, posterior_out)):
+            return posterior_out is not None
         elif (lines := self._sight_lines(positions, walls, rects)) is not None:
             d2, crossed = lines
             if self.levels > 1 and self.path == "fused" and self.cells_major(log_post):
@@ -405,6 +446,27 @@ class SourceEstimator(_FusedLevels):
                 block[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
             block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
         return False
+
+    def _native_single(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
+                       readings: torch.Tensor, segments: torch.Tensor,
+                       posterior_out: torch.Tensor | None) -> bool:
+        """:meth:`update` of a one-level posterior under the sampled rule in one C pass per episode
+        (``tl_native.c``: the crossings, the rate lookups, the shift and the posterior), when the kernel
+        and the grid's crossing tables are there; returns whether it ran."""
+        table = crossing_tables(self.grid, self.device)
+        positions, segments = positions.contiguous(), segments.contiguous()
+        if table is None or not tl_native.usable(log_post, positions, segments):
+            return False
+        most = max(1, segments.shape[1])
+        if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
+            self._sampled = sampled_rate_table(self.grid, most, self.device)
+        out = walls.reshape(log_post.shape[0], -1).bool()
+        if self.rule_out:
+            out = out | self.ruled_out(positions)
+        tl_native.single_update(log_post, self._sampled[0], self._sampled[1], self._span, positions, table,
+                                segments, readings.to(torch.float32).contiguous(), out.contiguous(),
+                                posterior_out)
+        return True
 
     def block(self, k: int) -> int:
         """Episodes per block of a posterior over levels (:data:`BLOCK_BYTES`), for a batch of ``k``."""
@@ -481,12 +543,17 @@ class SourceEstimator(_FusedLevels):
         the most probable cell's 1."""
         # Entries at or below the floor are written as exact zeros after an exp of the floor itself:
         # exp(-inf), and exp near float32's underflow, take a slow path (3-30x a plain exp).
+        if log_post.dim() == 2 and self.path == "fused" and tl_native.usable(log_post):
+            return tl_native.single_posterior(log_post)  # as the one-level kernel's update writes it
         if log_post.dim() == 2:
             p = log_post.clamp(min=EXP_FLOOR).exp_().masked_fill_(log_post <= EXP_FLOOR, 0.0)
         elif self.path == "fused" and self.cells_major(log_post):
             k, levels, cells = log_post.shape
             phys = log_post.transpose(1, 2)
             p = torch.empty((k, cells), device=log_post.device)
+            if tl_native.usable(phys):
+                tl_native.levels_marginal(phys, p, self._dead_cell)
+                return p
             step = self.block(k)
             scratch = torch.empty((min(k, step), cells, levels), device=log_post.device)
             for s in range(0, k, step):
@@ -525,6 +592,8 @@ class SourceEstimator(_FusedLevels):
     def expected_from_posterior(self, p: torch.Tensor) -> torch.Tensor:
         """float32 [K, G²]: :meth:`expected_moves` of a posterior float32 [K, G²] (rows summing to 1)."""
         k, g = p.shape[0], self.grid
+        if self.path == "fused" and p.dtype == torch.float32 and tl_native.usable(p):
+            return tl_native.expected_moves(p, g)
         diagonals = 2 * g - 1
         marginal_u = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._u, p)
         marginal_v = torch.zeros((k, diagonals), device=p.device).index_add_(1, self._v, p)
@@ -632,7 +701,8 @@ class TeamMemory:
         self._keep_posterior(post)
 
     def _posterior_buffer(self, k: int) -> torch.Tensor | None:
-        return torch.empty((k, self.grid * self.grid), device=self.device) if self.estimator.fused else None
+        fused = self.estimator.path == "fused"  # the levels' pass, or the one-level native kernel
+        return torch.empty((k, self.grid * self.grid), device=self.device) if fused else None
 
     def _keep_posterior(self, post: torch.Tensor | None) -> None:
         self._post = post

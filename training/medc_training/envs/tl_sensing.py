@@ -113,13 +113,13 @@ def expected_rate_from_sources(
     return SOURCE_STRENGTH * torch.pow(WALL_ATTENUATION, entries) / (1.0 + dist2) + BACKGROUND
 
 
-#: Largest grid (cells per side) whose crossing tables (:func:`_crossing_tables`) are kept:
+#: Largest grid (cells per side) whose crossing tables (:func:`crossing_tables`) are kept:
 #: 2 × G⁵ × 2 bytes, 30 -> 93 MiB, 32 -> 128 MiB. Larger grids sample every line each call.
 _CROSSING_TABLE_GRID = 32
 _CROSSING_TABLES: dict[tuple[int, torch.device], torch.Tensor] = {}
 
 
-def _crossing_tables(g: int, device: torch.device) -> torch.Tensor | None:
+def crossing_tables(g: int, device: torch.device) -> torch.Tensor | None:
     """Where the sampled line between two cells runs, per row and per column of a G×G grid.
 
     int8 [2, G², G, 2, G²]: entries [0, p, r, :, s] are the (smallest, largest) column among the
@@ -207,9 +207,9 @@ def _segments_are_the_walls(walls: torch.Tensor, segs: torch.Tensor, empty: torc
 def segment_crossings(positions: torch.Tensor, segments: torch.Tensor, grid: int) -> torch.Tensor | None:
     """int32 [B,N,G²]: the sampled rule's count of walls crossed between each sensor at
     ``positions`` (int64 [B,N,2]) and every cell as a candidate source, from the crossing tables
-    (:func:`_crossing_tables`): O(G² · segments) per sensor instead of O(G³). ``segments`` from
+    (:func:`crossing_tables`): O(G² · segments) per sensor instead of O(G³). ``segments`` from
     :func:`wall_segments`. None above _CROSSING_TABLE_GRID."""
-    table = _crossing_tables(grid, positions.device)
+    table = crossing_tables(grid, positions.device)
     if table is None:
         return None
     b, n = positions.shape[:2]
