@@ -6,7 +6,8 @@ proves who speaks at the message level instead: one random 32-byte key per missi
 :data:`KEY_FILE_ENV`). Every status, reading, move and declaration carries a
 ``medc_interfaces/Auth`` field: the sender's per-run id, a counter, the sender's wall clock when it
 signed, and an HMAC-SHA256 over :func:`signed_bytes` (a domain tag, the topic, the type name and the
-message's CDR with the MAC left empty). Poses and maps, standard messages with no room for a field,
+message's canonical encoding with the MAC left empty,
+:func:`medc_common.auth_node.canonical`). Poses and maps, standard messages with no room for a field,
 are vouched for by digests in signed messages (a reading carries its pose's, a status its map's).
 
 A receiver checks the MAC, then the freshness of the signing time (:data:`WINDOW_S` either side of
@@ -121,8 +122,8 @@ def _field(data: bytes) -> bytes:
 
 def signed_bytes(topic: str, type_name: str, body: bytes) -> bytes:
     """What a MAC covers: :data:`DOMAIN`, then ``topic`` (fully qualified), ``type_name`` and
-    ``body`` (the message's CDR with an empty MAC), each length-prefixed, so that a message signed
-    for one topic or type is not valid on another."""
+    ``body`` (the message's canonical encoding with an empty MAC), each length-prefixed, so that a
+    message signed for one topic or type is not valid on another."""
     return DOMAIN + _field(topic.encode()) + _field(type_name.encode()) + _field(body)
 
 
@@ -132,7 +133,8 @@ def compute_mac(key: bytes, topic: str, type_name: str, body: bytes) -> bytes:
 
 
 def digest(data: bytes) -> bytes:
-    """SHA-256 of ``data`` (a pose's or a map's CDR that a signed message vouches for)."""
+    """SHA-256 of ``data`` (a pose's or a map's canonical encoding that a signed message
+    vouches for)."""
     return hashlib.sha256(data).digest()
 
 
