@@ -160,3 +160,36 @@ def test_verification_cost_is_small():
     for i in range(1, 2001):
         v.verify(TOPIC, TYPE, body, mac, "s", i, clock())
     assert (time.perf_counter() - start) / 2000 < 1e-3
+
+
+def test_canonical_encoding_is_what_the_receiver_rebuilds():
+    """The bytes a MAC covers are the same after a trip through CDR (whose alignment padding is not),
+    float32 fields included, and differ for any change of a field."""
+    pytest.importorskip("medc_interfaces")
+    from medc_common.auth_node import canonical
+    from medc_interfaces.msg import EpisodeStatus
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    msg = EpisodeStatus(session="s", agent_ids=["agent_0", "agent_1"], reward=0.1, step=3)
+    back = deserialize_message(serialize_message(msg), EpisodeStatus)
+    assert canonical(back) == canonical(msg)
+    changed = deserialize_message(serialize_message(msg), EpisodeStatus)
+    changed.agent_ids = ["agent_0", "agent_2"]
+    assert canonical(changed) != canonical(msg)
+
+
+def test_vouched_takes_only_the_matching_candidate():
+    pytest.importorskip("medc_interfaces")
+    from medc_common.auth_node import Vouched
+
+    refused = []
+    v = Vouched(refused.append, keys=2, per_key=2)
+    assert v.offer("k", "forged", b"F") is None
+    assert v.offer("k", "genuine", b"G") is None
+    assert v.vouch("k", b"G") == "genuine"
+    assert len(refused) == 1  # the forged candidate
+    assert v.offer("k", "again", b"G") == "again"  # a re-send of the vouched one
+    assert v.offer("k", "late forgery", b"X") is None and len(refused) == 2
+    for i in range(5):  # a flood of unvouched keys is bounded and counted
+        v.offer(f"flood{i}", "x", b"x")
+    assert len(v._held) <= 2 and len(refused) >= 5

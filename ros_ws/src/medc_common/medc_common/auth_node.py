@@ -29,7 +29,7 @@ CLEAR_S = 5.0
 CONDITION = "authentication"
 KEY_FILE_HELP = (
     "Mission key file (medc-launch --authenticate writes one, 0600): sign every status, reading, "
-    f"move and declaration and take only verified ones; empty: ${auth.KEY_FILE_ENV}, else the open "
+    "move and declaration and take only verified ones; empty: $MEDC_AUTH_KEY_FILE, else the open "
     "mode (nothing signed or checked; docs/security.md)")
 
 
