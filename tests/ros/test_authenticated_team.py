@@ -24,10 +24,12 @@ SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 4, "en
 EPISODES = 4
 #: Seconds the lost-agent test counts the team's steps, undisturbed and under the ghosts.
 WINDOW_S = 8.0
-#: The team's step rate under the ghosts, and after them, at least, as a share of its rate before
-#: (other work shares this machine's cores too: a freeze, the failure, is 0).
-ATTACKED_RATE = 0.4
-RECOVERED_RATE = 0.6
+#: The team's step rate under the ghosts, and after them, at least, as a share of its rate before.
+#: Generous: the ghosts' process and whatever else runs share this machine's cores (measured on two
+#: loaded cores, before -> under -> after: 58 -> 66 -> 68, 62 -> 66 -> 63, 105 -> 53 -> 108,
+#: 339 -> 114 -> 165 steps in 8 s); the failure, a team the forgeries freeze, makes none.
+ATTACKED_RATE = 0.25
+RECOVERED_RATE = 0.3
 
 
 @pytest.fixture
