@@ -193,3 +193,33 @@ def test_vouched_takes_only_the_matching_candidate():
     for i in range(5):  # a flood of unvouched keys is bounded and counted
         v.offer(f"flood{i}", "x", b"x")
     assert len(v._held) <= 2 and len(refused) >= 5
+
+
+def test_heartbeats_are_signed_and_checked(tmp_path):
+    """A signed DiagnosticArray verifies with the key once; an altered status, another key, an
+    unsigned array or a replay does not."""
+    pytest.importorskip("medc_interfaces")
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from medc_common.auth_node import NodeAuth
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    key, other = auth.write_key_file(tmp_path / "k"), auth.write_key_file(tmp_path / "o")
+    node, monitor = NodeAuth(str(key), "sim"), NodeAuth(str(key), "monitor")
+
+    def beat(signer, message="running"):
+        array = DiagnosticArray(status=[DiagnosticStatus(name="medc_sim", message=message)])
+        signer.sign_diagnostics(array)
+        return deserialize_message(serialize_message(array), DiagnosticArray)
+
+    genuine = beat(node)
+    replay = deserialize_message(serialize_message(genuine), DiagnosticArray)
+    assert monitor.admit_diagnostics(genuine)
+    assert [s.name for s in genuine.status] == ["medc_sim"]  # the auth status is taken off
+    assert not monitor.admit_diagnostics(replay)
+    altered = beat(node)
+    altered.status[0].message = "all well"
+    assert not monitor.admit_diagnostics(altered)
+    assert not monitor.admit_diagnostics(beat(NodeAuth(str(other), "intruder")))
+    assert not monitor.admit_diagnostics(DiagnosticArray(status=[DiagnosticStatus(name="medc_sim")]))
+    assert monitor.refused["heartbeat"] == 4
+    assert NodeAuth("", "open").admit_diagnostics(beat(node))  # the open mode takes anything

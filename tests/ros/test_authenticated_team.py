@@ -204,3 +204,38 @@ def test_a_node_refuses_an_unusable_key_file(tmp_path):
                            f"auth_key_file:={bad}"], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0
     assert "64 hex digits" in proc.stderr + proc.stdout, proc.stderr[-2000:]
+
+
+@pytest.mark.ros
+def test_heartbeats_are_signed_by_the_team(graph, mission_key, wrong_key):
+    """Under a mission key every node's heartbeat carries its MAC: a monitor holding the key
+    verifies the simulator's and each agent's, and refuses one a forger signed with another key."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from diagnostic_msgs.msg import DiagnosticStatus as Status
+    from medc_common.auth_node import NodeAuth
+    from medc_common.contract import DIAGNOSTICS_QOS, DIAGNOSTICS_TOPIC
+
+    executor, _, agents = graph("greedy", 0, namespace="/auth_beats", **SCENARIO)
+    monitor = NodeAuth(str(mission_key), "monitor")
+    node = rclpy.create_node("beat_monitor", namespace="/auth_beats")
+    verified: set[str] = set()
+    refused: list[str] = []
+
+    def on_array(array) -> None:
+        names = [s.name for s in array.status if ":" not in s.name]
+        if monitor.admit_diagnostics(array):
+            verified.update(names)
+        else:
+            refused.extend(names)
+
+    node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, on_array, DIAGNOSTICS_QOS)
+    forger = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DIAGNOSTICS_QOS)
+    executor.add_node(node)
+    team = {"medc_sim", *(a.get_name() for a in agents)}
+    assert spin_until(executor, lambda: team <= verified, 60), (team - verified, refused)
+    forged = DiagnosticArray(status=[Status(name="medc_sim", message="running", hardware_id="driver")])
+    NodeAuth(str(wrong_key), "intruder").sign_diagnostics(forged)
+    forger.publish(forged)
+    assert spin_until(executor, lambda: "medc_sim" in refused, 30)
+    assert monitor.refused["heartbeat"] >= 1

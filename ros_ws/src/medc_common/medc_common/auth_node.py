@@ -27,6 +27,8 @@ from medc_common.params import declare
 CLEAR_S = 5.0
 #: The condition's name on /diagnostics.
 CONDITION = "authentication"
+#: The name of the status that carries a signed DiagnosticArray's Auth fields.
+DIAGNOSTICS_AUTH = "auth"
 KEY_FILE_HELP = (
     "Mission key file (medc-launch --authenticate writes one, 0600): sign every status, reading, "
     "move and declaration and take only verified ones; empty: $MEDC_AUTH_KEY_FILE, else the open "
@@ -59,6 +61,9 @@ def _encoder(ros_type: str) -> Callable[[Any, list], None]:
     m = _SEQUENCE.match(ros_type) or _ARRAY.match(ros_type)
     if m:
         element = m.group(1)
+        if element in ("octet", "char"):  # a list of bytes of length 1 (or of ints)
+            return lambda v, out: out.extend((_LENGTH.pack(len(v)), b"".join(
+                x if isinstance(x, bytes) else bytes([x]) for x in v)))
         if element in _DTYPES:
             dtype = _DTYPES[element]
             return lambda v, out: out.extend((_LENGTH.pack(len(v)), np.asarray(v, dtype=dtype).tobytes()))
@@ -71,6 +76,8 @@ def _encoder(ros_type: str) -> Callable[[Any, list], None]:
         return sequence
     if ros_type in _SCALARS:
         pack = _SCALARS[ros_type].pack
+        if ros_type in ("octet", "char"):  # rclpy holds a byte as bytes of length 1, or an int
+            return lambda v, out: out.append(bytes(v) if isinstance(v, bytes) else pack(v))
         return lambda v, out: out.append(pack(v))
     if ros_type in ("string", "wstring") or ros_type.startswith(("string<", "wstring<")):
         def text(v, out) -> None:
@@ -189,6 +196,48 @@ class NodeAuth:
                             f"no unauthenticated message for {CLEAR_S:g} s "
                             f"(refused so far: {sum(self.refused.values())})")
 
+    def sign_diagnostics(self, array, topic: str = "/diagnostics"):
+        """Sign a DiagnosticArray (a heartbeat or an event) in place: one more status named
+        ``auth`` whose values are the Auth fields (``sender``, ``counter``, ``stamp_ns``, ``mac`` in
+        hex) over the array without it, so that a monitor holding the key can tell the team's
+        health from a forger's (:meth:`admit_diagnostics`). Unchanged when open."""
+        if self.signer is None:
+            return array
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+        counter, stamp_ns = self.signer.next(topic)
+        values = {"sender": self.signer.sender, "counter": str(counter), "stamp_ns": str(stamp_ns)}
+        body = canonical(array) + canonical(DiagnosticStatus(values=[KeyValue(key=k, value=v)
+                                                                     for k, v in values.items()]))
+        values["mac"] = self.signer.mac(topic, type_name(array), body).hex()
+        array.status.append(DiagnosticStatus(name=DIAGNOSTICS_AUTH, values=[KeyValue(key=k, value=v)
+                                                                           for k, v in values.items()]))
+        return array
+
+    def admit_diagnostics(self, array, topic: str = "/diagnostics") -> bool:
+        """Whether a DiagnosticArray signed by :meth:`sign_diagnostics` verifies (always when open);
+        its ``auth`` status is removed either way."""
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+        signed = array.status[-1] if array.status and array.status[-1].name == DIAGNOSTICS_AUTH else None
+        if signed is not None:
+            array.status = list(array.status[:-1])
+        if self.verifier is None:
+            return True
+        values = {kv.key: kv.value for kv in signed.values} if signed is not None else {}
+        try:
+            mac = bytes.fromhex(values.pop("mac", ""))
+            fields = {k: values[k] for k in ("sender", "counter", "stamp_ns")}
+            body = canonical(array) + canonical(DiagnosticStatus(values=[KeyValue(key=k, value=v)
+                                                                         for k, v in fields.items()]))
+            self.verifier.verify(topic, type_name(array), body, mac, fields["sender"], int(fields["counter"]),
+                                 int(fields["stamp_ns"]))
+        except (KeyError, ValueError) as exc:
+            why = exc if isinstance(exc, auth.AuthError) else "not signed (no auth status)"
+            self.refuse("heartbeat", f"heartbeat on {topic}: {why}")
+            return False
+        return True
+
     def summary(self) -> dict[str, str]:
         """Heartbeat values: the mode and the refusals."""
         return {"authentication": "on" if self.enabled else "open",
@@ -200,6 +249,8 @@ def declare_auth(node, sender: str, health=None) -> NodeAuth:
     that cannot be used); with a key, a timer clears the condition."""
     key_file = str(declare(node, "auth_key_file", "", KEY_FILE_HELP, True))
     node_auth = NodeAuth(key_file, sender, health, node.get_logger())
+    if health is not None:
+        health.auth = node_auth  # its heartbeats and events are signed too
     if node_auth.enabled:
         node.create_timer(1.0, node_auth.check)
         node.get_logger().info("authenticated mode: signing and verifying the team's messages")
