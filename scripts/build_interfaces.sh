@@ -5,7 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
-VENV=$ROOT/.venv
+# MEDC_VENV: the virtual environment to build with (a git worktree shares its main checkout's).
+VENV=${MEDC_VENV:-$ROOT/.venv}
 PY=$VENV/bin/python
 
 # The ROS wheels' exported CMake files name the include paths of the machine that built them;

@@ -18,7 +18,8 @@ def test_node_help_lists_exactly_the_parameters_the_nodes_declare(rclpy_context)
     from rclpy.parameter import Parameter
 
     agent = AgentNode(agent_id="agent_0", parameter_overrides=[Parameter("policy", value=str(TEAM))])
-    nodes = {("medc_sim.node",): SimNode(), ("medc_agents.node", "medc_agents.estimate"): agent}
+    nodes = {("medc_sim.node", "medc_common.auth_node"): SimNode(),
+             ("medc_agents.node", "medc_agents.estimate", "medc_common.auth_node"): agent}
     try:
         for modules, node in nodes.items():
             declared = set(node._parameters) - {"use_sim_time", "start_type_description_service"}

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
             "medc-agent", "One agent node per UAV: observes the team, runs its policy bundle (or a "
                           "classical controller) and publishes its move; agent_0 also publishes the "
                           "team's source estimate and declaration.",
-            ["medc_agents.node", "medc_agents.estimate"],
+            ["medc_agents.node", "medc_agents.estimate", "medc_common.auth_node"],
             "medc-agent --ros-args -p agent_id:=agent_0 -p policy:=models/team/A3W2.safetensors")
     require_interfaces()
     from medc_common.executors import run_node

@@ -184,9 +184,11 @@ class TeamEstimate:
     """The agent node's publisher of the team's estimate and declaration (module docstring)."""
 
     def __init__(self, node, namespace: str, agent_index: int, sensing, takeover_s: float = 1.5,
-                 num_agents: int = 0) -> None:
+                 num_agents: int = 0, auth=None) -> None:
         """Declare the parameters on ``node``, follow the moves of every teammate (:class:`EstimateRole`,
         ``takeover_s``; ``num_agents``: the team's size) and, when it may publish, create its publishers.
+        ``auth``: the node's medc_common.auth_node.NodeAuth (None: the open mode): a teammate's move
+        counts only when it verifies, and declarations are signed.
 
         Raises:
             ValueError: a declaration radius or threshold out of range, a negative rate.
@@ -198,6 +200,9 @@ class TeamEstimate:
 
         p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
         self.node = node
+        self.auth = auth
+        #: The team's namespace, fully qualified (the topics signatures name).
+        self.team_ns = node.namespace_
         self.enabled = bool(p(
             "publish_estimate", True,
             "Publish the team's source estimate, posterior heat map and declaration when this agent is "
@@ -249,6 +254,9 @@ class TeamEstimate:
             agent = contract.agent_id(j)
 
             def on_move(msg, j=j, agent=agent) -> None:
+                if self.auth is not None and not self.auth.admit(
+                        msg, contract.move_topic(self.team_ns, agent), "move"):
+                    return
                 if msg.agent_id == agent:  # a move on another agent's topic says nothing of this one
                     self.role.moved(j, msg.episode, msg.step, msg.sender)
 
@@ -329,7 +337,10 @@ class TeamEstimate:
         if bool(verdict.declared[0]):
             self._declared_for = episode
             self.declarations += 1
-            self.declaration_pub.publish(self._declaration_msg(stamp, tick, geometry, verdict))
+            declaration = self._declaration_msg(stamp, tick, geometry, verdict)
+            if self.auth is not None:
+                self.auth.sign(declaration, contract.declaration_topic(self.team_ns))
+            self.declaration_pub.publish(declaration)
             row, col = (int(v) for v in verdict.cell[0])
             self.node.get_logger().info(
                 f"source declared: episode {tick.episode} step {tick.step}, cell (row {row}, col {col}), "

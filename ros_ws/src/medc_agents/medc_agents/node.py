@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import torch
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
+from medc_common.auth_node import Vouched, declare_auth, message_digest
 from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
@@ -397,9 +398,16 @@ class AgentNode(Node):
         self.move_pub = self.create_publisher(
             AgentMove, contract.move_topic(ns, self.agent_id), contract.RELIABLE_QOS
         )
-        self.moves = MoveOut(self.agent_id, self.sender, self.move_pub.publish,
-                             lambda: self.get_clock().now().to_msg())
         self.health = Health(self, self.agent_id, self._summary)
+        #: Signing of its moves and declarations, checking of the team's messages (medc_common.auth_node);
+        #: poses and maps wait until a verified reading or status vouches for them.
+        self.auth = declare_auth(self, self.sender, self.health)
+        self.vouched_poses = Vouched(lambda why: self.auth.refuse("pose", f"pose: {why}"))
+        self.vouched_maps = Vouched(lambda why: self.auth.refuse("map", f"map: {why}"))
+        move_topic = contract.move_topic(self.namespace_, self.agent_id)
+        self.moves = MoveOut(self.agent_id, self.sender,
+                             lambda m: self.move_pub.publish(self.auth.sign(m, move_topic)),
+                             lambda: self.get_clock().now().to_msg())
         self.statuses = StatusIntake(self.gate, self.health, self.dropped_by, self.old_statuses.drop,
                                      self.observer.restart)
         self.readings = ReadingWatch(self.reading_check, self.health)
@@ -407,11 +415,13 @@ class AgentNode(Node):
         self.map_faults = MapFaults(self.observer, self.health, log)
         # Another process publishing moves as this agent (a duplicate id) is reported here too.
         self.claims = ClaimWatch(self.agent_id, self.sender, self.health)
-        self.create_subscription(AgentMove, contract.move_topic(ns, self.agent_id), self.claims.on_move,
-                                 contract.RELIABLE_QOS)
+        self.create_subscription(
+            AgentMove, contract.move_topic(ns, self.agent_id),
+            lambda m: self.claims.on_move(m) if self.auth.admit(m, move_topic, "move") else None,
+            contract.RELIABLE_QOS)
         #: The team's source estimate and declaration (published by one agent: medc_agents.estimate).
         self.estimate = TeamEstimate(self, ns, self.observer.index, self.observer.sensing,
-                                     self.lost_watch.timeout_s, num_agents)
+                                     self.lost_watch.timeout_s, num_agents, auth=self.auth)
         self.team = TeamWatch(self.agent_id, self.observer, self.lost_watch, self.estimate, self.health, log,
                               self._maybe_decide)
         self.stalls = StallWatch(self.observer, self.health, self.stall_timeout_s,
@@ -457,10 +467,17 @@ class AgentNode(Node):
                 "absent": ", ".join(o.ids[j] for j in sorted(o.absent)) or "none",
                 "policy": self.slot.current.description if self.slot.current is not None else "none",
                 "estimate": ("publishing" if self.estimate.publishing else "standby") if self.estimate.enabled
-                else "off"}
+                else "off", **self.auth.summary()}
 
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
+        if self.auth.enabled:  # taken once the signed reading of its step vouches for it
+            msg = self.vouched_poses.offer((agent_id, stamp_key(msg.header.stamp)), msg, message_digest(msg))
+            if msg is None:
+                return
+        self._take_pose(agent_id, msg)
+
+    def _take_pose(self, agent_id: str, msg: PoseStamped) -> None:
         try:
             self.observer.add_pose(agent_id, msg)
         except ValueError as exc:
@@ -470,6 +487,12 @@ class AgentNode(Node):
         self._maybe_decide()
 
     def on_reading(self, agent_id: str, msg: RadiationReading) -> None:
+        if not self.auth.admit(msg, contract.radiation_topic(self.namespace_, agent_id), "reading"):
+            return
+        if self.auth.enabled:
+            pose = self.vouched_poses.vouch((agent_id, stamp_key(msg.header.stamp)), bytes(msg.pose_digest))
+            if pose is not None:
+                self._take_pose(agent_id, pose)
         try:
             self.observer.add_reading(agent_id, msg)
         except ValueError as exc:
@@ -480,6 +503,13 @@ class AgentNode(Node):
         self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
+        if self.auth.enabled:  # taken once a signed status names its digest
+            msg = self.vouched_maps.offer(stamp_key(msg.info.map_load_time), msg, message_digest(msg))
+            if msg is None:
+                return
+        self._take_map(msg)
+
+    def _take_map(self, msg: OccupancyGrid) -> None:
         key = stamp_key(msg.info.map_load_time)
         try:
             self.observer.add_map(msg)
@@ -502,6 +532,12 @@ class AgentNode(Node):
         (a TeamFeed batches the team's forward passes) and to finish with :meth:`publish_move`.
         """
         o = self.observer
+        if not self.auth.admit(msg, contract.status_topic(self.namespace_), "status"):
+            return None
+        if self.auth.enabled:
+            grid = self.vouched_maps.vouch(stamp_key(msg.map_stamp), bytes(msg.map_digest))
+            if grid is not None:
+                self._take_map(grid)
         if list(msg.agent_ids) != o.ids:
             listed = list(msg.agent_ids)[:8]
             self._drop("status", ValueError(f"status lists agents {listed}, this team is {o.ids}"))

@@ -16,6 +16,13 @@ node runs as its own process through its console script (``medc-sim``, ``medc-ag
     medc-launch --namespace /team2            # the whole team under /team2 (each node: -r __ns:=/team2)
     medc-launch --listeners 1                 # the first step waits for one more reader of the status
                                               # and results topics (a tool started on its own)
+    medc-launch --authenticate                # sign and verify the team's messages under a new mission key
+    medc-launch --authenticate --key-file k   # ... under the key in k (written 0600 when k does not exist)
+
+``--authenticate`` issues a random mission key to a 0600 file (``--key-file``, else a private folder
+removed at the end) and gives its path to every node (``MEDC_AUTH_KEY_FILE``, read by each node's
+``auth_key_file`` parameter): statuses, readings, moves and declarations are signed and only
+verified ones are used (docs/security.md). Without it the graph runs in the open mode.
 
 A relative ``--policy`` is taken from the current directory; a relative ``policy`` in the config
 file (e.g. ``models/team``) from the repository root. Without ``--policy`` the default config runs
@@ -30,6 +37,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -464,7 +472,9 @@ def run_processes(
     """
     import rclpy
     from medc_common import contract
+    from medc_common.auth_node import NodeAuth
     from medc_common.executors import spin_once_alive
+    from medc_common.health import run_id
     from medc_interfaces.msg import EpisodeStatus
     from rclpy.executors import SingleThreadedExecutor
 
@@ -473,7 +483,13 @@ def run_processes(
     executor.add_node(monitor)
     seen: set[int] = set()
 
+    # Under a mission key (MEDC_AUTH_KEY_FILE) only the driver's signed results count.
+    results_auth = NodeAuth("", run_id())
+    results_topic = contract.results_topic(cfg.namespace)
+
     def on_status(msg: EpisodeStatus) -> None:
+        if not results_auth.admit(msg, results_topic, "result"):
+            return
         if msg.done and msg.episode not in seen:
             seen.add(msg.episode)
             log.add(msg.episode, msg.episode_length, msg.success)
@@ -581,6 +597,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--foxglove-origin", action="append", default=[], metavar="ORIGIN",
                         help="with --foxglove: also serve web pages of this origin (repeatable; the live "
                              "view refuses any page not served by this machine)")
+    parser.add_argument("--authenticate", action="store_true",
+                        help="sign every status, reading, move and declaration with a mission key and "
+                             "use only verified ones (docs/security.md); default: the open mode")
+    parser.add_argument("--key-file", metavar="FILE",
+                        help="with --authenticate: the mission key file to use, written (0600) with a new "
+                             "key when it does not exist; default: a new key in a private folder removed "
+                             "at the end")
     return parser
 
 
@@ -598,6 +621,23 @@ def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--foxglove-origin is only used with --foxglove")
     if args.foxglove_clients < 1:
         parser.error(f"--foxglove-clients must be at least 1, got {args.foxglove_clients}")
+    if args.key_file is not None and not args.authenticate:
+        parser.error("--key-file is only used with --authenticate")
+
+
+def issue_key(key_file: str | None, tmp_dir: Path) -> Path:
+    """The mission key file of an authenticated run: ``key_file`` when it holds a usable key, a new
+    key written to it (0600) when it does not exist, else a new key in ``tmp_dir`` (a 0700 folder of
+    this run). AuthError (a ValueError) for a file that cannot be used."""
+    from medc_common import auth
+
+    if key_file is None:
+        return auth.write_key_file(tmp_dir / "mission.key")
+    path = Path(key_file).expanduser()
+    if path.exists() or path.is_symlink():
+        auth.load_key_file(path)  # refuses a link, a shared or malformed file
+        return path.resolve()
+    return auth.write_key_file(path).resolve()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -612,7 +652,27 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"medc-launch: {exc}", file=sys.stderr)
         return 2
-    require_interfaces()
+    require_interfaces()  # may re-execute this process: before any key is issued
+    key_dir = tempfile.TemporaryDirectory(prefix="medc-auth-") if args.authenticate else None
+    try:
+        if key_dir is not None:
+            from medc_common.auth import KEY_FILE_ENV
+
+            # Every node reads it (its auth_key_file parameter's fallback); children inherit it.
+            os.environ[KEY_FILE_ENV] = str(issue_key(args.key_file, Path(key_dir.name)))
+    except ValueError as exc:
+        key_dir.cleanup()
+        print(f"medc-launch: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return _run(args, cfg, policies)
+    finally:
+        if key_dir is not None:
+            key_dir.cleanup()
+
+
+def _run(args: argparse.Namespace, cfg: LaunchConfig, policies: list[str]) -> int:
+    """Start the recorder and the graph of ``cfg`` as ``args`` say; the exit status."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
@@ -661,6 +721,7 @@ def main(argv: list[str] | None = None) -> int:
                     in_process=args.in_process,
                     wall_s=round(time.monotonic() - start, 3),
                     config=asdict(cfg) | {"policies": policies},
+                    authenticated=args.authenticate,
                     **({"recording": recording} if recorder is not None else {}),
                 )
             )

@@ -54,6 +54,8 @@ class Health:
         self.started = time.monotonic()
         self.beats = 0
         self.timer = node.create_timer(period_s, self.beat) if period_s > 0 else None
+        #: The node's medc_common.auth_node.NodeAuth once it has one: every array is signed with it.
+        self.auth = None
 
     def _status(self, part: str, level: bytes, message: str, values: dict | None) -> DiagnosticStatus:
         status = DiagnosticStatus(level=level, name=f"{self.node.get_name()}: {part}", message=message,
@@ -74,6 +76,8 @@ class Health:
     def _publish(self, statuses: list[DiagnosticStatus]) -> None:
         array = DiagnosticArray(status=statuses)
         array.header.stamp = self.node.get_clock().now().to_msg()
+        if self.auth is not None:
+            self.auth.sign_diagnostics(array, DIAGNOSTICS_TOPIC)
         # The context may be shutting down: a heartbeat is not worth a traceback.
         with contextlib.suppress(Exception):
             self.pub.publish(array)

@@ -25,12 +25,13 @@ class Declarations:
 
     def __init__(self, node, names_ns: str | None, namespace: str, ids: list[str], core, book, health, *,
                  running: Callable[[], bool], map_stamp: Callable[[], Any],
-                 finish: Callable[[Any], None], drop: Callable[[], None]) -> None:
+                 finish: Callable[[Any], None], drop: Callable[[], None], auth=None) -> None:
         """Subscribe ``node`` (the simulator's; its graph tells who publishes) to the team's
         declaration topic under ``names_ns``; ``namespace``: the team's, fully qualified; ``core``,
         ``book``: the simulator's SimCore and MoveBook; ``running``: whether it has started and not
         finished; ``map_stamp``: the episode's map stamp; ``finish``: ends the episode with its
-        EpisodeResult; ``drop``: counts a dropped message."""
+        EpisodeResult; ``drop``: counts a dropped message; ``auth``: the node's
+        medc_common.auth_node.NodeAuth (None: the open mode)."""
         from medc_interfaces.msg import SourceDeclaration
 
         self.ids = ids
@@ -44,6 +45,7 @@ class Declarations:
         self.finish = finish
         self.drop = drop
         self.namespace = namespace
+        self.auth = auth
         #: The declaration topic, fully qualified (its publishers are looked up in the graph).
         self.topic = contract.declaration_topic(namespace)
         #: Declarations that ended an episode, and those refused as not the team's.
@@ -56,7 +58,8 @@ class Declarations:
         """Why a declaration is not the team's, or None. It must name an agent of the team that is
         not taken out, and every node that publishes declarations must be one that publishes an
         agent's moves (a message does not say which node sent it: while another node publishes
-        declarations, none can be told from its own)."""
+        declarations, none can be told from its own). Under a mission key the signature, checked on
+        arrival, takes the place of that graph check."""
         ids = self.ids
         agent = str(msg.agent_id)
         if agent not in ids:
@@ -65,6 +68,8 @@ class Declarations:
         if ids.index(agent) in self.book.lost:
             return (f"{agent} is out of the team (no move within move_timeout_s); it counts when it moves "
                     "again")
+        if self.auth is not None and self.auth.enabled:
+            return None  # signed under the mission key (checked on arrival): a key holder's, whoever runs it
         publishers_of = self.publishers_of
         try:
             movers = {(i.node_namespace, i.node_name) for a in ids
@@ -82,6 +87,10 @@ class Declarations:
     def on_declaration(self, msg) -> None:
         """End the episode on the team's declaration."""
         if not self.running():
+            return
+        if self.auth is not None and not self.auth.admit(msg, self.topic, "declaration"):
+            self.drop()
+            self.refused += 1
             return
         core, log, map_stamp = self.core, self.logger, self.map_stamp()
         if int(msg.episode) < core.episode:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
+from medc_common.auth_node import declare_auth, message_digest
 from medc_common.health import Health, run_id
 from medc_common.params import declare
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
@@ -192,12 +193,16 @@ class SimNode(Node):
             EpisodeStatus, contract.status_topic(ns), contract.RELIABLE_QOS
         )
         self.health = Health(self, "driver", self._summary)
+        #: Signing of what it publishes and checking of moves and declarations (medc_common.auth_node).
+        self.auth = declare_auth(self, self.session, self.health)
+        self._map_digest = b""
         # The declaration subscription comes before the move subscriptions: a declaration and the
         # last move of its step that wait together are taken in that order.
         #: The team's declarations, when one may end an episode (medc_sim.declarations).
         self.declarations = None if cfg.end_on == "source" else Declarations(
             self, ns, self.namespace_, self.ids, self.core, self.book, self.health, running=self._running,
-            map_stamp=lambda: self._map_stamp, finish=self._finish_episode, drop=self._count_drop)
+            map_stamp=lambda: self._map_stamp, finish=self._finish_episode, drop=self._count_drop,
+            auth=self.auth)
         self.move_subs = [
             self.create_subscription(
                 AgentMove,
@@ -247,7 +252,10 @@ class SimNode(Node):
 
     def _begin_episode(self) -> None:
         self._map_stamp = self.get_clock().now().to_msg()
-        self.map_pub.publish(self.map_msg())
+        grid = self.map_msg()
+        # Statuses name the map's digest: under a mission key agents take no other map.
+        self._map_digest = message_digest(grid) if self.auth.enabled else b""
+        self.map_pub.publish(grid)
         self._publish_step()
 
     def map_msg(self) -> OccupancyGrid:
@@ -261,7 +269,8 @@ class SimNode(Node):
                 "episodes_done": str(len(self.core.results)), "resends": str(self.steps.resends),
                 "dropped_moves": str(self.dropped), "resent_moves_ignored": str(self.book.resent),
                 "conflicting_moves": str(self.book.conflicts),
-                "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none"}
+                "lost": ", ".join(self.ids[i] for i in sorted(self.book.lost)) or "none",
+                **self.auth.summary()}
 
     def _publish_step(self) -> None:
         """Publish the current state as a new step and wait for its moves."""
@@ -273,27 +282,41 @@ class SimNode(Node):
     def _send_state(self) -> None:
         stamp = self._step_stamp
         noise = self.core.noise
+        sign, ns = self.auth.sign, self.namespace_
         for i, (cell, value) in enumerate(zip(self.core.positions(), self.core.readings())):
-            self.pose_pubs[i].publish(messages.pose_msg(cell, stamp, self.geometry))
+            pose = messages.pose_msg(cell, stamp, self.geometry)
+            self.pose_pubs[i].publish(pose)
             # Poisson counts: the variance is the mean.
             variance = value if noise else 0.0
-            self.reading_pubs[i].publish(messages.reading_msg(self.ids[i], value, variance, stamp))
+            reading = messages.reading_msg(self.ids[i], value, variance, stamp)
+            if self.auth.enabled:  # the signed reading vouches for the pose
+                reading.pose_digest = message_digest(pose)
+            self.reading_pubs[i].publish(sign(reading, contract.radiation_topic(ns, self.ids[i])))
         core = self.core
-        self.status_pub.publish(
-            messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp,
-                                session=self.session)
-        )
+        status = messages.status_msg(self.ids, core.episode, core.step, stamp, self._map_stamp,
+                                     session=self.session)
+        status.map_digest = self._map_digest
+        self.status_pub.publish(sign(status, contract.status_topic(ns)))
         self.steps.sent()
 
     def _publish_done(self, result: EpisodeResult) -> None:
         stamp = self.get_clock().now().to_msg()
         msg = messages.status_msg(self.ids, result.episode, result.length, stamp, self._map_stamp, result,
                                   self.session)
-        self.status_pub.publish(msg)
-        self.results_pub.publish(msg)
+        msg.map_digest = self._map_digest
+        self.status_pub.publish(self.auth.sign(msg, contract.status_topic(self.namespace_)))
+        self.results_pub.publish(self.auth.sign(msg, contract.results_topic(self.namespace_)))
 
     # -- stepping ------------------------------------------------------------------------
     def _on_move(self, topic_agent: str, msg) -> None:
+        if not self.auth.admit(msg, contract.move_topic(self.namespace_, topic_agent), "move"):
+            self.dropped += 1
+            return
+        if self.auth.enabled and msg.sender != msg.auth.sender:
+            self.dropped += 1
+            self.auth.refuse("move", f"move of {topic_agent} names sender {str(msg.sender)[:40]!r} but was "
+                                     f"signed by {str(msg.auth.sender)[:40]!r}")
+            return
         try:
             if msg.agent_id != topic_agent:
                 raise MoveRejected(f"move on {topic_agent}'s topic names agent {msg.agent_id!r}")

@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     if wants_help(argv):
         return print_node_help(
             "medc-sim", "The simulator node: plays the UAV team's drivers (poses, readings, the walls map, "
-                        "the episode status) and applies the agents' moves.", ["medc_sim.node"],
+                        "the episode status) and applies the agents' moves.",
+            ["medc_sim.node", "medc_common.auth_node"],
             "medc-sim --ros-args -p agents:=3 -p grid:=13 -p seed:=0")
     require_interfaces()
     from medc_common.executors import run_node
