@@ -131,6 +131,32 @@ class _OneByOne:
         return agent_steps / (time.perf_counter() - start), steps
 
 
+def _print_summary(args: argparse.Namespace, result: dict, labels: dict[str, str], steps: dict[str, int],
+                   rates: tuple[float, float, float], target: int | None) -> None:
+    """The summary lines of :func:`measure` for the paths timed (``labels``'s keys)."""
+    rate, baseline, ratio = rates
+    observation = args.observation
+    paths = labels
+    counts = ", ".join(f"{steps[k]} {labels[k]}" for k in paths)
+    print(f"  median of {args.rounds} rounds (timed steps: {counts}):")
+    line = f"  {observation:<28} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
+    if target is not None:
+        verdict = "met" if result["meets_target"] else f"NOT met ({rate / target:.1%} of it)"
+        line += f", target >= {target:,}: {verdict}"
+    print(line)
+    if "reference" in paths:
+        print(f"  {labels['reference']:<28} {result['reference_agent_steps_per_s']:12,} agent-steps/s "
+              f"({result['reference_ms_per_step']:.1f} ms/step)")
+        print(f"  A/B fused / reference estimator: {result['speedup_over_reference']:.3f}x")
+    if "torch" in paths:
+        print(f"  {labels['torch']:<28} {result['torch_agent_steps_per_s']:12,} agent-steps/s "
+              f"({result['torch_ms_per_step']:.1f} ms/step)")
+        print(f"  A/B native kernel / torch fused path: {result['speedup_kernel_over_torch']:.3f}x")
+    print(f"  {BASELINE_OBSERVATION:<28} {baseline:12,.0f} agent-steps/s "
+          f"({result['baseline_ms_per_step']:.1f} ms/step)")
+    print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
+
+
 def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | None) -> dict:
     """One scenario: ``args.observation`` on the fused estimator, on the reference estimator (unless
     ``args.no_reference``) and the maps baseline (plus one by one when asked), interleaved rounds,
@@ -216,24 +242,7 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
         result.update(torch_agent_steps_per_s=round(torch_rate), torch_ms_per_step=ms(torch_rate),
                       torch_timed_steps=steps["torch"],
                       speedup_kernel_over_torch=round(median("ratio_torch"), 3))
-    counts = ", ".join(f"{steps[k]} {labels[k]}" for k in paths)
-    print(f"  median of {args.rounds} rounds (timed steps: {counts}):")
-    line = f"  {observation:<28} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
-    if target is not None:
-        verdict = "met" if result["meets_target"] else f"NOT met ({rate / target:.1%} of it)"
-        line += f", target >= {target:,}: {verdict}"
-    print(line)
-    if "reference" in paths:
-        print(f"  {labels['reference']:<28} {result['reference_agent_steps_per_s']:12,} agent-steps/s "
-              f"({result['reference_ms_per_step']:.1f} ms/step)")
-        print(f"  A/B fused / reference estimator: {result['speedup_over_reference']:.3f}x")
-    if "torch" in paths:
-        print(f"  {labels['torch']:<28} {result['torch_agent_steps_per_s']:12,} agent-steps/s "
-              f"({result['torch_ms_per_step']:.1f} ms/step)")
-        print(f"  A/B native kernel / torch fused path: {result['speedup_kernel_over_torch']:.3f}x")
-    print(f"  {BASELINE_OBSERVATION:<28} {baseline:12,.0f} agent-steps/s "
-          f"({result['baseline_ms_per_step']:.1f} ms/step)")
-    print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
+    _print_summary(args, result, {k: labels[k] for k in paths}, steps, (rate, baseline, ratio), target)
     if one is not None:
         one_rate, ratio_one = median("one"), median("ratio_one")
         result.update(one_by_one_agent_steps_per_s=round(one_rate), ratio_to_one_by_one=round(ratio_one, 1),

@@ -284,6 +284,50 @@ class _FusedLevels:
         return p.div_(p.sum(1, keepdim=True))
 
 
+class _ReadingTables:
+    """The reference path's log-likelihood of readings from per-(d², walls crossed) tables of log
+    rates, made on first use and grown with the most walls crossed."""
+
+    def __init__(self, grid: int, sensing, level_strength: torch.Tensor, level_background: torch.Tensor,
+                 device: torch.device) -> None:
+        self.grid, self.sensing, self.device = grid, sensing, device
+        self.level_strength, self.level_background = level_strength, level_background
+        self.levels = level_strength.shape[0]
+        #: (log rate [Q, L], factor [Q]) for Q = (d², walls crossed) pairs.
+        self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def loglik(self, d2: torch.Tensor, crossed: torch.Tensor, readings: torch.Tensor) -> torch.Tensor:
+        """float32 [K,L,G²] (or [K,G²] with one level): sum over the readings of r log(rate) - rate,
+        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading).
+        The log rates of one (d², k) pair are one contiguous row of L; each (episode, cell) sums its
+        readings' rows weighted by the readings in one ``embedding_bag`` (reading by reading, element
+        by element: no BLAS, whose blocking would make an episode's sum depend on the batch size).
+        Returned as a [K,L,G²] view of [K,G²,L] memory."""
+        k, n = readings.shape
+        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
+        most = int(crossed.max()) if crossed.numel() else 0
+        if self._tables is None or self._tables[0].shape[0] < span * (most + 1):
+            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
+            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
+            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
+        log_rate, factor = self._tables
+        index = d2 + span * crossed  # [K,N,G²]
+        cells = d2.shape[-1]
+        # Per (episode, cell), the sum over the readings of r * log rate row: one weighted bag of N
+        # table rows each (embedding_bag sums a bag's rows in order, r_0 * row_0 + r_1 * row_1 + ...,
+        # the arithmetic of a product and then one multiply-add per reading, in one pass).
+        bags = index.transpose(1, 2).reshape(k * cells, n)
+        weights = readings.view(k, 1, n).expand(k, cells, n).reshape(k * cells, n)
+        loglik = torch.nn.functional.embedding_bag(bags, log_rate, mode="sum",
+                                                   per_sample_weights=weights).view(k, cells, self.levels)
+        fsum = factor.index_select(0, index.view(-1)).view(k, n, -1).sum(1)  # [K,G²]
+        loglik.sub_(fsum.unsqueeze(-1) * self.level_strength).sub_(n * self.level_background)
+        loglik = loglik.transpose(1, 2)
+        return loglik if self.levels > 1 else loglik.squeeze(1)
+
+
 class SourceEstimator(_FusedLevels):
     """The team's Bayes posterior over the source cell on a ``grid``×``grid`` area (module docstring).
 
@@ -317,8 +361,8 @@ class SourceEstimator(_FusedLevels):
         self.levels = self.sensing.levels[0] * self.sensing.levels[1]
         #: [K] strength and background of each level, strength-major.
         self.level_strength, self.level_background = self.sensing.level_values(self.device)
-        #: (log rate [L, Q], factor [Q]) for Q = (d², walls crossed) pairs, made on first use.
-        self._tables: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._reading_tables = _ReadingTables(g, self.sensing, self.level_strength, self.level_background,
+                                              self.device)
         #: The paper-simple model's (rate, log rate) by (walls crossed, d²), made on first use.
         self._sampled: tuple[torch.Tensor, torch.Tensor] | None = None
         self._span = 2 * (g - 1) ** 2 + 1
@@ -403,10 +447,10 @@ class SourceEstimator(_FusedLevels):
                 self._fused_update(log_post, walls, positions, readings, d2, crossed, posterior_out)
                 return posterior_out is not None
             if self.levels == 1:
-                loglik = self._loglik_from_tables(d2, crossed, readings)
+                loglik = self._reading_tables.loglik(d2, crossed, readings)
             else:
                 def block_loglik(s: int, e: int) -> torch.Tensor:
-                    return self._loglik_from_tables(d2[s:e], crossed[s:e], readings[s:e])
+                    return self._reading_tables.loglik(d2[s:e], crossed[s:e], readings[s:e])
         else:
             f = geometric_factor(self.sensing, positions, self.cells, walls, rects)  # [K,N,G²]
             n = f.shape[1]
@@ -479,38 +523,6 @@ class SourceEstimator(_FusedLevels):
         if rects is None:
             rects = wall_rectangles(walls)
         return sight_lines(self.sensing, positions, walls, rects, fused=self.path == "fused")
-
-    def _loglik_from_tables(self, d2: torch.Tensor, crossed: torch.Tensor,
-                            readings: torch.Tensor) -> torch.Tensor:
-        """float32 [K,L,G²] (or [K,G²] with one level): sum over the readings of r log(rate) - rate,
-        with rate = S * A**k / (1 + d²) + B looked up in per-(d², k) tables (no log per reading).
-        The log rates of one (d², k) pair are one contiguous row of L; each (episode, cell) sums its
-        readings' rows weighted by the readings in one ``embedding_bag`` (reading by reading, element
-        by element: no BLAS, whose blocking would make an episode's sum depend on the batch size).
-        Returned as a [K,L,G²] view of [K,G²,L] memory."""
-        k, n = readings.shape
-        span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
-        most = int(crossed.max()) if crossed.numel() else 0
-        if self._tables is None or self._tables[0].shape[0] < span * (most + 1):
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
-        log_rate, factor = self._tables
-        index = d2 + span * crossed  # [K,N,G²]
-        cells = d2.shape[-1]
-        # Per (episode, cell), the sum over the readings of r * log rate row: one weighted bag of N
-        # table rows each (embedding_bag sums a bag's rows in order, r_0 * row_0 + r_1 * row_1 + ...,
-        # the arithmetic of a product and then one multiply-add per reading, in one pass).
-        bags = index.transpose(1, 2).reshape(k * cells, n)
-        weights = readings.view(k, 1, n).expand(k, cells, n).reshape(k * cells, n)
-        loglik = torch.nn.functional.embedding_bag(bags, log_rate, mode="sum",
-                                                   per_sample_weights=weights).view(k, cells, self.levels)
-        fsum = factor.index_select(0, index.view(-1)).view(k, n, -1).sum(1)  # [K,G²]
-        loglik.sub_(fsum.unsqueeze(-1) * self.level_strength).sub_(n * self.level_background)
-        loglik = loglik.transpose(1, 2)
-        return loglik if self.levels > 1 else loglik.squeeze(1)
 
     def ruled_out(self, positions: torch.Tensor) -> torch.Tensor:
         """bool [K, G²]: the cells an agent stands within ``success_radius`` of (the source would
