@@ -18,7 +18,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from medc_common import auth
 from medc_common.params import declare
@@ -203,22 +203,15 @@ class NodeAuth:
         health from a forger's (:meth:`admit_diagnostics`). Unchanged when open."""
         if self.signer is None:
             return array
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
         counter, stamp_ns = self.signer.next(topic)
         values = {"sender": self.signer.sender, "counter": str(counter), "stamp_ns": str(stamp_ns)}
-        body = canonical(array) + canonical(DiagnosticStatus(values=[KeyValue(key=k, value=v)
-                                                                     for k, v in values.items()]))
-        values["mac"] = self.signer.mac(topic, type_name(array), body).hex()
-        array.status.append(DiagnosticStatus(name=DIAGNOSTICS_AUTH, values=[KeyValue(key=k, value=v)
-                                                                           for k, v in values.items()]))
+        values["mac"] = self.signer.mac(topic, type_name(array), _diagnostics_body(array, values)).hex()
+        array.status.append(DiagnosticStatus(name=DIAGNOSTICS_AUTH, values=_key_values(values)))
         return array
 
     def admit_diagnostics(self, array, topic: str = "/diagnostics") -> bool:
         """Whether a DiagnosticArray signed by :meth:`sign_diagnostics` verifies (always when open);
         its ``auth`` status is removed either way."""
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
         signed = array.status[-1] if array.status and array.status[-1].name == DIAGNOSTICS_AUTH else None
         if signed is not None:
             array.status = list(array.status[:-1])
@@ -228,10 +221,8 @@ class NodeAuth:
         try:
             mac = bytes.fromhex(values.pop("mac", ""))
             fields = {k: values[k] for k in ("sender", "counter", "stamp_ns")}
-            body = canonical(array) + canonical(DiagnosticStatus(values=[KeyValue(key=k, value=v)
-                                                                         for k, v in fields.items()]))
-            self.verifier.verify(topic, type_name(array), body, mac, fields["sender"], int(fields["counter"]),
-                                 int(fields["stamp_ns"]))
+            self.verifier.verify(topic, type_name(array), _diagnostics_body(array, fields), mac,
+                                 fields["sender"], int(fields["counter"]), int(fields["stamp_ns"]))
         except (KeyError, ValueError) as exc:
             why = exc if isinstance(exc, auth.AuthError) else "not signed (no auth status)"
             self.refuse("heartbeat", f"heartbeat on {topic}: {why}")
@@ -242,6 +233,16 @@ class NodeAuth:
         """Heartbeat values: the mode and the refusals."""
         return {"authentication": "on" if self.enabled else "open",
                 "auth_refused": str(sum(self.refused.values()))}
+
+
+def _key_values(values: dict[str, str]) -> list:
+    return [KeyValue(key=k, value=v) for k, v in values.items()]
+
+
+def _diagnostics_body(array, fields: dict[str, str]) -> bytes:
+    """What a signed DiagnosticArray's MAC covers: the array without its ``auth`` status, then that
+    status's ``sender``, ``counter`` and ``stamp_ns`` values."""
+    return canonical(array) + canonical(DiagnosticStatus(values=_key_values(fields)))
 
 
 def declare_auth(node, sender: str, health=None) -> NodeAuth:
