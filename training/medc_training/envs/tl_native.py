@@ -171,6 +171,12 @@ def _check(t: torch.Tensor, dtype: torch.dtype, shape: tuple[int, ...], name: st
     return t.data_ptr()
 
 
+def _check_on_grid(positions: torch.Tensor, g: int) -> None:
+    """The kernel indexes its tables by position: one off the grid would read outside them."""
+    if bool(((positions < 0) | (positions >= g)).any()):
+        raise ValueError(f"positions must lie on the {g}x{g} grid")
+
+
 def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tensor, strength: torch.Tensor,
                   background: torch.Tensor, positions: torch.Tensor, rects: torch.Tensor, count: bool,
                   span: int, readings: torch.Tensor, out: torch.Tensor, marginal: torch.Tensor | None,
@@ -204,8 +210,7 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
         None if marginal is None else _check(marginal, torch.float32, (k, cells), "marginal"),
         k, n, levels, float(dead_cell),
     ]
-    if bool(((positions < 0) | (positions >= g)).any()):
-        raise ValueError(f"positions must lie on the {g}x{g} grid")
+    _check_on_grid(positions, g)
     if lib.medc_levels_update(*args) != 0:
         raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
 
@@ -246,8 +251,7 @@ def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor
         None if posterior is None else _check(posterior, torch.float32, (k, cells), "posterior"),
         k, n, g,
     ]
-    if bool(((positions < 0) | (positions >= g)).any()):
-        raise ValueError(f"positions must lie on the {g}x{g} grid")
+    _check_on_grid(positions, g)
     if lib.medc_single_update(*args) != 0:
         raise ValueError("a (walls crossed, d²) pair or a wall segment falls outside the estimator's tables")
 
