@@ -236,12 +236,10 @@ class _FusedLevels:
         the pairs' geometric factors [Q] (``_bag_factor``)."""
         span, table = self._span, self._bag_table
         if table is None or table.shape[0] < span * (most + 1) + 2:
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
+            log_rate, factor = _rate_tables(self.sensing, self.level_strength, self.level_background, span,
+                                            most, self.device)
             levels_s, levels_b = self.level_strength.view(1, -1), self.level_background.view(1, -1)
-            table = self._bag_table = torch.cat((rate.log().t(), levels_s, levels_b)).contiguous()  # [Q+2, L]
+            table = self._bag_table = torch.cat((log_rate, levels_s, levels_b)).contiguous()  # [Q+2, L]
             self._bag_factor = factor  # [Q]
         return table
 
@@ -284,6 +282,17 @@ class _FusedLevels:
         return p.div_(p.sum(1, keepdim=True))
 
 
+def _rate_tables(sensing, strength: torch.Tensor, background: torch.Tensor, span: int, most: int,
+                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(log rate float32 [Q, L], geometric factor float32 [Q]) for every pair q = d² + span * crossed
+    with up to ``most`` (at least 1) walls crossed: rate = S * A**crossed / (1 + d²) + B per level."""
+    q = torch.arange(span * (max(most, 1) + 1), device=device)
+    crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
+    factor = sensing.attenuation ** crossings / (1.0 + dist2)
+    rate = factor * strength.view(-1, 1) + background.view(-1, 1)  # [L,Q]
+    return rate.log().t(), factor
+
+
 class _ReadingTables:
     """The reference path's log-likelihood of readings from per-(d², walls crossed) tables of log
     rates, made on first use and grown with the most walls crossed."""
@@ -307,11 +316,9 @@ class _ReadingTables:
         span = 2 * (self.grid - 1) ** 2 + 1  # d² takes the values 0 .. span - 1
         most = int(crossed.max()) if crossed.numel() else 0
         if self._tables is None or self._tables[0].shape[0] < span * (most + 1):
-            q = torch.arange(span * (max(most, 1) + 1), device=self.device)
-            crossings, dist2 = (q // span).to(torch.float32), (q % span).to(torch.float32)
-            factor = self.sensing.attenuation ** crossings / (1.0 + dist2)
-            rate = factor * self.level_strength.view(-1, 1) + self.level_background.view(-1, 1)  # [L,Q]
-            self._tables = (rate.log().t().contiguous(), factor)  # [Q,L], [Q]
+            log_rate, factor = _rate_tables(self.sensing, self.level_strength, self.level_background, span,
+                                            most, self.device)
+            self._tables = (log_rate.contiguous(), factor)
         log_rate, factor = self._tables
         index = d2 + span * crossed  # [K,N,G²]
         cells = d2.shape[-1]
@@ -504,9 +511,7 @@ class SourceEstimator(_FusedLevels):
         most = max(1, segments.shape[1])
         if self._sampled is None or self._sampled[0].shape[0] < (most + 1) * self._span:
             self._sampled = sampled_rate_table(self.grid, most, self.device)
-        out = walls.reshape(log_post.shape[0], -1).bool()
-        if self.rule_out:
-            out = out | self.ruled_out(positions)
+        out = self._ruled_out_cells(walls, positions)
         tl_native.single_update(log_post, self._sampled[0], self._sampled[1], self._span, positions, table,
                                 segments, readings.to(torch.float32).contiguous(), out.contiguous(),
                                 posterior_out)
