@@ -20,6 +20,9 @@ from intruder import Intruder
 from medc_common import auth
 from ros_helpers import spin_until, start_node_process, stop_node_processes
 
+#: Every test here starts nodes or processes and waits on them.
+pytestmark = pytest.mark.timing
+
 SCENARIO = {"agents": 3, "walls": 1, "grid": 10, "max_steps": 30, "seed": 4, "end_on": "either"}
 EPISODES = 4
 #: Seconds the lost-agent test counts the team's steps, undisturbed and under the ghosts.
