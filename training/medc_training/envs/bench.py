@@ -136,19 +136,18 @@ def _print_summary(args: argparse.Namespace, result: dict, labels: dict[str, str
     """The summary lines of :func:`measure` for the paths timed (``labels``'s keys)."""
     rate, baseline, ratio = rates
     observation = args.observation
-    paths = labels
-    counts = ", ".join(f"{steps[k]} {labels[k]}" for k in paths)
+    counts = ", ".join(f"{steps[k]} {labels[k]}" for k in labels)
     print(f"  median of {args.rounds} rounds (timed steps: {counts}):")
     line = f"  {observation:<28} {rate:12,.0f} agent-steps/s ({result['ms_per_step']:.1f} ms/step)"
     if target is not None:
         verdict = "met" if result["meets_target"] else f"NOT met ({rate / target:.1%} of it)"
         line += f", target >= {target:,}: {verdict}"
     print(line)
-    if "reference" in paths:
+    if "reference" in labels:
         print(f"  {labels['reference']:<28} {result['reference_agent_steps_per_s']:12,} agent-steps/s "
               f"({result['reference_ms_per_step']:.1f} ms/step)")
         print(f"  A/B fused / reference estimator: {result['speedup_over_reference']:.3f}x")
-    if "torch" in paths:
+    if "torch" in labels:
         print(f"  {labels['torch']:<28} {result['torch_agent_steps_per_s']:12,} agent-steps/s "
               f"({result['torch_ms_per_step']:.1f} ms/step)")
         print(f"  A/B native kernel / torch fused path: {result['speedup_kernel_over_torch']:.3f}x")
