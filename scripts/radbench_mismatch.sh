@@ -3,7 +3,10 @@
 # arguments, e.g. a learned team's bundle) on the first 12 episodes of every g20-a3 set, in the
 # nominal world and in each departure of the protocol. Each run's JSON and episode lines go to
 # docs/reproduction/learned-team/mismatch/ (or $MISMATCH_OUT); a run whose JSON exists is skipped
-# (resumable). $MISMATCH_SEARCHERS narrows the searchers when a budget calls for it.
+# (resumable). $MISMATCH_SEARCHERS narrows the searchers when a budget calls for it (empty: only the
+# bundles play, paired later with the searchers' runs by `python -m medc_training.radbench.pairing`);
+# $MISMATCH_REFERENCE is the policy the others are compared with (default infotaxis-exact when it
+# plays, else the first policy).
 #
 #   scripts/radbench_mismatch.sh [BUNDLE ...]
 #   MISMATCH_SEARCHERS="infotaxis infotaxis-exact" scripts/radbench_mismatch.sh BUNDLE ...
@@ -15,6 +18,15 @@ out=${MISMATCH_OUT:-docs/reproduction/learned-team/mismatch}
 mkdir -p "$out"
 read -r -a searchers <<< "${MISMATCH_SEARCHERS:-infotaxis infotaxis-exact space-aware}"
 policies=("${searchers[@]}" "$@")
+if [[ ${#policies[@]} -eq 0 ]]; then
+  echo "radbench_mismatch: nothing to play (no searchers and no bundles)" >&2
+  exit 2
+fi
+reference=${MISMATCH_REFERENCE:-}
+if [[ -z $reference ]]; then
+  reference=${policies[0]}
+  for p in "${policies[@]}"; do [[ $p == infotaxis-exact ]] && reference=infotaxis-exact; done
+fi
 departures=(nominal background=5 background=80 transmission=0.1 transmission=0.3 strength_scale=2
             efficiency=0.7 efficiency=1.3 position_noise=0.2)
 for d in "${departures[@]}"; do
@@ -23,7 +35,7 @@ for d in "${departures[@]}"; do
   extra=()
   [[ $d != nominal ]] && extra=(--departure "$d")
   t0=$(date +%s)
-  medc-radbench --grid 20 --agents 3 --episodes 12 --reference infotaxis-exact "${extra[@]}" --quiet \
+  medc-radbench --grid 20 --agents 3 --episodes 12 --reference "$reference" "${extra[@]}" --quiet \
     --out "$out/$name.episodes.jsonl" "${policies[@]}" > "$out/$name.json.part"
   mv "$out/$name.json.part" "$out/$name.json"
   echo "$name: $(( $(date +%s) - t0 )) s"
