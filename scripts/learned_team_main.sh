@@ -26,7 +26,9 @@
 # probe, which plays validation episodes only), MEDC_MAIN_INIT (a folder of finished runs: run
 # METHOD-sSEED starts from FOLDER/METHOD-sSEED/policy.safetensors with --init-from),
 # MEDC_MAIN_SEED_OFFSET (added to the training seed, default 0: a run started from a bundle trains on
-# a fresh stream of episodes).
+# a fresh stream of episodes), MEDC_MAIN_GRID (20, the default, or 30: the grid the runs train on,
+# their validation file is drawn at and whose frozen file they play, g20-a3 with 40 episodes per set
+# or g30-a3 with 12, as the searchers' protocol runs).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
@@ -39,6 +41,13 @@ read -r -a train_args <<< "${MEDC_MAIN_TRAIN_ARGS:-}"
 frozen=${MEDC_MAIN_FROZEN:-1}
 init=${MEDC_MAIN_INIT:-}
 seed_offset=${MEDC_MAIN_SEED_OFFSET:-0}
+grid=${MEDC_MAIN_GRID:-20}
+case $grid in
+  20) frozen_episodes=40 ;;
+  30) frozen_episodes=12 ;;
+  *) echo "learned_team_main: MEDC_MAIN_GRID is 20 or 30 (the benchmark's frozen files), got '$grid'" >&2
+     exit 2 ;;
+esac
 expert=controller:infotaxis
 if ! [[ "$seed_offset" =~ ^[0-9]+$ ]]; then
   echo "learned_team_main: MEDC_MAIN_SEED_OFFSET must be a non-negative integer, got '$seed_offset'" >&2
@@ -57,8 +66,8 @@ if [[ ${#runs[@]} -eq 0 ]]; then
 fi
 val=${MEDC_VALIDATION_DIR:-/tmp/medc-validation}
 mkdir -p "$out" "$val"
-if [[ ! -s "$val/g20-a3.json" ]]; then
-  medc-radbench --generate "$val" --seed 4043 --grid 20 --agents 3 --quiet > /dev/null
+if [[ ! -s "$val/g$grid-a3.json" ]]; then
+  medc-radbench --generate "$val" --seed 4043 --grid "$grid" --agents 3 --quiet > /dev/null
 fi
 
 steps_done() {  # the steps a run folder's summary records (0 when none)
@@ -88,7 +97,7 @@ validate() {  # run folder: every piece's bundle that has not played the validat
     steps=${bundle##*/policy-}
     steps=${steps%.safetensors}
     play_once "$dir/validation-$steps" "${dir##*/}: the $steps-step bundle played the validation episodes" \
-      "$bundle" --sets-file "$val/g20-a3.json" --grid 20 --agents 3 --episodes 16
+      "$bundle" --sets-file "$val/g$grid-a3.json" --grid "$grid" --agents 3 --episodes 16
   done
 }
 
@@ -130,7 +139,7 @@ one_run() {  # METHOD-sSEED
     [[ -s "$dir/checkpoint.safetensors" ]] && resume=(--resume)
     local t0; t0=$(date +%s)
     echo "$(date +%T) $name: training to $target steps"
-    medc-train --world radbench --grid 20 --agents 3 --walls 7 --max-steps 120 --steps "$target" \
+    medc-train --world radbench --grid "$grid" --agents 3 --walls 7 --max-steps 120 --steps "$target" \
       --seed "$seed" --num-envs 32 --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
       --threads "$threads" --method "$method" "${extra[@]}" "${train_args[@]}" --out "$dir" "${resume[@]}" \
       > /dev/null
@@ -156,11 +165,11 @@ EOF
     exec {claim}>&-
     return 0
   fi
-  play_once "$dir/frozen-g20-a3" "$name: played the frozen g20-a3 episodes" \
-    "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40
+  play_once "$dir/frozen-g$grid-a3" "$name: played the frozen g$grid-a3 episodes" \
+    "$dir/policy.safetensors" --grid "$grid" --agents 3 --episodes "$frozen_episodes"
   # The second decision rule (docs/learned-team.md, addendum 3): moves sampled at temperature 0.5.
-  play_once "$dir/frozen-g20-a3-T0.5" "$name: played the frozen g20-a3 episodes at temperature 0.5" \
-    "$dir/policy.safetensors" --grid 20 --agents 3 --episodes 40 --temperature 0.5
+  play_once "$dir/frozen-g$grid-a3-T0.5" "$name: played the frozen g$grid-a3 episodes at temperature 0.5" \
+    "$dir/policy.safetensors" --grid "$grid" --agents 3 --episodes "$frozen_episodes" --temperature 0.5
   exec {claim}>&-
 }
 
