@@ -16,7 +16,7 @@ cd "$(dirname "$0")/.."
 source scripts/env.sh
 out=${MISMATCH_OUT:-docs/reproduction/learned-team/mismatch}
 mkdir -p "$out"
-read -r -a searchers <<< "${MISMATCH_SEARCHERS:-infotaxis infotaxis-exact space-aware}"
+read -r -a searchers <<< "${MISMATCH_SEARCHERS-infotaxis infotaxis-exact space-aware}"
 policies=("${searchers[@]}" "$@")
 if [[ ${#policies[@]} -eq 0 ]]; then
   echo "radbench_mismatch: nothing to play (no searchers and no bundles)" >&2
