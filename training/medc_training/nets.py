@@ -52,6 +52,9 @@ Built-in architectures (``ARCHITECTURES``):
     downsampling (no pooling), a different inductive bias from LeNet-5.
 ``mlp``
     flatten -> fc 128 -> tanh -> fc 128 -> tanh -> heads. No spatial prior at all.
+``mlp-wide``
+    flatten -> fc 256 -> tanh -> fc 256 -> tanh -> heads: ``mlp`` with twice the width, for
+    observations of many channels (a window of seven 13x13 maps is 1,183 inputs).
 
 Initialisation is the usual one for PPO: orthogonal weights with gain sqrt(2) in the trunk, 0.01 for
 the policy head (near-uniform initial policy) and 1 for the value head; zero biases.
@@ -392,21 +395,24 @@ def _convnet_small(channels: int, height: int, width: int, num_actions: int) -> 
     ]
 
 
-def _mlp(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
-    return [
-        {"type": "flatten"},
-        {"type": "linear", "out_features": 128},
-        {"type": "tanh"},
-        {"type": "linear", "out_features": 128},
-        {"type": "tanh"},
-        {"type": "heads", "num_actions": num_actions},
-    ]
+def _mlp_of_width(width: int) -> Callable[[int, int, int, int], list[dict[str, Any]]]:
+    def build(channels: int, height: int, grid_width: int, num_actions: int) -> list[dict[str, Any]]:
+        return [
+            {"type": "flatten"},
+            {"type": "linear", "out_features": width},
+            {"type": "tanh"},
+            {"type": "linear", "out_features": width},
+            {"type": "tanh"},
+            {"type": "heads", "num_actions": num_actions},
+        ]
+    return build
 
 
 ARCHITECTURES: dict[str, Callable[[int, int, int, int], list[dict[str, Any]]]] = {
     "lenet5": _lenet5,
     "convnet-small": _convnet_small,
-    "mlp": _mlp,
+    "mlp": _mlp_of_width(128),
+    "mlp-wide": _mlp_of_width(256),
 }
 """Built-in architecture names -> layer-list builders ``(C, H, W, A) -> layers``."""
 
