@@ -205,9 +205,10 @@ def test_bad_input_gets_a_clear_error() -> None:
 
 
 @pytest.mark.parametrize(("sensing", "grid"), [("realistic", 12), ("paper-simple", 13)])
-def test_a_call_split_over_threads_is_bit_for_bit_the_one_thread_call(sensing, grid) -> None:
+def test_a_call_split_over_threads_is_bit_for_bit_the_one_thread_call(sensing, grid, monkeypatch) -> None:
     """Each kernel call splits its episodes into contiguous parts, one per thread: the same posteriors,
     observations and expected distances whatever the count (7 episodes: uneven parts)."""
+    monkeypatch.setattr(tl_native, "MIN_PART_WORK", 1)  # split however small the call
     runs = {}
     for count in (1, 2, 3):
         with tl_native.split(count):
@@ -224,7 +225,8 @@ def test_a_call_split_over_threads_is_bit_for_bit_the_one_thread_call(sensing, g
         assert torch.equal(split, est.expected_from_posterior(p))
 
 
-def test_an_error_in_any_part_of_a_split_call_is_raised() -> None:
+def test_an_error_in_any_part_of_a_split_call_is_raised(monkeypatch) -> None:
+    monkeypatch.setattr(tl_native, "MIN_PART_WORK", 1)
     k, n, side, levels = 4, 1, 4, 8
     cells = side * side
     rects = torch.full((k, 1, 4), -10.0)
@@ -254,3 +256,19 @@ def test_the_kernel_threads_follow_torch_unless_set_and_a_bad_count_is_refused(m
     for bad in (0, -2, 1.5, True):
         with pytest.raises(ValueError, match="kernel threads must be an integer >= 1"), tl_native.split(bad):
             pass
+
+
+def test_a_call_is_split_into_contiguous_parts_only_when_each_has_enough_work() -> None:
+    calls = []
+
+    def record(pointer, episodes, other):
+        calls.append((pointer, episodes, other))
+        return 0
+
+    least = tl_native.MIN_PART_WORK
+    with tl_native.split(3):
+        assert tl_native._spread(record, [1000, 7, "x"], {0: 10}, 1, 7, 3 * least) == [0] * 3
+        assert sorted(calls) == [(1000, 2, "x"), (1020, 2, "x"), (1040, 3, "x")]
+        calls.clear()
+        tl_native._spread(record, [1000, 7, "x"], {0: 10}, 1, 7, 2 * least - 1)
+        assert calls == [(1000, 7, "x")]  # too little work for two parts: one call

@@ -12,8 +12,9 @@ edited kernel is rebuilt and a stale one never loaded. ``scripts/setup.sh`` buil
 no compiler, or ``MEDC_NATIVE=0``, the estimator takes its torch fused path (a one-line warning
 says why when the kernel was wanted).
 
-Each call splits its episodes into contiguous parts run at once on :func:`threads` threads (the
-calling one and a small pool; ctypes lets go of the GIL during the call). Episodes are independent
+Each call with enough work (:data:`MIN_PART_WORK` per part) splits its episodes into contiguous parts
+run at once on up to :func:`threads` threads (the calling one and a small pool; ctypes lets go of the
+GIL during the call). Episodes are independent
 and each runs the same arithmetic whatever part it falls in, so the results are bit for bit those of
 one thread.
 """
@@ -61,6 +62,9 @@ _off = 0
 #: keeps to one.
 THREADS_VAR = "MEDC_NATIVE_THREADS"
 _threads_override: int | None = None
+#: A call is split only into parts of at least this much work (about the floats each part touches): a
+#: helper thread takes 0.05-1 ms to wake up (more on a loaded machine), more than a small call's work.
+MIN_PART_WORK = 1 << 18
 _pool: tuple[int, ThreadPoolExecutor] | None = None  # (the pid that made it, the pool)
 
 
@@ -117,11 +121,12 @@ def _executor(workers: int) -> ThreadPoolExecutor:
     return _pool[1]
 
 
-def _spread(fn, args: list, per_episode: dict[int, int], count_at: int, k: int) -> list:
-    """``fn(*args)`` over k episodes in :func:`threads` contiguous parts at once, the first on this
-    thread; returns each part's result. ``args[i]`` for i in ``per_episode`` is a pointer (or None)
-    that advances ``per_episode[i]`` bytes per episode; ``args[count_at]`` is the part's episodes."""
-    parts = min(threads(), k)
+def _spread(fn, args: list, per_episode: dict[int, int], count_at: int, k: int, work: int) -> list:
+    """``fn(*args)`` over k episodes in up to :func:`threads` contiguous parts at once (none under
+    :data:`MIN_PART_WORK` of the call's ``work``), the first on this thread; returns each part's
+    result. ``args[i]`` for i in ``per_episode`` is a pointer (or None) that advances
+    ``per_episode[i]`` bytes per episode; ``args[count_at]`` is the part's episodes."""
+    parts = min(threads(), k, work // MIN_PART_WORK)
     if parts <= 1:
         return [fn(*args)]
     bounds = [k * i // parts for i in range(parts + 1)]
@@ -287,7 +292,7 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
     f32, i64 = 4, 8
     per_episode = {0: cells * levels * f32, 6: n * 2 * i64, 7: z * 4 * f32, 12: n * f32, 13: cells,
                    14: cells * f32}
-    if any(_spread(lib.medc_levels_update, args, per_episode, 15, k)):
+    if any(_spread(lib.medc_levels_update, args, per_episode, 15, k, k * cells * (levels + n))):
         raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
 
 
@@ -298,7 +303,7 @@ def levels_marginal(post: torch.Tensor, marginal: torch.Tensor, dead_cell: float
     k, cells, levels = post.shape
     args = [_check(post, torch.float32, (k, cells, levels), "post"), k, cells, levels,
             _check(marginal, torch.float32, (k, cells), "marginal"), float(dead_cell)]
-    _spread(lib.medc_levels_marginal, args, {0: cells * levels * 4, 4: cells * 4}, 1, k)
+    _spread(lib.medc_levels_marginal, args, {0: cells * levels * 4, 4: cells * 4}, 1, k, k * cells * levels)
 
 
 def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor, span: int,
@@ -330,7 +335,7 @@ def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor
     ]
     _check_on_grid(positions, g)
     per_episode = {0: cells * 4, 5: n * 2 * 8, 7: z * 4 * 8, 9: n * 4, 10: cells, 11: cells * 4}
-    if any(_spread(lib.medc_single_update, args, per_episode, 12, k)):
+    if any(_spread(lib.medc_single_update, args, per_episode, 12, k, k * cells * n * (z + 1))):
         raise ValueError("a (walls crossed, d²) pair or a wall segment falls outside the estimator's tables")
 
 
@@ -341,7 +346,7 @@ def single_posterior(post: torch.Tensor) -> torch.Tensor:
     k, cells = post.shape
     p = torch.empty((k, cells), device=post.device)
     args = [_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr()]
-    _spread(lib.medc_single_posterior, args, {0: cells * 4, 3: cells * 4}, 1, k)
+    _spread(lib.medc_single_posterior, args, {0: cells * 4, 3: cells * 4}, 1, k, k * cells)
     return p
 
 
@@ -352,7 +357,7 @@ def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     k = posterior.shape[0]
     expected = torch.empty((k, grid * grid), device=posterior.device)
     args = [_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid, expected.data_ptr()]
-    _spread(lib.medc_expected_moves, args, {0: grid * grid * 4, 3: grid * grid * 4}, 1, k)
+    _spread(lib.medc_expected_moves, args, {0: grid * grid * 4, 3: grid * grid * 4}, 1, k, k * grid * grid)
     return expected
 
 
