@@ -272,3 +272,29 @@ def test_a_call_is_split_into_contiguous_parts_only_when_each_has_enough_work() 
         calls.clear()
         tl_native._spread(record, [1000, 7, "x"], {0: 10}, 1, 7, 2 * least - 1)
         assert calls == [(1000, 7, "x")]  # too little work for two parts: one call
+
+
+def _split_in_child(queue) -> None:
+    calls = []
+    with tl_native.split(2):
+        tl_native._spread(lambda p, k: calls.append((p, k)), [0, 4], {0: 1}, 1, 4, 1 << 30)
+    queue.put(sorted(calls))
+
+
+@pytest.mark.timing
+def test_a_forked_child_splits_on_its_own_pool() -> None:
+    """A child forked after its parent made the helper pool has none of the pool's threads: it makes its
+    own instead of waiting forever on the parent's."""
+    import multiprocessing
+
+    with tl_native.split(2):
+        tl_native._spread(lambda p, k: None, [0, 4], {0: 1}, 1, 4, 1 << 30)  # the parent's pool exists
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_split_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=120) == [(0, 2), (2, 2)]
+    finally:
+        child.join(timeout=120)
+    assert child.exitcode == 0

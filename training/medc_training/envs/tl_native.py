@@ -14,9 +14,8 @@ says why when the kernel was wanted).
 
 Each call with enough work (:data:`MIN_PART_WORK` per part) splits its episodes into contiguous parts
 run at once on up to :func:`threads` threads (the calling one and a small pool; ctypes lets go of the
-GIL during the call). Episodes are independent
-and each runs the same arithmetic whatever part it falls in, so the results are bit for bit those of
-one thread.
+GIL during the call). Episodes are independent and each runs the same arithmetic whatever part it
+falls in, so the results are bit for bit those of one thread.
 """
 
 from __future__ import annotations
@@ -57,15 +56,15 @@ _i64, _f32, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_void_p
 
 
 _off = 0
-#: THREADS_VAR: how many threads a kernel call splits its episodes over (an integer >= 1); unset:
-#: torch's intra-op thread count (``--threads`` of the training commands), so a run given one core
+#: The variable that says how many threads a kernel call splits its episodes over (an integer >= 1);
+#: unset: torch's intra-op thread count (``--threads`` of the training commands), so a run given one core
 #: keeps to one.
 THREADS_VAR = "MEDC_NATIVE_THREADS"
 _threads_override: int | None = None
 #: A call is split only into parts of at least this much work (about the floats each part touches): a
 #: helper thread takes 0.05-1 ms to wake up (more on a loaded machine), more than a small call's work.
 MIN_PART_WORK = 1 << 18
-_pool: tuple[int, ThreadPoolExecutor] | None = None  # (the pid that made it, the pool)
+_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (the pid that made it, its threads, the pool)
 
 
 def enabled() -> bool:
@@ -116,9 +115,12 @@ def split(count: int):
 def _executor(workers: int) -> ThreadPoolExecutor:
     """The pool of helper threads (made again in a forked child, which has none of its parent's)."""
     global _pool
-    if _pool is None or _pool[0] != os.getpid() or _pool[1]._max_workers < workers:
-        _pool = (os.getpid(), ThreadPoolExecutor(max_workers=workers, thread_name_prefix="medc-native"))
-    return _pool[1]
+    if _pool is None or _pool[0] != os.getpid() or _pool[1] < workers:
+        if _pool is not None and _pool[0] == os.getpid():
+            _pool[2].shutdown(wait=False)  # idle: every call waits for its parts
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="medc-native")
+        _pool = (os.getpid(), workers, pool)
+    return _pool[2]
 
 
 def _spread(fn, args: list, per_episode: dict[int, int], count_at: int, k: int, work: int) -> list:
