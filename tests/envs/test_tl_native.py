@@ -202,3 +202,99 @@ def test_bad_input_gets_a_clear_error() -> None:
         tl_native.single_update(**{**one, "positions": torch.tensor([[[0, 6]]])})
     with pytest.raises(ValueError, match="wall segment falls outside"):
         tl_native.single_update(**{**one, "segments": torch.tensor([[[9, 0, 9, 3]]])})
+
+
+@pytest.mark.parametrize(("sensing", "grid"), [("realistic", 12), ("paper-simple", 13)])
+def test_a_call_split_over_threads_is_bit_for_bit_the_one_thread_call(sensing, grid, monkeypatch) -> None:
+    """Each kernel call splits its episodes into contiguous parts, one per thread: the same posteriors,
+    observations and expected distances whatever the count (7 episodes: uneven parts)."""
+    monkeypatch.setattr(tl_native, "MIN_PART_WORK", 1)  # split however small the call
+    runs = {}
+    for count in (1, 2, 3):
+        with tl_native.split(count):
+            assert tl_native.threads() == count
+            runs[count] = estimator_trace(sensing, grid, "fused", steps=30, batch=7)
+    for count in (2, 3):
+        for got, want in zip(runs[count], runs[1], strict=True):
+            assert all(torch.equal(a, b) for a, b in zip(got, want, strict=True))
+    p = runs[1][-1][1]
+    est = SourceEstimator(grid, "cpu", sensing, path="fused")
+    with tl_native.split(3):
+        split = est.expected_from_posterior(p)
+    with tl_native.split(1):
+        assert torch.equal(split, est.expected_from_posterior(p))
+
+
+def test_an_error_in_any_part_of_a_split_call_is_raised(monkeypatch) -> None:
+    monkeypatch.setattr(tl_native, "MIN_PART_WORK", 1)
+    k, n, side, levels = 4, 1, 4, 8
+    cells = side * side
+    rects = torch.full((k, 1, 4), -10.0)
+    rects[k - 1] = torch.tensor([0.5, -0.5, 1.5, 3.5])  # the last episode's reading crosses a wall
+    args = dict(post=torch.zeros((k, cells, levels)), log_rate=torch.zeros((19, levels)),
+                factor=torch.zeros(19), strength=torch.ones(levels), background=torch.ones(levels),
+                positions=torch.zeros((k, n, 2), dtype=torch.int64), rects=rects, count=True, span=19,
+                readings=torch.ones((k, n)), out=torch.zeros((k, cells), dtype=torch.bool), marginal=None,
+                dead_cell=0.0)
+    for count in (1, 2):
+        with tl_native.split(count), pytest.raises(ValueError, match="outside the estimator's tables"):
+            tl_native.levels_update(**args)
+
+
+def test_the_kernel_threads_follow_torch_unless_set_and_a_bad_count_is_refused(monkeypatch) -> None:
+    monkeypatch.delenv(tl_native.THREADS_VAR, raising=False)
+    assert tl_native.threads() == torch.get_num_threads()
+    monkeypatch.setenv(tl_native.THREADS_VAR, "3")
+    assert tl_native.threads() == 3
+    with tl_native.split(1):
+        assert tl_native.threads() == 1
+    assert tl_native.threads() == 3
+    for bad in ("0", "-1", "two", "1.5"):
+        monkeypatch.setenv(tl_native.THREADS_VAR, bad)
+        with pytest.raises(ValueError, match=rf"MEDC_NATIVE_THREADS must be an integer >= 1, got '{bad}'"):
+            tl_native.threads()
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="kernel threads must be an integer >= 1"), tl_native.split(bad):
+            pass
+
+
+def test_a_call_is_split_into_contiguous_parts_only_when_each_has_enough_work() -> None:
+    calls = []
+
+    def record(pointer, episodes, other):
+        calls.append((pointer, episodes, other))
+        return 0
+
+    least = tl_native.MIN_PART_WORK
+    with tl_native.split(3):
+        assert tl_native._spread(record, [1000, 7, "x"], {0: 10}, 1, 7, 3 * least) == [0] * 3
+        assert sorted(calls) == [(1000, 2, "x"), (1020, 2, "x"), (1040, 3, "x")]
+        calls.clear()
+        tl_native._spread(record, [1000, 7, "x"], {0: 10}, 1, 7, 2 * least - 1)
+        assert calls == [(1000, 7, "x")]  # too little work for two parts: one call
+
+
+def _split_in_child(queue) -> None:
+    calls = []
+    with tl_native.split(2):
+        tl_native._spread(lambda p, k: calls.append((p, k)), [0, 4], {0: 1}, 1, 4, 1 << 30)
+    queue.put(sorted(calls))
+
+
+@pytest.mark.timing
+def test_a_forked_child_splits_on_its_own_pool() -> None:
+    """A child forked after its parent made the helper pool has none of the pool's threads: it makes its
+    own instead of waiting forever on the parent's."""
+    import multiprocessing
+
+    with tl_native.split(2):
+        tl_native._spread(lambda p, k: None, [0, 4], {0: 1}, 1, 4, 1 << 30)  # the parent's pool exists
+    ctx = multiprocessing.get_context("fork")
+    queue = ctx.Queue()
+    child = ctx.Process(target=_split_in_child, args=(queue,))
+    child.start()
+    try:
+        assert queue.get(timeout=120) == [(0, 2), (2, 2)]
+    finally:
+        child.join(timeout=120)
+    assert child.exitcode == 0

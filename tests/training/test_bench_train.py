@@ -50,3 +50,23 @@ def test_bench_train_reports_each_default_learner_against_the_reference_estimato
     assert "realistic_sparse_speedup_over_2threads" in result
     assert "cpu_rs" not in result and "cpu_baseline_maps_mlp" not in result  # --only-ab
     assert sum(line.startswith("A/B ") for line in lines) == 3 + 2
+
+
+def test_bench_train_reports_the_kernel_split_over_threads_against_one_thread(capsys, monkeypatch) -> None:
+    """The split's A/B: each default learner beside its twin with the native kernel on one thread, in the
+    same run (here torch on one thread and the kernel on two); --no-split-ab drops the twins."""
+    monkeypatch.setenv("MEDC_NATIVE_THREADS", "2")
+    assert main(["--updates", "1", "--threads", "1", "--horizon", "64", "--only-ab", "--no-reference"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    result = json.loads(lines[-1])
+    assert (result["torch_threads"], result["kernel_threads"]) == (1, 2) and len(result["load_average"]) == 3
+    for m in ("sparse", "realistic_sparse", "realistic40_sparse"):
+        split, one = result[f"cpu_{m}"], result[f"cpu_{m}_kernel1"]
+        assert (split["kernel_threads"], one["kernel_threads"]) == (2, 1)
+        assert split["threads"] == one["threads"] == 1 and split["grid"] == one["grid"]
+        assert result[f"{m}_speedup_over_kernel1"] == split["env_steps_per_s"] / one["env_steps_per_s"]
+    assert sum(line.startswith("A/B ") and "kernel on 2 threads / 1" in line for line in lines) == 3
+    assert main(["--updates", "1", "--threads", "1", "--horizon", "64", "--only-ab", "--no-reference",
+                 "--no-split-ab", "--no-realistic"]) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "cpu_sparse_kernel1" not in result and "sparse_speedup_over_kernel1" not in result

@@ -1,7 +1,10 @@
-"""Two runs with the same seed on one device give the same weights; another seed does not."""
+"""Two runs with the same seed on one device give the same weights; another seed does not; the native
+kernel's thread count changes nothing."""
 
+import pytest
 import torch
 from medc_training.config import TrainConfig
+from medc_training.envs import tl_native
 from medc_training.experts import RandomExpert
 from medc_training.ppo import Trainer
 
@@ -40,3 +43,23 @@ def test_sampled_evaluation_is_repeatable_and_leaves_the_training_streams_alone(
     greedy = Trainer(TrainConfig(seed=3, **{**TINY, "method": "sparse", "eval_steps": 48,
                                             "observation": "maps"})).evaluate()
     assert (greedy["episodes"], greedy["episode_length"]) != (first["episodes"], first["episode_length"])
+
+
+@pytest.mark.parametrize("sensing", ["realistic", "paper-simple"])
+def test_the_native_kernel_on_two_threads_trains_bit_for_bit_as_on_one(sensing, monkeypatch):
+    """A short run of the default learner with each kernel call split over two threads: the same
+    losses, training episodes, weights and evaluation as with the kernel on one thread."""
+    monkeypatch.setattr(tl_native, "MIN_PART_WORK", 1)  # split however small the call
+    assert tl_native.library() is not None  # the kernel is built on the machines that run the tests
+    runs = {}
+    for count in (1, 2):
+        with tl_native.split(count):
+            cfg = TrainConfig(seed=4, env_options={"sensing": sensing},
+                              **{**TINY, "method": "sparse", "agents": 3, "grid": 11, "num_envs": 8})
+            trainer = Trainer(cfg)
+            losses = [trainer.train_update() for _ in range(2)]
+            runs[count] = (losses, trainer.take_train_stats(), trainer.evaluate(),
+                           [p.detach().clone() for p in trainer.net.parameters()])
+    (losses, stats, evaluation, weights), one = runs[2], runs[1]
+    assert (losses, stats, evaluation) == one[:3] and stats["episodes"] > 0
+    assert all(torch.equal(x, y) for x, y in zip(weights, one[3], strict=True))

@@ -19,9 +19,12 @@ together) and PPO updates per second of the CPU-scale learner (``config.CPU_SCAL
 A/B against the estimator path the fused one replaced, in the same run: each default learner also
 runs as ``..._reference`` (``reference`` path, :data:`~medc_training.envs.tl_observation.ESTIMATOR_PATHS`),
 and ``..._speedup_over_reference`` is their ratio of training steps per second (``--no-reference``
-skips them). ``--thread-ab`` adds the default realistic learners on one torch thread beside the
-run's count (``..._1thread``; on two threads, ``..._2threads``, when the run is on one), which says
-whether the second core pays. ``--only-ab`` times only the default learners and their twins.
+skips them), and as ``..._kernel1``: the estimator's native kernel on one thread instead of splitting
+each call's episodes over :func:`~medc_training.envs.tl_native.threads`; ``..._speedup_over_kernel1``
+is the split's A/B (when the kernel has more than one thread; ``--no-split-ab`` skips them).
+``--thread-ab`` adds the default realistic learners on one torch thread beside the run's count
+(``..._1thread``; on two threads, ``..._2threads``, when the run is on one), which says whether the
+second core pays. ``--only-ab`` times only the default learners and their twins.
 
 Rounds are interleaved, one update of each learner per round, so that a shared machine's load
 hits all alike; medians are reported. When ``torch.cuda.is_available()`` the sparse/RS figures are
@@ -31,6 +34,7 @@ also measured on CUDA at the paper scale (G = 30). The last line is one JSON obj
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import json
 import statistics
@@ -40,6 +44,7 @@ import torch
 
 from ..config import scaled_config
 from ..envs import tl_native
+from ..envs.bench import loadavg
 from ..envs.tl_observation import estimator_path
 from ..envs.tl_sensing import DEFAULT_SENSING
 from ..ppo import Trainer
@@ -48,9 +53,9 @@ from ..ppo import Trainer
 REALISTIC = {"grid": 20, "max_steps": 100, "env_options": {"sensing": "realistic"}}
 #: The claims scale's realistic scenario (config.CLAIMS_SCALE): 40×40 cells, 50-step episodes.
 REALISTIC_40 = {"grid": 40, "max_steps": 50, "env_options": {"sensing": "realistic"}}
-#: Learner options of this benchmark only (not TrainConfig fields): the estimator path and the
-#: torch threads it runs on (0: the process's count).
-_PATH, _THREADS = "_path", "_threads"
+#: Learner options of this benchmark only (not TrainConfig fields): the estimator path, the torch
+#: threads it runs on (0: the process's count) and the native kernel's threads (0: tl_native.threads()).
+_PATH, _THREADS, _KERNEL = "_path", "_threads", "_kernel"
 
 
 def _timed_update(trainer: Trainer, cuda: bool) -> tuple[float, float, int]:
@@ -71,11 +76,12 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
     """Time ``rounds`` updates of each learner (label -> config overrides, e.g. {"method": "rs"}),
     interleaved round by round so that a shared machine's changing load hits every learner alike;
     per-update medians are reported."""
-    trainers, threads = {}, {}
+    trainers, threads, kernel = {}, {}, {}
     default_threads = torch.get_num_threads()
     for m, extra in learners.items():
         extra = dict(extra)
         path, threads[m] = extra.pop(_PATH, "fused"), extra.pop(_THREADS, 0) or default_threads
+        kernel[m] = extra.pop(_KERNEL, 0)
         with estimator_path(path):
             cfg = scaled_config(scale, device=device, total_steps=10**12, **{**overrides, **extra})
             trainers[m] = Trainer(cfg)
@@ -85,7 +91,8 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
     def timed(m: str) -> tuple[float, float, int]:
         torch.set_num_threads(threads[m])
         try:
-            return _timed_update(trainers[m], cuda)
+            with tl_native.split(kernel[m]) if kernel[m] else contextlib.nullcontext():
+                return _timed_update(trainers[m], cuda)
         finally:
             torch.set_num_threads(default_threads)
 
@@ -108,6 +115,7 @@ def measure(scale: str, learners: dict[str, dict], rounds: int, device: str, **o
             "horizon": cfg.steps_per_update,
             "epochs": cfg.epochs, "arch": cfg.arch, "rounds": rounds,
             "estimator": learners[m].get(_PATH, "fused"), "threads": threads[m],
+            "kernel_threads": kernel[m] or _kernel_threads(threads[m]),
             "env_steps_per_s": steps / total, "updates_per_s": 1.0 / total,
             "collect_steps_per_s": steps / collect, "median_update_s": total,
         }
@@ -125,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-realistic", action="store_true", help="skip the realistic-preset learners")
     p.add_argument("--no-reference", action="store_true",
                    help="skip the A/B learners on the reference estimator")
+    p.add_argument("--no-split-ab", action="store_true",
+                   help="skip the A/B learners with the native kernel on one thread")
     p.add_argument("--thread-ab", action="store_true",
                    help="also run the default realistic learners on one torch thread (two if --threads 1)")
     p.add_argument("--only-ab", action="store_true",
@@ -134,8 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    result: dict = {"torch_threads": torch.get_num_threads(), "native_kernel": tl_native.usable()}
-    print(f"medc-bench train: torch threads {result['torch_threads']}; estimator: {tl_native.status()}")
+    result: dict = {"torch_threads": torch.get_num_threads(), "native_kernel": tl_native.usable(),
+                    "kernel_threads": _kernel_threads(torch.get_num_threads()), "load_average": loadavg()}
+    load = " ".join(map(str, result["load_average"]))
+    print(f"medc-bench train: torch threads {result['torch_threads']}, kernel threads "
+          f"{result['kernel_threads']}, load average {load}; estimator: {tl_native.status()}")
     learners = _learners(args)
     cpu = measure("cpu", learners, args.updates, "cpu", agents=3, walls=2,
                   **({"horizon": args.horizon} if args.horizon else {}))
@@ -197,10 +210,22 @@ def _learners(args: argparse.Namespace) -> dict[str, dict]:
     for m, extra in default.items():
         if not args.no_reference:
             learners[f"{m}_reference"] = {**copy.deepcopy(extra), _PATH: "reference"}
+        if not args.no_split_ab and tl_native.threads() > 1 and tl_native.usable():
+            learners[f"{m}_kernel1"] = {**copy.deepcopy(extra), _KERNEL: 1}
         if args.thread_ab and m != "sparse":
             other = _other_threads(count=True)
             learners[f"{m}_{_other_threads()}"] = {**copy.deepcopy(extra), _THREADS: other}
     return learners
+
+
+def _kernel_threads(torch_threads: int) -> int:
+    """The native kernel's threads when torch runs on ``torch_threads`` (tl_native.threads())."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(torch_threads)
+    try:
+        return tl_native.threads()
+    finally:
+        torch.set_num_threads(before)
 
 
 def _other_threads(count: bool = False) -> int | str:
@@ -213,8 +238,10 @@ def _other_threads(count: bool = False) -> int | str:
 def _ab_ratios(cpu: dict[str, dict], result: dict) -> None:
     """Print and record each default learner's training steps/s over its reference and 1-thread twins."""
     threads = f"{torch.get_num_threads()} / {_other_threads(count=True)} threads"
+    kernel = f"kernel on {tl_native.threads()} threads / 1"
     for m in ("sparse", "realistic_sparse", "realistic40_sparse"):
-        for twin, label in (("reference", "fused / reference estimator"), (_other_threads(), threads)):
+        for twin, label in (("reference", "fused / reference estimator"), (_other_threads(), threads),
+                            ("kernel1", kernel)):
             if m in cpu and f"{m}_{twin}" in cpu:
                 a, b = cpu[m], cpu[f"{m}_{twin}"]
                 ratio = a["env_steps_per_s"] / b["env_steps_per_s"]

@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         scenarios = [(sensing, grid, target if standard else None)]
     else:  # the targets are stated for B = 256
         scenarios = [(s, g, t if args.num_envs == 256 else None) for s, g, t in SCENARIOS]
-    load = " ".join(f"{x:.2f}" for x in _loadavg())
+    load = " ".join(f"{x:.2f}" for x in loadavg())
     print(f"medc-bench env: target localization, B={args.num_envs}, device={args.device}, "
           f"torch threads={args.threads}, load average {load}; estimator: {tl_native.status()}")
     start = time.perf_counter()
@@ -314,12 +314,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{BASELINE_OBSERVATION} at {r['baseline_agent_steps_per_s']:,}{ab}){target}")
     print(json.dumps({"scenarios": results, "device": args.device, "threads": args.threads,
                       "native_kernel": tl_native.usable(),
-                      "seconds_per_path": args.seconds, "rounds": args.rounds, "load_average": _loadavg(),
+                      "seconds_per_path": args.seconds, "rounds": args.rounds, "load_average": loadavg(),
                       "wall_s": round(wall, 1)}))
     return 0
 
 
-def _loadavg() -> list[float]:
+def loadavg() -> list[float]:
+    """The machine's load averages over 1, 5 and 15 minutes (empty where the system has none)."""
     try:
         import os
 

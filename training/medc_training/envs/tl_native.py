@@ -11,6 +11,11 @@ edited kernel is rebuilt and a stale one never loaded. ``scripts/setup.sh`` buil
 (``python -m medc_training.envs.tl_native``); a process that finds none builds it on first use. With
 no compiler, or ``MEDC_NATIVE=0``, the estimator takes its torch fused path (a one-line warning
 says why when the kernel was wanted).
+
+Each call with enough work (:data:`MIN_PART_WORK` per part) splits its episodes into contiguous parts
+run at once on up to :func:`threads` threads (the calling one and a small pool; ctypes lets go of the
+GIL during the call). Episodes are independent and each runs the same arithmetic whatever part it
+falls in, so the results are bit for bit those of one thread.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -50,6 +56,15 @@ _i64, _f32, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_void_p
 
 
 _off = 0
+#: The variable that says how many threads a kernel call splits its episodes over (an integer >= 1);
+#: unset: torch's intra-op thread count (``--threads`` of the training commands), so a run given one core
+#: keeps to one.
+THREADS_VAR = "MEDC_NATIVE_THREADS"
+_threads_override: int | None = None
+#: A call is split only into parts of at least this much work (about the floats each part touches): a
+#: helper thread takes 0.05-1 ms to wake up (more on a loaded machine), more than a small call's work.
+MIN_PART_WORK = 1 << 18
+_pool: tuple[int, int, ThreadPoolExecutor] | None = None  # (the pid that made it, its threads, the pool)
 
 
 def enabled() -> bool:
@@ -67,6 +82,71 @@ def turned_off():
         yield
     finally:
         _off -= 1
+
+
+def threads() -> int:
+    """The threads a kernel call splits its episodes over: a :func:`split` block's count, else
+    ``$MEDC_NATIVE_THREADS``, else torch's intra-op thread count. Raises ValueError on a bad
+    ``$MEDC_NATIVE_THREADS``."""
+    if _threads_override is not None:
+        return _threads_override
+    raw = os.environ.get(THREADS_VAR, "").strip()
+    if not raw:
+        return max(1, torch.get_num_threads())
+    if not raw.isdigit() or int(raw) < 1:
+        raise ValueError(f"{THREADS_VAR} must be an integer >= 1, got {raw!r}")
+    return int(raw)
+
+
+@contextmanager
+def split(count: int):
+    """Inside the block every kernel call splits its episodes over ``count`` threads (1: all on the
+    calling thread; the benchmarks time both in one run)."""
+    global _threads_override
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"kernel threads must be an integer >= 1, got {count!r}")
+    before, _threads_override = _threads_override, count
+    try:
+        yield
+    finally:
+        _threads_override = before
+
+
+def _executor(workers: int) -> ThreadPoolExecutor:
+    """The pool of helper threads (made again in a forked child, which has none of its parent's)."""
+    global _pool
+    if _pool is None or _pool[0] != os.getpid() or _pool[1] < workers:
+        if _pool is not None and _pool[0] == os.getpid():
+            _pool[2].shutdown(wait=False)  # idle: every call waits for its parts
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="medc-native")
+        _pool = (os.getpid(), workers, pool)
+    return _pool[2]
+
+
+def _spread(fn, args: list, per_episode: dict[int, int], count_at: int, k: int, work: int) -> list:
+    """``fn(*args)`` over k episodes in up to :func:`threads` contiguous parts at once (none under
+    :data:`MIN_PART_WORK` of the call's ``work``), the first on this thread; returns each part's
+    result. ``args[i]`` for i in ``per_episode`` is a pointer (or None) that advances
+    ``per_episode[i]`` bytes per episode; ``args[count_at]`` is the part's episodes."""
+    parts = min(threads(), k, work // MIN_PART_WORK)
+    if parts <= 1:
+        return [fn(*args)]
+    bounds = [k * i // parts for i in range(parts + 1)]
+
+    def part(i: int):
+        lo, hi = bounds[i], bounds[i + 1]
+        mine = list(args)
+        for at, step in per_episode.items():
+            mine[at] = None if args[at] is None else args[at] + lo * step
+        mine[count_at] = hi - lo
+        return fn(*mine)
+
+    futures = [_executor(parts - 1).submit(part, i) for i in range(1, parts)]
+    try:
+        first = part(0)
+    finally:  # the helpers write into the caller's tensors: never return before they are done
+        rest = [f.result() for f in futures]
+    return [first, *rest]
 
 
 def status() -> str:
@@ -211,7 +291,10 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
         k, n, levels, float(dead_cell),
     ]
     _check_on_grid(positions, g)
-    if lib.medc_levels_update(*args) != 0:
+    f32, i64 = 4, 8
+    per_episode = {0: cells * levels * f32, 6: n * 2 * i64, 7: z * 4 * f32, 12: n * f32, 13: cells,
+                   14: cells * f32}
+    if any(_spread(lib.medc_levels_update, args, per_episode, 15, k, k * cells * (levels + n))):
         raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
 
 
@@ -220,8 +303,9 @@ def levels_marginal(post: torch.Tensor, marginal: torch.Tensor, dead_cell: float
     into ``marginal`` (the update's step 3 alone)."""
     lib = _library_or_raise()
     k, cells, levels = post.shape
-    lib.medc_levels_marginal(_check(post, torch.float32, (k, cells, levels), "post"), k, cells, levels,
-                             _check(marginal, torch.float32, (k, cells), "marginal"), float(dead_cell))
+    args = [_check(post, torch.float32, (k, cells, levels), "post"), k, cells, levels,
+            _check(marginal, torch.float32, (k, cells), "marginal"), float(dead_cell)]
+    _spread(lib.medc_levels_marginal, args, {0: cells * levels * 4, 4: cells * 4}, 1, k, k * cells * levels)
 
 
 def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor, span: int,
@@ -252,7 +336,8 @@ def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor
         k, n, g,
     ]
     _check_on_grid(positions, g)
-    if lib.medc_single_update(*args) != 0:
+    per_episode = {0: cells * 4, 5: n * 2 * 8, 7: z * 4 * 8, 9: n * 4, 10: cells, 11: cells * 4}
+    if any(_spread(lib.medc_single_update, args, per_episode, 12, k, k * cells * n * (z + 1))):
         raise ValueError("a (walls crossed, d²) pair or a wall segment falls outside the estimator's tables")
 
 
@@ -262,7 +347,8 @@ def single_posterior(post: torch.Tensor) -> torch.Tensor:
     lib = _library_or_raise()
     k, cells = post.shape
     p = torch.empty((k, cells), device=post.device)
-    lib.medc_single_posterior(_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr())
+    args = [_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr()]
+    _spread(lib.medc_single_posterior, args, {0: cells * 4, 3: cells * 4}, 1, k, k * cells)
     return p
 
 
@@ -272,8 +358,8 @@ def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     lib = _library_or_raise()
     k = posterior.shape[0]
     expected = torch.empty((k, grid * grid), device=posterior.device)
-    lib.medc_expected_moves(_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid,
-                            expected.data_ptr())
+    args = [_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid, expected.data_ptr()]
+    _spread(lib.medc_expected_moves, args, {0: grid * grid * 4, 3: grid * grid * 4}, 1, k, k * grid * grid)
     return expected
 
 
