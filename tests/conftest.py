@@ -38,3 +38,15 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
             return "graph" if nodeid.startswith(GRAPH_FOLDERS) else nodeid
 
     return GraphTestsTogether(config, log)
+
+
+@pytest.fixture(autouse=True)
+def _bundle_refusals_forgotten():
+    """Each test starts with no bundle refusal remembered in this process (nor a pause of dry runs
+    that earlier tests' slow bundles would have caused)."""
+    import sys
+
+    policy = sys.modules.get("medc_training.bundle.policy")
+    if policy is not None:
+        policy.forget_refusals()
+    yield

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections import OrderedDict
 
 import pytest
 import torch
@@ -164,7 +163,7 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     too_slow = r"takes .* s to evaluate, over the .* s limit \(too slow"
     for attempt in range(TRIES):
         time.sleep(RETRY_PAUSE_S if attempt else 0.0)
-        monkeypatch.setattr(policy_mod, "_REFUSED", OrderedDict())
+        policy_mod.forget_refusals()
         start = time.perf_counter()
         with pytest.raises(BundleError, match=too_slow) as info:
             load_untrusted(first, max_forward_s=limit)
@@ -184,6 +183,66 @@ def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_no
     with pytest.raises(BundleError, match="refused before; not checked again"):
         load_untrusted(again, max_forward_s=limit)
     assert work == []  # refused by its content's digest: neither loaded nor run
+
+
+def _count_work(monkeypatch) -> list[str]:
+    """Every bundle decoded past its header ('load') and every timed pass ('pass') from here on."""
+    work: list[str] = []
+    real_load, real_forward = policy_mod._load, policy_mod.timed_forward
+    monkeypatch.setattr(policy_mod, "_load", lambda *args: work.append("load") or real_load(*args))
+    monkeypatch.setattr(policy_mod, "timed_forward", lambda *args: work.append("pass") or real_forward(*args))
+    return work
+
+
+def test_byte_different_copies_of_a_slow_bundle_cost_one_dry_run(monkeypatch) -> None:
+    # Under a 1 ns limit every pass is too slow: the refusal is the real one, whatever the machine.
+    tensors, manifest = valid_parts("lenet5", grid=10)
+    work = _count_work(monkeypatch)
+    with pytest.raises(BundleError, match=r"over the 1e-09 s limit \(too slow"):
+        load_untrusted(forge(tensors, manifest), max_forward_s=1e-09)
+    assert work == ["load", "pass"]
+    copies = []
+    for i in range(10):  # other descriptions, other weights, another order of the tensors
+        edited = {k: (v + 1e-3 * (i + 1) if i % 2 else v.clone()) for k, v in tensors.items()}
+        if i % 3 == 0:
+            edited = dict(reversed(list(edited.items())))
+        copies.append(forge(edited, dict(manifest, description=f"copy {i}")))
+    assert len({bytes(c) for c in copies}) == 10
+    work.clear()
+    for data in copies:
+        with pytest.raises(BundleError, match=r"too slow .*\(the same network structure was refused "
+                                              r"before; not checked again\)"):
+            load_untrusted(data, max_forward_s=1e-09)
+    assert work == []  # not one of the ten decoded, let alone run
+    # Under the agents' limit the structure is not refused: the memory is per limit.
+    assert load_untrusted(copies[0]).manifest["description"] == "copy 0"
+
+
+def test_dry_runs_of_new_structures_pause_after_three_slow_refusals(monkeypatch) -> None:
+    slow = [valid_parts("lenet5", grid=g) for g in (10, 11, 12, 13)]
+    work = _count_work(monkeypatch)
+    for tensors, manifest in slow[:policy_mod.SLOW_REFUSALS_PER_WINDOW]:
+        with pytest.raises(BundleError, match="too slow"):
+            load_untrusted(forge(tensors, manifest), max_forward_s=1e-09)
+    assert work.count("pass") == policy_mod.SLOW_REFUSALS_PER_WINDOW
+    work.clear()
+    with pytest.raises(BundleError, match=r"not checked: 3 bundles were too slow to act with in the last "
+                                          r"60 s, so dry runs .* are paused for \d+ s"):
+        load_untrusted(forge(*slow[3]), max_forward_s=1e-09)
+    assert work == []
+    # A structure this process accepted before is still checked: it gets its dry run (here refused,
+    # every pass being over 1 ns); under another limit nothing is paused.
+    tensors, manifest = valid_parts("mlp", grid=10)
+    accepted = ("network structure", policy_mod.structure_digest(manifest), 1e-09, "cpu")
+    policy_mod._ACCEPTED[accepted] = None
+    with pytest.raises(BundleError, match="too slow"):
+        load_untrusted(forge(tensors, manifest), max_forward_s=1e-09)
+    assert work == ["load", "pass"]
+    load_untrusted(forge(*slow[3]))
+    # The pause ends with the window.
+    monkeypatch.setattr(policy_mod, "SLOW_WINDOW_S", 0.0)
+    with pytest.raises(BundleError, match="too slow"):
+        load_untrusted(forge(*slow[3]), max_forward_s=1e-09)
 
 
 @pytest.mark.timing

@@ -39,14 +39,14 @@ def _one_line(err: str) -> str:
 def test_a_bundle_the_agents_refuse_is_refused_with_their_reason(source, tmp_path, capsys, monkeypatch):
     # Every agent on this machine would refuse it: no observation passes the dry run in 1 ns.
     monkeypatch.setattr(policy_mod, "MAX_FORWARD_SECONDS", 1e-9)
-    policy_mod._REFUSED.clear()
+    policy_mod.forget_refusals()
     out = tmp_path / "out" / "team.pt"
     out.parent.mkdir()
     code, err = _export(capsys, source, out)
     assert code == 1
     line = _one_line(err)
     assert "over the 1e-09 s limit (too slow to act with" in line
-    policy_mod._REFUSED.clear()
+    policy_mod.forget_refusals()
     with pytest.raises(BundleError) as agents:  # what every agent calls with a bundle from the graph
         load_untrusted(str(source), max_forward_s=policy_mod.MAX_FORWARD_SECONDS)
     reason = line.removeprefix("medc-inspect: ")

@@ -1,6 +1,7 @@
 """Every node refuses a ROS argument it cannot use (a bad namespace remap, a remap rule or a
-parameter override rcl cannot parse, an unquoted value with a space) with one line of its own
-naming the argument and status 2, before any node exists: no rclpy traceback, no rcl log lines."""
+parameter override rcl cannot parse, an unquoted value with a space, a value of the wrong type, a
+folder parameter naming a device) with one line of its own naming the argument and status 2, before
+it serves anything: no rclpy traceback, no rcl log lines."""
 
 from __future__ import annotations
 
@@ -27,6 +28,19 @@ BIN = Path(sys.executable).parent
         ("medc-agent", ["-r", "__ns:=/te", "am"], "unknown ROS arguments ['am']"),
         ("medc-agent", ["-r", "__node:=9x"], "Couldn't parse remap rule: '-r __node:=9x'"),
         ("medc-sim", ["-p", "grid:=[1,"], "Couldn't parse parameter override rule: '-p grid:=[1,'"),
+        ("medc-sim", ["-p", "grid:=hello"], "-p grid:=hello: that is text; grid takes an integer"),
+        ("medc-agent", ["-p", "policy:=greedy", "-p", "agents:=true"],
+         "-p agents:=True: that is true or false; agents takes an integer"),
+        ("medc-sim", ["-p", "resolution:=0.0"], "resolution must be a finite number > 0, got 0.0"),
+        ("medc-sim", ["-p", "move_timeout_s:=nan"],
+         "move_timeout_s must be a finite number of seconds >= 0, got nan"),
+        ("medc-agent", ["-p", "policy:=greedy", "-p", "agents:=3", "-p", "grid:=10", "-p",
+                        "lost_timeout_s:=-1.0"],
+         "lost_timeout_s must be a finite number of seconds >= 0, got -1.0"),
+        ("medc-bridge", ["-p", "cache_dir:=/dev/full"],
+         "cache_dir: /dev/full is not a folder: give a folder to write into"),
+        ("medc-bridge", ["-p", "content:=/dev/full"],
+         "content store: /dev/full is not a folder: give a folder to write into"),
     ],
 )
 def test_a_bad_ros_argument_is_one_line_of_the_nodes_own(script, ros_args, message):

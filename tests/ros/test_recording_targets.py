@@ -164,3 +164,38 @@ def test_overwrite_replaces_a_planted_link_and_keeps_what_was_recorded(rclpy_con
     notes = [m.ros_msg.data for m in read_ros2_messages(str(out)) if m.channel.topic == f"{ns}/note"]
     assert notes == ["kept"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mission.mcap", "victim.txt"]
+
+
+@pytest.mark.parametrize("target", ["folder", "/dev/full", "long name", "missing folder"])
+def test_launch_refuses_an_unusable_key_file_before_the_mission(bundles, tmp_path, capsys, monkeypatch,
+                                                                target):
+    from medc_bringup.launcher import main
+    from medc_common import auth
+
+    monkeypatch.delenv(auth.KEY_FILE_ENV, raising=False)
+    key = {"folder": tmp_path, "/dev/full": Path("/dev/full"), "long name": tmp_path / ("k" * 300),
+           "missing folder": tmp_path / "nowhere" / "mission.key"}[target]
+    expected = {"folder": "is not a regular file", "/dev/full": "is not a regular file",
+                "long name": "File name too long", "missing folder": "No such file or directory"}[target]
+    before = _listing(tmp_path)
+    code = main(["--policy", str(bundles["a"]), "--episodes", "1", "--authenticate", "--key-file", str(key)])
+    assert code == 2
+    assert expected in _one_line(capsys.readouterr().err, "medc-launch")
+    assert _listing(tmp_path) == before
+    assert auth.KEY_FILE_ENV not in os.environ
+
+
+@pytest.mark.parametrize("target", ["file", "/dev/full", "long name"])
+def test_the_demo_refuses_an_unusable_output_folder_before_its_first_step(tmp_path, capsys, target):
+    from medc_bringup.demo import main
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    out = {"file": victim, "/dev/full": Path("/dev/full"), "long name": tmp_path / ("d" * 300)}[target]
+    code = main(["--quick", "--no-ros", "--quiet", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 1 and ("is not a folder" in captured.err or "bytes the file system takes" in captured.err)
+    _one_line(captured.err, "medc-demo")
+    error = captured.err.strip()[len("medc-demo: error: "):]
+    assert json.loads(captured.out) == {"ok": False, "error": error}
+    assert sorted(os.listdir(tmp_path)) == ["victim.txt"] and victim.read_text() == "precious\n"

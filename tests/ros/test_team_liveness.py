@@ -62,6 +62,22 @@ class Listener(DiagnosticsListener):
         return [s for s in self.statuses if s.session == session]
 
 
+def _assert_map_faults_clear(listen: Listener, names: tuple[str, ...], procs: list) -> None:
+    """The fault of a foreign map clears: every node's ``map`` condition and, with it, every node's
+    heartbeat are OK again once the team has gone on past the map."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    def latest_level(name: str):
+        return next((s.level for _, s in reversed(listen.diagnostics) if s.name == name), None)
+
+    def all_ok() -> bool:
+        return all(latest_level(c) == DiagnosticStatus.OK for c in [*(f"{n}: map" for n in names), *names])
+
+    assert listen.spin(60, all_ok, procs), {
+        n: [(s.name, s.level, s.message[:80]) for _, s in listen.diagnostics[-200:]
+            if s.name.startswith(n) and s.level != DiagnosticStatus.OK][-3:] for n in names}
+
+
 @pytest.mark.timing
 @pytest.mark.ros
 def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bundles, tmp_path):
@@ -118,6 +134,7 @@ def test_the_team_survives_hostile_messages_and_a_killed_agent(rclpy_context, bu
         assert listen.spin(60, lambda: steps_after(count) >= 20, procs), "the team froze after one map"
         assert listen.spin(60, lambda: len(listen.warnings(t_map, "holds none of the team's")) >= 3, procs)
         assert listen.spin(60, lambda: listen.warnings(t_map, "did not publish", "medc_sim: map"), procs)
+        _assert_map_faults_clear(listen, names, procs)
 
         # Future-stamped poses and readings and one status with step 10^9, in the
         # driver's own session, episode and map.

@@ -182,3 +182,24 @@ def test_a_bundle_at_a_temperature_samples_its_moves_and_the_lines_say_so(tmp_pa
                  "medium", "--episodes", "4", "--temperature", "0.5", "--quiet", "--out", str(out)]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["temperature"] == 0.5
     assert set(load_episodes([out])) == {"team@T0.5", "greedy"}
+
+
+def test_out_replaces_a_planted_link_and_refuses_a_device_or_folder_before_playing(tmp_path, capsys):
+    import os
+    from pathlib import Path
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    args = ["greedy", "--grid", "20", "--agents", "3", "--obstructions", "2", "--snr", "medium",
+            "--episodes", "2", "--quiet", "--out"]
+    for bad, words in ((Path("/dev/full"), "is not a regular file"), (tmp_path, "is a folder")):
+        assert main([*args, str(bad)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("medc-radbench: ") and words in err[0], err
+    assert sorted(os.listdir(tmp_path)) == ["victim.txt"]  # nothing played, no temporary file left
+    out = tmp_path / "lines.jsonl"
+    out.symlink_to(victim)
+    assert main([*args, str(out)]) == 0
+    assert victim.read_text() == "precious\n" and not out.is_symlink()
+    assert [json.loads(line)["policy"] for line in out.read_text().splitlines()] == ["greedy", "greedy"]
+    assert sorted(os.listdir(tmp_path)) == ["lines.jsonl", "victim.txt"]

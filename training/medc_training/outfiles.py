@@ -8,6 +8,7 @@ fresh temporary file beside the target (``O_EXCL``: nothing that is there, a pla
 is opened) and on :meth:`AtomicOutput.commit` fsyncs it and moves it into place: linked to the
 target's name, which fails if anything took that name meanwhile, or with ``overwrite`` renamed over
 it (a link there is replaced, never written through). A write that fails removes its temporary file.
+:func:`check_output_folder` does the same for an output folder (a run's, the demo's) before the work.
 """
 
 from __future__ import annotations
@@ -71,6 +72,34 @@ def check_output(path: str | os.PathLike[str], overwrite: bool = False, flag: st
                           "another name")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write {_shown(target)}: the folder {_shown(parent)} is not writable")
+    return target
+
+
+def check_output_folder(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a folder to write into, made later if missing (made absolute, not resolved).
+
+    Raises:
+        OutputError: ``path`` or a folder on the way to it is something else (a file, a device, a
+            link to one), a name on the way is longer than the file system takes, or the folder to
+            write into (or the nearest one that exists) cannot be written.
+    """
+    target = Path(os.path.abspath(os.fspath(path)))
+    existing = target
+    while not os.path.isdir(existing):  # False for what is missing or cannot be looked at
+        existing = existing.parent
+    below = target.relative_to(existing).parts
+    if below and os.path.lexists(existing / below[0]):
+        there = existing / below[0]
+        raise OutputError(f"{_shown(there)} is not a folder: give a folder to write into"
+                          + ("" if there == target else f" (for {_shown(target)})"))
+    for name in below:
+        if len(os.fsencode(name)) > _name_max(existing):
+            raise OutputError(f"cannot make the folder {_shown(target)[:120]}...: the name "
+                              f"{_shown(name)[:40]}... is longer than the {_name_max(existing)} bytes "
+                              "the file system takes")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write into {_shown(target)}: the folder {_shown(existing)} is not "
+                          "writable")
     return target
 
 
@@ -198,4 +227,5 @@ def _umask() -> int:
     return mask
 
 
-__all__ = ["AtomicOutput", "OutputError", "check_output", "is_same_file", "write_output"]
+__all__ = ["AtomicOutput", "OutputError", "check_output", "check_output_folder", "is_same_file",
+           "write_output"]

@@ -32,6 +32,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from medc_training.outfiles import check_output_folder
+
 #: Fields never compared: they do not change what a run computes.
 PERFORMANCE_ONLY = ("torch_threads",)
 #: Fields a resumed run may change.
@@ -60,8 +62,10 @@ def lock_run_folder(out: str | os.PathLike[str]) -> Iterator[Path]:
     Raises:
         RunFolderBusy: another process holds it (the message names its pid).
         RunMismatch: the lock file is a link or not a regular file.
+        OutputError: ``out`` cannot be a folder to write into (``outfiles.check_output_folder``).
     """
     folder = Path(out)
+    check_output_folder(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock = folder / LOCK_FILE
     try:

@@ -170,14 +170,19 @@ def dry_run_observations(manifest: Mapping[str, Any], obs_shape: tuple[int, int,
     non-zero)."""
     shape = tuple(int(v) for v in obs_shape)
     out = [torch.zeros((1, *shape))]
-    env = manifest.get("environment") or {}
-    key = (str(manifest.get("application")), (manifest.get("observation") or {}).get("name"),
-           tuple(sorted((k, v) for k, v in env.items() if isinstance(v, int) and not isinstance(v, bool))))
-    real = _environment_observation(key)
+    real = _environment_observation(scenario_key(manifest))
     if real is not None and tuple(real.shape[1:]) == shape:
         out.append(real)
     out.append(torch.rand((1, *shape), generator=torch.Generator().manual_seed(0)))
     return out
+
+
+def scenario_key(manifest: Mapping[str, Any]) -> tuple:
+    """What of a manifest the dry run's environment observation depends on: (application,
+    observation name, integer environment attributes)."""
+    env = manifest.get("environment") or {}
+    return (str(manifest.get("application")), (manifest.get("observation") or {}).get("name"),
+            tuple(sorted((k, v) for k, v in env.items() if isinstance(v, int) and not isinstance(v, bool))))
 
 
 @lru_cache(maxsize=8)

@@ -28,6 +28,7 @@ from medc_training.bundle.dryrun import (
     TooSlow,
     dry_run_observations,
     flush_subnormal,
+    scenario_key,
     timed_forward,
 )
 from medc_training.bundle.fileformat import (
@@ -45,13 +46,36 @@ from medc_training.nets import ActorCritic, masked_logits, safe_names, spec_tens
 # through the network, on this machine, must take at most this long. The shipped architectures take
 # under 5 ms (61 ms for convnet-small on a 256x256 grid, first call).
 MAX_FORWARD_SECONDS = 0.5
-#: Refusals ``load_untrusted`` remembers by content (sha256 of the bytes): a republished refused
-#: bundle is refused again at the cost of hashing it. A refusal for time (a dry run over the limit,
-#: which a busy machine can cause) is remembered for ``REFUSED_SLOW_MEMORY_S`` seconds, any other
-#: for the life of the process (the oldest forgotten beyond ``MAX_REMEMBERED_REFUSALS``).
+#: Refusals ``load_untrusted`` remembers: by content (sha256 of the bytes), by network (the
+#: architecture, the dry run's scenario and the weights: ``network_digest``) and, for a refusal for
+#: time, by structure (the architecture and the scenario: ``structure_digest``; a pass's time does not
+#: depend on the weights' values, subnormals being flushed). A copy of a refused bundle that differs
+#: in its bytes (a description, the order of the tensors) or, when it was too slow, in its weights is
+#: refused at the cost of reading its header (and decoding its weights). A refusal for time (which a
+#: busy machine can cause) is remembered for ``REFUSED_SLOW_MEMORY_S`` seconds, any other for the
+#: life of the process (the oldest forgotten beyond ``MAX_REMEMBERED_REFUSALS``).
 MAX_REMEMBERED_REFUSALS = 1024
 REFUSED_SLOW_MEMORY_S = 600.0
-_REFUSED: OrderedDict[tuple[str, float, str], tuple[str, float]] = OrderedDict()
+#: Dry runs are rate-limited: once ``SLOW_REFUSALS_PER_WINDOW`` bundles were refused for time in the
+#: last ``SLOW_WINDOW_S`` seconds (under one limit and device), a bundle whose network structure this
+#: process has not accepted before is refused without a dry run until the oldest of them is that old.
+#: A structure accepted before (the team's own policies) is still checked, so the pause costs an
+#: attacker's variants their dry runs and the team nothing it runs.
+SLOW_REFUSALS_PER_WINDOW = 3
+SLOW_WINDOW_S = 60.0
+MAX_ACCEPTED_STRUCTURES = 256
+_REFUSED: OrderedDict[tuple[str, str, float, str], tuple[str, float]] = OrderedDict()
+#: (max_forward_s, device type) -> when each recent refusal for time came (monotonic s).
+_SLOW_REFUSALS: dict[tuple[float, str], list[float]] = {}
+#: Structure keys whose dry run passed (newest last).
+_ACCEPTED: OrderedDict[tuple[str, str, float, str], None] = OrderedDict()
+
+
+def forget_refusals() -> None:
+    """Forget every refusal, accepted structure and recent refusal for time this process remembers."""
+    _REFUSED.clear()
+    _SLOW_REFUSALS.clear()
+    _ACCEPTED.clear()
 
 
 def save_bundle(path: str | os.PathLike[str], net: ActorCritic, manifest: Mapping[str, Any]) -> Path:
@@ -209,8 +233,10 @@ def load_untrusted(source: str | os.PathLike[str] | bytes | bytearray | memoryvi
     is refused, and the pass is abandoned as soon as it is over (or a large layer's estimate puts it
     over: ``dryrun.timed_forward``), so refusing a slow bundle costs about ``max_forward_s``.
 
-    A refusal after the header checks is remembered by the content's sha256 (``_REFUSED``): the
-    same bytes again, under any name, are refused at once with the same reason.
+    A refusal after the header checks is remembered (``_REFUSED``): the same bytes under any name,
+    the same network in other bytes, and for a refusal for time the same structure with any weights,
+    are refused at once with the same reason; dry runs of new structures are rate-limited
+    (``SLOW_REFUSALS_PER_WINDOW``).
 
     Raises:
         BundleError: for any refusal; no other exception escapes.
@@ -218,28 +244,87 @@ def load_untrusted(source: str | os.PathLike[str] | bytes | bytearray | memoryvi
     with _Source(source) as src:
         where = src.where
         try:
-            _parse(src, decode=False)  # the header, manifest and table first: cheap, and bounded reads
+            manifest = _parse(src, decode=False)[0]  # header, manifest and table first: bounded reads
             data = src.read(0, src.size)
         except BundleError:
             raise
         except Exception as exc:
             raise BundleError(f"{where}: cannot be loaded ({type(exc).__name__} in the loader)") from exc
-    key = (hashlib.sha256(data).hexdigest(), float(max_forward_s), torch.device(device).type)
-    remembered = _remembered_refusal(key)
-    if remembered is not None:
-        raise BundleError(f"{where}: {remembered} (the same content was refused before; not checked again)")
+    run = (float(max_forward_s), torch.device(device).type)
+    content = ("content", hashlib.sha256(data).hexdigest(), *run)
+    structure = ("network structure", structure_digest(manifest), *run)
+    _refuse_if_remembered(where, content, structure)
+    _refuse_if_paused(where, structure)
     try:
         with _Source(data) as src:
             src.where = where
             bundle = _load(src, device)
+    except BundleError as exc:
+        _remember(exc, where, content)
+        raise
+    network = ("network", network_digest(bundle), *run)
+    _refuse_if_remembered(where, network)
+    try:
         _dry_run(bundle, where, max_forward_s)
     except BundleError as exc:
-        text = str(exc)
-        reason = text[len(where) + 2:] if text.startswith(f"{where}: ") else text
-        if not isinstance(exc.__cause__, MemoryError):  # the machine's state, not the content's
-            _remember_refusal(key, reason, slow=isinstance(exc.__cause__, TooSlow))
+        _remember(exc, where, content, network, structure)
         raise
+    _ACCEPTED[structure] = None
+    _ACCEPTED.move_to_end(structure)
+    while len(_ACCEPTED) > MAX_ACCEPTED_STRUCTURES:
+        _ACCEPTED.popitem(last=False)
     return bundle
+
+
+def structure_digest(manifest: Mapping[str, Any]) -> str:
+    """Hex sha256 of what a dry run's time depends on: the architecture and the scenario its
+    environment observation is made in (``dryrun.scenario_key``)."""
+    what = {"architecture": manifest.get("architecture"), "scenario": list(scenario_key(manifest))}
+    return hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def network_digest(bundle: PolicyBundle) -> str:
+    """Hex sha256 of the network: its structure digest and its weights as loaded (by name)."""
+    digest = hashlib.sha256(structure_digest(bundle.manifest).encode())
+    for name, tensor in sorted(bundle.net.state_dict().items()):
+        t = tensor.detach().to("cpu", torch.float32).contiguous()
+        digest.update(f"\0{name}\0{list(t.shape)}\0".encode())
+        digest.update(t.numpy().tobytes())
+    return digest.hexdigest()
+
+
+def _refuse_if_remembered(where: str, *keys: tuple[str, str, float, str]) -> None:
+    for key in keys:
+        remembered = _remembered_refusal(key)
+        if remembered is not None:
+            raise BundleError(f"{where}: {remembered} (the same {key[0]} was refused before; not "
+                              "checked again)")
+
+
+def _refuse_if_paused(where: str, structure: tuple[str, str, float, str]) -> None:
+    now = time.monotonic()
+    recent = [t for t in _SLOW_REFUSALS.get(structure[2:], []) if now - t < SLOW_WINDOW_S]
+    _SLOW_REFUSALS[structure[2:]] = recent
+    if len(recent) >= SLOW_REFUSALS_PER_WINDOW and structure not in _ACCEPTED:
+        wait = SLOW_WINDOW_S - (now - recent[-SLOW_REFUSALS_PER_WINDOW])
+        raise BundleError(f"{where}: not checked: {len(recent)} bundles were too slow to act with in the "
+                          f"last {SLOW_WINDOW_S:g} s, so dry runs of a network structure not accepted "
+                          f"before are paused for {wait:.0f} s")
+
+
+def _remember(exc: BundleError, where: str, content, network=None, structure=None) -> None:
+    """Remember the refusal ``exc`` under ``content`` and ``network``, and under ``structure`` when
+    it was for time; a refusal for memory is the machine's state, not the bundle's: not remembered."""
+    if isinstance(exc.__cause__, MemoryError):
+        return
+    text = str(exc)
+    reason = text[len(where) + 2:] if text.startswith(f"{where}: ") else text
+    slow = isinstance(exc.__cause__, TooSlow)
+    for key in (content, network, structure if slow else None):
+        if key is not None:
+            _remember_refusal(key, reason, slow)
+    if slow:
+        _SLOW_REFUSALS.setdefault(content[2:], []).append(time.monotonic())
 
 
 def _dry_run(bundle: PolicyBundle, where: str, max_forward_s: float) -> None:
@@ -259,7 +344,7 @@ def _dry_run(bundle: PolicyBundle, where: str, max_forward_s: float) -> None:
             raise BundleError(f"{where}: fails on {name} ({type(exc).__name__})") from exc
 
 
-def _remembered_refusal(key: tuple[str, float, str]) -> str | None:
+def _remembered_refusal(key: tuple[str, str, float, str]) -> str | None:
     entry = _REFUSED.get(key)
     if entry is None:
         return None
@@ -271,7 +356,7 @@ def _remembered_refusal(key: tuple[str, float, str]) -> str | None:
     return reason
 
 
-def _remember_refusal(key: tuple[str, float, str], reason: str, slow: bool) -> None:
+def _remember_refusal(key: tuple[str, str, float, str], reason: str, slow: bool) -> None:
     _REFUSED[key] = (reason, time.monotonic() + REFUSED_SLOW_MEMORY_S if slow else math.inf)
     _REFUSED.move_to_end(key)
     while len(_REFUSED) > MAX_REMEMBERED_REFUSALS:

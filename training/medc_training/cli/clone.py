@@ -107,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         from ..dagger import clone_oracle
+        from ..outfiles import check_output_folder
 
+        check_output_folder(args.out)  # before any work: a file, a device or a name too long there
         cfg = config_from_args(args)
         if (Path(args.out) / "summary.json").exists() and not args.overwrite:
             # DAgger has no checkpoint to resume: a folder holds one finished cloning run.

@@ -202,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds is not None and args.init_from is not None:
         p.error("--init-from starts one run: give one --seed (a run per seed, each with its bundle)")
     try:
+        from ..outfiles import check_output_folder
+
+        check_output_folder(args.out)  # before any work: a file, a device or a name too long there
         if args.seeds is not None:
             return _sweep(args)
         cfg = config_from_args(args)

@@ -26,6 +26,7 @@ docs/radbench.md states the scenario and every difference from RAD-A2C.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -261,6 +262,21 @@ def _cost(args: argparse.Namespace) -> int:
     return 0
 
 
+def _episodes_file(path: Path | None):
+    """Where ``--out``'s episodes go: nowhere without it; else a fresh temporary file beside it,
+    moved into place when every set is played (an existing file or link replaced, never written
+    through; a folder, a device or a name too long refused before any episode is played)."""
+    from ..outfiles import AtomicOutput, check_output
+
+    if path is None:
+        return contextlib.nullcontext()
+    return AtomicOutput(check_output(path, overwrite=True), overwrite=True)
+
+
+def _line(record: dict) -> bytes:
+    return (json.dumps(record) + "\n").encode()
+
+
 def _play(args: argparse.Namespace) -> int:
     import torch
 
@@ -308,29 +324,24 @@ def _play(args: argparse.Namespace) -> int:
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
     names = policy_names()  # the rest are bundles, which --temperature applies to
-    out_file = args.out.open("w") if args.out else None
-    try:
-        with progress_bar(total, unit="episode", disable=args.quiet) as bar:
-            for s in sets:
-                for policy in policies:
-                    start = time.perf_counter()
-                    played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
-                                      progress=bar.update, departure=departure, temperature=args.temperature)
-                    seconds[policy] += time.perf_counter() - start
-                    results[s.id][policy] = played
-                    if out_file is not None:
-                        for r in played:
-                            out_file.write(json.dumps({"policy": policy, "grid": grid, "agents": agents,
-                                                       "run": args.run, "set_sha256": s.sha256,
-                                                       **({"departure": departure.to_dict()}
-                                                          if not departure.nominal else {}),
-                                                       **({"temperature": args.temperature}
-                                                          if args.temperature and policy not in names
-                                                          else {}),
-                                                       **r.to_json()}) + "\n")
-    finally:
-        if out_file is not None:
-            out_file.close()
+    with _episodes_file(args.out) as out, progress_bar(total, unit="episode", disable=args.quiet) as bar:
+        for s in sets:
+            for policy in policies:
+                start = time.perf_counter()
+                played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
+                                  progress=bar.update, departure=departure, temperature=args.temperature)
+                seconds[policy] += time.perf_counter() - start
+                results[s.id][policy] = played
+                if out is not None:
+                    for r in played:
+                        out.file.write(_line({"policy": policy, "grid": grid, "agents": agents,
+                                              "run": args.run, "set_sha256": s.sha256,
+                                              **({"departure": departure.to_dict()}
+                                                 if not departure.nominal else {}),
+                                              **({"temperature": args.temperature}
+                                                 if args.temperature and policy not in names
+                                                 else {}),
+                                              **r.to_json()}))
     per_set, pooled, pooled_pairs = _report(args, sets, results, policies, reference)
     print(json.dumps({
         "benchmark": "medc-radbench", "grid": grid, "cell_m": sets[0].cell_m, "agents": agents,

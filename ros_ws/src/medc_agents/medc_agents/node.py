@@ -35,7 +35,7 @@ from geometry_msgs.msg import PoseStamped
 from medc_common import contract
 from medc_common.auth_node import Vouched, declare_auth, message_digest
 from medc_common.health import Health, run_id
-from medc_common.params import declare
+from medc_common.params import count, declare, number, seconds
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
 from medc_training.controllers import CONTROLLERS
@@ -198,10 +198,12 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
         True,
     )
     return dict(
-        agent_id=agent_id, namespace=namespace, agents=int(num_agents), grid=int(grid),
-        observation=str(observation), resolution=float(resolution), sensing=sensing,
-        bridge_service=bridge_service, application=application, threads=int(threads),
-        max_forward_s=float(max_forward_s))
+        agent_id=agent_id, namespace=namespace, agents=count("agents", num_agents),
+        grid=count("grid", grid), observation=str(observation),
+        resolution=number("resolution", resolution),
+        sensing=sensing, bridge_service=bridge_service, application=application,
+        threads=count("torch_threads", threads, least=1),
+        max_forward_s=seconds("policy_max_forward_s", max_forward_s))
 
 
 def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameters:
@@ -209,30 +211,30 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     bad sensing preset)."""
     scenario = _declare_scenario(node, agent_id)
     p = lambda *a, **k: declare(node, *a, **k)  # noqa: E731
-    stall_timeout_s = float(p(
+    stall_timeout_s = seconds("stall_timeout_s", p(
         "stall_timeout_s",
         STALL_TIMEOUT_S,
         "A team step that cannot be decided for this long (seconds) is logged once, with what it "
         "waits for, and published as a diagnostic",
         True,
     ))
-    lost_timeout_s = float(p(
+    lost_timeout_s = seconds("lost_timeout_s", p(
         "lost_timeout_s", guard.LOST_TIMEOUT_S,
         "A teammate whose pose or reading has not come for this long (seconds) while a step waits "
         "for it is taken out of the team until it is heard again (docs/ros-reference.md, "
         "'A lost UAV'); 0: never",
-        True))
-    session_hold_s = float(p(
+        True), zero_ok=True)
+    session_hold_s = seconds("session_hold_s", p(
         "session_hold_s", guard.SESSION_HOLD_S,
         "Statuses of another driver session are held while the followed one published within this "
         "many seconds (a second graph); after that the new session is followed (a restarted driver)",
-        True))
-    recover_s = float(p(
+        True), zero_ok=True)
+    recover_s = seconds("recover_s", p(
         "recover_s", guard.RECOVER_S,
         "A status that jumps ahead is answered once confirmed or re-sent after this many seconds; "
         "statuses below the answered step for this long are followed again",
-        True))
-    edge_tolerance = float(p(
+        True), zero_ok=True)
+    edge_tolerance = number("edge_tolerance", p(
         "edge_tolerance", EDGE_TOLERANCE_CELLS,
         "Cells: a pose at most this far outside the map's grid is taken as the nearest edge cell",
         True))

@@ -302,8 +302,9 @@ EXPERTS_REQUESTED = 3
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """The whole demo (module docstring): the seven phases in turn; returns the summary."""
     import torch
+    from medc_training.outfiles import check_output_folder
 
-    out = Path(args.out).resolve()
+    out = check_output_folder(args.out).resolve()  # a file, a device or a name too long: refused now
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(max(1, args.threads))
     quiet = bool(getattr(args, "quiet", False))

@@ -634,7 +634,7 @@ def issue_key(key_file: str | None, tmp_dir: Path) -> Path:
     if key_file is None:
         return auth.write_key_file(tmp_dir / "mission.key")
     path = Path(key_file).expanduser()
-    if path.exists() or path.is_symlink():
+    if os.path.lexists(path):  # False for a name too long: write_key_file then says so
         auth.load_key_file(path)  # refuses a link, a shared or malformed file
         return path.resolve()
     return auth.write_key_file(path).resolve()

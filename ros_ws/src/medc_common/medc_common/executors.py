@@ -191,6 +191,23 @@ class _capture_stderr:
         self._file.close()
 
 
+_WRONG_TYPE = re.compile(r"Trying to set parameter '(?P<name>.*)' to '(?P<value>.*)' of type "
+                         r"'(?P<given>\w+)', expecting type '(?:Type\.)?(?P<wanted>\w+)'")
+
+
+def parameter_problem(exc: Exception) -> str:
+    """One line for rclpy's refusal of a parameter (a value of the wrong type, one left unset)."""
+    text = " ".join(str(exc).split())
+    wrong = _WRONG_TYPE.match(text)
+    if wrong is None:
+        return f"bad parameter: {text}"
+    kind = {"BOOL": "true or false", "INTEGER": "an integer", "DOUBLE": "a number", "STRING": "text"}
+    name, wanted, given = wrong["name"], wrong["wanted"], wrong["given"]
+    value = "".join(c if c.isprintable() else "?" for c in wrong["value"][:80])
+    return (f"-p {name}:={value}: that is {kind.get(given, given.lower())}; "
+            f"{name} takes {kind.get(wanted, wanted.lower())} (see --help)")
+
+
 def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_shutdown,
              errors: tuple[type[Exception], ...] = (ValueError,), executor_factory=make_executor) -> int:
     """The life of a console-script node: init rclpy, build the node, spin it, clean up.
@@ -203,10 +220,12 @@ def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_sh
     ``make_node()`` builds the node after rclpy is initialised; ``spin(node, executor)`` runs
     it. Ctrl-C and an external shutdown end it with status 0; an exception of ``errors`` (a
     bad parameter, a registry that cannot be reached) is printed as ``program: message``
-    with status 2. Call ``require_interfaces()`` before this.
+    with status 2, as is a parameter rclpy refuses (a value of the wrong type:
+    :func:`parameter_problem`). Call ``require_interfaces()`` before this.
     """
 
     import rclpy
+    from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
@@ -225,6 +244,9 @@ def run_node(program: str, argv: list[str] | None, make_node, spin=spin_until_sh
         spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ParameterException as exc:  # a value of the wrong type, given with -p or a params file
+        print(f"{program}: {parameter_problem(exc)}", file=sys.stderr)
+        return 2
     except errors as exc:
         print(f"{program}: {exc}", file=sys.stderr)
         return 2

@@ -40,6 +40,7 @@ from medc_common import contract
 from medc_common.executors import ros_argument_values
 from medc_common.health import Health
 from medc_common.ros_env import require_interfaces
+from medc_training.outfiles import check_output_folder
 from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -65,8 +66,13 @@ class RegistryBridge:
         self, registry: Any, cache_dir: str | os.PathLike[str], budget_wei: int | None = None
     ) -> None:
         self.registry = registry
-        self.cache_dir = Path(cache_dir)
-        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        try:  # a file, a device or a name too long: refused before anything is served
+            self.cache_dir = check_output_folder(cache_dir)
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+        except ValueError as exc:
+            raise BridgeError(f"cache_dir: {exc}") from None
+        except OSError as exc:
+            raise BridgeError(f"cache_dir {printable(os.fspath(cache_dir), 200)}: {exc.strerror}") from None
         #: Latest allocation id per CID requested through this bridge (for reviews by CID).
         self.allocations: dict[str, int] = {}
         #: The most this bridge pays in all (wei), and what it has paid or may have paid so far.
@@ -288,9 +294,11 @@ def connect_registry(
     any node of the graph could read); ``account`` indexes them.
 
     Raises:
-        BridgeError: a missing or non-loopback endpoint, a missing key file, a node that does not
-        answer, contracts that are not on the chain, or an account without a key.
+        BridgeError: a missing or non-loopback endpoint, a missing key file, a content store
+        folder that cannot be one, a node that does not answer, contracts that are not on the
+        chain, or an account without a key.
     """
+    from medc_registry.content import ContentStoreError
     from medc_registry.home import RegistryHomeError, spec_settings
     from medc_registry.registry import Registry
 
@@ -298,7 +306,7 @@ def connect_registry(
         settings = spec_settings(chain, content, users_manager, models_manager, private_key_file,
                                  loopback_only=True)
         return Registry.from_settings(settings, account)
-    except (RegistryHomeError, ValueError) as exc:  # ValueError: an account it has no key for
+    except (RegistryHomeError, ContentStoreError, ValueError) as exc:  # ValueError: an account with no key
         raise BridgeError(str(exc)) from None
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import IO, Protocol
 from urllib.parse import urlencode, urlsplit
 
+from medc_training.outfiles import check_output_folder
 from medc_training.untrusted import UntrustedJSONError, parse_json, printable
 
 from . import bounded_http
@@ -190,8 +191,14 @@ class LocalContentStore:
     def __init__(self, root: str | os.PathLike[str], max_size: int = MAX_CONTENT_BYTES) -> None:
         self.root = Path(root)
         self.max_size = max_size
-        (self.root / "blobs").mkdir(parents=True, exist_ok=True)
-        (self.root / "pins").mkdir(parents=True, exist_ok=True)
+        try:  # a file, a device or a name too long there: ContentStoreError, one line
+            check_output_folder(self.root)
+            (self.root / "blobs").mkdir(parents=True, exist_ok=True)
+            (self.root / "pins").mkdir(parents=True, exist_ok=True)
+        except ValueError as exc:
+            raise ContentStoreError(f"content store: {exc}") from None
+        except OSError as exc:
+            raise ContentStoreError(f"content store {self.root}: {exc.strerror}") from None
 
     def __repr__(self) -> str:
         return f"LocalContentStore({str(self.root)!r})"

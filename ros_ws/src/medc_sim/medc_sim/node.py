@@ -27,7 +27,7 @@ from geometry_msgs.msg import PoseStamped
 from medc_common import contract
 from medc_common.auth_node import declare_auth, message_digest
 from medc_common.health import Health, run_id
-from medc_common.params import declare
+from medc_common.params import count, declare, number, seconds
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
 from nav_msgs.msg import OccupancyGrid
 from rclpy.node import Node
@@ -91,8 +91,8 @@ def declare_sim_parameters(node: Node) -> SimParameters:
     mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
     if mode not in ("stepped", "realtime"):
         raise ValueError(f"mode must be 'stepped' or 'realtime', got {mode!r}")
-    rate_hz = float(p("rate_hz", 0.0, "Team steps per second (stepped: upper limit, 0 = none; "
-                      "realtime: the step rate, must be > 0)", True))
+    rate_hz = number("rate_hz", p("rate_hz", 0.0, "Team steps per second (stepped: upper limit, 0 = none; "
+                                  "realtime: the step rate, must be > 0)", True))
     if mode == "realtime" and rate_hz <= 0:
         raise ValueError("realtime mode needs rate_hz > 0")
     return _declare_stepping(p, namespace, cfg, mode, rate_hz)
@@ -100,22 +100,24 @@ def declare_sim_parameters(node: Node) -> SimParameters:
 
 def _declare_stepping(p, namespace: str, cfg: SimConfig, mode: str, rate_hz: float) -> SimParameters:
     """The rest of :func:`declare_sim_parameters` (``p`` declares one parameter)."""
-    resolution = float(p("resolution", 1.0, "Cell side in metres (map frame)", True))
-    resend_s = float(p("resend_s", 0.5, "Stepped mode: re-publish a step whose moves are missing "
-                       "after this many seconds", True))
-    max_episodes = int(p("episodes", 0, "Stop stepping after this many episodes (0 = never)", True))
-    stall_timeout_s = float(p(
+    resolution = number("resolution", p("resolution", 1.0, "Cell side in metres (map frame)", True),
+                        zero_ok=False)
+    resend_s = seconds("resend_s", p("resend_s", 0.5, "Stepped mode: re-publish a step whose moves are "
+                                     "missing after this many seconds", True))
+    max_episodes = count("episodes", p("episodes", 0, "Stop stepping after this many episodes (0 = never)",
+                                       True))
+    stall_timeout_s = seconds("stall_timeout_s", p(
         "stall_timeout_s", 2.0,
         "Stepped mode: a step whose moves are missing for this long is logged once, naming the agents",
         True,
     ))
-    move_timeout_s = float(p(
+    move_timeout_s = seconds("move_timeout_s", p(
         "move_timeout_s", 3.0,
         "Stepped mode: an agent with no move this long (seconds) after the step's first move stays "
         "in place and is taken out of the team (later steps do not wait for it) until it moves "
         "again; 0: wait for ever",
         True,
-    ))
+    ), zero_ok=True)
     threads = int(p("torch_threads", 1, "CPU threads for the environment", True))
     wait_for = int(p(
         "wait_for_subscribers", cfg.agents,
