@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
             for seed in (int(s) for s in args.seeds.split(",")):
                 cfg = {"agents": args.agents, "walls": args.walls, "observation": variant, "arch": arch,
                        "total_steps": args.steps, "seed": seed, "method": "sparse"}
-                if args.env != DEFAULT_APPLICATION:
+                if args.env in OTHER_APPS:
                     cfg = {**cfg, **OTHER_EVAL, "env": args.env, "walls": 0, "grid": OTHER_GRID,
                            "max_steps": OTHER_MAX_STEPS,
                            "env_options": {**OTHER_APPS[args.env]["target"], "observation": variant}}
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                     cfg["max_steps"] = args.max_steps
                 if args.noise:
                     cfg["env_options"] = {**cfg.get("env_options", {}), "noise": True}
-                short = "" if args.env == DEFAULT_APPLICATION else args.env.split("_")[0] + "-"
+                short = OTHER_APPS[args.env]["short"] + "-" if args.env in OTHER_APPS else ""
                 name = f"{short}{variant}-{arch}" + ("-noise" if args.noise else "")
                 jobs.append({"name": f"{name}/seed{seed}", "config": cfg,
                              "out": str(args.out / name / f"seed{seed}")})
