@@ -59,83 +59,86 @@ def run_graph(
     classical controller's name; own processes, or with ``in_process`` on the simulator's
     executor); stop after ``steps`` measured steps or ``duration`` seconds (after ``warmup``
     steps). Returns latencies and throughput."""
-    import subprocess
-
-    from medc_common.contract import agent_node_name
     from medc_common.executors import make_executor
-    from medc_sim.node import SimNode
-    from medc_training.stats import percentile
-    from rclpy.parameter import Parameter
 
-    from medc_bringup.launcher import (
-        _child_env,
-        _stop,
-        agent_parameters,
-        build_graph,
-        load_config,
-        resolve_policies,
-        ros_args,
-        sim_parameters,
-    )
+    from medc_bringup.launcher import _stop, load_config, resolve_policies
 
     cfg = load_config(None, agents=agents, grid=grid, walls=walls, seed=seed, policy=str(bundle))
     resolve_policies(cfg)  # fills max_steps from the bundle and checks it fits the grid
     executor = make_executor()
-    children: list[subprocess.Popen] = []
-    if in_process:
-        sim, _, nodes = build_graph(cfg, [str(bundle)] * agents)
-    else:
-        sim = SimNode(namespace=cfg.namespace,
-                      parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
-        nodes = [sim]
-        bindir = Path(sys.executable).parent
-        children = [
-            subprocess.Popen(
-                [
-                    str(bindir / "medc-agent"),
-                    *ros_args(agent_node_name(i), agent_parameters(cfg, i, str(bundle)), cfg.namespace),
-                ],
-                env=_child_env(),
-                start_new_session=True,
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
-            )
-            for i in range(agents)
-        ]
+    sim, nodes, children = _start_graph(cfg, agents, str(bundle), in_process)
     for node in nodes:
         executor.add_node(node)
     try:
-        deadline = time.monotonic() + 120
-        while len(sim.latencies) < warmup:
-            executor.spin_once(timeout_sec=0.05)
-            if time.monotonic() > deadline:
-                raise RuntimeError(
-                    f"the agents did not start answering within 120 s ({len(sim.latencies)} steps)"
-                )
-        sim.latencies.clear()
-        resends = sim.resends
-        start = time.perf_counter()
-        while (steps and len(sim.latencies) < steps) or (duration and time.perf_counter() - start < duration):
-            executor.spin_once(timeout_sec=0.05)
-        elapsed = time.perf_counter() - start
-        lat = list(sim.latencies)
-        return {
-            "agents": agents,
-            "deployment": "in-process" if in_process else "processes",
-            "steps": len(lat),
-            "seconds": round(elapsed, 3),
-            "team_steps_per_s": round(len(lat) / elapsed, 2),
-            "latency_ms_p50": round(1000 * percentile(lat, 50), 3),
-            "latency_ms_p99": round(1000 * percentile(lat, 99), 3),
-            "latency_ms_mean": round(1000 * statistics.fmean(lat), 3),
-            "resends": sim.resends - resends,
-            "dropped": sim.dropped,
-        }
+        figures = _measure(sim, executor, steps, duration, warmup)
+        return {"agents": agents, "deployment": "in-process" if in_process else "processes", **figures}
     finally:
         _stop(children)
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
+
+
+def _start_graph(cfg, agents: int, bundle: str, in_process: bool) -> tuple:
+    """(simulator node, nodes to spin here, agent processes): the agents on this executor with
+    ``in_process``, else each in its own ``medc-agent`` process."""
+    import subprocess
+
+    from medc_common.contract import agent_node_name
+    from medc_sim.node import SimNode
+    from rclpy.parameter import Parameter
+
+    from medc_bringup.launcher import _child_env, agent_parameters, build_graph, ros_args, sim_parameters
+
+    if in_process:
+        sim, _, nodes = build_graph(cfg, [bundle] * agents)
+        return sim, nodes, []
+    sim = SimNode(namespace=cfg.namespace,
+                  parameter_overrides=[Parameter(k, value=v) for k, v in sim_parameters(cfg).items()])
+    bindir = Path(sys.executable).parent
+    children = [
+        subprocess.Popen(
+            [str(bindir / "medc-agent"),
+             *ros_args(agent_node_name(i), agent_parameters(cfg, i, bundle), cfg.namespace)],
+            env=_child_env(),
+            start_new_session=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for i in range(agents)
+    ]
+    return sim, [sim], children
+
+
+def _measure(sim, executor, steps: int, duration: float, warmup: int) -> dict:
+    """Spin until the agents have answered ``warmup`` steps (120 s at most), then measure
+    ``steps`` steps or ``duration`` seconds: the figures of :func:`run_graph`."""
+    from medc_training.stats import percentile
+
+    deadline = time.monotonic() + 120
+    while len(sim.latencies) < warmup:
+        executor.spin_once(timeout_sec=0.05)
+        if time.monotonic() > deadline:
+            raise RuntimeError(
+                f"the agents did not start answering within 120 s ({len(sim.latencies)} steps)"
+            )
+    sim.latencies.clear()
+    resends = sim.resends
+    start = time.perf_counter()
+    while (steps and len(sim.latencies) < steps) or (duration and time.perf_counter() - start < duration):
+        executor.spin_once(timeout_sec=0.05)
+    elapsed = time.perf_counter() - start
+    lat = list(sim.latencies)
+    return {
+        "steps": len(lat),
+        "seconds": round(elapsed, 3),
+        "team_steps_per_s": round(len(lat) / elapsed, 2),
+        "latency_ms_p50": round(1000 * percentile(lat, 50), 3),
+        "latency_ms_p99": round(1000 * percentile(lat, 99), 3),
+        "latency_ms_mean": round(1000 * statistics.fmean(lat), 3),
+        "resends": sim.resends - resends,
+        "dropped": sim.dropped,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -173,52 +176,70 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            if args.policy and args.policy.strip() in CONTROLLERS:
-                grid, bundle = 30, args.policy.strip()
-            elif args.policy:
-                from medc_training.bundle import read_manifest
-
-                bundle = Path(args.policy)
-                grid = int(read_manifest(bundle)["observation"]["height"])
-            else:
-                grid = 30
-                bundle = _bench_bundle(grid, Path(tmp))
+            grid, bundle = _policy(args.policy, CONTROLLERS, Path(tmp))
             results["policy"] = str(args.policy or "lenet5 (random weights)")
             results["grid"] = grid
-            for in_process in (False, True):
-                where = "in-process" if in_process else "processes"
-                for n in (3, 10):
-                    r = run_graph(n, bundle, in_process=in_process, steps=args.steps, grid=grid)
-                    print(
-                        f"latency, {n} agents, {where}: p50 {r['latency_ms_p50']} ms, "
-                        f"p99 {r['latency_ms_p99']} ms "
-                        f"over {r['steps']} steps ({r['team_steps_per_s']} team steps/s)",
-                        flush=True,
-                    )
-                    results[f"latency_{n}_agents_{where}"] = r
-                r = run_graph(3, bundle, in_process=in_process, duration=args.duration, grid=grid)
-                print(
-                    f"sustained stepped rate, 3 agents, {where}: {r['team_steps_per_s']} team steps/s over "
-                    f"{r['seconds']} s ({r['steps']} steps)",
-                    flush=True,
-                )
-                results[f"sustained_3_agents_{where}"] = r
+            results.update(_runs(bundle, grid, args.steps, args.duration))
     finally:
         rclpy.try_shutdown()
-    for where in ("processes", "in-process"):
-        p99 = results[f"latency_10_agents_{where}"]["latency_ms_p99"]
-        rate = results[f"sustained_3_agents_{where}"]["team_steps_per_s"]
-        results[f"latency_p99_ms_10_agents_{where}"] = p99
-        results[f"sustained_team_steps_per_s_3_agents_{where}"] = rate
-        results[f"targets_met_{where}"] = {
-            "p99_below_20ms_10_agents": p99 < 20.0,
-            "at_least_50_steps_per_s_3_agents": rate >= 50.0,
-        }
+    results.update(_targets(results))
     load = os.getloadavg()
     # The machine is shared; the figures are only comparable at a similar load.
     results["load_average_1_5_15"] = [round(x, 2) for x in load]
     print(json.dumps(results))
     return 0
+
+
+def _policy(policy: str | None, controllers, tmp: Path) -> tuple[int, Path | str]:
+    """(grid, what the agents run) for ``--policy``: a controller on the 30x30 grid, a bundle on its
+    grid, or (none given) a random-weight lenet5 written under ``tmp``."""
+    if policy and policy.strip() in controllers:
+        return 30, policy.strip()
+    if policy:
+        from medc_training.bundle import read_manifest
+
+        return int(read_manifest(Path(policy))["observation"]["height"]), Path(policy)
+    return 30, _bench_bundle(30, tmp)
+
+
+def _runs(bundle: Path | str, grid: int, steps: int, duration: float) -> dict:
+    """The latency runs (3 and 10 agents) and the sustained-rate run (3 agents), in processes and
+    in-process, each printed as it ends."""
+    results = {}
+    for in_process in (False, True):
+        where = "in-process" if in_process else "processes"
+        for n in (3, 10):
+            r = run_graph(n, bundle, in_process=in_process, steps=steps, grid=grid)
+            print(
+                f"latency, {n} agents, {where}: p50 {r['latency_ms_p50']} ms, "
+                f"p99 {r['latency_ms_p99']} ms "
+                f"over {r['steps']} steps ({r['team_steps_per_s']} team steps/s)",
+                flush=True,
+            )
+            results[f"latency_{n}_agents_{where}"] = r
+        r = run_graph(3, bundle, in_process=in_process, duration=duration, grid=grid)
+        print(
+            f"sustained stepped rate, 3 agents, {where}: {r['team_steps_per_s']} team steps/s over "
+            f"{r['seconds']} s ({r['steps']} steps)",
+            flush=True,
+        )
+        results[f"sustained_3_agents_{where}"] = r
+    return results
+
+
+def _targets(results: dict) -> dict:
+    """The headline figures and whether each deployment meets the targets."""
+    out = {}
+    for where in ("processes", "in-process"):
+        p99 = results[f"latency_10_agents_{where}"]["latency_ms_p99"]
+        rate = results[f"sustained_3_agents_{where}"]["team_steps_per_s"]
+        out[f"latency_p99_ms_10_agents_{where}"] = p99
+        out[f"sustained_team_steps_per_s_3_agents_{where}"] = rate
+        out[f"targets_met_{where}"] = {
+            "p99_below_20ms_10_agents": p99 < 20.0,
+            "at_least_50_steps_per_s_3_agents": rate >= 50.0,
+        }
+    return out
 
 
 if __name__ == "__main__":
