@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from medc_training.envs import make_batched, make_env, tl_native
+from medc_training.envs.names import TARGET_LOCALIZATION
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, estimator_path
 
 #: The measured scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
@@ -62,7 +63,7 @@ class _Batched:
     @staticmethod
     def _make(args: argparse.Namespace, sensing: str, grid: int, observation: str, copy_obs: bool):
         return make_batched(
-            "target_localization",
+            TARGET_LOCALIZATION,
             num_envs=args.num_envs,
             device=args.device,
             seed=args.seed,
@@ -106,7 +107,7 @@ class _OneByOne:
     def __init__(self, args: argparse.Namespace, sensing: str, grid: int, observation: str) -> None:
         start = time.perf_counter()
         self.envs = [
-            make_env("target_localization", seed=args.seed + i, agents=args.agents, walls=args.walls,
+            make_env(TARGET_LOCALIZATION, seed=args.seed + i, agents=args.agents, walls=args.walls,
                      grid=grid, max_steps=args.max_steps, observation=observation, sensing=sensing)
             for i in range(args.num_envs)
         ]
