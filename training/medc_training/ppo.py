@@ -4,8 +4,8 @@ Read top to bottom: :meth:`Trainer.collect` fills a rollout of ``horizon`` train
 (each agent acts on its own observation with the one shared actor-critic; the team reward
 is every agent's reward), :meth:`Trainer.update` runs ``epochs`` passes of clipped PPO over
 it, :meth:`Trainer.evaluate` plays ``eval_episodes`` fixed episodes to their ends
-(:func:`medc_training.evaluate.play_episodes`; or the legacy window of ``eval_steps`` test steps,
-:func:`medc_training.evaluate.play`). The methods differ only in:
+(:func:`medc_training.evaluate.play_episodes`; or, for a run with ``eval_episodes`` 0, the legacy
+window the research harness keeps). The methods differ only in:
 
 - ``sparse``: nothing extra (MDRL-sparse).
 - ``rs``: the environment is built with ``reward_shaping=True`` (BFS-shaped reward).
@@ -27,7 +27,7 @@ import torch
 
 from .buffer import RolloutBuffer
 from .config import TrainConfig
-from .evaluate import net_policy, play, play_episodes, summarize_episodes
+from .evaluate import net_policy, play_episodes, registered_evaluator, summarize_episodes
 from .experts import Expert
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
@@ -294,8 +294,7 @@ class Trainer:
         """Test play, greedy (or sampled when ``cfg.eval_greedy`` is False): the summary of
         ``cfg.eval_episodes`` fixed episodes, each played to its end
         (:func:`medc_training.evaluate.play_episodes`); with ``eval_episodes`` 0, the legacy
-        window: ``eval_steps`` training steps and the mean length of the episodes that finished
-        inside them (``max_steps`` when none did).
+        window the research harness registers (``medc_lab.window``).
 
         The evaluation environments restart from the same seed every time, so successive
         evaluations (and different methods with the same seed) face the same episodes.
@@ -308,9 +307,7 @@ class Trainer:
         if cfg.eval_episodes:
             return play_episodes(env, policy, episodes=cfg.eval_episodes, greedy=cfg.eval_greedy, seed=seed,
                                  sampling="gumbel").summary()
-        played = play(env, policy, steps=max(1, cfg.eval_steps // env.num_envs),
-                      greedy=cfg.eval_greedy, seed=seed, sampling="gumbel")
-        return played.summary(cfg.max_steps)
+        return registered_evaluator("window")(env, policy, cfg, seed)
 
     # -------------------------------------------------------------- the loop API ---
     def train_update(self) -> dict:

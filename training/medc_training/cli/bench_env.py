@@ -62,19 +62,9 @@ class _Batched:
 
     @staticmethod
     def _make(args: argparse.Namespace, sensing: str, grid: int, observation: str, copy_obs: bool):
-        return make_batched(
-            TARGET_LOCALIZATION,
-            num_envs=args.num_envs,
-            device=args.device,
-            seed=args.seed,
-            agents=args.agents,
-            walls=args.walls,
-            grid=grid,
-            max_steps=args.max_steps,
-            observation=observation,
-            sensing=sensing,
-            copy_obs=copy_obs,
-        )
+        return make_batched(TARGET_LOCALIZATION, num_envs=args.num_envs, device=args.device, seed=args.seed,
+                            agents=args.agents, walls=args.walls, grid=grid, max_steps=args.max_steps,
+                            observation=observation, sensing=sensing, copy_obs=copy_obs)
 
     def run(self, seconds: float, min_steps: int = 1, max_steps: int = 0) -> tuple[float, int]:
         """Step for ``seconds`` (at least ``min_steps``, at most ``max_steps`` when > 0):
