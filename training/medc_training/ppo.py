@@ -305,14 +305,9 @@ class Trainer:
     # -------------------------------------------------------------- evaluation -----
     @torch.no_grad()
     def evaluate(self, seed: int | None = None) -> dict:
-        """Test play, greedy (or sampled when ``cfg.eval_greedy`` is False): the summary of
-        ``cfg.eval_episodes`` fixed episodes, each played to its end
-        (:func:`medc_training.evaluate.play_episodes`); with ``eval_episodes`` 0, the legacy
-        window the research harness registers (``medc_lab.window``).
-
-        The evaluation environments restart from the same seed every time, so successive
-        evaluations (and different methods with the same seed) face the same episodes.
-        """
+        """Test play (greedy, or sampled without ``cfg.eval_greedy``): the summary of
+        ``cfg.eval_episodes`` fixed episodes from the evaluation seed, the same every time
+        (:func:`medc_training.evaluate.play_episodes`); ``eval_episodes`` 0: the harness's window."""
         env, cfg = self.eval_env, self.cfg
         seed = self.eval_seed if seed is None else seed
         # Sampled evaluation draws from its own generator (Gumbel-max on the device), restarted from
@@ -355,12 +350,9 @@ class Trainer:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`; the environments restart with fresh episodes.
-
-        The batched environments' internal state is not checkpointed: resuming starts new
-        episodes from a seed derived from the update count, so the run continues from the
-        same step with the same weights and optimiser, not bit-for-bit the same episodes.
-        """
+        """Restore :meth:`state_dict`. The environments are not checkpointed: they restart with
+        fresh episodes from a seed derived from the update count (same step, weights and
+        optimiser; not bit for bit the same episodes)."""
         self.net.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])

@@ -379,6 +379,25 @@ def _fold(log_post: torch.Tensor, out: torch.Tensor, levels: int, block: Callabl
         part.sub_(part.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
 
 
+def _levels_marginal(log_post: torch.Tensor, step: int) -> torch.Tensor:
+    """float32 [K, G²]: the sum over the levels of a levels-major log posterior [K, L, G²]
+    (unnormalised; weights at or below EXP_FLOOR exactly 0), ``step`` episodes at a time."""
+    # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
+    # few readings about half of them have none); the others stay exact zeros, and the sum
+    # over the levels runs as over the whole tensor (the same rounding).
+    k, levels, cells = log_post.shape
+    p = torch.empty((k, cells), device=log_post.device)
+    for s in range(0, k, step):
+        rows = log_post[s:s + step].reshape(-1, cells)
+        alive = (rows.amax(1) > EXP_FLOOR).nonzero().squeeze(1)
+        weights = rows.index_select(0, alive)
+        dead = weights <= EXP_FLOOR
+        weights.clamp_(min=EXP_FLOOR).exp_().masked_fill_(dead, 0.0)
+        dense = torch.zeros_like(rows).index_copy_(0, alive, weights).view(-1, levels, cells)
+        torch.sum(dense, 1, out=p[s:s + step])
+    return p
+
+
 class SourceEstimator(_FusedLevels):
     """The team's Bayes posterior over the source cell on a ``grid``×``grid`` area (module docstring).
 
@@ -594,21 +613,7 @@ class SourceEstimator(_FusedLevels):
                 self._marginal(phys[s:e], scratch[:e - s], p[s:e])
             return self._normalise(p)
         else:
-            # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
-            # few readings about half of them have none); the others stay exact zeros, and the sum
-            # over the levels runs as over the whole tensor (the same rounding).
-            # A block of episodes at a time (BLOCK_BYTES).
-            k, levels, cells = log_post.shape
-            p = torch.empty((k, cells), device=log_post.device)
-            step = self.block(k)
-            for s in range(0, k, step):
-                rows = log_post[s:s + step].reshape(-1, cells)
-                alive = (rows.amax(1) > EXP_FLOOR).nonzero().squeeze(1)
-                weights = rows.index_select(0, alive)
-                dead = weights <= EXP_FLOOR
-                weights.clamp_(min=EXP_FLOOR).exp_().masked_fill_(dead, 0.0)
-                dense = torch.zeros_like(rows).index_copy_(0, alive, weights).view(-1, levels, cells)
-                torch.sum(dense, 1, out=p[s:s + step])
+            p = _levels_marginal(log_post, self.block(log_post.shape[0]))
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:
