@@ -1,5 +1,5 @@
 """``python -m medc_lab.cli.observation_probe --out DIR``: the observation probe
-(:mod:`medc_lab.probes.observation`): one MDRL-sparse run per (variant, architecture, seed), resumable;
+(:mod:`medc_lab.probes.observation_views`): one MDRL-sparse run per (variant, architecture, seed), resumable;
 the last line printed is JSON."""
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from pathlib import Path
 from medc_training.envs.names import DEFAULT_APPLICATION
 
 from ..catalogue import OTHER_APPS, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS
-from ..probes import observation
+from ..probes import observation_views
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m medc_lab.cli.observation_probe",
-                                description=observation.__doc__.splitlines()[0])
+                                description=observation_views.__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--variants", default="maps,maps+estimate,ego6,ego6+estimate")
     p.add_argument("--arch", default="mlp", help="comma-separated architectures")
@@ -59,8 +59,8 @@ def main(argv: list[str] | None = None) -> int:
                 jobs.append({"name": f"{name}/seed{seed}", "config": cfg,
                              "out": str(args.out / name / f"seed{seed}")})
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        results = list(pool.map(observation.run_one, jobs))
-    observation.plot_probe(args.out)
+        results = list(pool.map(observation_views.run_one, jobs))
+    observation_views.plot_probe(args.out)
     print(json.dumps({"probe": results}))
     return 0
 
