@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from medc_training.envs.bench import SCENARIOS, main
+from medc_training.cli.bench_env import SCENARIOS, main
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION
 
 TINY = ["--num-envs", "4", "--seconds", "0.1", "--rounds", "2", "--warmup-seconds", "0", "--steps", "3"]

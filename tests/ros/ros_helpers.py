@@ -31,7 +31,7 @@ def controller_reference_episodes(name: str, episodes: int, *, seed: int, agents
 
 
 def _play_traced(env, policy, episodes: int, seed: int):
-    from medc_training.evaluate import play
+    from medc_lab.window import play
 
     trace: list[tuple[int, int, list[int]]] = []
     clock = {"episode": 0, "step": 0}

@@ -9,7 +9,7 @@ import pytest
 @pytest.mark.ros
 @pytest.mark.parametrize("in_process", [True, False])
 def test_bench_measures_team_decision_latency(rclpy_context, bundles, in_process):
-    from medc_bringup.bench import run_graph
+    from medc_bringup.bench_ros import run_graph
 
     r = run_graph(3, bundles["a"], in_process=in_process, steps=30, warmup=5, grid=10, walls=1)
     assert r["steps"] >= 30 and r["deployment"] == ("in-process" if in_process else "processes")

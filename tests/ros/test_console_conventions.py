@@ -14,8 +14,7 @@ from medc_training.console import QUIET_HELP, HelpFormatter, progress_bar
 def _mains():
     from medc_bringup import demo, launcher, recorder
     from medc_lab.cli import reproduce
-    from medc_training import bench
-    from medc_training.cli import clone, inspect, train
+    from medc_training.cli import bench, clone, inspect, train
 
     return {"medc-train": train.main, "medc-clone": clone.main, "medc-reproduce": reproduce.main,
             "medc-inspect": inspect.main, "medc-launch": launcher.main, "medc-demo": demo.main,

@@ -224,7 +224,7 @@ def test_medc_launch_runs_a_controller_team_by_name(tmp_path):
 @pytest.mark.timing
 @pytest.mark.ros
 def test_bench_measures_a_controller_team(rclpy_context):
-    from medc_bringup.bench import run_graph
+    from medc_bringup.bench_ros import run_graph
 
     r = run_graph(3, "infotaxis", in_process=True, steps=20, warmup=5, grid=10, walls=1)
     assert r["steps"] >= 20 and 0 < r["latency_ms_p50"] <= r["latency_ms_p99"] and r["dropped"] == 0

@@ -253,6 +253,29 @@ def test_a_move_fault_is_logged_once_per_period_its_repeats_summed_up_then_ok():
     assert health.states["moves"] == (OK, "no duplicate or conflicting move for 10 s")
 
 
+
+def test_a_refused_move_is_reported_by_its_kind_and_a_conflicting_one_is_not_dropped():
+    from medc_sim.move_watch import MoveFaults
+    from medc_sim.moves import MoveBook, MoveRejected
+
+    health, log = _Health(), _Log()
+    faults = MoveFaults(health, log, lambda period, tick: None, _Clock())
+    book = MoveBook(3, 8)
+    book.open(0, 0)
+    book.offer("agent_1", 0, 0, 2, "me")
+    dropped = {}
+    offers = (("conflict", ("agent_1", 0, 0, 3, "me")), ("duplicate", ("agent_1", 0, 0, 2, "other")))
+    for kind, offer in offers:
+        try:
+            book.offer(*offer)
+        except MoveRejected as exc:
+            dropped[kind] = faults.refused("agent_1", exc)
+            assert health.states["moves"][0] == WARN and kind in health.states["moves"][1]
+    assert dropped == {"conflict": False, "duplicate": True}
+    assert faults.refused("agent_1", MoveRejected("a move of another graph")) is True
+    assert log.said("warning") == ["dropped move: a move of another graph"]
+    assert health.states["moves"] == (WARN, "foreign move: a move of another graph")
+
 def _step_watch(**kw):
     from medc_sim.move_watch import StepWatch
     from medc_sim.moves import MoveBook
@@ -399,3 +422,97 @@ def test_a_declaration_ends_the_episode_only_from_the_team_while_no_stranger_pub
     declarations.on_declaration(declaration())
     assert [r.episode for r in finished] == [0] and finished[0].ended_by == "declaration"
     assert health.states["declarations"] == (OK, "declaration of agent_0 taken") and declarations.taken == 1
+
+
+def test_policy_swaps_start_runs_the_first_policy_or_refuses_to_start():
+    from medc_agents.policy import PolicyRejected
+
+    swaps, log, _ = _swaps([])
+    with pytest.raises(PolicyRejected, match=r"policy 'notes\.txt' refused, not starting: notes\.txt is no"):
+        swaps.start("notes.txt")
+    assert swaps.slot.current is None and swaps.observer.observation is None
+    swaps.start("team.safetensors")
+    assert swaps.slot.current.description == "bundle team.safetensors"
+    assert swaps.observer.observation.name == "maps" and log.lines == []  # the node logs the start
+
+
+class _FailingSlot:
+    """A policy slot whose policy fails on a mask with no valid move and picks the first one else."""
+
+    controller = None
+
+    def act(self, obs, mask):
+        if not mask.any():
+            raise RuntimeError("no valid move")
+        return int(mask.nonzero()[0, 0])
+
+
+def test_the_decider_plays_the_policy_and_keeps_what_it_failed_on_for_the_resent_step():
+    from medc_agents.node import Decider, MoveOut
+    from medc_agents.team_episode import Tick
+
+    sent, log = [], _Log()
+    moves = MoveOut("agent_0", "me", sent.append, lambda: Time(sec=1))
+    decider = Decider(_FailingSlot(), None, moves, False, log)
+    t0, t1 = Tick(1, 0, 10, 1), Tick(1, 1, 11, 1)
+    assert decider.decide("obs", torch.tensor([False, False, True]), t0) == 2 and moves.unanswered is None
+    none = torch.zeros(3, dtype=torch.bool)
+    assert decider.decide("obs1", none, t1) is None
+    assert moves.unanswered == ("obs1", none, t1) and sent == []
+    assert log.said("error") == ["policy failed on episode 1 step 1: no valid move"]
+
+
+def test_map_faults_take_a_map_or_count_and_report_its_refusal():
+    from medc_agents.map_faults import MapFaults
+
+    o, health, dropped = TeamObserver("agent_0", 3, 10), _Health(), Counter()
+    faults = MapFaults(o, health, _Log(), dropped)
+    small = messages.grid_msg(torch.zeros((8, 8), dtype=torch.bool), Time(sec=2), 1.0)
+    assert faults.take(small) is False and dropped["map"] == 1
+    level, message = health.states["map"]
+    assert level == WARN and "map with map_load_time 2.000000000 refused" in message
+    good = messages.grid_msg(torch.zeros((10, 10), dtype=torch.bool), Time(sec=3), 1.0)
+    assert faults.take(good) is True and dropped["map"] == 1 and 3_000_000_000 in faults.checks
+
+
+class _Auth:
+    """Whether the team signs, and what it refused, as medc_common.auth_node's checker keeps them."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.refused: list[tuple[str, str]] = []
+
+    def refuse(self, kind: str, why: str) -> None:
+        self.refused.append((kind, why))
+
+
+def test_signed_inputs_hold_a_pose_until_its_signed_reading_vouches_for_it():
+    from medc_agents.signed_inputs import SignedInputs
+    from medc_common.auth_node import message_digest
+    from medc_common.contract import GridGeometry
+
+    geometry = GridGeometry(10, 10, 1.0)
+    pose = messages.pose_msg((1, 2), Time(sec=5), geometry)
+    plain = SignedInputs(_Auth(False))
+    assert plain.pose("agent_1", pose) is pose and plain.pose_of("agent_1", messages.reading_msg(
+        "agent_1", 1.0, 0.0, Time(sec=5))) is None
+    signed = SignedInputs(_Auth(True))
+    assert signed.pose("agent_1", pose) is None  # held
+    reading = messages.reading_msg("agent_1", 1.0, 0.0, Time(sec=5))
+    reading.pose_digest = list(message_digest(pose))
+    assert signed.pose_of("agent_1", reading) is pose
+    other = messages.pose_msg((3, 3), Time(sec=5), geometry)  # another pose for the vouched stamp
+    assert signed.pose("agent_1", other) is None
+    assert signed.auth.refused and signed.auth.refused[0][0] == "pose"
+
+
+def test_a_pose_off_every_map_has_each_maps_reason():
+    from medc_agents.team_messages import pose_refusals
+    from medc_common.contract import GridGeometry
+
+    here, far = GridGeometry(10, 10, 1.0), GridGeometry(10, 10, 1.0, origin_x=500.0)
+    assert pose_refusals((2.5, 3.5), [far, here], 0.5) is None
+    assert pose_refusals((2.5, 3.5), [], 0.5) == []
+    refusals = pose_refusals((-3.0, 3.5), [here, far], 0.5)
+    assert len(refusals) == 2 and all(isinstance(r, ValueError) for r in refusals)
+    assert pose_refusals((-0.4, 3.5), [here], 0.5) is None  # within the edge tolerance

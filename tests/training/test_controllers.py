@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from medc_lab.window import play
 from medc_training.cli.play_controllers import main
 from medc_training.controllers import (
     CONTROLLERS,
@@ -21,7 +22,6 @@ from medc_training.controllers import (
 from medc_training.envs import make_batched
 from medc_training.envs.grid import ACTION_NAMES, action_deltas, move_mask, pad_blocked
 from medc_training.envs.tl_sensing import SENSING_PRESETS, update_memory
-from medc_training.evaluate import play
 
 SMALL = dict(agents=2, walls=1, grid=9, max_steps=30)
 

@@ -1,5 +1,5 @@
-"""A fourth application is one core and one descriptor: medc-train's config, the bundle manifest,
-the report and the plan take it without a change of theirs."""
+"""A fourth application is one core and one descriptor: medc-train (its config and a short run),
+the bundle manifest, the report and the plan take it without a change of theirs."""
 
 from __future__ import annotations
 
@@ -173,3 +173,25 @@ def test_the_report_and_the_plan_take_a_new_application(toy, tmp_path):
     assert plan._expert_job(**again, grid=7) is not None
     assert "experts/beacon-A2 | mlp | dagger 64" in expert_table(models)
     assert Path(job["bundle_to"]).name == "beacon-A2.safetensors"
+
+
+def test_medc_train_trains_it_and_the_report_reads_the_run(toy, tmp_path):
+    from medc_lab.report.finder import load_curves
+    from medc_lab.report.reference_play import random_play
+    from medc_training.cli.train import main as train_main
+
+    out = tmp_path / "runs" / "beacon" / "seed0"
+    assert train_main(["--env", TOY, "--agents", "2", "--grid", "6", "--max-steps", "12",
+                       "--observation", "ego2", "--num-envs", "4", "--horizon", "32", "--epochs", "1",
+                       "--eval-every", "64", "--eval-episodes", "4", "--eval-envs", "4", "--arch", "mlp",
+                       "--steps", "128", "--no-tensorboard", "--quiet", "--out", str(out)]) == 0
+    bundle = load_bundle(out / "policy.safetensors")  # the manifest check
+    assert bundle.manifest["application"] == TOY and bundle.observation == "ego2"
+    assert bundle.manifest["observation"]["channel_names"] == ["off_grid", "team_locations", "beacon"]
+    steps, curves, summaries = load_curves(tmp_path, "beacon")
+    assert steps and len(curves) == 1 and len(curves[0]) == len(steps)
+    assert all(1 <= length <= 12 for length in curves[0])
+    assert summaries[0]["config"]["env"] == TOY
+    reference = random_play(tmp_path, summaries[0]["config"])
+    assert 1 <= reference["episode_length"] <= 12 and 0 <= reference["success_rate"] <= 1
+    assert (tmp_path / "random_play.json").exists()

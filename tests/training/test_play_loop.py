@@ -1,6 +1,7 @@
-"""The play loops (medc_training.evaluate): play_episodes' fixed episodes, each played to its end;
-play's two stopping rules and its samplers; and that the legacy window evaluation and random
-baseline still reproduce the committed numbers."""
+"""The play loops: the product's one evaluator, play_episodes' fixed episodes, each played to its
+end (medc_training.evaluate); the harness's legacy window (medc_lab.window), its two stopping rules
+and the samplers; and that the window evaluation and random baseline still reproduce the
+committed numbers."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 
 import pytest
 import torch
+from medc_lab.window import play
 from medc_training.bundle import load_bundle
 from medc_training.config import TrainConfig
 from medc_training.envs import make_batched
@@ -18,7 +20,6 @@ from medc_training.evaluate import (
     env_for_bundle,
     evaluate_policy,
     net_policy,
-    play,
     play_episodes,
     round_seed,
 )
@@ -50,6 +51,20 @@ def test_committed_runs_read_as_window_evaluated():
     assert TrainConfig.from_dict({"seed": 1}).eval_episodes == 0
     assert TrainConfig.from_dict({"eval_episodes": 32}).eval_episodes == 32
     assert TrainConfig().eval_episodes > 0  # new configs evaluate on fixed episodes
+
+
+def test_the_product_evaluates_a_window_run_only_through_the_harness(repo_root, monkeypatch):
+    """Without the harness's window registered, a run with eval_episodes 0 is refused with the way
+    out; registered, its evaluation is the window's."""
+    import medc_training.evaluate as evaluate
+    from medc_lab.window import evaluate_window
+
+    assert evaluate.registered_evaluator("window") is evaluate_window
+    cfg, _ = _committed_run(repo_root, "runs/A3W2-sparse/seed0")
+    trainer = Trainer(cfg)
+    monkeypatch.setattr(evaluate, "_REGISTERED", {})
+    with pytest.raises(RuntimeError, match=r"the research harness keeps \(import medc_lab\.window"):
+        trainer.evaluate()
 
 
 def test_random_play_reproduces_the_committed_random_baseline(repo_root, tmp_path):

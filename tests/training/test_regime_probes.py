@@ -6,7 +6,7 @@ import json
 
 import pytest
 from medc_lab.cli import regimes as regimes_cli
-from medc_lab.studies import regimes as rp
+from medc_lab.studies import regime_probes as rp
 
 
 def test_regime_names_round_trip_and_bad_ones_are_refused():

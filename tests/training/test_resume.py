@@ -59,7 +59,8 @@ def test_resume_rejects_a_different_run(tmp_path):
 
 def test_resume_rejects_another_evaluator(tmp_path):
     """One run's learning curve never mixes two evaluators; a checkpoint written before
-    eval_episodes existed counts as the legacy window."""
+    eval_episodes existed counts as the legacy window (the harness's evaluator)."""
+    import medc_lab.window  # noqa: F401  (registers the window evaluator)
     from medc_training.bundle import save_state
 
     cfg = TrainConfig(total_steps=64, **TINY)

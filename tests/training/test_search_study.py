@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from medc_lab.studies import realistic as study
+from medc_lab.studies import realistic_search as study
 
 
 def _write(out: Path, scenario: str, policy: str, lengths: list[int]) -> None:

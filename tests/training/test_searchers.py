@@ -10,11 +10,11 @@ import math
 
 import pytest
 import torch
+from medc_lab.window import play
 from medc_training.controllers import SEARCHERS, controller_policy
 from medc_training.envs import make_batched
 from medc_training.envs.grid import action_deltas
 from medc_training.envs.tl_sensing import parse_sensing
-from medc_training.evaluate import play
 from medc_training.radbench import load_sets, play_set
 from medc_training.searchers import Belief, expected_criterion, searcher_scores
 

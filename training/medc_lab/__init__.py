@@ -9,7 +9,11 @@ It imports :mod:`medc_training` (the product) and is never imported by it (tests
 - :mod:`.reproduction`: a reproduction's phases run in order (``medc-reproduce``).
 - :mod:`.report`: report.md, generated from the same figures (find runs, play references, judge,
   render), with the claims sweep's section and the analysis after the protocol.
-- :mod:`.plots`: the report's figures.
+- :mod:`.report_plots`: the report's figures.
 - :mod:`.studies`: the regime probes, the realistic-search study and the declaration calibration.
+- :mod:`.window`: the legacy window evaluator of the committed reproduction's runs, registered
+  with the product's evaluation on import.
 - :mod:`.cli`: the harness's entry points.
 """
+
+from . import window  # noqa: F401  (registers the legacy window evaluator)

@@ -92,7 +92,7 @@ class Plan:
 
     def planned(self, run: Run) -> bool:
         """Whether ``run`` is in this plan's scope (its application, its number of walls)."""
-        if run.env != DEFAULT_APPLICATION:
+        if run.env in OTHER_APPS:
             return run.env in self.apps
         return self.scope.walls is None or run.walls in self.scope.walls
 
@@ -118,7 +118,7 @@ class Plan:
     def run_config(self, run: Run, seed: int, steps: int) -> dict:
         """The TrainConfig (as a dict) of one seed of ``run`` with ``steps`` training steps, the
         run's own ``options`` over the scale's (a field the config does not have is refused)."""
-        if run.env == DEFAULT_APPLICATION:
+        if run.env not in OTHER_APPS:
             cfg = self.cfg(env=run.env, agents=run.agents, walls=run.walls, method=run.method,
                            total_steps=steps, seed=seed)
         else:

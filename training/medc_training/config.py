@@ -103,10 +103,10 @@ class RunConfig(EnvironmentConfig):
     (success or max_steps) by medc_training.evaluate.play_episodes, split over eval_envs
     environments (ceil(eval_episodes / eval_envs) rounds). Every evaluation of a run, and every
     method with the same seed, plays the same episodes, and none is left out for being long.
-    TrainConfig only, 0: the legacy *window* (the paper's protocol, which made the committed
-    reproduction): eval_steps test steps and the mean length of the episodes that finished inside
-    them, which leans short (an episode longer than eval_steps / eval_envs is never counted). A
-    TrainConfig recorded before this field existed means 0 (see TrainConfig.from_dict)."""
+    TrainConfig only, 0: the legacy *window* of the committed reproduction, which the research
+    harness keeps (medc_lab.window): eval_steps test steps and the mean length of the episodes
+    that finished inside them, which leans short. A TrainConfig recorded before this field
+    existed means 0 (see TrainConfig.from_dict)."""
     eval_envs: int = 16
     """Environments for evaluation."""
     eval_greedy: bool = True
@@ -165,7 +165,7 @@ class RunConfig(EnvironmentConfig):
 
 
 #: The evaluator every run recorded before ``eval_episodes`` existed used (and the committed
-#: reproduction keeps using, see medc_lab.plan): the window of eval_steps.
+#: reproduction keeps using, see medc_lab.plan): the window of eval_steps (medc_lab.window).
 LEGACY_EVAL = {"eval_episodes": 0}
 
 

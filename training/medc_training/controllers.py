@@ -8,8 +8,8 @@ float32 [B,N,8] (actions in :data:`~medc_training.envs.grid.ACTIONS` order, -inf
 invalid); the highest score is the controller's move. The functions take tensors only, so the
 batched core, the PettingZoo env and a ROS agent node can call them on their own copy of the team
 memory. :func:`controller_policy` wraps one as an evaluator :data:`~medc_training.evaluate.Policy`
-on a batched core, so a controller plays through :func:`~medc_training.evaluate.play` wherever a
-trained bundle does; ``medc-controllers`` evaluates them from the command line.
+on a batched core, so a controller plays through :func:`~medc_training.evaluate.play_episodes`
+wherever a trained bundle does; ``medc-controllers`` evaluates them from the command line.
 
 Every controller breaks ties deterministically (the same state always gives the same move): among
 the moves whose main criterion is within a small tolerance of the best, the one onto the cell the

@@ -1,22 +1,16 @@
 """Evaluation: a policy (or uniformly random valid moves) plays a batched environment.
 
-Two play loops share one move chooser:
+:func:`play_episodes` plays a *fixed* set of seeded episodes, each to its end (success or the
+step limit), and returns them in episode order: episode ``i`` is the same for every policy
+played from the same seed, and no episode is left out for being long. It is the product's one
+evaluator: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`), DAgger's
+evaluations, the demo's expert reviews and random floor, and :mod:`medc_training.cli.play_bundle`,
+which checks shipped bundles against a random team, e.g.::
 
-- :func:`play_episodes` plays a *fixed* set of seeded episodes, each to its end (success or the
-  step limit), and returns them in episode order: episode ``i`` is the same for every policy
-  played from the same seed, and no episode is left out for being long. Every evaluation in the
-  project plays through it: the training evaluation (:meth:`medc_training.ppo.Trainer.evaluate`)
-  and the reproduction's random baseline (unless a config asks for the legacy window), DAgger's
-  evaluations, the demo's expert reviews and random floor, and :mod:`medc_training.cli.play_bundle`,
-  which checks shipped bundles against a random team, e.g.::
+    python -m medc_training.cli.play_bundle models/team/A3W2.safetensors --episodes 512
 
-      python -m medc_training.cli.play_bundle models/team/A3W2.safetensors --episodes 512
-
-- :func:`play` plays a number of batched steps, or until a number of episodes finished, and
-  keeps the episodes that finished, in the order they finished, optionally showing every step to
-  a callback (a trace). Kept for traces and for the legacy *window* evaluator
-  (``TrainConfig.eval_episodes = 0``) that made the committed reproduction: it counts only the
-  episodes that finish inside the window, so it leans short.
+A run recorded with ``eval_episodes`` 0 was evaluated on the legacy window; the research harness
+keeps that evaluator (``medc_lab.window``) and registers it here (:func:`register_evaluator`).
 """
 
 from __future__ import annotations
@@ -28,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .envs import StepOutput, make_batched
+from .envs import make_batched
 from .nets import masked_logits
 from .stats import mean_ci
 
@@ -42,6 +36,24 @@ Policy = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 #: with uniform noise on the environment's device, no transfer to the host) is the training
 #: evaluation's. Keeping both keeps every committed number reproducible.
 SAMPLINGS: tuple[str, ...] = ("multinomial", "gumbel")
+
+
+#: Evaluators kept outside the product, by name, as their package registers them.
+_REGISTERED: dict[str, Callable[..., dict]] = {}
+
+
+def register_evaluator(name: str, evaluate: Callable[..., dict]) -> None:
+    """Make ``evaluate(env, policy, cfg, seed) -> summary`` the evaluator ``name``."""
+    _REGISTERED[name] = evaluate
+
+
+def registered_evaluator(name: str) -> Callable[..., dict]:
+    """The evaluator ``name`` (RuntimeError when no package registered it)."""
+    if name not in _REGISTERED:
+        raise RuntimeError(f"no {name!r} evaluator here: a config with eval_episodes 0 is evaluated on "
+                           "the legacy window, which the research harness keeps (import medc_lab.window, as "
+                           "medc-reproduce does); evaluate new runs on fixed episodes (eval_episodes >= 1)")
+    return _REGISTERED[name]
 
 
 def summarize_episodes(lengths: Sequence[float], successes: Sequence[float], returns: Sequence[float],
@@ -59,8 +71,8 @@ def summarize_episodes(lengths: Sequence[float], successes: Sequence[float], ret
 
 @dataclass(frozen=True)
 class PlayResult:
-    """Played episodes: :func:`play_episodes`' in episode order, :func:`play`'s in the order they
-    finished."""
+    """Played episodes: :func:`play_episodes`' in episode order (the legacy window's in the order
+    they finished)."""
 
     lengths: tuple[int, ...]
     successes: tuple[bool, ...]
@@ -97,7 +109,8 @@ def _check_sampling(sampling: str) -> None:
 
 def _choose(env, policy: Policy | None, obs: torch.Tensor, mask: torch.Tensor, greedy: bool, sampling: str,
             gen: torch.Generator) -> torch.Tensor:
-    """int64 [B, N]: every agent's move, on ``env.device`` (see :func:`play` for the rules)."""
+    """int64 [B, N]: every agent's move, on ``env.device``: random valid moves without a policy,
+    else its most probable valid move (``greedy``) or one drawn by ``sampling``."""
     B, N, A = env.num_envs, env.num_agents, env.num_actions
     device = gen.device
     flat_mask = mask.reshape(B * N, A)
@@ -124,7 +137,7 @@ def _generator(env, seed: int, sampling: str) -> torch.Generator:
 
 def round_seed(seed: int, round_index: int) -> int:
     """The reset seed of round ``round_index`` of :func:`play_episodes` from ``seed``: ``seed``
-    itself for round 0 (the episodes :func:`play` starts with), then a seed drawn from
+    itself for round 0 (the episodes the legacy window starts with), then a seed drawn from
     numpy's SeedSequence of (seed, round), in 0..2**63-1."""
     if round_index == 0:
         return seed
@@ -185,53 +198,6 @@ def play_episodes(env, policy: Policy | None = None, *, episodes: int, seed: int
         successes.extend(success[:wanted].tolist())
         returns.extend(ret[:wanted].tolist())
     return PlayResult(tuple(lengths), tuple(successes), tuple(returns))
-
-
-@torch.no_grad()
-def play(env, policy: Policy | None = None, *, episodes: int | None = None, steps: int | None = None,
-         greedy: bool = True, seed: int = 12345, sampling: str = "multinomial",
-         max_batched_steps: int = 100_000, on_step: Callable[[torch.Tensor, StepOutput], None] | None = None
-         ) -> PlayResult:
-    """Reset ``env`` from ``seed`` and let ``policy`` play every agent of every environment.
-
-    Give exactly one of ``episodes`` (play until that many episodes finished, at most
-    ``max_batched_steps`` batched steps, and keep the first ``episodes`` of them) or ``steps``
-    (play exactly that many batched steps and keep every episode that finished). Either way the
-    episodes kept are those that finished first, which leans short: evaluations use
-    :func:`play_episodes`. ``policy`` None plays uniformly random valid moves (always sampled);
-    otherwise ``greedy`` takes the most probable valid move and ``greedy=False`` samples one
-    (``sampling``: see :data:`SAMPLINGS`). ``on_step(actions [B,N], out)``, if given, sees every
-    step (e.g. to record a trace).
-    """
-    if (episodes is None) == (steps is None):
-        raise ValueError("play needs exactly one of episodes= (finished episodes) or steps= (batched steps)")
-    for name, value in (("episodes", episodes), ("steps", steps), ("max_batched_steps", max_batched_steps)):
-        _check_positive(name, value)
-    _check_sampling(sampling)
-    gen = _generator(env, seed, sampling)
-    obs, mask = env.reset(seed=seed)
-    ret = torch.zeros(env.num_envs, device=env.device)
-    lengths: list[int] = []
-    successes: list[bool] = []
-    returns: list[float] = []
-    for _ in range(steps if steps is not None else max_batched_steps):
-        actions = _choose(env, policy, obs, mask, greedy, sampling, gen)
-        out = env.step(actions)
-        if on_step is not None:
-            on_step(actions, out)
-        ret += out.reward.to(env.device).float()
-        done = out.terminated | out.truncated
-        if done.any():
-            idx = done.nonzero(as_tuple=True)[0]
-            lengths.extend(out.episode_length[idx].tolist())
-            successes.extend(out.success[idx].tolist())
-            returns.extend(ret[idx].tolist())
-            ret[idx] = 0.0
-        obs, mask = out.obs, out.mask
-        if episodes is not None and len(lengths) >= episodes:
-            break
-    keep = len(lengths) if episodes is None else episodes
-    return PlayResult(tuple(lengths[:keep]), tuple(successes[:keep]), tuple(returns[:keep]))
 
 
 def evaluate_policy(env, policy=None, episodes: int = 256, greedy: bool = True, seed: int = 12345,

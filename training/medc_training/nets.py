@@ -345,22 +345,28 @@ def _propagate(spec: Mapping[str, Any], enforce: bool = True
         operations += read + written
         peak = max(peak, 4 * (read + written))
         if enforce:
-            if total > MAX_PARAMETERS:
-                raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
-            if math.prod(shape) > MAX_ACTIVATIONS:
-                raise SpecError(f"{where}: its output of {math.prod(shape):,} values per observation "
-                                f"exceeds {MAX_ACTIVATIONS:,}")
-            if peak > MAX_ACTIVATION_BYTES:
-                raise SpecError(f"{where}: holds {peak:,} bytes of activations for one observation, over "
-                                f"the {MAX_ACTIVATION_BYTES:,} byte limit (a memory bomb, or far larger "
-                                "than any MEDC policy)")
-            if operations > MAX_OPERATIONS:
-                raise SpecError(f"{where}: layers 0..{i} already cost {operations:,} operations per "
-                                f"observation, over the {MAX_OPERATIONS:,} limit (a compute bomb, or "
-                                "far larger than any MEDC policy)")
+            _check_caps(where, i, shape, ArchitectureCost(operations, peak, total))
     if not layers or layers[-1]["type"] != "heads":
         raise SpecError("architecture spec: the last layer must be {'type': 'heads', 'num_actions': A}")
     return tensors, ArchitectureCost(operations, peak, total)
+
+
+def _check_caps(where: str, i: int, shape: tuple[int, ...], cost: ArchitectureCost) -> None:
+    """SpecError when layers 0..``i`` (the last one ``where``, its output ``shape``) cost more than
+    a spec may: parameters, activations, activation bytes or operations."""
+    if cost.parameters > MAX_PARAMETERS:
+        raise SpecError(f"{where}: the network exceeds {MAX_PARAMETERS:,} parameters")
+    if math.prod(shape) > MAX_ACTIVATIONS:
+        raise SpecError(f"{where}: its output of {math.prod(shape):,} values per observation "
+                        f"exceeds {MAX_ACTIVATIONS:,}")
+    if cost.peak_activation_bytes > MAX_ACTIVATION_BYTES:
+        raise SpecError(f"{where}: holds {cost.peak_activation_bytes:,} bytes of activations for one "
+                        f"observation, over the {MAX_ACTIVATION_BYTES:,} byte limit (a memory bomb, or far "
+                        "larger than any MEDC policy)")
+    if cost.operations > MAX_OPERATIONS:
+        raise SpecError(f"{where}: layers 0..{i} already cost {cost.operations:,} operations per "
+                        f"observation, over the {MAX_OPERATIONS:,} limit (a compute bomb, or "
+                        "far larger than any MEDC policy)")
 
 
 def _lenet5(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:

@@ -4,8 +4,8 @@ Read top to bottom: :meth:`Trainer.collect` fills a rollout of ``horizon`` train
 (each agent acts on its own observation with the one shared actor-critic; the team reward
 is every agent's reward), :meth:`Trainer.update` runs ``epochs`` passes of clipped PPO over
 it, :meth:`Trainer.evaluate` plays ``eval_episodes`` fixed episodes to their ends
-(:func:`medc_training.evaluate.play_episodes`; or the legacy window of ``eval_steps`` test steps,
-:func:`medc_training.evaluate.play`). The methods differ only in:
+(:func:`medc_training.evaluate.play_episodes`; or, for a run with ``eval_episodes`` 0, the legacy
+window the research harness keeps). The methods differ only in:
 
 - ``sparse``: nothing extra (MDRL-sparse).
 - ``rs``: the environment is built with ``reward_shaping=True`` (BFS-shaped reward).
@@ -27,7 +27,7 @@ import torch
 
 from .buffer import RolloutBuffer
 from .config import TrainConfig
-from .evaluate import net_policy, play, play_episodes, summarize_episodes
+from .evaluate import net_policy, play_episodes, registered_evaluator, summarize_episodes
 from .experts import Expert
 from .losses import approx_kl, bc_loss, masked_mean, ppo_policy_loss, value_loss
 from .medc import expert_episode_draw, expert_scores_for, follow_expert, roulette_wheel
@@ -73,6 +73,61 @@ class EpisodeStats:
         return summarize_episodes(self.lengths, self.successes, self.returns, default_length)
 
 
+def expert_slices(experts: Sequence[Expert], weights, cfg: TrainConfig) -> torch.Tensor | None:
+    """R_S as float32 [num experts]: ``weights`` normalised, or (None) the QoS rule's from the
+    experts' environment attributes; None without experts or weights."""
+    if weights is None:
+        if not experts:
+            return None
+        weights = expert_weights_from_attributes([e.attributes for e in experts], cfg.env_attributes())
+    else:
+        if isinstance(weights, torch.Tensor):
+            weights = weights.detach().cpu().tolist()
+        weights = normalised_weights(weights, len(experts))
+        if not weights:
+            return None
+    return torch.tensor(weights, dtype=torch.float64).float()
+
+
+def minibatch_loss(net, mb: dict, cfg: TrainConfig, device: torch.device) -> tuple:
+    """(loss, (policy, value, entropy, BC losses), log ratios, RL-sample mask) of one minibatch:
+    clipped PPO with value and entropy terms on the RL samples, behavioural cloning on IL's."""
+    logits, new_value = net(mb["obs"])
+    logits = masked_logits(logits, mb["masks"])
+    logp_all = torch.log_softmax(logits, dim=-1)
+    new_logprob = logp_all.gather(-1, mb["actions"].unsqueeze(-1)).squeeze(-1)
+    entropy = -(logp_all.exp() * logp_all).sum(-1)
+    rl = ~mb["bc"]
+    adv = mb["advantages"]
+    if cfg.norm_adv and rl.sum() > 1:
+        sel = adv[rl]
+        adv = (adv - sel.mean()) / (sel.std() + 1e-8)
+    pg, log_ratio = ppo_policy_loss(new_logprob, mb["logprobs"], adv, cfg.clip)
+    pg_loss = masked_mean(pg, rl)
+    v_loss = masked_mean(value_loss(new_value, mb["returns"]), rl)
+    ent = masked_mean(entropy, rl)
+    loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
+    b_loss = torch.zeros((), device=device)
+    if mb["bc"].any():
+        b_loss = masked_mean(bc_loss(logits, mb["actions"]), mb["bc"])
+        loss = loss + cfg.bc_coef * b_loss
+    return loss, (pg_loss, v_loss, ent, b_loss), log_ratio, rl
+
+
+@torch.no_grad()
+def explained_variance(buffer: RolloutBuffer) -> float:
+    """1 - Var(returns - values) / Var(returns) over the rollout's RL samples (CleanRL's
+    ``losses/explained_variance``; NaN when the returns do not vary)."""
+    rl = ~buffer.bc
+    y_true, y_pred = buffer.returns[rl].double(), buffer.values[rl].double()
+    if y_true.numel() < 2:
+        return float("nan")
+    var_y = y_true.var(unbiased=False)
+    if float(var_y) == 0.0:
+        return float("nan")
+    return float(1.0 - (y_true - y_pred).var(unbiased=False) / var_y)
+
+
 class Trainer:
     """One learner: environment, shared actor-critic, optimiser, experts, counters.
 
@@ -110,7 +165,7 @@ class Trainer:
             expert.check_compatible(self.obs_shape, self.A,
                                     observation=getattr(self.env, "observation_name", None))
             expert.bind(self.env)
-        self.expert_weights = self._expert_weights(expert_weights, cfg)
+        self.expert_weights = expert_slices(self.experts, expert_weights, cfg)
         self.buffer = RolloutBuffer(cfg.rollout_len, self.B, self.N, self.obs_shape, self.A, self.device)
         self.global_step = 0
         self.updates = 0
@@ -120,21 +175,6 @@ class Trainer:
         self._last_step_mark = 0
         self._ep_return = torch.zeros(self.B, device=self.device)
         self.reset_envs(cfg.seed)
-
-    def _expert_weights(self, weights, cfg: TrainConfig) -> torch.Tensor | None:
-        """R_S as float32 [num experts]: the given weights normalised, or the QoS rule's."""
-        if weights is None:
-            if not self.experts:
-                return None
-            weights = expert_weights_from_attributes([e.attributes for e in self.experts],
-                                                     cfg.env_attributes())
-        else:
-            if isinstance(weights, torch.Tensor):
-                weights = weights.detach().cpu().tolist()
-            weights = normalised_weights(weights, len(self.experts))
-            if not weights:
-                return None
-        return torch.tensor(weights, dtype=torch.float64).float()
 
     # ----------------------------------------------------------------- rollout -----
     def reset_envs(self, seed: int | None) -> None:
@@ -239,25 +279,8 @@ class Trainer:
         count = 0
         for _ in range(cfg.epochs):
             for mb in self.buffer.minibatches(cfg.minibatches, self.generator):
-                logits, new_value = self.net(mb["obs"])
-                logits = masked_logits(logits, mb["masks"])
-                logp_all = torch.log_softmax(logits, dim=-1)
-                new_logprob = logp_all.gather(-1, mb["actions"].unsqueeze(-1)).squeeze(-1)
-                entropy = -(logp_all.exp() * logp_all).sum(-1)
-                rl = ~mb["bc"]
-                adv = mb["advantages"]
-                if cfg.norm_adv and rl.sum() > 1:
-                    sel = adv[rl]
-                    adv = (adv - sel.mean()) / (sel.std() + 1e-8)
-                pg, log_ratio = ppo_policy_loss(new_logprob, mb["logprobs"], adv, cfg.clip)
-                pg_loss = masked_mean(pg, rl)
-                v_loss = masked_mean(value_loss(new_value, mb["returns"]), rl)
-                ent = masked_mean(entropy, rl)
-                loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * v_loss
-                b_loss = torch.zeros((), device=self.device)
-                if mb["bc"].any():
-                    b_loss = masked_mean(bc_loss(logits, mb["actions"]), mb["bc"])
-                    loss = loss + cfg.bc_coef * b_loss
+                loss, losses, log_ratio, rl = minibatch_loss(self.net, mb, cfg, self.device)
+                pg_loss, v_loss, ent, b_loss = losses
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(self.net.parameters(), cfg.max_grad_norm)
@@ -275,31 +298,16 @@ class Trainer:
         out["learning_rate"] = float(self.optimizer.param_groups[0]["lr"])
         return out
 
-    @torch.no_grad()
     def explained_variance(self) -> float:
-        """1 - Var(returns - values) / Var(returns) over the rollout's RL samples (CleanRL's
-        ``losses/explained_variance``; NaN when the returns do not vary)."""
-        rl = ~self.buffer.bc
-        y_true, y_pred = self.buffer.returns[rl].double(), self.buffer.values[rl].double()
-        if y_true.numel() < 2:
-            return float("nan")
-        var_y = y_true.var(unbiased=False)
-        if float(var_y) == 0.0:
-            return float("nan")
-        return float(1.0 - (y_true - y_pred).var(unbiased=False) / var_y)
+        """The rollout's explained variance (:func:`explained_variance`)."""
+        return explained_variance(self.buffer)
 
     # -------------------------------------------------------------- evaluation -----
     @torch.no_grad()
     def evaluate(self, seed: int | None = None) -> dict:
-        """Test play, greedy (or sampled when ``cfg.eval_greedy`` is False): the summary of
-        ``cfg.eval_episodes`` fixed episodes, each played to its end
-        (:func:`medc_training.evaluate.play_episodes`); with ``eval_episodes`` 0, the legacy
-        window: ``eval_steps`` training steps and the mean length of the episodes that finished
-        inside them (``max_steps`` when none did).
-
-        The evaluation environments restart from the same seed every time, so successive
-        evaluations (and different methods with the same seed) face the same episodes.
-        """
+        """Test play (greedy, or sampled without ``cfg.eval_greedy``): the summary of
+        ``cfg.eval_episodes`` fixed episodes from the evaluation seed, the same every time
+        (:func:`medc_training.evaluate.play_episodes`); ``eval_episodes`` 0: the harness's window."""
         env, cfg = self.eval_env, self.cfg
         seed = self.eval_seed if seed is None else seed
         # Sampled evaluation draws from its own generator (Gumbel-max on the device), restarted from
@@ -308,9 +316,7 @@ class Trainer:
         if cfg.eval_episodes:
             return play_episodes(env, policy, episodes=cfg.eval_episodes, greedy=cfg.eval_greedy, seed=seed,
                                  sampling="gumbel").summary()
-        played = play(env, policy, steps=max(1, cfg.eval_steps // env.num_envs),
-                      greedy=cfg.eval_greedy, seed=seed, sampling="gumbel")
-        return played.summary(cfg.max_steps)
+        return registered_evaluator("window")(env, policy, cfg, seed)
 
     # -------------------------------------------------------------- the loop API ---
     def train_update(self) -> dict:
@@ -344,12 +350,9 @@ class Trainer:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`; the environments restart with fresh episodes.
-
-        The batched environments' internal state is not checkpointed: resuming starts new
-        episodes from a seed derived from the update count, so the run continues from the
-        same step with the same weights and optimiser, not bit-for-bit the same episodes.
-        """
+        """Restore :meth:`state_dict`. The environments are not checkpointed: they restart with
+        fresh episodes from a seed derived from the update count (same step, weights and
+        optimiser; not bit for bit the same episodes)."""
         self.net.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.generator.set_state(state["generator"])

@@ -27,6 +27,6 @@ setup(
             "medc-record = medc_bringup.recorder:main",
             "medc-gas-report = medc_bringup.gas:main",
         ],
-        "medc_bench": ["ros = medc_bringup.bench:main"],
+        "medc_bench": ["ros = medc_bringup.bench_ros:main"],
     },
 )

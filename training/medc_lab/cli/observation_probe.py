@@ -1,5 +1,5 @@
 """``python -m medc_lab.cli.observation_probe --out DIR``: the observation probe
-(:mod:`medc_lab.probes.observation`): one MDRL-sparse run per (variant, architecture, seed), resumable;
+(:mod:`medc_lab.probes.observation_views`): one MDRL-sparse run per (variant, architecture, seed), resumable;
 the last line printed is JSON."""
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from pathlib import Path
 from medc_training.envs.names import DEFAULT_APPLICATION
 
 from ..catalogue import OTHER_APPS, OTHER_EVAL, OTHER_GRID, OTHER_MAX_STEPS
-from ..probes import observation
+from ..probes import observation_views
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m medc_lab.cli.observation_probe",
-                                description=observation.__doc__.splitlines()[0])
+                                description=observation_views.__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--variants", default="maps,maps+estimate,ego6,ego6+estimate")
     p.add_argument("--arch", default="mlp", help="comma-separated architectures")
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
             for seed in (int(s) for s in args.seeds.split(",")):
                 cfg = {"agents": args.agents, "walls": args.walls, "observation": variant, "arch": arch,
                        "total_steps": args.steps, "seed": seed, "method": "sparse"}
-                if args.env != DEFAULT_APPLICATION:
+                if args.env in OTHER_APPS:
                     cfg = {**cfg, **OTHER_EVAL, "env": args.env, "walls": 0, "grid": OTHER_GRID,
                            "max_steps": OTHER_MAX_STEPS,
                            "env_options": {**OTHER_APPS[args.env]["target"], "observation": variant}}
@@ -54,13 +54,13 @@ def main(argv: list[str] | None = None) -> int:
                     cfg["max_steps"] = args.max_steps
                 if args.noise:
                     cfg["env_options"] = {**cfg.get("env_options", {}), "noise": True}
-                short = "" if args.env == DEFAULT_APPLICATION else args.env.split("_")[0] + "-"
+                short = OTHER_APPS[args.env]["short"] + "-" if args.env in OTHER_APPS else ""
                 name = f"{short}{variant}-{arch}" + ("-noise" if args.noise else "")
                 jobs.append({"name": f"{name}/seed{seed}", "config": cfg,
                              "out": str(args.out / name / f"seed{seed}")})
     with ProcessPoolExecutor(max_workers=max(1, args.workers)) as pool:
-        results = list(pool.map(observation.run_one, jobs))
-    observation.plot_probe(args.out)
+        results = list(pool.map(observation_views.run_one, jobs))
+    observation_views.plot_probe(args.out)
     print(json.dumps({"probe": results}))
     return 0
 

@@ -1,5 +1,5 @@
 """``python -m medc_lab.cli.realistic evaluate|report``: the realistic-search study
-(:mod:`medc_lab.studies.realistic`): ``evaluate`` plays what is missing (finished scenarios and
+(:mod:`medc_lab.studies.realistic_search`): ``evaluate`` plays what is missing (finished scenarios and
 policies are skipped, so it resumes), ``report`` writes the table and the figure."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from ..studies.realistic import evaluate, report
+from ..studies.realistic_search import evaluate, report
 
 
 def main(argv: list[str] | None = None) -> int:

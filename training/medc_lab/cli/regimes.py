@@ -1,5 +1,5 @@
 """``python -m medc_lab.cli.regimes play|report``: the claims protocol's regime probes
-(:mod:`medc_lab.studies.regimes`): ``play`` plays what is missing (one JSON per regime and policy under
+(:mod:`medc_lab.studies.regime_probes`): ``play`` plays what is missing (one JSON per regime and policy under
 ``--out``; finished ones are skipped, so it resumes), ``report`` prints the table (success rate and
 mean episode length with 95% CIs)."""
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from ..studies.regimes import EPISODES, EVAL_SEED, POLICIES, REGIMES, parse_regime, play, summary
+from ..studies.regime_probes import EPISODES, EVAL_SEED, POLICIES, REGIMES, parse_regime, play, summary
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -39,7 +39,7 @@ def panel_section(r, panel: Panel, seeds: tuple[int, ...] | None = None,
     """A panel's plot and section (its table, gate and claims), or None when none of its runs exist
     (``r``: the :class:`.build.Report` being built; ``seeds``: only those seeds are read;
     ``gate_min_seeds``: the gate's need, None: the scope's)."""
-    from ..plots import plot_methods
+    from ..report_plots import plot_methods
 
     data: dict = {}
     for s in panel.series:

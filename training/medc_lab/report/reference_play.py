@@ -36,13 +36,15 @@ def random_play(out: Path, cfg: dict, episodes: int | None = None) -> dict:
     With fixed-episode evaluation these are exactly the run's ``eval_episodes`` episodes, each
     played to its end (:func:`medc_training.evaluate.play_episodes`); a run evaluated with the
     legacy window (``eval_episodes`` 0) gets the legacy baseline it was gated with: the first
-    GATE_RANDOM_EPISODES episodes to finish (:func:`medc_training.evaluate.play`). ``episodes``:
+    GATE_RANDOM_EPISODES episodes to finish (:func:`medc_lab.window.play`). ``episodes``:
     that many fixed episodes of the run's evaluation seed instead of its own evaluation's. A cache
     entry written before success rates were kept holds the mean length alone: asked for both, the
     same episodes are played again (random play is seeded) and the entry holds both from then on."""
     from medc_training.config import TrainConfig
-    from medc_training.evaluate import play, play_episodes
+    from medc_training.evaluate import play_episodes
     from medc_training.ppo import EVAL_SEED_OFFSET, make_env_for
+
+    from ..window import play
 
     key = episodes_key(cfg, episodes)
     cache_path = out / "random_play.json"

@@ -1,7 +1,7 @@
 """The yardsticks a report of the claims protocol puts beside its learned teams.
 
 - **Reference lines**: random moves and the classical controllers (:mod:`medc_training.controllers`)
-  on fixed episodes of the regime, as :mod:`medc_lab.studies.regimes` writes them
+  on fixed episodes of the regime, as :mod:`medc_lab.studies.regime_probes` writes them
   (``<folder>/<regime>/<policy>.json``).
 - **Final policy against the best controller**, as the claims protocol fixed it: a run's final level
   per seed against the best controller's mean episode length on the reference episodes, the
@@ -34,7 +34,7 @@ FINAL_EVALS = 3
 
 
 def regime_name(grid: int, walls: int, max_steps: int) -> str:
-    """The regime's folder name, as :mod:`medc_lab.studies.regimes` names it (g40w2t50)."""
+    """The regime's folder name, as :mod:`medc_lab.studies.regime_probes` names it (g40w2t50)."""
     return f"g{grid}w{walls}t{max_steps}"
 
 

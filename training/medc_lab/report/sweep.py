@@ -288,7 +288,7 @@ def heat_map(results: Sequence[CellResult], png) -> None:
     """The speed-up over (area, R_E) at the protocol's Q, and the Q strip at the protocol's area and
     R_E; each cell annotated with the speed-up, the learning-score difference and the guided share
     (blank and grey where not run)."""
-    from ..plots import RatioMap, plot_ratio_maps
+    from ..report_plots import RatioMap, plot_ratio_maps
 
     by_key = {(r.cell.grid, r.cell.rate, r.cell.q): r for r in results}
     grid0, rate0, q0 = SWEEP_PROTOCOL

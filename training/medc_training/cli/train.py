@@ -123,9 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
     p.add_argument("--eval-episodes", type=int,
                    help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
-                        "window of --eval-steps test steps, which counts only the episodes that finish in it")
+                        "window of --eval-steps test steps, which the research harness keeps for the "
+                        "committed reproduction's runs (medc-reproduce)")
     p.add_argument("--eval-steps", type=int,
-                   help="test steps per evaluation (the legacy window, --eval-episodes 0)")
+                   help="test steps per evaluation on the legacy window (--eval-episodes 0)")
     p.add_argument("--eval-envs", type=int,
                    help="environments the evaluation episodes (or test steps) are split over")
     p.add_argument("--eval-sampled", action="store_true",

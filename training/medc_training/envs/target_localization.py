@@ -241,6 +241,16 @@ def _sample_walls(
     return (in_r.unsqueeze(-1) & in_c.unsqueeze(-2)).any(1)
 
 
+def check_noise(sensing: SensingModel, noise: bool | None) -> bool:
+    """Whether readings are Poisson counts: ``noise``, or the sensing model's when None
+    (ValueError for False under a model that always counts them)."""
+    noise = check_bool("noise", sensing.noise if noise is None else noise)
+    if sensing.noise and not noise:
+        raise ValueError(f"the {sensing.name} sensing model always counts Poisson noise; "
+                         "leave noise unset (or True)")
+    return noise
+
+
 @dataclass(frozen=True)
 class TargetLocalizationState(EnvState):
     """:class:`EnvState` of a target-localization environment, plus what a real UAV team would
@@ -269,13 +279,10 @@ class TargetLocalization(BatchedEnv):
     [B,G,G] (BFS field), ``t`` [B], ``mask`` [B,N,A], ``readings`` [B,N], the memory's
     ``reading_map``/``visit_map`` [B,G,G]).
 
-    The observations live in one buffer that each step updates in place, touching only the
-    cells that changed (the agents' old and new cells), and is rebuilt only for
-    environments that reset. With ``copy_obs=True`` (default) ``obs`` and ``final_obs`` are
-    fresh tensors; with ``copy_obs=False`` they are that buffer and a reused final-obs
-    buffer, valid until the next ``step``/``reset`` (copy them into rollout storage
-    before stepping again). The second mode avoids writing B·N·5·G·G floats to memory per
-    step and is the fast path for training loops that copy anyway.
+    The observations live in one buffer each step updates in place (only the agents' old and new
+    cells; rebuilt for environments that reset). ``copy_obs=True`` (default) returns fresh
+    ``obs`` and ``final_obs``; ``copy_obs=False`` returns that buffer and a reused final-obs
+    buffer, valid until the next ``step``/``reset``: the fast path for loops that copy anyway.
     """
 
     name = TARGET_LOCALIZATION
@@ -302,12 +309,7 @@ class TargetLocalization(BatchedEnv):
         )
         self.reward_shaping = check_bool("reward_shaping", reward_shaping)
         self.sensing = parse_sensing(sensing)
-        if noise is None:
-            noise = self.sensing.noise
-        self.noise = check_bool("noise", noise)
-        if self.sensing.noise and not self.noise:
-            raise ValueError(f"the {self.sensing.name} sensing model always counts Poisson noise; "
-                             "leave noise unset (or True)")
+        self.noise = check_noise(self.sensing, noise)
         self.copy_obs = check_bool("copy_obs", copy_obs)
         super().__init__(num_envs, device, seed)
         self.num_actions = len(ACTIONS)

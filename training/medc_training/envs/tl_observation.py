@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from contextlib import contextmanager
 
 import torch
@@ -335,6 +336,68 @@ class _ReadingTables:
         return loglik if self.levels > 1 else loglik.squeeze(1)
 
 
+def _factor_loglik(f: torch.Tensor, readings: torch.Tensor, strength: torch.Tensor,
+                   background: torch.Tensor) -> torch.Tensor:
+    """float32 [K, L, G²]: the readings' log-likelihood sum_n r_n log(S f_n + B) - S sum_n f_n - n B
+    of every level (strength S, background B) and cell, from the geometric factors ``f`` [K,N,G²]."""
+    k, n = f.shape[:2]
+    strength, background = strength.view(-1, 1), background.view(-1, 1)
+    rate = torch.addcmul(background, f.unsqueeze(2), strength)  # [K,N,L,G²]: one log per reading, level, cell
+    loglik = rate.log_().mul_(readings.view(k, n, 1, 1)).sum(1)  # [K,L,G²]
+    return loglik.sub_(f.sum(1).unsqueeze(1) * strength).sub_(n * background)
+
+
+def _fold(log_post: torch.Tensor, out: torch.Tensor, levels: int, block: Callable[[int], int],
+          loglik: torch.Tensor | None, block_loglik: Callable[[int, int], torch.Tensor] | None) -> None:
+    """Add the readings' log-likelihood to ``log_post`` in place, write LOG_FLOOR on the ``out``
+    cells (bool [K, G²]: walls, ruled out) and shift each episode's maximum to 0, clamped at
+    LOG_FLOOR. Over ``levels`` > 1 it goes ``block(K)`` episodes at a time while they are in cache,
+    ``block_loglik(s, e)`` (else ``loglik``) giving episodes s..e's log-likelihood."""
+    k = log_post.shape[0]
+    # The few ruled-out cells are written by index: a mask broadcast over every level would
+    # pass over the whole [K, L, G²] posterior.
+    episode, cell = out.nonzero(as_tuple=True)  # in episode order
+    if levels == 1:
+        log_post.add_(loglik)
+        flat = log_post.view(k, 1, -1)
+        flat[episode, :, cell] = LOG_FLOOR
+        flat.sub_(flat.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+        return
+    if block_loglik is None:
+        def block_loglik(s: int, e: int) -> torch.Tensor:
+            return loglik[s:e]
+    step = block(k)
+    starts = list(range(0, k, step))
+    cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
+    for i, s in enumerate(starts):
+        e = min(k, s + step)
+        part = log_post[s:e]
+        part.add_(block_loglik(s, e))
+        lo, hi = cuts[i], cuts[i + 1]
+        if hi > lo:
+            part[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
+        part.sub_(part.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+
+
+def _levels_marginal(log_post: torch.Tensor, step: int) -> torch.Tensor:
+    """float32 [K, G²]: the sum over the levels of a levels-major log posterior [K, L, G²]
+    (unnormalised; weights at or below EXP_FLOOR exactly 0), ``step`` episodes at a time."""
+    # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
+    # few readings about half of them have none); the others stay exact zeros, and the sum
+    # over the levels runs as over the whole tensor (the same rounding).
+    k, levels, cells = log_post.shape
+    p = torch.empty((k, cells), device=log_post.device)
+    for s in range(0, k, step):
+        rows = log_post[s:s + step].reshape(-1, cells)
+        alive = (rows.amax(1) > EXP_FLOOR).nonzero().squeeze(1)
+        weights = rows.index_select(0, alive)
+        dead = weights <= EXP_FLOOR
+        weights.clamp_(min=EXP_FLOOR).exp_().masked_fill_(dead, 0.0)
+        dense = torch.zeros_like(rows).index_copy_(0, alive, weights).view(-1, levels, cells)
+        torch.sum(dense, 1, out=p[s:s + step])
+    return p
+
+
 class SourceEstimator(_FusedLevels):
     """The team's Bayes posterior over the source cell on a ``grid``×``grid`` area (module docstring).
 
@@ -459,43 +522,15 @@ class SourceEstimator(_FusedLevels):
                 def block_loglik(s: int, e: int) -> torch.Tensor:
                     return self._reading_tables.loglik(d2[s:e], crossed[s:e], readings[s:e])
         else:
-            f = geometric_factor(self.sensing, positions, self.cells, walls, rects)  # [K,N,G²]
-            n = f.shape[1]
-            strength = self.level_strength.view(-1, 1)
-            background = self.level_background.view(-1, 1)
-            # sum_n r_n log(S f_n + B) - S sum_n f_n - n B: one log per reading, level and cell.
-            rate = torch.addcmul(background, f.unsqueeze(2), strength)  # [K,N,L,G²]
-            loglik = rate.log_().mul_(readings.view(k, n, 1, 1)).sum(1)  # [K,L,G²]
-            loglik.sub_(f.sum(1).unsqueeze(1) * strength).sub_(n * background)
+            loglik = _factor_loglik(geometric_factor(self.sensing, positions, self.cells, walls, rects),
+                                    readings, self.level_strength, self.level_background)
             if self.levels == 1:
                 loglik = loglik.squeeze(1)
         # Standing within reach of a cell without the episode ending rules it out as the source.
         out = walls.reshape(k, -1).bool()
         if self.rule_out:
             out = out | self.ruled_out(positions)
-        # The few ruled-out cells are written by index: a mask broadcast over every level would
-        # pass over the whole [K, L, G²] posterior.
-        episode, cell = out.nonzero(as_tuple=True)  # in episode order
-        if self.levels == 1:
-            log_post.add_(loglik)
-            flat = log_post.view(k, 1, -1)
-            flat[episode, :, cell] = LOG_FLOOR
-            flat.sub_(flat.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
-            return False
-        if block_loglik is None:
-            def block_loglik(s: int, e: int) -> torch.Tensor:
-                return loglik[s:e]
-        step = self.block(k)
-        starts = list(range(0, k, step))
-        cuts = torch.searchsorted(episode, torch.tensor([*starts, k], device=episode.device)).tolist()
-        for i, s in enumerate(starts):
-            e = min(k, s + step)
-            block = log_post[s:e]
-            block.add_(block_loglik(s, e))
-            lo, hi = cuts[i], cuts[i + 1]
-            if hi > lo:
-                block[episode[lo:hi] - s, :, cell[lo:hi]] = LOG_FLOOR
-            block.sub_(block.amax((1, 2), keepdim=True)).clamp_(min=LOG_FLOOR)
+        _fold(log_post, out, self.levels, self.block, loglik, block_loglik)
         return False
 
     def _native_single(self, log_post: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor,
@@ -578,21 +613,7 @@ class SourceEstimator(_FusedLevels):
                 self._marginal(phys[s:e], scratch[:e - s], p[s:e])
             return self._normalise(p)
         else:
-            # Only the (episode, level) rows with a cell above the floor are exponentiated (after a
-            # few readings about half of them have none); the others stay exact zeros, and the sum
-            # over the levels runs as over the whole tensor (the same rounding).
-            # A block of episodes at a time (BLOCK_BYTES).
-            k, levels, cells = log_post.shape
-            p = torch.empty((k, cells), device=log_post.device)
-            step = self.block(k)
-            for s in range(0, k, step):
-                rows = log_post[s:s + step].reshape(-1, cells)
-                alive = (rows.amax(1) > EXP_FLOOR).nonzero().squeeze(1)
-                weights = rows.index_select(0, alive)
-                dead = weights <= EXP_FLOOR
-                weights.clamp_(min=EXP_FLOOR).exp_().masked_fill_(dead, 0.0)
-                dense = torch.zeros_like(rows).index_copy_(0, alive, weights).view(-1, levels, cells)
-                torch.sum(dense, 1, out=p[s:s + step])
+            p = _levels_marginal(log_post, self.block(log_post.shape[0]))
         return p / p.sum(1, keepdim=True)
 
     def expected_moves(self, log_post: torch.Tensor) -> torch.Tensor:

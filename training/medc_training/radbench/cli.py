@@ -277,13 +277,33 @@ def _line(record: dict) -> bytes:
     return (json.dumps(record) + "\n").encode()
 
 
+def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, episodes: int | None
+               ) -> tuple[list, str]:
+    """(the sets to play, where they come from): ``--sets-file``'s (ValueError when ``--grid`` or
+    ``--agents`` disagree with it) or the committed file of ``grid`` and ``agents``; the first
+    ``episodes`` of each when given."""
+    from .sets import file_name, load_sets
+
+    if args.sets_file is not None:
+        sets = load_sets(path=args.sets_file, sha256=args.sha256, obstructions=counts, snrs=snrs)
+        source = str(args.sets_file)
+        if (args.grid and args.grid != sets[0].grid) or (args.agents and args.agents != sets[0].agents):
+            raise ValueError(f"--grid/--agents do not match the set file's (grid {sets[0].grid}, "
+                             f"{sets[0].agents} agent(s))")
+    else:
+        sets = load_sets(grid, agents, obstructions=counts, snrs=snrs)
+        source = file_name(grid, agents)
+    if episodes is not None:
+        sets = [s.head(episodes) for s in sets]
+    return sets, source
+
+
 def _play(args: argparse.Namespace) -> int:
     import torch
 
     from ..console import progress_bar
     from .departure import Departure
     from .play import TEAM_SENSING, play_set, policy_names
-    from .sets import file_name, load_sets
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--threads, --batch and --episodes must be positive")
@@ -302,19 +322,8 @@ def _play(args: argparse.Namespace) -> int:
     reference = args.reference or policies[0]
     if reference not in policies:
         raise ValueError(f"--reference {reference!r} is not one of the policies played")
-    if args.sets_file is not None:
-        sets = load_sets(path=args.sets_file, sha256=args.sha256, obstructions=counts, snrs=snrs)
-        source = str(args.sets_file)
-        if (args.grid and args.grid != sets[0].grid) or (args.agents and args.agents != sets[0].agents):
-            raise ValueError(f"--grid/--agents do not match the set file's (grid {sets[0].grid}, "
-                             f"{sets[0].agents} agent(s))")
-        grid, agents = sets[0].grid, sets[0].agents
-    else:
-        sets = load_sets(grid, agents, obstructions=counts, snrs=snrs)
-        source = file_name(grid, agents)
-    file_digest = sets[0].file_sha256
-    if episodes is not None:
-        sets = [s.head(episodes) for s in sets]
+    sets, source = _play_sets(args, grid, agents, counts, snrs, episodes)
+    grid, agents, file_digest = sets[0].grid, sets[0].agents, sets[0].file_sha256
     max_steps = sets[0].max_steps
     _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
                f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "

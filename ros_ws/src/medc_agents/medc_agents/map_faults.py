@@ -8,11 +8,12 @@ decided to a :class:`MapFaults`, and its watch timer calls :meth:`MapFaults.chec
 from __future__ import annotations
 
 import time
+from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from medc_agents.team_episode import Tick
-from medc_agents.team_messages import show_stamp
+from medc_agents.team_messages import show_stamp, stamp_key
 
 #: Seconds after a map no status names before it is checked against the team's poses.
 MAP_CHECK_S = 1.0
@@ -27,16 +28,31 @@ class MapFaults:
     map, even one it sent before).
     """
 
-    def __init__(self, observer, health, logger) -> None:
-        """``observer``: the agent's TeamObserver; ``health``: its Health; ``logger``: its node's."""
+    def __init__(self, observer, health, logger, dropped_by: Counter | None = None) -> None:
+        """``observer``: the agent's TeamObserver; ``health``: its Health; ``logger``: its node's;
+        ``dropped_by``: its count of dropped messages by kind (a refused map adds 'map')."""
         self.observer = observer
         self.health = health
         self.logger = logger
+        self.dropped_by = Counter() if dropped_by is None else dropped_by
         #: The fault reported: (the count of maps offered when it came, the step then waiting for
         #: its inputs), until it is over; None without one.
         self.fault: tuple[int, Tick | None] | None = None
         #: map_load_time key -> when the map came, until it is checked.
         self.checks: dict[int, float] = {}
+
+    def take(self, msg) -> bool:
+        """Hand the walls map ``msg`` to the observer; False when it is refused (counted, and a
+        fault on /diagnostics once per map and reason)."""
+        key = stamp_key(msg.info.map_load_time)
+        try:
+            self.observer.add_map(msg)
+        except ValueError as exc:
+            self.dropped_by["map"] += 1
+            self.refused(key, exc)
+            return False
+        self.taken(key)
+        return True
 
     def refused(self, key: int, exc: Exception) -> None:
         """The map with ``info.map_load_time`` ``key`` was refused for ``exc``."""

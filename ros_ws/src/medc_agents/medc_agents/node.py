@@ -20,7 +20,8 @@ RecursionError or MemoryError from a hostile file included) ends as a logged ref
 :class:`AgentNode` owns its parts, each built from what it reads and reports to and tested without a
 node: the team observer and guards (medc_agents.team_state, medc_agents.guard), the policy slot and
 its swaps (medc_agents.policy_swaps), the team's estimate (medc_agents.estimate), the map faults
-(medc_agents.map_faults), the watches over its team (medc_agents.team_watch) and its moves out
+(medc_agents.map_faults), the watches over its team (medc_agents.team_watch), the signed poses and
+maps it holds (medc_agents.signed_inputs), its decisions (:class:`Decider`) and its moves out
 (:class:`MoveOut`).
 """
 
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 import torch
 from geometry_msgs.msg import PoseStamped
 from medc_common import contract
-from medc_common.auth_node import Vouched, declare_auth, message_digest
+from medc_common.auth_node import declare_auth
 from medc_common.health import Health, run_id
 from medc_common.params import count, declare, number, seconds
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
@@ -59,7 +60,8 @@ from medc_agents.policy import (
     shown,
 )
 from medc_agents.policy_swaps import BridgeFetch, PolicySwaps, refusal_reason
-from medc_agents.team_messages import EDGE_TOLERANCE_CELLS, stamp_key
+from medc_agents.signed_inputs import SignedInputs
+from medc_agents.team_messages import EDGE_TOLERANCE_CELLS
 from medc_agents.team_state import TeamObserver
 from medc_agents.team_watch import (
     ClaimWatch,
@@ -332,18 +334,41 @@ class MoveOut:
         return None
 
 
+class Decider:
+    """This agent's move on an observation: the slot's classical controller on the team state, else
+    its policy. A policy failing on one observation must not take the node down: it is logged and
+    the observation kept on ``moves`` (MoveOut.unanswered) to decide again when the step is re-sent."""
+
+    def __init__(self, slot, observer, moves: MoveOut, noise: bool, logger) -> None:
+        """``slot``: the agent's PolicySlot; ``observer``: its TeamObserver; ``noise``: readings are
+        Poisson counts (the gradient controller's flatness test)."""
+        self.slot = slot
+        self.observer = observer
+        self.moves = moves
+        self.noise = noise
+        self.logger = logger
+
+    def decide(self, obs, mask, tick) -> int | None:
+        """The move for ``tick``, or None when the policy failed on it."""
+        try:
+            if self.slot.controller is not None:
+                return controller_move(self.slot.controller, self.observer, mask, self.noise)
+            return self.slot.act(obs, mask)
+        except Exception as exc:
+            self.logger.error(f"policy failed on episode {tick.episode} step {tick.step}: "
+                              f"{refusal_reason(PolicyRejected(exc))}")
+            self.moves.unanswered = (obs, mask, tick)
+            return None
+
+
 class AgentNode(Node):
     """One agent of the team, made of the parts the module docstring lists."""
 
     def __init__(self, node_name: str | None = None, agent_id: str | None = None,
                  feed: TeamFeed | None = None, **kwargs) -> None:
-        """``feed``: take the team's messages from a :class:`TeamFeed` shared by the agent nodes of
-        this process, instead of subscribing to them itself.
-
-        Raises:
-            ValueError: a bad parameter, or no usable policy bundle (PolicyRejected): the node
-            refuses to start rather than idle without a policy.
-        """
+        """``feed``: a :class:`TeamFeed` shared by this process's agent nodes that hands this node the
+        team's messages (None: it subscribes to them itself). Raises ValueError for a bad parameter,
+        PolicyRejected when the policy cannot run (:meth:`PolicySwaps.start`)."""
         kwargs.setdefault("namespace", contract.DEFAULT_NAMESPACE)
         super().__init__(node_name or default_node_name(agent_id), **kwargs)
         prm = declare_agent_parameters(self, agent_id)
@@ -380,12 +405,7 @@ class AgentNode(Node):
         #: Called with (source, None) after each swap and (source, reason) after each refusal.
         self.swap_listeners = self.swaps.listeners
 
-        try:
-            self.slot.swap(str(initial))
-        except Exception as exc:  # PolicyRejected, or anything else: refuse to start, with the reason
-            why = refusal_reason(exc)
-            raise PolicyRejected(f"policy {shown(initial)} refused, not starting: {why}") from None
-        self.observer.use_observation(self.slot.observation)
+        self.swaps.start(str(initial))
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
                                f"{self.observer.observation.name}), sensing {sensing}")
@@ -404,17 +424,17 @@ class AgentNode(Node):
         #: Signing of its moves and declarations, checking of the team's messages (medc_common.auth_node);
         #: poses and maps wait until a verified reading or status vouches for them.
         self.auth = declare_auth(self, self.sender, self.health)
-        self.vouched_poses = Vouched(lambda why: self.auth.refuse("pose", f"pose: {why}"))
-        self.vouched_maps = Vouched(lambda why: self.auth.refuse("map", f"map: {why}"))
+        self.signed = SignedInputs(self.auth)
         move_topic = contract.move_topic(self.namespace_, self.agent_id)
         self.moves = MoveOut(self.agent_id, self.sender,
                              lambda m: self.move_pub.publish(self.auth.sign(m, move_topic)),
                              lambda: self.get_clock().now().to_msg())
+        self.decider = Decider(self.slot, self.observer, self.moves, self.noise, log)
         self.statuses = StatusIntake(self.gate, self.health, self.dropped_by, self.old_statuses.drop,
                                      self.observer.restart)
         self.readings = ReadingWatch(self.reading_check, self.health)
         #: The ``map`` condition: maps refused or from elsewhere, and the checks of maps taken.
-        self.map_faults = MapFaults(self.observer, self.health, log)
+        self.map_faults = MapFaults(self.observer, self.health, log, self.dropped_by)
         # Another process publishing moves as this agent (a duplicate id) is reported here too.
         self.claims = ClaimWatch(self.agent_id, self.sender, self.health)
         self.create_subscription(
@@ -473,11 +493,9 @@ class AgentNode(Node):
 
     # -- team state ----------------------------------------------------------------------------
     def on_pose(self, agent_id: str, msg: PoseStamped) -> None:
-        if self.auth.enabled:  # taken once the signed reading of its step vouches for it
-            msg = self.vouched_poses.offer((agent_id, stamp_key(msg.header.stamp)), msg, message_digest(msg))
-            if msg is None:
-                return
-        self._take_pose(agent_id, msg)
+        msg = self.signed.pose(agent_id, msg)  # signing: once the signed reading of its step vouches
+        if msg is not None:
+            self._take_pose(agent_id, msg)
 
     def _take_pose(self, agent_id: str, msg: PoseStamped) -> None:
         try:
@@ -491,10 +509,9 @@ class AgentNode(Node):
     def on_reading(self, agent_id: str, msg: RadiationReading) -> None:
         if not self.auth.admit(msg, contract.radiation_topic(self.namespace_, agent_id), "reading"):
             return
-        if self.auth.enabled:
-            pose = self.vouched_poses.vouch((agent_id, stamp_key(msg.header.stamp)), bytes(msg.pose_digest))
-            if pose is not None:
-                self._take_pose(agent_id, pose)
+        pose = self.signed.pose_of(agent_id, msg)
+        if pose is not None:
+            self._take_pose(agent_id, pose)
         try:
             self.observer.add_reading(agent_id, msg)
         except ValueError as exc:
@@ -505,23 +522,14 @@ class AgentNode(Node):
         self._maybe_decide()
 
     def on_map(self, msg: OccupancyGrid) -> None:
-        if self.auth.enabled:  # taken once a signed status names its digest
-            msg = self.vouched_maps.offer(stamp_key(msg.info.map_load_time), msg, message_digest(msg))
-            if msg is None:
-                return
-        self._take_map(msg)
+        msg = self.signed.map(msg)  # signing: once a signed status names its digest
+        if msg is not None:
+            self._take_map(msg)
 
     def _take_map(self, msg: OccupancyGrid) -> None:
-        key = stamp_key(msg.info.map_load_time)
-        try:
-            self.observer.add_map(msg)
-        except ValueError as exc:  # refused: a fault on /diagnostics (once per map and reason)
-            self.dropped_by["map"] += 1
-            self.map_faults.refused(key, exc)
-            return
-        self.notes.flush()
-        self.map_faults.taken(key)
-        self._maybe_decide()
+        if self.map_faults.take(msg):
+            self.notes.flush()
+            self._maybe_decide()
 
     def _drop(self, what: str, exc: Exception) -> None:
         self.dropped_by[what] += 1
@@ -536,10 +544,9 @@ class AgentNode(Node):
         o = self.observer
         if not self.auth.admit(msg, contract.status_topic(self.namespace_), "status"):
             return None
-        if self.auth.enabled:
-            grid = self.vouched_maps.vouch(stamp_key(msg.map_stamp), bytes(msg.map_digest))
-            if grid is not None:
-                self._take_map(grid)
+        grid = self.signed.map_of(msg)
+        if grid is not None:
+            self._take_map(grid)
         if list(msg.agent_ids) != o.ids:
             listed = list(msg.agent_ids)[:8]
             self._drop("status", ValueError(f"status lists agents {listed}, this team is {o.ids}"))
@@ -579,21 +586,9 @@ class AgentNode(Node):
         self._decide(*self.observer.observe())
 
     def _decide(self, obs, mask, tick) -> None:
-        try:
-            if self.slot.controller is not None:
-                action = controller_move(self.slot.controller, self.observer, mask, self.noise)
-            else:
-                action = self.slot.act(obs, mask)
-        except Exception as exc:
-            # A policy failing on one observation must not take the node down; the observation
-            # is kept and retried when the simulator re-sends the step.
-            self.get_logger().error(
-                f"policy failed on episode {tick.episode} step {tick.step}: "
-                f"{refusal_reason(PolicyRejected(exc))}"
-            )
-            self.moves.unanswered = (obs, mask, tick)
-            return
-        self.publish_move(tick, action)
+        action = self.decider.decide(obs, mask, tick)
+        if action is not None:
+            self.publish_move(tick, action)
 
     def publish_move(self, tick, action: int) -> None:
         """Publish this agent's move for ``tick`` (and remember it for re-sent steps)."""

@@ -67,6 +67,17 @@ class PolicySwaps:
         #: Called with (source, None) after each swap and (source, reason) after each refusal.
         self.listeners: list[Callable[[str, str | None], None]] = []
 
+    def start(self, source: str) -> None:
+        """Run the first policy, ``source``; the observer takes its observation. Raises
+        PolicyRejected with the reason when it cannot run: the node refuses to start rather than
+        idle without a policy."""
+        try:
+            self.slot.swap(source)
+        except Exception as exc:  # PolicyRejected, or anything else: refuse to start, with the reason
+            why = refusal_reason(exc)
+            raise PolicyRejected(f"policy {shown(source)} refused, not starting: {why}") from None
+        self.observer.use_observation(self.slot.observation)
+
     def swap(self, source: str) -> str:
         """Validate and run the bundle at ``source``; returns its description.
 

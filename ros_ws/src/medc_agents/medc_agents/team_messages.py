@@ -97,6 +97,19 @@ def xy_from_pose(msg) -> tuple[float, float]:
     return x, y
 
 
+def pose_refusals(xy: tuple[float, float], geometries, edge_tolerance: float) -> list[ValueError] | None:
+    """None when ``xy`` lies on one of ``geometries`` (within ``edge_tolerance`` cells outside its
+    edge), else each geometry's reason for refusing it, in order ([] when there is none)."""
+    refusals = []
+    for geometry in geometries:
+        try:
+            geometry.xy_to_cell(*xy, edge_tolerance * geometry.resolution)
+            return None
+        except ValueError as exc:
+            refusals.append(exc)
+    return refusals
+
+
 def show_stamp(key: int) -> str:
     """A stamp key (integer ns) as ``sec.nanosec`` seconds."""
     return f"{key // 1_000_000_000}.{key % 1_000_000_000:09d}"

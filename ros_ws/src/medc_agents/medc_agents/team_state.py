@@ -31,6 +31,7 @@ from medc_agents.team_messages import (
     EDGE_TOLERANCE_CELLS,
     faint_cells,
     map_from_message,
+    pose_refusals,
     show_stamp,
     stamp_key,
     value_from_reading,
@@ -44,21 +45,12 @@ class TeamObserver:
     def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
                  observation: str = "maps", sensing: str = "paper-simple", rule_out: bool = True,
                  edge_tolerance: float = EDGE_TOLERANCE_CELLS) -> None:
-        """``resolution``: metres per cell the maps must have; 0 = whatever the map says.
-        ``edge_tolerance``: cells; a pose at most this far outside the grid's edge is taken as the
-        nearest edge cell (GNSS noise on the edge row), one farther out is dropped with the distance.
-        ``sensing``: the team's sensing preset (``medc_training.envs.tl_sensing.SENSING_PRESETS``),
-        which the readings follow; the memory normalises them and weighs the source posterior by it.
-        ``rule_out``: the driver ends an episode as soon as an agent finds the source, so the cells
-        the team stood on without the episode ending are not the source (False: a driver that ends
-        episodes only on the team's declaration; ``SourceEstimator``'s ``rule_out``).
-        ``grid``: the grid the agent starts on. An observation that does not depend on the grid's
-        size (an agent-centred window, ``egoR``) takes a square map of any size, and the memory
-        follows the map of each episode; the whole-grid ``maps`` observation takes ``grid`` only.
-
-        Raises:
-            ValueError: an unknown sensing preset.
-        """
+        """``resolution``: metres per cell the maps must have (0: any). ``edge_tolerance``: cells
+        outside the grid a pose may lie and be taken as the nearest edge cell. ``sensing``: the
+        team's sensing preset (ValueError for an unknown one). ``rule_out``: the driver ends an
+        episode when an agent finds the source, so cells stood on are not it. ``grid``: the
+        starting grid; an ``egoR`` observation follows each episode's square map, ``maps`` takes
+        ``grid`` only."""
         from medc_training.envs.observation import parse_observation
         from medc_training.envs.tl_sensing import parse_sensing
 
@@ -186,15 +178,8 @@ class TeamObserver:
                 geometries = [self.maps.geometry(t.map_stamp)]
             else:
                 geometries = [self.episode_geometry(), self.maps.latest]
-            geometries = [g for g in geometries if g is not None]
-            errors = []
-            for geometry in geometries:
-                try:
-                    geometry.xy_to_cell(*xy, self.tolerance_m(geometry))
-                    break
-                except ValueError as exc:
-                    errors.append(exc)
-            else:
+            errors = pose_refusals(xy, [g for g in geometries if g is not None], self.edge_tolerance)
+            if errors is not None:
                 if errors and ((t is not None and t.stamp == key) or self.rounds.has_verified_pose(idx, key)):
                     raise errors[0]
                 verified = False

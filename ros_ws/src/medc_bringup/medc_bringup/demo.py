@@ -657,6 +657,25 @@ def write_report(out: Path, s: dict, cfg) -> None:
         "",
         f"Run {'(quick)' if s['quick'] else ''} in {s['seconds']:.0f} s; environment A3W2 on a "
         f"{cfg.grid}x{cfg.grid} grid, episodes capped at {cfg.max_steps} steps.",
+        *_market_lines(s),
+        *_learning_lines(s),
+        *_graph_lines(s),
+        "",
+        "![one episode](trajectory.png)",
+        "",
+        "## Gas used",
+        "",
+        "| function | gas (each call) |",
+        "|---|---|",
+        *(f"| {fn} | {', '.join(f'{v:,}' for v in values)} |" for fn, values in s["gas"].items()),
+    ]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.json").write_text(json.dumps(s, indent=2, default=str) + "\n")
+
+
+def _market_lines(s: dict) -> list[str]:
+    """The report's allocation, payment, review and reputation sections."""
+    lines = [
         "",
         "## Allocation (Models Manager Contract, greedy by QoS)",
         "",
@@ -689,7 +708,12 @@ def write_report(out: Path, s: dict, cfg) -> None:
         lines.append(
             f"| {o['owner']} | {o['before']:.3f} | {o['after']:.3f} | {paid[o['owner']] / ETHER:.4f} ETH |"
         )
-    lines += [
+    return lines
+
+
+def _learning_lines(s: dict) -> list[str]:
+    """The report's learning section: each method's run and the learning scores."""
+    lines = [
         "",
         "## Learning (same budget, same seed)",
         "",
@@ -706,7 +730,12 @@ def write_report(out: Path, s: dict, cfg) -> None:
               f"MEDC {sc['medc']:.2f}, sparse {sc['sparse']:.2f}; MEDC learned "
               f"{'faster' if s['medc_learned_faster_than_sparse'] else 'no faster'} than sparse on this seed "
               "(one seed: see docs/reproduction/report.md for the multi-seed claims)."]
-    lines += ["", "![learning curves](learning_curves.png)", "", "## The ROS 2 graph", ""]
+    return [*lines, "", "![learning curves](learning_curves.png)"]
+
+
+def _graph_lines(s: dict) -> list[str]:
+    """The report's ROS 2 graph section: the new policy's episodes, and on the realistic preset."""
+    lines = ["", "## The ROS 2 graph", ""]
     g = s["graph"]
     if g.get("skipped"):
         lines.append("Skipped (--no-ros).")
@@ -724,19 +753,7 @@ def write_report(out: Path, s: dict, cfg) -> None:
                   f"graph runs {r['policy']}, the team measured best there: {r['episodes']} episodes, "
                   f"lengths {r['episode_lengths']}, mean {r['mean_length']:.1f}, success "
                   f"{r['success_rate']:.0%}; random moves average {r['random_episode_length']:.1f} steps."]
-    lines += [
-        "",
-        "![one episode](trajectory.png)",
-        "",
-        "## Gas used",
-        "",
-        "| function | gas (each call) |",
-        "|---|---|",
-    ]
-    for fn, values in s["gas"].items():
-        lines.append(f"| {fn} | {', '.join(f'{v:,}' for v in values)} |")
-    (out / "report.md").write_text("\n".join(lines) + "\n")
-    (out / "summary.json").write_text(json.dumps(s, indent=2, default=str) + "\n")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -259,6 +259,19 @@ class PendingRequests:
         return found
 
 
+
+def _check_budget(payment: int | None, max_total: int | None) -> None:
+    """ValueError for a payment or total that is not a whole number of wei; OverBudget for a
+    payment over the total."""
+    if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
+        raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
+    if max_total is not None and (isinstance(max_total, bool) or not isinstance(max_total, int)
+                                  or max_total < 0):
+        raise ValueError(f"max_total must be a non-negative integer number of wei, got {max_total!r}")
+    if payment is not None and max_total is not None and payment > max_total:
+        raise OverBudget(f"a payment of {format_eth(payment)} is over the {format_eth(max_total)} "
+                         "allowed in total; nothing was signed or sent")
+
 class PaidRequests:
     """Pays requests of ``account`` to ``models`` (a ModelsManager contract) at most once each.
 
@@ -292,29 +305,18 @@ class PaidRequests:
         same_since: float | None = None,
         on_quote: Callable[[Ranking], None] | None = None,
     ) -> list[Allocation]:
-        """Request ``request``'s models and pay for them, exactly once (see Registry.request_models).
+        """Request ``request``'s models and pay for them, exactly once.
 
-        Under the pending file's lock, from the check of earlier runs to the payment, a record of
-        the request (its id and fingerprint) is written before anything else, so a second run of
-        the same request, started while this one waits on a slow node or after it was killed,
-        finds it and resolves the same request id. The same request confirmed by another run at or
-        after ``same_since`` (seconds since the epoch; default: when this call began) is this
-        one: a command-line run passes the moment its process started, so two runs started
-        together pay once however the machine schedules them.
-
-        The request is quoted first (:class:`~medc_registry.ranker.Ranker`, under ``max_price``
-        per model or its default rule); ``on_quote(ranking)`` sees the quote before anything is
-        signed; a quote (or ``payment``) over ``max_total`` wei is refused with
-        :class:`OverBudget` before anything is signed.
+        The request carries an id (``request_id``: ``0x`` + 64 hex digits, other text is hashed;
+        default random) the contract refuses to pay twice. Under the pending file's lock, a record
+        of it (id, fingerprint) is written first and the signed transaction before sending, so a
+        later run with the same arguments or id resolves it: the allocations if it was mined
+        (``replayed=True``), else the same request sent again. The same request confirmed by
+        another run at or after ``same_since`` (default: when this call began) is this one.
+        The quote (:class:`~medc_registry.ranker.Ranker`, under ``max_price``) is shown to
+        ``on_quote``; over ``max_total`` wei it is refused (:class:`OverBudget`) before signing.
         """
-        if payment is not None and (isinstance(payment, bool) or not isinstance(payment, int) or payment < 0):
-            raise ValueError(f"payment must be a non-negative integer number of wei, got {payment!r}")
-        if max_total is not None and (isinstance(max_total, bool) or not isinstance(max_total, int)
-                                      or max_total < 0):
-            raise ValueError(f"max_total must be a non-negative integer number of wei, got {max_total!r}")
-        if payment is not None and max_total is not None and payment > max_total:
-            raise OverBudget(f"a payment of {format_eth(payment)} is over the {format_eth(max_total)} "
-                             "allowed in total; nothing was signed or sent")
+        _check_budget(payment, max_total)
         fingerprint = hashlib.sha256(
             json.dumps([self.account, request.args(), payment, max_price], sort_keys=True).encode()
         ).hexdigest()
@@ -347,19 +349,8 @@ class PaidRequests:
                 if paid is not None:
                     self.pending.drop(record)
                     return paid
-                ranking = Ranker(self.chain, self.models, self.account).rank(request, max_price)
-                if max_total is not None and ranking.price_wei > max_total:
-                    raise OverBudget(
-                        f"the {len(ranking.model_ids)} best model(s) under the limit cost "
-                        f"{format_eth(ranking.price_wei)} together, over the {format_eth(max_total)} "
-                        "allowed in total; nothing was signed or sent")
-                if on_quote is not None:
-                    on_quote(ranking)
-                if payment is None:
-                    payment = ranking.price_wei
-                args = [*request.args(), ranking.positions]
-                fn = self.models.functions.allocateModels(rid, *args)
-                signed = self.chain.sign(fn, self.account, payment)
+                fn, args, payment, signed = self._quote_and_sign(rid, request, payment, max_price,
+                                                                 max_total, on_quote)
             except BaseException:
                 self.pending.drop(record)  # nothing was signed, so nothing can have been sent
                 raise
@@ -373,6 +364,25 @@ class PaidRequests:
             }
             self.pending.put(record)  # before sending: a lost answer is resolved by the next call
             return self._send(record, fn, signed.raw)
+
+    def _quote_and_sign(self, rid: bytes, request: ModelRequest, payment: int | None,
+                        max_price: int | None, max_total: int | None,
+                        on_quote: Callable[[Ranking], None] | None) -> tuple:
+        """(function, its arguments, payment, signed transaction) of request ``rid``: the request
+        quoted (OverBudget over ``max_total``), shown to ``on_quote``, then signed, not sent."""
+        ranking = Ranker(self.chain, self.models, self.account).rank(request, max_price)
+        if max_total is not None and ranking.price_wei > max_total:
+            raise OverBudget(
+                f"the {len(ranking.model_ids)} best model(s) under the limit cost "
+                f"{format_eth(ranking.price_wei)} together, over the {format_eth(max_total)} "
+                "allowed in total; nothing was signed or sent")
+        if on_quote is not None:
+            on_quote(ranking)
+        if payment is None:
+            payment = ranking.price_wei
+        args = [*request.args(), ranking.positions]
+        fn = self.models.functions.allocateModels(rid, *args)
+        return fn, args, payment, self.chain.sign(fn, self.account, payment)
 
     def paid(self, rid: bytes) -> list[Allocation] | None:
         """The allocations of request ``rid`` if this account already paid it, else None.

@@ -264,31 +264,14 @@ class Registry:
         same_since: float | None = None,
         on_quote: Callable[[Ranking], None] | None = None,
     ) -> list[Allocation]:
-        """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once.
+        """Request up to ``count`` models (paper: allocateModels) and pay for them, exactly once;
+        returns the allocations best first.
 
-        ``payment`` (wei) defaults to the exact price of what would be allocated (see :meth:`quote`);
-        any overpayment is credited back and can be withdrawn. Returns the allocations best first.
-
-        Money: only models priced at most ``max_price`` wei each are candidates. Without it, the
-        limit is :data:`~medc_registry.ranker.DEFAULT_PRICE_FACTOR` times the cheapest non-zero
-        price among the models this request could get, capped at the account's balance (free
-        models only when every such model is free): a model priced far above the others is
-        passed over unless ``max_price`` covers it. Equal QoS goes to the cheaper model, then
-        the lower id. ``max_total``: the most the whole request may cost; a quote over it is
-        refused (:class:`~medc_registry.journal.OverBudget`) before anything is signed.
-        ``on_quote(ranking)`` sees the quote (models, price, limit) before anything is signed.
-
-        Idempotent: the request carries an id (``request_id``: ``0x`` + 64 hex digits, any other
-        text is hashed; default random) that the contract records and refuses to pay twice. The
-        id and the signed transaction are written to :attr:`pending` before sending; when the
-        node's answer is lost, calling again with the same arguments (or the same ``request_id``)
-        resolves that record: the original allocation if it was mined (``replayed=True``), else
-        the same request is sent again, which the contract can only pay once. The record is
-        written first, under a lock on the pending file held from the check to the payment, so a
-        second run of the same request started while the first still waits (a slow node), or two
-        runs started together, pay once: the same request confirmed by another run at or after
-        ``same_since`` (seconds since the epoch; default: when this call began; the CLI passes
-        its process's start) is this one.
+        ``payment`` (wei) defaults to the exact price of what would be allocated (:meth:`quote`);
+        an overpayment is credited back. Candidates are priced at most ``max_price`` wei each, or
+        the default limit (:mod:`medc_registry.ranker`); ``max_total``, ``on_quote``,
+        ``request_id`` and ``same_since``, and how a lost answer is resolved, are as
+        :meth:`PaidRequests.pay <medc_registry.journal.PaidRequests.pay>` says.
         """
         payer = PaidRequests(self.chain, self.models, self.address, self.pending, self.model)
         allocations = payer.pay(request, payment, request_id, max_price, max_total=max_total,

@@ -16,6 +16,8 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus
 
+from medc_sim.moves import ConflictingMove, DuplicateAgent, MoveRejected
+
 #: An agent that has never moved is taken out only after this many times move_timeout_s.
 STARTUP_FACTOR = 5.0
 #: Seconds: a move fault (duplicate agent id, conflicting moves) of one kind is logged once per this
@@ -57,6 +59,20 @@ class MoveFaults:
         else:
             seen[1] += 1
             self.health.set("moves", DiagnosticStatus.WARN, message, log=False)
+
+    def refused(self, agent_id: str, exc: MoveRejected) -> bool:
+        """Report a move of ``agent_id`` the move book refused; whether it counts as dropped (a
+        conflicting move does not: it is a move of the team's, the first one taken)."""
+        if isinstance(exc, DuplicateAgent):
+            self.report(f"duplicate {agent_id}", f"duplicate agent id: {exc}")
+            return True
+        if isinstance(exc, ConflictingMove):
+            self.report(f"conflict {agent_id}", f"conflicting moves: {exc}")
+            return False
+        self.logger.warning(f"dropped move: {exc}")
+        if "another graph" in str(exc):
+            self.report(f"foreign {agent_id}", f"foreign move: {exc}", log=False)
+        return True
 
     def tick(self) -> None:
         """Sum up the repeats of each kind whose period is over; OK after ``repeat_s`` without one."""

@@ -35,7 +35,7 @@ from rclpy.node import Node
 from medc_sim import messages
 from medc_sim.declarations import Declarations
 from medc_sim.move_watch import MoveFaults, StepWatch
-from medc_sim.moves import ConflictingMove, DuplicateAgent, MoveBook, MoveRejected
+from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import EpisodeResult, SimConfig, SimCore
 from medc_sim.start_gate import StartGate
 from medc_sim.watch import GraphWatch
@@ -329,18 +329,9 @@ class SimNode(Node):
             self.steps.report_returned()
             if taken is None:
                 return  # a re-sent move, or one for the step just applied: executed once already
-        except DuplicateAgent as exc:
-            self.dropped += 1
-            self.move_faults.report(f"duplicate {msg.agent_id}", f"duplicate agent id: {exc}")
-            return
-        except ConflictingMove as exc:
-            self.move_faults.report(f"conflict {msg.agent_id}", f"conflicting moves: {exc}")
-            return
-        except MoveRejected as exc:
-            self.dropped += 1
-            self.get_logger().warning(f"dropped move: {exc}")
-            if "another graph" in str(exc):
-                self.move_faults.report(f"foreign {msg.agent_id}", f"foreign move: {exc}", log=False)
+        except MoveRejected as exc:  # a duplicate agent id, a conflicting or a foreign move
+            if self.move_faults.refused(msg.agent_id, exc):
+                self.dropped += 1
             return
         # Team decision latency: this step's state published -> the last move received.
         latency = self.steps.latency() if self.book.complete else None

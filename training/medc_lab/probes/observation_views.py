@@ -36,7 +36,7 @@ def plot_probe(out: Path) -> None:
     """OUT/probe.png: every variant's greedy evaluation curve (mean over its seeds, 95% band)."""
     from medc_training.metrics import read_metrics
 
-    from ..plots import plot_methods
+    from ..report_plots import plot_methods
 
     series = {}
     for run in sorted(p for p in out.iterdir() if p.is_dir()):

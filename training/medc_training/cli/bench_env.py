@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from medc_training.envs import make_batched, make_env, tl_native
+from medc_training.envs.names import TARGET_LOCALIZATION
 from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, estimator_path
 
 #: The measured scenarios: (sensing preset, grid, target agent-steps/s with the default observation).
@@ -61,19 +62,9 @@ class _Batched:
 
     @staticmethod
     def _make(args: argparse.Namespace, sensing: str, grid: int, observation: str, copy_obs: bool):
-        return make_batched(
-            "target_localization",
-            num_envs=args.num_envs,
-            device=args.device,
-            seed=args.seed,
-            agents=args.agents,
-            walls=args.walls,
-            grid=grid,
-            max_steps=args.max_steps,
-            observation=observation,
-            sensing=sensing,
-            copy_obs=copy_obs,
-        )
+        return make_batched(TARGET_LOCALIZATION, num_envs=args.num_envs, device=args.device, seed=args.seed,
+                            agents=args.agents, walls=args.walls, grid=grid, max_steps=args.max_steps,
+                            observation=observation, sensing=sensing, copy_obs=copy_obs)
 
     def run(self, seconds: float, min_steps: int = 1, max_steps: int = 0) -> tuple[float, int]:
         """Step for ``seconds`` (at least ``min_steps``, at most ``max_steps`` when > 0):
@@ -106,7 +97,7 @@ class _OneByOne:
     def __init__(self, args: argparse.Namespace, sensing: str, grid: int, observation: str) -> None:
         start = time.perf_counter()
         self.envs = [
-            make_env("target_localization", seed=args.seed + i, agents=args.agents, walls=args.walls,
+            make_env(TARGET_LOCALIZATION, seed=args.seed + i, agents=args.agents, walls=args.walls,
                      grid=grid, max_steps=args.max_steps, observation=observation, sensing=sensing)
             for i in range(args.num_envs)
         ]
@@ -156,28 +147,9 @@ def _print_summary(args: argparse.Namespace, result: dict, labels: dict[str, str
     print(f"  ratio {observation} / {BASELINE_OBSERVATION}: {ratio:.4f}x")
 
 
-def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | None) -> dict:
-    """One scenario: ``args.observation`` on the fused estimator, on the reference estimator (unless
-    ``args.no_reference``) and the maps baseline (plus one by one when asked), interleaved rounds,
-    medians. Prints a line per round and a summary; returns the figures."""
-    observation = args.observation
-    print(f"\n{sensing}, {grid}x{grid}, A{args.agents}W{args.walls}, B={args.num_envs}, "
-          f"max_steps {args.max_steps}: {observation} vs {BASELINE_OBSERVATION}"
-          + ("" if args.no_reference else f", and {observation} on the reference estimator"))
-    paths = {"default": _Batched(args, sensing, grid, observation)}
-    labels = {"default": observation, "reference": f"{observation} (reference)",
-              "torch": f"{observation} (fused, torch)", "baseline": BASELINE_OBSERVATION}
-    if not args.no_reference:
-        paths["reference"] = _Batched(args, sensing, grid, observation, path="reference")
-    if not args.no_reference and tl_native.usable():
-        paths["torch"] = _Batched(args, sensing, grid, observation, native=False)
-    if observation != BASELINE_OBSERVATION:
-        paths["baseline"] = _Batched(args, sensing, grid, BASELINE_OBSERVATION)
-    one = _OneByOne(args, sensing, grid, observation) if args.one_by_one_steps > 0 else None
-    for path in paths.values():  # warm-up: allocations, first-call overheads, the layout pool
-        path.run(args.warmup_seconds, min_steps=max(1, args.warmup))
-    if one is not None:
-        one.run(1)
+def _rounds(args: argparse.Namespace, paths: dict, labels: dict, one) -> tuple[dict, dict]:
+    """Interleaved timed rounds of every path (and one by one when asked), a line printed per round:
+    ({key: rate or ratio per round}, {path: steps timed})."""
     per_round = args.seconds / args.rounds
     keys = ("default", "reference", "torch", "baseline", "one", "ratio", "ratio_reference", "ratio_torch",
             "ratio_one")
@@ -206,6 +178,32 @@ def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | Non
             rounds["ratio_one"].append(rounds["default"][-1] / rate)
             parts.append(f"one by one {rate:,.0f} (batched / one by one {rounds['ratio_one'][-1]:.1f}x)")
         print(f"  round {r + 1} (agent-steps/s): " + ", ".join(parts))
+    return rounds, steps
+
+
+def measure(args: argparse.Namespace, sensing: str, grid: int, target: int | None) -> dict:
+    """One scenario: ``args.observation`` on the fused estimator, on the reference estimator (unless
+    ``args.no_reference``) and the maps baseline (plus one by one when asked), interleaved rounds,
+    medians. Prints a line per round and a summary; returns the figures."""
+    observation = args.observation
+    print(f"\n{sensing}, {grid}x{grid}, A{args.agents}W{args.walls}, B={args.num_envs}, "
+          f"max_steps {args.max_steps}: {observation} vs {BASELINE_OBSERVATION}"
+          + ("" if args.no_reference else f", and {observation} on the reference estimator"))
+    paths = {"default": _Batched(args, sensing, grid, observation)}
+    labels = {"default": observation, "reference": f"{observation} (reference)",
+              "torch": f"{observation} (fused, torch)", "baseline": BASELINE_OBSERVATION}
+    if not args.no_reference:
+        paths["reference"] = _Batched(args, sensing, grid, observation, path="reference")
+    if not args.no_reference and tl_native.usable():
+        paths["torch"] = _Batched(args, sensing, grid, observation, native=False)
+    if observation != BASELINE_OBSERVATION:
+        paths["baseline"] = _Batched(args, sensing, grid, BASELINE_OBSERVATION)
+    one = _OneByOne(args, sensing, grid, observation) if args.one_by_one_steps > 0 else None
+    for path in paths.values():  # warm-up: allocations, first-call overheads, the layout pool
+        path.run(args.warmup_seconds, min_steps=max(1, args.warmup))
+    if one is not None:
+        one.run(1)
+    rounds, steps = _rounds(args, paths, labels, one)
 
     def median(key: str) -> float | None:
         return float(np.median(rounds[key])) if rounds[key] else None
