@@ -85,7 +85,7 @@ play_once() {  # STEM MESSAGE, then medc-radbench arguments: play into STEM.epis
   local stem=$1 message=$2
   shift 2
   [[ -s "$stem.json" ]] && return 0
-  medc-radbench "$@" --quiet --out "$stem.episodes.jsonl" > "$stem.json.part"
+  medc-radbench "$@" --quiet --overwrite --out "$stem.episodes.jsonl" > "$stem.json.part"
   mv "$stem.json.part" "$stem.json"
   echo "$(date +%T) $message"
 }

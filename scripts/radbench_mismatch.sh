@@ -36,7 +36,7 @@ for d in "${departures[@]}"; do
   [[ $d != nominal ]] && extra=(--departure "$d")
   t0=$(date +%s)
   medc-radbench --grid 20 --agents 3 --episodes 12 --reference "$reference" "${extra[@]}" --quiet \
-    --out "$out/$name.episodes.jsonl" "${policies[@]}" > "$out/$name.json.part"
+    --overwrite --out "$out/$name.episodes.jsonl" "${policies[@]}" > "$out/$name.json.part"
   mv "$out/$name.json.part" "$out/$name.json"
   echo "$name: $(( $(date +%s) - t0 )) s"
 done

@@ -18,7 +18,7 @@ run() {  # name, then medc-radbench arguments
   local name=$1; shift
   if [[ -s "$out/$name.json" ]]; then echo "skip $name (done)"; return; fi
   local t0; t0=$(date +%s)
-  medc-radbench "$@" --quiet --out "$out/$name.episodes.jsonl" > "$out/$name.json.part"
+  medc-radbench "$@" --quiet --overwrite --out "$out/$name.episodes.jsonl" > "$out/$name.json.part"
   mv "$out/$name.json.part" "$out/$name.json"
   echo "$name: $(( $(date +%s) - t0 )) s"
 }

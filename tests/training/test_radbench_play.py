@@ -184,7 +184,7 @@ def test_a_bundle_at_a_temperature_samples_its_moves_and_the_lines_say_so(tmp_pa
     assert set(load_episodes([out])) == {"team@T0.5", "greedy"}
 
 
-def test_out_replaces_a_planted_link_and_refuses_a_device_or_folder_before_playing(tmp_path, capsys):
+def test_out_replaces_a_planted_link_only_when_asked_and_refuses_a_device_or_folder_before_playing(tmp_path, capsys):
     import os
     from pathlib import Path
 
@@ -199,7 +199,11 @@ def test_out_replaces_a_planted_link_and_refuses_a_device_or_folder_before_playi
     assert sorted(os.listdir(tmp_path)) == ["victim.txt"]  # nothing played, no temporary file left
     out = tmp_path / "lines.jsonl"
     out.symlink_to(victim)
-    assert main([*args, str(out)]) == 0
+    assert main([*args, str(out)]) == 2  # something is there: replaced only when asked
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--overwrite" in err[0], err
+    assert victim.read_text() == "precious\n" and out.is_symlink()
+    assert main(["--overwrite", *args, str(out)]) == 0
     assert victim.read_text() == "precious\n" and not out.is_symlink()
     assert [json.loads(line)["policy"] for line in out.read_text().splitlines()] == ["greedy", "greedy"]
     assert sorted(os.listdir(tmp_path)) == ["lines.jsonl", "victim.txt"]

@@ -91,6 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--out", type=Path, help="write every played episode here (JSON lines)")
+    p.add_argument("--overwrite", action="store_true", help="replace what is already at --out")
     p.add_argument("--cost", action="store_true",
                    help="measure what one decision costs instead of playing the sets: each policy on the "
                         "first episodes of obs3-medium of the --grid/--agents file, at B = 1 and "
@@ -262,15 +263,16 @@ def _cost(args: argparse.Namespace) -> int:
     return 0
 
 
-def _episodes_file(path: Path | None):
+def _episodes_file(path: Path | None, overwrite: bool):
     """Where ``--out``'s episodes go: nowhere without it; else a fresh temporary file beside it,
-    moved into place when every set is played (an existing file or link replaced, never written
-    through; a folder, a device or a name too long refused before any episode is played)."""
+    moved into place when every set is played (never written through a link; what is already there
+    replaced only with ``--overwrite``; a folder, a device or a name too long refused before any
+    episode is played)."""
     from ..outfiles import AtomicOutput, check_output
 
     if path is None:
         return contextlib.nullcontext()
-    return AtomicOutput(check_output(path, overwrite=True), overwrite=True)
+    return AtomicOutput(check_output(path, overwrite=overwrite), overwrite=overwrite)
 
 
 def _line(record: dict) -> bytes:
@@ -333,7 +335,7 @@ def _play(args: argparse.Namespace) -> int:
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
     names = policy_names()  # the rest are bundles, which --temperature applies to
-    with _episodes_file(args.out) as out, progress_bar(total, unit="episode", disable=args.quiet) as bar:
+    with _episodes_file(args.out, args.overwrite) as out, progress_bar(total, unit="episode", disable=args.quiet) as bar:
         for s in sets:
             for policy in policies:
                 start = time.perf_counter()
