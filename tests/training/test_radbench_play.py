@@ -184,7 +184,7 @@ def test_a_bundle_at_a_temperature_samples_its_moves_and_the_lines_say_so(tmp_pa
     assert set(load_episodes([out])) == {"team@T0.5", "greedy"}
 
 
-def test_out_replaces_a_planted_link_only_when_asked_and_refuses_a_device_or_folder_before_playing(tmp_path, capsys):
+def test_out_replaces_a_link_only_when_asked_and_refuses_a_device_or_folder_first(tmp_path, capsys):
     import os
     from pathlib import Path
 

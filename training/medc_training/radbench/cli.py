@@ -335,7 +335,8 @@ def _play(args: argparse.Namespace) -> int:
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
     names = policy_names()  # the rest are bundles, which --temperature applies to
-    with _episodes_file(args.out, args.overwrite) as out, progress_bar(total, unit="episode", disable=args.quiet) as bar:
+    with (_episodes_file(args.out, args.overwrite) as out,
+          progress_bar(total, unit="episode", disable=args.quiet) as bar):
         for s in sets:
             for policy in policies:
                 start = time.perf_counter()
