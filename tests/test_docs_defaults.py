@@ -77,7 +77,7 @@ def node_defaults(*modules: str) -> dict[str, object]:
 
 
 NODES = {
-    "**`medc-sim`**": ("medc_sim.node",),
+    "**`medc-sim`**": ("medc_sim.simulator",),
     "**`medc-agent`**": ("medc_agents.node", "medc_agents.estimate"),
 }
 
