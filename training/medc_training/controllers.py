@@ -1,13 +1,11 @@
 """Classical search controllers for target localization: what a radiation-search user would field
 instead of a learned team, as first-class policies.
 
-Each controller is a pure batched function of the team's state (the team memory's maps, positions,
-move mask, walls and sensing model) returning move scores float32 [B,N,8] (-inf where a move is
-invalid; the highest is the move), so the batched core, the PettingZoo env and a ROS agent node call
-it on their own copy of the team memory. :func:`controller_policy` makes one an evaluator policy, and
-:data:`SEARCHERS` registers the information-driven searchers of :mod:`medc_training.searchers`
-beside ``gradient``, ``greedy`` and ``infotaxis``. Each rule, its source, its approximations and the
-tie-breaking: docs/training.md, "The controllers' rules".
+Each is a pure batched function of the team's state (team memory, positions, move mask, walls,
+sensing model) returning move scores float32 [B,N,8], -inf where a move is invalid, so the core, the
+PettingZoo env and a ROS agent node call it on their own team memory. :func:`controller_policy`
+makes one an evaluator policy; :data:`SEARCHERS` adds :mod:`medc_training.searchers`. Each rule,
+its source and its approximations: docs/training.md, "The controllers' rules".
 """
 
 from __future__ import annotations
