@@ -14,7 +14,8 @@ from ros_domain import claim_domain
 from test_layout import _entry_points
 
 #: Node scripts: their help lists the ROS parameters their nodes declare.
-NODE_SCRIPTS = {"medc-sim": ("medc_sim.node",), "medc-agent": ("medc_agents.node", "medc_agents.estimate"),
+NODE_SCRIPTS = {"medc-sim": ("medc_sim.simulator",),
+                "medc-agent": ("medc_agents.node", "medc_agents.estimate"),
                 "medc-bridge": ("medc_registry.bridge_node",)}
 
 

@@ -77,7 +77,7 @@ def node_defaults(*modules: str) -> dict[str, object]:
 
 
 NODES = {
-    "**`medc-sim`**": ("medc_sim.node",),
+    "**`medc-sim`**": ("medc_sim.simulator",),
     "**`medc-agent`**": ("medc_agents.node", "medc_agents.estimate"),
 }
 
@@ -208,7 +208,8 @@ def _slug(heading: str) -> str:
 
 
 @pytest.mark.parametrize("page", ["README.md", "CONTRIBUTING.md", "CHANGELOG.md", "docs/ros.md",
-                                  "docs/ros-guide.md", "docs/ros-reference.md"])
+                                  "docs/ros-guide.md", "docs/ros-reference.md", "docs/training.md",
+                                  "docs/bundles.md", "docs/environments.md", "docs/radbench.md"])
 def test_links_between_the_pages_land_on_a_file_and_heading(page):
     """docs/ros.md maps the sections that links name to the guide and the reference: every link of
     these pages to a markdown page names a file that exists and, with an anchor, one of its headings."""

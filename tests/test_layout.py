@@ -298,6 +298,38 @@ def test_every_entry_point_names_a_function_of_its_own_package() -> None:
     assert seen[("medc_bench", "ros")] == BRINGUP
 
 
+# ---------------------------------------------------------------- module names
+#: Files that every package may have; they never name a module of their own.
+COMMON_FILES = {"__init__.py", "__main__.py", "setup.py", "conftest.py"}
+
+
+def _shared_module_names(roots: tuple[Path, ...], base: Path = REPO_ROOT) -> dict[str, list[str]]:
+    """File name -> its paths (relative to ``base``), for every module file name found more than
+    once under ``roots`` (tests and build folders left out)."""
+    paths: dict[str, list[str]] = {}
+    for root in roots:
+        for path in sorted(root.rglob("*.py")):
+            parts = path.relative_to(root).parts
+            if path.name in COMMON_FILES or {"tests", "build"} & set(parts):
+                continue
+            paths.setdefault(path.name, []).append(str(path.relative_to(base)))
+    return {name: found for name, found in paths.items() if len(found) > 1}
+
+
+def test_the_name_check_finds_two_modules_of_one_name(tmp_path) -> None:
+    for module in ("a/x/cli.py", "b/cli.py", "a/__init__.py", "b/__init__.py", "b/tests/x.py", "a/x.py"):
+        (tmp_path / module).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / module).write_text("")
+    assert _shared_module_names((tmp_path,), tmp_path) == {"cli.py": ["a/x/cli.py", "b/cli.py"]}
+
+
+def test_every_module_has_a_name_of_its_own() -> None:
+    """No two modules of training/ or ros_ws/src share a file name: a name says which module it is
+    without its package (a traceback, a grep, an editor's tab)."""
+    shared = _shared_module_names((TRAINING, ROS_SRC))
+    assert shared == {}, "\n".join(f"{name}: {', '.join(found)}" for name, found in shared.items())
+
+
 # ---------------------------------------------------------------- one definition of each name
 #: Source trees whose modules the checks below read (tests may compare names freely).
 SOURCE_ROOTS = (*(TRAINING / pkg for pkg in TRAINING_PACKAGES), ROS_SRC, REPO_ROOT / "scripts")

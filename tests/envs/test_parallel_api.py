@@ -146,7 +146,7 @@ def test_bad_name_and_render_mode_raise_value_error() -> None:
 
 
 def test_render_command_writes_area_and_maps_for_every_application(tmp_path) -> None:
-    from medc_training.cli.render import main
+    from medc_training.cli.pictures import main
 
     assert main([str(tmp_path), "--steps", "3"]) == 0
     written = sorted(p.name for p in tmp_path.glob("*.png"))

@@ -52,7 +52,7 @@ def test_shipped_team_plays_a_17x17_map_started_from_its_bundle_alone(rclpy_cont
     """The documented start (``-p agent_id:=... -p policy:=<bundle>``, nothing else): the agents take
     grid 13 from the manifest and still play the simulator's 17x17 maps."""
     from medc_agents.node import AgentNode
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 

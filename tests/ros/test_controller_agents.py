@@ -17,7 +17,7 @@ import torch
 from builtin_interfaces.msg import Time
 from medc_agents.controller import controller_move, controller_name, own_scores, team_scores
 from medc_agents.node import scenario_from_bundle
-from medc_agents.policy import PolicyRejected, PolicySlot
+from medc_agents.policy_slot import PolicyRejected, PolicySlot
 from medc_agents.team_state import TeamObserver
 from medc_bringup.launcher import agent_parameters, load_config, resolve_policies
 from medc_common.contract import GridGeometry

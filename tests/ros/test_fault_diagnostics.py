@@ -172,7 +172,7 @@ def test_the_simulator_reports_two_moves_of_one_sender_with_different_actions(rc
     from medc_common import contract
     from medc_interfaces.msg import AgentMove, EpisodeStatus
     from medc_sim import move_watch
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.executors import SingleThreadedExecutor
 
     monkeypatch.setattr(move_watch, "FAULT_REPEAT_S", 2.0)
@@ -307,7 +307,7 @@ def test_a_declaration_counts_only_from_a_team_member(rclpy_context, capfd):
     from diagnostic_msgs.msg import DiagnosticStatus
     from medc_common import contract
     from medc_interfaces.msg import AgentMove, EpisodeStatus, SourceDeclaration
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.executors import SingleThreadedExecutor
 
     sim = SimNode(parameter_overrides=_params(agents=1, walls=0, grid=10, max_steps=200, seed=1,

@@ -42,7 +42,7 @@ def _ego_bundle(path: Path, grid) -> Path:
 @pytest.mark.parametrize("grid", [10**6, 256])
 def test_an_agent_refuses_a_manifest_grid_beyond_the_bound_before_allocating(grid, tmp_path) -> None:
     from medc_agents.node import scenario_from_bundle
-    from medc_agents.policy import PolicyRejected
+    from medc_agents.policy_slot import PolicyRejected
     from medc_training.bundle import MAX_BUNDLE_GRID
 
     path = _ego_bundle(tmp_path / "grid.safetensors", grid)
@@ -68,8 +68,8 @@ def test_the_agent_process_exits_with_the_reason_not_a_traceback(tmp_path) -> No
 
 
 def test_the_agents_policy_cache_evicts(tmp_path, monkeypatch) -> None:
-    from medc_agents import policy as policy_mod
-    from medc_agents.policy import PolicySlot
+    from medc_agents import policy_slot as policy_mod
+    from medc_agents.policy_slot import PolicySlot
 
     policy_mod._LOADED.clear()
     slot = PolicySlot((5, 10, 10), 8)
@@ -96,7 +96,7 @@ def test_the_agents_policy_cache_evicts(tmp_path, monkeypatch) -> None:
 
 
 def test_a_denormal_bundle_runs_at_the_agent_with_zero_weights_and_flushed_arithmetic(tmp_path) -> None:
-    from medc_agents.policy import PolicySlot
+    from medc_agents.policy_slot import PolicySlot
     path = make_bundle(tmp_path / "den.safetensors", 7)
     from medc_training.bundle import MANIFEST_KEY
     from safetensors.torch import load_file

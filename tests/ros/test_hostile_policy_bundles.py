@@ -208,7 +208,7 @@ class _FakeRegistry:
 @pytest.mark.ros
 def test_the_bridge_vets_like_the_agent_and_keeps_serving(rclpy_context, bundles, tmp_path):
     import rclpy
-    from medc_agents.policy import PolicyRejected, load_policy
+    from medc_agents.policy_slot import PolicyRejected, load_policy
     from medc_interfaces.srv import FetchBundle
     from medc_registry.bridge_node import BridgeError, RegistryBridge, bridge_node_class
     from rclpy.executors import SingleThreadedExecutor

@@ -126,7 +126,7 @@ def test_a_team_and_its_bridge_in_another_namespace(graph, bundles, tmp_path):
 @pytest.mark.ros
 def test_ns_remap_moves_a_node_and_the_parameter_pins_or_refuses(rclpy_context, bundles):
     from medc_agents.node import AgentNode
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.parameter import Parameter
 
     remap = ["--ros-args", "-r", "__ns:=/team4"]
@@ -169,7 +169,7 @@ def test_shipped_parameter_files_apply_in_any_namespace(rclpy_context, tmp_path)
     """sim.yaml and bridge.yaml name their node as /**/<name>: a node moved to /team2 still reads
     them (a key without the wildcard would match /<name> only)."""
     from medc_registry.bridge_node import bridge_node_class
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
 
     def changed(package: str, name: str, key: str, value) -> str:
         data = yaml.safe_load((SRC / package / "config" / name).read_text())

@@ -14,11 +14,11 @@ TEAM = Path(__file__).resolve().parents[2] / "models" / "team" / "A3W2.safetenso
 def test_node_help_lists_exactly_the_parameters_the_nodes_declare(rclpy_context):
     from medc_agents.node import AgentNode
     from medc_common.cli_help import declared_parameters
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.parameter import Parameter
 
     agent = AgentNode(agent_id="agent_0", parameter_overrides=[Parameter("policy", value=str(TEAM))])
-    nodes = {("medc_sim.node", "medc_common.auth_node"): SimNode(),
+    nodes = {("medc_sim.simulator", "medc_common.auth_node"): SimNode(),
              ("medc_agents.node", "medc_agents.estimate", "medc_common.auth_node"): agent}
     try:
         for modules, node in nodes.items():

@@ -138,7 +138,7 @@ class _Slot:
         self.current = None
 
     def swap(self, source: str):
-        from medc_agents.policy import PolicyRejected
+        from medc_agents.policy_slot import PolicyRejected
 
         if not source.endswith(".safetensors"):
             raise PolicyRejected(f"{source} is no bundle")
@@ -147,7 +147,7 @@ class _Slot:
 
 
 def _swaps(fetched: list[str], ready: bool = True):
-    from medc_agents.policy import PolicyRejected
+    from medc_agents.policy_slot import PolicyRejected
     from medc_agents.policy_swaps import PolicySwaps
 
     def fetch(cid: str) -> None:
@@ -425,7 +425,7 @@ def test_a_declaration_ends_the_episode_only_from_the_team_while_no_stranger_pub
 
 
 def test_policy_swaps_start_runs_the_first_policy_or_refuses_to_start():
-    from medc_agents.policy import PolicyRejected
+    from medc_agents.policy_slot import PolicyRejected
 
     swaps, log, _ = _swaps([])
     with pytest.raises(PolicyRejected, match=r"policy 'notes\.txt' refused, not starting: notes\.txt is no"):

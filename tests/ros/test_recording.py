@@ -174,7 +174,7 @@ def test_a_recorder_does_not_start_the_simulator(rclpy_context):
     recorders do not start a two-agent simulator; the agents' move publishers do."""
     import rclpy
     from medc_interfaces.msg import AgentMove, EpisodeStatus
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
 

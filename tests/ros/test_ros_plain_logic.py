@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 from builtin_interfaces.msg import Time
-from medc_agents.policy import PolicyRejected, PolicySlot, looks_like_cid
+from medc_agents.policy_slot import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
 from medc_bringup.launcher import agent_parameters, load_config, resolve_policies, ros_args, sim_parameters
 from medc_common.contract import GridGeometry, agent_index, xy_to_cell

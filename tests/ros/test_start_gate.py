@@ -12,7 +12,7 @@ from ros_helpers import spin_until
 
 
 def _sim(ns: str, **params):
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.parameter import Parameter
 
     base = {"namespace": ns, "agents": 1, "grid": 8, "walls": 0, "max_steps": 5}

@@ -9,11 +9,11 @@ import json
 import pytest
 import torch
 from medc_training.bundle import load_bundle, read_manifest
+from medc_training.cli.radbench import main as radbench_main
 from medc_training.cli.train import main as train_main
 from medc_training.config import TrainConfig
 from medc_training.experts import BundleExpert, ExpertError
 from medc_training.ppo import Trainer
-from medc_training.radbench.cli import main as radbench_main
 from medc_training.runner import BUNDLE
 
 VIEW = "ego6+estimate+posterior"

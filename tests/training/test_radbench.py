@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pytest
 from medc_training.radbench import sets
-from medc_training.radbench.metrics import EpisodeResult, median_ci, paired, sign_test, summarize, wilson
+from medc_training.radbench.results import EpisodeResult, median_ci, paired, sign_test, summarize, wilson
 from medc_training.radbench.scenario import (
     GRIDS,
     MIN_START_M,

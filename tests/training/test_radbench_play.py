@@ -12,8 +12,8 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from medc_training.cli.radbench import main
 from medc_training.radbench import BenchCore, BenchSet, Episode, load_sets, paired, play_set, poisson_counts
-from medc_training.radbench.cli import main
 from medc_training.radbench.scenario import noise_uniforms
 from medc_training.radbench.sets import FROZEN, SETS_DIR
 

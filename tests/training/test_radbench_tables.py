@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import torch
-from medc_training.radbench.cli import main
+from medc_training.cli.radbench import main
 from medc_training.radbench.tables import main as tables_main
 from medc_training.radbench.tables import run_tables, verdict
 

@@ -22,7 +22,7 @@ def _write(path, policy, rows):
 
 def _episodes(lengths_by_count, policy="p", successes=None):
     """{key: EpisodeResult} via a file round trip is what the tool reads; in memory the same rows."""
-    from medc_training.radbench.metrics import EpisodeResult
+    from medc_training.radbench.results import EpisodeResult
     out = {}
     for count, lengths in lengths_by_count.items():
         set_id = f"obs{count}-medium[:{len(lengths)}]"

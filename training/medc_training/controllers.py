@@ -1,69 +1,11 @@
 """Classical search controllers for target localization: what a radiation-search user would field
 instead of a learned team, as first-class policies.
 
-Each controller is a pure batched function of the team's state (the maps a
-:class:`~medc_training.envs.tl_observation.TeamMemory` keeps, the team's positions and move mask,
-the walls, the :class:`~medc_training.envs.tl_sensing.SensingModel`) that returns move scores
-float32 [B,N,8] (actions in :data:`~medc_training.envs.grid.ACTIONS` order, -inf where the move is
-invalid); the highest score is the controller's move. The functions take tensors only, so the
-batched core, the PettingZoo env and a ROS agent node can call them on their own copy of the team
-memory. :func:`controller_policy` wraps one as an evaluator :data:`~medc_training.evaluate.Policy`
-on a batched core, so a controller plays through :func:`~medc_training.evaluate.play_episodes`
-wherever a trained bundle does; ``medc-controllers`` evaluates them from the command line.
-
-Every controller breaks ties deterministically (the same state always gives the same move): among
-the moves whose main criterion is within a small tolerance of the best, the one onto the cell the
-team visited least, then the lowest action index. The chosen move's score is raised just above the
-rest so that an argmax (the evaluator's greedy play) picks it. The agents of a team decide
-independently, each from the same team state (no agent conditions on another's move this step),
-except under the coordinated searchers (:data:`COORDINATED`).
-
-Besides the three below, :data:`SEARCHERS` registers the information-driven searchers of
-:mod:`medc_training.searchers` (``infotaxis-exact``, ``space-aware``, ``infotaxis-2step``,
-``team-infotaxis``, ``team-space-aware``): the same criteria on the team's full joint posterior, the
-strength and background summed out instead of plugged in, one or two steps ahead, alone or in turn.
-
-``gradient`` (:func:`gradient_scores`) -- gradient search on the counts
-    Each agent fits a least-squares plane ``I(x) ~ a + g . (x - x0)`` through the team's latest
-    reading in every visited cell of the (2R+1)x(2R+1) window around it (default R = 2), normalises
-    the slope by the background-free part of the fitted level, ``g / max(a - B, 1)`` (the relative
-    gradient, about grad log(I - B), which points at the source whatever its strength; B = the
-    background, known or the team's posterior-mean estimate), and takes the move whose direction
-    has the largest component along it. When the fit is undetermined (fewer than 3 readings in the
-    window, or all on one line) or flat (with Poisson counts: the slope's Wald statistic
-    ``g' S g / a`` is below 5.99, chi-squared with 2 degrees of freedom at 95%, i.e. not
-    distinguishable from counting noise), it explores: the least-visited neighbour. The yardstick
-    is the gradient-search baseline of RAD-A2C (Proctor et al., "Proximal Policy Optimization for
-    Radiation Source Search", J. Nucl. Eng. 2(4), 2021), which follows a gradient estimated from
-    recent measurements; this is our own formulation for a team on a grid. It needs no posterior.
-
-``greedy`` (:func:`greedy_scores`) -- follow the team's estimate
-    Moves to the valid neighbour with the smallest posterior-expected Chebyshev distance to the
-    source, ``E(c) = sum_s p(s) max(|dr|, |dc|)`` (the moves an 8-connected agent needs, walls
-    ignored: the same quantity the ``+estimate`` observations show); ties within 1e-4 cells by
-    lowest visit count, then action index. Score = -E. The certainty-equivalent "go where the
-    source most likely is" controller; needs the posterior.
-
-``infotaxis`` (:func:`infotaxis_scores`) -- Vergassola, Villermaux & Shraiman, "'Infotaxis' as a
-strategy for searching without gradients", Nature 445, 406-409 (2007)
-    Moves to the neighbour c that minimises the expected entropy of the source posterior after the
-    move and its reading::
-
-        E[H'] = P(found at c) * 0 + (1 - P(found at c)) * E_r[ H(p(. | not found at c, r)) ]
-
-    P(found at c) = the posterior mass within the success radius of c (those cells are ruled out
-    when the episode goes on, exactly as the team's estimator rules them out). The reading's
-    predictive is Poisson with rate ``S * f(c, s) + B`` (f from
-    :func:`~medc_training.envs.tl_sensing.geometric_factor`, the team's own sensor model) under the
-    not-found posterior over s. Approximations, to make it affordable (O(K G^2) per candidate move):
-    S and B are plugged in at their posterior means (the levels the estimator marginalises over are
-    not marginalised again here; exact for the paper-simple model, whose S and B are known); the
-    expectation over r is a quadrature over K = 5 count values, the rounded weighted quantiles
-    (probabilities (k + 1/2)/K) of the predictive's rate under the not-found posterior, each weighed
-    by the exact predictive probability of that count (the Poisson mixture over s), renormalised.
-    Score = -E[H'] (nats); ties within 1e-4 nats (e.g. when the posterior is already certain and no
-    move can teach anything) by the greedy criterion E(c), then visits, then action index. Needs
-    the posterior.
+Each is a pure batched function of the team's state (team memory, positions, move mask, walls,
+sensing model) returning move scores float32 [B,N,8], -inf where a move is invalid, so the core, the
+PettingZoo env and a ROS agent node call it on their own team memory. :func:`controller_policy`
+makes one an evaluator policy; :data:`SEARCHERS` adds :mod:`medc_training.searchers`. Each rule,
+its source and its approximations: docs/training.md, "The controllers' rules".
 """
 
 from __future__ import annotations

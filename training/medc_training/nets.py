@@ -1,63 +1,12 @@
 """Actor-critic networks for the MEDC teams, described declaratively.
 
 A network maps an agent's map stack ``obs`` float32 ``[M, C, H, W]`` to action logits ``[M, A]``
-and a state value ``[M]``. One network is shared by all the agents of a team (centralized
-learning, decentralized execution): ``M`` is any batch of agent observations.
-
-Every architecture is a JSON-able *spec* built only from a closed set of layer types, so a policy
-bundle can be rebuilt from its manifest without running code from the file::
-
-    {
-      "name": "lenet5",
-      "input": {"channels": 5, "height": 30, "width": 30},
-      "layers": [
-        {"type": "conv2d", "out_channels": 6, "kernel_size": 5, "stride": 1, "padding": 2},
-        {"type": "relu"},
-        {"type": "maxpool2d", "kernel_size": 2, "stride": 2, "ceil_mode": true},
-        ...
-        {"type": "flatten"},
-        {"type": "linear", "out_features": 120},
-        ...
-        {"type": "heads", "num_actions": 8}
-      ]
-    }
-
-Layer types (``LAYER_TYPES``) and their keys:
-
-``conv2d``     ``out_channels``, ``kernel_size``, ``stride`` (1), ``padding`` (0). In-channels are
-               inferred. Parameters ``weight [out, in, k, k]``, ``bias [out]``.
-``maxpool2d``  ``kernel_size``, ``stride`` (= kernel_size), ``ceil_mode`` (false).
-``relu``, ``tanh``  no keys.
-``flatten``    no keys; turns ``[M, C, H, W]`` into ``[M, C*H*W]``.
-``linear``     ``out_features``. Parameters ``weight [out, in]``, ``bias [out]``.
-``heads``      ``num_actions``; must be the last layer, exactly once, after a flat feature
-               vector. Two linear heads: ``policy`` (``[A, F]``, ``[A]``) and ``value``
-               (``[1, F]``, ``[1]``).
-
-Every shape is derived from the spec by arithmetic (``spec_tensor_shapes``), so a loader can check
-each stored tensor's name and shape before any weights reach torch. Tensor names are
-``trunk.<i>.weight`` / ``trunk.<i>.bias`` for the i-th layer of ``layers`` and
-``policy.weight``, ``policy.bias``, ``value.weight``, ``value.bias`` for the heads.
-
-Built-in architectures (``ARCHITECTURES``):
-
-``lenet5`` (default; the paper's LeNet-5-style CNN)
-    conv 5x5, 6 maps, pad 2 -> ReLU -> maxpool 2x2 (ceil) -> conv 5x5, 16 maps, pad 2 -> ReLU ->
-    maxpool 2x2 (ceil) -> flatten -> fc 120 -> ReLU -> fc 84 -> ReLU -> heads (policy A, value 1).
-    Padding 2 keeps each convolution size-preserving and ceil-mode pooling never drops a border
-    row, so every grid from 10x10 (-> 3x3x16 features) to 30x30 (-> 8x8x16) and beyond works.
-``convnet-small``
-    conv 3x3, 16 maps, pad 1 -> ReLU -> conv 3x3, 32 maps, stride 2, pad 1 -> ReLU ->
-    conv 3x3, 32 maps, stride 2, pad 1 -> ReLU -> flatten -> fc 128 -> ReLU -> heads. All-conv
-    downsampling (no pooling), a different inductive bias from LeNet-5.
-``mlp``
-    flatten -> fc 128 -> tanh -> fc 128 -> tanh -> heads. No spatial prior at all.
-``mlp-wide``
-    flatten -> fc 256 -> tanh -> fc 256 -> tanh -> heads: ``mlp`` with twice the width, for
-    observations of many channels (a window of seven 13x13 maps is 1,183 inputs).
-
-Initialisation is the usual one for PPO: orthogonal weights with gain sqrt(2) in the trunk, 0.01 for
-the policy head (near-uniform initial policy) and 1 for the value head; zero biases.
+and a state value ``[M]``; one network is shared by all the agents of a team. Every architecture is
+a JSON-able *spec* built only from a closed set of layer types (``LAYER_TYPES``), and every tensor
+shape follows from the spec by arithmetic (``spec_tensor_shapes``), so a policy bundle is rebuilt
+from its manifest and checked before any weight reaches torch, without running code from the file.
+The layer types, the built-in architectures (``ARCHITECTURES``) and the initialisation:
+docs/bundles.md, "Networks".
 """
 
 from __future__ import annotations

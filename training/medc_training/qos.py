@@ -1,37 +1,11 @@
 """QoS and D_m as the Models Manager contract computes them, once, for every Python user.
 
-``contracts/src/ModelsManager.sol`` works in fixed point, :data:`ONE` = 10**18 = 1.0. This module
-states its rules on the same integers, so the registry client, the trainer's R_S and the demo
-agree with the chain to the last digit (``tests/registry/test_qos_mirror.py`` checks it against
-the deployed contract on randomised cases):
-
-- **D_m** (``_distance``). With equal weights (the default), ``Σ_i |E_i^m − E_i^r| · ONE // p``:
-  the mean, i.e. w_i = 1/p with Σ w_i = 1, rounded down once. With weights (fixed point, one per
-  feature, summing to exactly ONE), ``Σ_i w_i |E_i^m − E_i^r|``, exact. No features (p = 0): 0.
-- **Rep product**: ``Rep_owner · Rep_model // ONE``.
-- **QoS_m** = ``rep product · ONE // D_m`` for D_m > 0. **D_m = 0** (an exact environment match)
-  has no finite QoS: the contract ranks it above every finite QoS, exact matches among themselves
-  by the rep product (its ranking key, :func:`rank_key`), and its ModelAllocated event reports
-  QoS = 2**256 − 1 (:data:`QOS_EXACT`), which the registry client gives as ``math.inf``. Nothing
-  floors D_m.
-
-**R_S** (the roulette wheel's slices; not on chain): R_S_i = QoS_i / Σ_j QoS_j. When some experts
-match exactly (QoS infinite), they take the whole wheel, shared in proportion to their rep
-products (equal reputations share it equally), and every other expert gets 0. That is the
-contract's order (exact matches before any finite QoS, then by rep product) and the limit of
-QoS_i / Σ_j QoS_j as their D_m tends to 0. See :func:`selection_weights`.
-
-**Training-side experts** describe their environment as an attribute dict (a bundle manifest's
-``environment``; :meth:`medc_training.config.EnvironmentConfig.env_attributes` for the target).
-Their features are the numeric attributes both sides name, in sorted name order (the order the
-registry stores them in); the chain holds only integers in [0, 2**32), and integer features give
-the contract's numbers exactly, while non-integer ones (e.g. maze complexity 0.5) follow the same
-rule in exact rational arithmetic. An expert with no attributes in common with the target (a
-scripted, random or biased expert) counts as the nearest inexact match: one unit away in one of
-the target's p numeric attributes, D_m = ONE // p (:func:`attribute_distance`). Owner and model
-reputations are the contract's initial 0.5.
-
-Pure Python: no torch, web3 or ROS.
+``contracts/src/ModelsManager.sol`` works in fixed point (:data:`ONE` = 10**18 = 1.0); this module
+states its rules on the same integers, so the registry client, the trainer's R_S and the demo agree
+with the chain to the last digit (``tests/registry/test_qos_mirror.py`` checks it against the
+deployed contract). D_m, QoS, the ranking of exact matches (:func:`rank_key`), R_S
+(:func:`selection_weights`) and the training-side experts' features: docs/registry.md
+("Contracts") and docs/training.md ("The methods"). Pure Python: no torch, web3 or ROS.
 """
 
 from __future__ import annotations

@@ -3,59 +3,9 @@ the background marginalised, space-aware infotaxis, two-step infotaxis and their
 versions. :mod:`medc_training.controllers` registers them as controllers (``infotaxis-exact``,
 ``space-aware``, ``infotaxis-2step``, ``team-infotaxis``, ``team-space-aware``), so each plays
 wherever a controller does: the evaluator, ``medc-radbench``, ``medc-agent -p policy:=NAME`` and
-``medc-launch --policy NAME``.
-
-**The belief.** The team's estimator keeps a joint posterior over hypotheses h = (level, cell): a
-strength-and-background level l (S_l, B_l: the ns x nb bin midpoints of the sensing model's ranges) and
-the source cell c (:class:`~medc_training.envs.tl_observation.SourceEstimator`). A reading r at cell x
-has likelihood Poisson(r; lambda_h(x)), lambda_h(x) = S_l f(x, c) + B_l with f the team's geometric
-factor (:func:`~medc_training.envs.tl_sensing.geometric_factor`: the sensor law and the line of sight
-through the walls). Everything below uses this joint posterior as it is: the level is summed out
-exactly, never replaced by its posterior mean (plain ``infotaxis`` plugs the means in).
-
-**One move's outcomes.** An agent moving to x either finds the source (the source's cell is within
-the success radius of x: probability P_F(x), the episode ends) or does not and reads r. Not finding
-rules the cells within reach of x out (the estimator does the same); the predictive of r is the
-Poisson mixture sum_h q_h Poisson(r; lambda_h(x)) under that not-found posterior q, and the posterior
-after r is q_h Poisson(r; lambda_h(x)) / P(r). The expectation over r is a quadrature over K count
-values (:data:`QUADRATURE`): the count values are the weighted quantiles (probabilities
-(k + 1/2)/K) of the rate lambda under q, rounded and made strictly increasing; count value k_j stands
-for the counts nearest to it (its cell of width w_j between the midpoints to its neighbours) and is
-weighed by P(k_j) w_j, renormalised: the midpoint rule over the predictive. Where every count with
-any weight fits in the K values (rates below about K / 3), the count values are 0 .. K-1 and the sum
-is exact. At the realistic preset's rates K = 6 overestimates the expected entropy by 2-4% (against
-the sum over every count), about evenly across the moves compared, so the chosen move rarely
-changes (tests/training/test_searchers.py).
-
-**The criteria** (after the move; 0 when the source is found):
-
-* ``infotaxis-exact`` -- the Shannon entropy (bits) of the source cell's posterior, H = -sum_c
-  p(c) log2 p(c), with p(c) = sum_l p(l, c). Vergassola, Villermaux & Shraiman, Nature 445, 406 (2007).
-* ``space-aware`` -- J = log2(D + 2^(H - 1) - 1/2), D = the posterior-expected number of moves from x
-  to the source (Chebyshev distance: an agent moves in 8 directions; walls ignored), H as above in bits.
-  Loisy & Eloy, "Searching for a source without gradients: how good is infotaxis and how to beat
-  it", Proc. R. Soc. A 478:20220118 (2022), whose grid has 4 moves and Manhattan distance.
-* ``infotaxis-2step`` -- the expected entropy after two moves, the second chosen for the best
-  expected entropy from each outcome of the first (an exhaustive two-level tree, Loisy & Eloy 2022's
-  N-step infotaxis with N = 2). Pruned to stay affordable: only the :data:`TWO_STEP_BRANCHES` first
-  moves with the lowest one-step expected entropy are expanded (the others keep their one-step
-  value, an upper bound of their two-step one), and the second level uses :data:`TEAM_QUADRATURE`
-  count values per first outcome.
-
-**The team** (``team-infotaxis``, ``team-space-aware``): the agents choose in turn, agent 0 first, each
-conditioning on the moves already chosen by its teammates: agent i's criterion is the expectation over
-the teammates' outcomes (none of them finds the source, and they read the counts of a
-:data:`TEAM_QUADRATURE`-point quadrature each) of its own expected criterion; a teammate's finding ends
-the episode (criterion 0). Two agents next to each other then split up where independent agents
-would buy the same information twice. Every agent of a ROS team computes the same sequence from the
-same team state, so the team coordinates without exchanging its choices; agent i pays for i + 1
-decisions.
-
-Cost: one-step searchers are O(M K L' G²) per agent and decision (M = 8 moves, L' <= L levels);
-:data:`LEVEL_MASS` prunes the levels: the fewest levels (by posterior mass) holding all but 1e-6 of
-every row's mass are kept (exact to that mass; after a few readings a handful of the 48). Ties (within
-1e-4 of the best criterion) are broken by the greedy criterion (posterior-expected moves to the
-source), then by the team's visits, then by action index, as every controller does.
+``medc-launch --policy NAME``. The belief they use, the quadrature over the counts, each criterion
+with its source, the team's turn order and the cost: docs/training.md, "The information-driven
+searchers".
 """
 
 from __future__ import annotations

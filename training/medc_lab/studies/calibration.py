@@ -25,7 +25,7 @@ from __future__ import annotations
 from itertools import pairwise
 
 import torch
-from medc_training.radbench.metrics import wilson as proportion_interval
+from medc_training.radbench.results import wilson as proportion_interval
 
 #: The thresholds the study checks, in one play.
 THRESHOLDS = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999)
@@ -35,7 +35,7 @@ MASS_BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 0.999, 1.0)
 
 def wilson(right: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """The Wilson score interval (95 % for the default z) of a right rate of ``right`` in ``n``
-    (:func:`medc_training.radbench.metrics.wilson`); (0, 1) when n = 0: with nothing declared,
+    (:func:`medc_training.radbench.results.wilson`); (0, 1) when n = 0: with nothing declared,
     any rate is possible."""
     return (0.0, 1.0) if n == 0 else proportion_interval(right, n, z)
 

@@ -44,10 +44,10 @@ import torch
 
 from ..config import scaled_config
 from ..envs import tl_native
-from ..envs.bench import loadavg
 from ..envs.tl_observation import estimator_path
 from ..envs.tl_sensing import DEFAULT_SENSING
 from ..ppo import Trainer
+from .bench_env import loadavg
 
 #: The realistic preset's scenario: RAD-A2C's 20 m x 20 m area, 1 m cells, 100-step episodes.
 REALISTIC = {"grid": 20, "max_steps": 100, "env_options": {"sensing": "realistic"}}

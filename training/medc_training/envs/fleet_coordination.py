@@ -1,34 +1,10 @@
 """Fleet coordination for autonomous vehicles (paper Section V-D).
 
-World
-    A G×G grid without obstacles (default G=10), ``agents`` vehicles (default 3) and
-    ``customers`` customers (default 8), each waiting at a pick-up cell with a destination
-    cell. Vehicles and pick-up cells start on distinct random cells; destinations are random
-    cells other than the customer's own pick-up cell. Each vehicle carries at most
-    ``capacity`` customers at once (default 2).
-
-Moves
-    The same 8 one-cell moves as target localization (N, NE, E, SE, S, SW, W, NW); moves off
-    the grid are masked and, if taken anyway, leave the vehicle in place.
-
-Pick-up and drop-off (automatic, after the moves)
-    First every passenger whose destination is its vehicle's cell is dropped (delivered).
-    Then each vehicle, in agent order, picks up the waiting customers on its cell, lowest
-    index first, while it has room.
-
-Reward, end of episode
-    Team reward per step: :data:`PICKUP_REWARD` per customer picked up, minus
-    :data:`TIME_COST`, plus :data:`DELIVERY_BONUS` when the last customer is dropped; the
-    episode then terminates (success). After ``max_steps`` steps it is truncated.
-
-Observation of vehicle i, 6 maps G×G in [0, 1] (:data:`CHANNELS`):
-    0 own location; 1 other vehicles; 2 pick-up cells of waiting customers; 3 destinations
-    of waiting customers; 4 destinations of vehicle i's passengers; 5 vehicle i's load /
-    capacity (a constant map).
-
-Oracle (:meth:`FleetCoordination.oracle_action_scores`): each vehicle heads for the nearest
-of its passengers' destinations and, if it has room, of the waiting customers' pick-up
-cells; score = minus the Chebyshev distance (= moves on an open grid) after the move.
+Vehicles on an open G x G grid pick up waiting customers (at most ``capacity`` each) and drop them
+at their destinations; the team is rewarded per pick-up, pays a time cost per step and gets a bonus
+when the last customer is delivered. Each vehicle sees 6 maps (:data:`CHANNELS`); the oracle heads
+for the nearest destination or pick-up cell. The world, moves, rewards and observation:
+docs/environments.md, "Fleet coordination".
 """
 
 from __future__ import annotations

@@ -1,31 +1,10 @@
 """Multi-agent maze cleaning (paper Section V-D).
 
-World
-    A random maze on a G×G grid (default G=10). Rooms are the cells with both coordinates
-    even; every room but (0, 0) opens the wall cell to its north or to its west (at random;
-    along the top edge always west, along the left edge always north): a "binary tree"
-    maze, i.e. a spanning tree of the rooms, so every free cell is reachable. ``complexity``
-    in [0, 1] (default 1.0) is the fraction of the remaining wall cells between rooms that
-    are kept: 1.0 is a perfect maze (one path between any two rooms), lower values open
-    loops; cells with both coordinates odd are always wall. Every free cell starts dirty.
-    ``agents`` cleaners (default 3) start on distinct random free cells, which are cleaned.
-
-Moves
-    The 8 one-cell moves (N, NE, E, SE, S, SW, W, NW); moves off the grid or into a wall are
-    masked and, if taken anyway, leave the agent in place. A cell is cleaned when an agent
-    steps on it.
-
-Reward, end of episode
-    Team reward per step: :data:`CLEAN_REWARD` per cell cleaned minus :data:`TIME_COST`.
-    The episode terminates (success) when no dirty cell is left, and is truncated after
-    ``max_steps`` steps.
-
-Observation of agent i, 4 maps G×G in [0, 1] (:data:`CHANNELS`):
-    0 own location; 1 other agents; 2 dirty cells; 3 walls.
-
-Oracle (:meth:`MazeCleaning.oracle_action_scores`): minus the BFS distance (around walls)
-from the cell after each move to the nearest dirty cell; computed by a batched BFS on every
-call, since the dirty cells change every step.
+Agents clean every free cell of a random binary-tree maze on a G x G grid (``complexity``: the share
+of the walls between rooms that are kept); the team is rewarded per cell cleaned and pays a time
+cost per step. Each agent sees 4 maps (:data:`CHANNELS`); the oracle scores each move by the BFS
+distance to the nearest dirty cell, recomputed on every call since the dirt changes every step.
+The maze, moves, rewards and observation: docs/environments.md, "Maze cleaning".
 """
 
 from __future__ import annotations

@@ -1,54 +1,11 @@
 """Target localization (paper Section V-A, notation ``AyWz``): a team finds a radioactive source.
 
-World
-    A G×G grid of cells (default G=30, the paper's 5 km × 5 km area, one cell ≈ 167 m).
-    ``walls`` axis-aligned wall segments of random length in [max(2, G//6), max(2, G//3)]
-    cells are placed at random; segments never overlap or touch (not even diagonally, so no
-    diagonal gap between two walls exists) and the layout is resampled until every free cell
-    is reachable from every other. The target (source) and the agents start on distinct
-    random free cells.
-
-Moves
-    Actions 0..7 = N, NE, E, SE, S, SW, W, NW (:data:`ACTIONS`), one cell each. A move off
-    the grid or into a wall is invalid: it is masked out (``mask`` False) and, if taken
-    anyway, the agent stays where it is.
-
-Readings (:func:`sensor_reading`)
-    The reading of a sensor at cell p, from a source at cell s, is::
-
-        I(p) = S * A**k(p) / (1 + d(p, s)**2) + BG
-
-    d = Euclidean distance between cell centres, in cells; S = :data:`SOURCE_STRENGTH`
-    (1000 counts/s: with the background the rate is S + BG = 1001 on the source cell and
-    S/2 + BG = 501 one cell away, before walls); A = :data:`WALL_ATTENUATION` (0.5, each wall
-    crossed halves the rate); k(p) = number of walls the straight line from s to p crosses:
-    the line is sampled at t = (k + 0.5)/(H+W), k = 0..H+W-1 (float32, at most 0.71 cell
-    apart), each sample rounded to a cell (half to even), and every run of consecutive wall
-    samples counts as one wall (docs/ros-reference.md, "Sensor model", gives it step by step);
-    BG = :data:`BACKGROUND` (1 count/s). The ``+1`` in the denominator keeps the reading at
-    the source finite.
-    With ``noise=True`` the reading is a Poisson draw with mean I(p) (counts in 1 s).
-
-Observation of agent i (:func:`build_observations`), 5 maps G×G, float32 in [0, 1]:
-    0 own location (one-hot); 1 team locations (1 where any other agent stands);
-    2 readings: the latest normalised reading per cell visited by the team (0 = never
-    visited; normalised as log(1 + I) / log(1 + S + BG), clipped to [0, 1]); 3 visit
-    counts of the team, divided by :data:`VISIT_SATURATION` and clipped to 1; 4 walls.
-
-Reward, end of episode
-    Sparse team reward :data:`SUCCESS_REWARD` when an agent stands on the target cell; the
-    episode then terminates. After ``max_steps`` steps without success it is truncated.
-    With ``end_on_find=False`` finding the target neither ends the episode nor counts as success
-    (a caller ends it: :meth:`~medc_training.envs.core.BatchedEnv.end_episode`).
-    With ``reward_shaping=True`` (the RS baseline) the team also gets, every step,
-    :data:`SHAPING_SCALE` × (decrease of the team's mean BFS distance to the target), where
-    the BFS distance goes around walls and is computed once per episode, at reset.
-
-The pure functions :func:`sensor_reading`, :func:`update_memory` and
-:func:`build_observations` (defined in :mod:`medc_training.envs.tl_sensing`, below both this
-module and the observation builder :mod:`medc_training.envs.tl_observation`, and re-exported
-here) are what the ROS simulator and agent nodes call on data they get from topics; the batched
-core below calls the very same functions.
+A G x G grid with random walls, 8 moves, a sensor whose rate falls with the squared distance and
+halves through each wall, the paper's 5 maps per agent and a sparse team reward on the target. The
+pure functions :func:`sensor_reading`, :func:`update_memory` and :func:`build_observations` (from
+:mod:`medc_training.envs.tl_sensing`, re-exported) are what the ROS nodes call on topic data and
+the batched core below calls too. The world, readings and rewards: docs/environments.md,
+"Target localization".
 """
 
 from __future__ import annotations

@@ -2,55 +2,11 @@
 
 One pure builder serves the batched core, the PettingZoo env, the experts and the ROS agent
 node: each keeps the same team memory (:class:`TeamMemory`: latest normalised reading and visit
-count per cell, and the log posterior over source cells) and calls :func:`observe` on it.
-
-Variants (:class:`ObservationSpec`, written as a short name on the command line and as a dict in
-every bundle manifest):
-
-``maps``
-    The paper's 5 absolute maps G×G: own location, team locations, readings, visit counts,
-    walls (:data:`MAP_CHANNELS`).
-``maps+estimate``
-    The same plus a 6th map, the team's source estimate (below).
-``egoR`` / ``egoR+estimate`` (R = window radius, e.g. ``ego6+estimate``)
-    An agent-centred window of (2R+1)×(2R+1) cells with the agent in the centre cell:
-    walls (cells off the grid count as walls), other team members, readings, visit counts, and
-    with ``+estimate`` the source estimate (:data:`EGO_CHANNELS`). Off-grid cells read 0 in every
-    channel but walls. R = G−1 is the full re-centred view: every cell of the grid is in the window
-    wherever the agent stands.
-``maps+posterior`` / ``egoR+posterior`` / ``maps+estimate+posterior`` / ``egoR+estimate+posterior``
-    Any of the above plus one more map, last: the team's source posterior itself (below).
-
-Source estimate (:class:`SourceEstimator`)
-    The team's Bayes posterior over the source cell, from every reading the team has taken in the
-    episode, with the environment's own sensor model (inverse square, wall attenuation along the
-    line exactly as :func:`~medc_training.envs.target_localization.sensor_reading` computes it,
-    background) and a Poisson counting likelihood::
-
-        log p(s | r_1..r_t) = const + sum_k [ r_k log lambda_s(p_k) - lambda_s(p_k) ]
-
-    over free cells s; the prior is uniform over free cells, and a cell some agent has stood on
-    without the episode ending is not the source (probability 0; ``rule_out=False`` drops this rule
-    for episodes that finding the source does not end). With ``noise=True`` the readings
-    are Poisson counts and this is the exact posterior; without noise the readings equal the rates
-    and the same formula is the posterior of a Poisson sensor (peaked at the true source). Log
-    probabilities are kept relative to their maximum and floored at :data:`LOG_FLOOR`, below
-    float32's smallest positive exp(), so the stored posterior equals the exact one to float32
-    precision and a reading from a mismatched sensor can never leave the team with no candidate.
-
-    It is shown as a smooth map, the expected number of moves to the source::
-
-        E(c) = sum_s p(s) * max(|c_row - s_row|, |c_col - s_col|)       (Chebyshev: 8 moves)
-        estimate(c) = 1 - E(c) / (G - 1)                                  in [0, 1]
-
-    Walls are ignored in E (they are in the walls channel); 1 marks the cell the team is sure of.
-
-    The estimate is one number per cell: a posterior with two or more separate modes reads as a
-    smooth bump between them. The ``+posterior`` views show the posterior itself, scaled to its mode::
-
-        posterior(c) = p(c) / max_s p(s)                                    in [0, 1]
-
-    1 at the most probable cell(s), 0 on walls and on cells ruled out (:data:`POSTERIOR_CHANNEL`).
+count per cell, and the log posterior over source cells) and calls :func:`observe` on it, so a
+policy sees in ROS exactly what it saw in training. The variants (:class:`ObservationSpec`:
+``maps``, ``egoR``, each with ``+estimate``, ``+posterior`` or both), the source estimator's
+Poisson posterior (:class:`SourceEstimator`) and the maps drawn from it: docs/environments.md,
+"Target-localization observations".
 """
 
 from __future__ import annotations

@@ -7,12 +7,12 @@ figures the field reports (docs/radbench.md).
 - :mod:`~medc_training.radbench.sets`: the committed sets (obstruction counts 0-7 x SNR bins low,
   medium, high, 200 episodes each, for 20 x 20 and 30 x 30 cells of 1 m and 1 or 3 agents), loaded
   only when their SHA-256 matches.
-- :mod:`~medc_training.radbench.metrics`: completion rate, median completed length with its
+- :mod:`~medc_training.radbench.results`: completion rate, median completed length with its
   order-statistic interval, mean length with failures at the limit, declaration error and time,
   tracking error, and paired comparisons of two policies.
 - :mod:`~medc_training.radbench.play`: a set played through the project's evaluator by random moves,
   a classical controller, a policy bundle or any policy factory.
-- :mod:`~medc_training.radbench.cli`: ``medc-radbench``.
+- :mod:`~medc_training.cli.radbench`: ``medc-radbench``.
 
     from medc_training.radbench import load_sets, play_set, summarize
     (s,) = load_sets(grid=20, agents=1, obstructions=[3], snrs=["low"])
@@ -20,8 +20,8 @@ figures the field reports (docs/radbench.md).
     print(s.sha256, summarize(results, s.max_steps))
 """
 
-from .metrics import EpisodeResult, median_ci, paired, summarize
 from .play import TEAM_SENSING, BenchCore, play_set, poisson_counts
+from .results import EpisodeResult, median_ci, paired, summarize
 from .scenario import GRIDS, SNR_BINS, Episode, generate_set, snr, snr_bin
 from .sets import BenchSet, SetFileError, load_file, load_sets
 

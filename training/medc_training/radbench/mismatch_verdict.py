@@ -30,8 +30,8 @@ from typing import Any
 
 from medc_training.stats import mean_ci
 
-from .metrics import EpisodeResult, scored_length
 from .pairing import load_episodes
+from .results import EpisodeResult, scored_length
 from .scenario import MAX_STEPS
 
 __all__ = ["BOUND", "COMPLETION", "LOSS", "load_sweep", "mismatch_verdict"]

@@ -19,7 +19,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from .metrics import EpisodeResult, paired, summarize
+from .results import EpisodeResult, paired, summarize
 from .scenario import MAX_STEPS
 
 __all__ = ["GROUPS", "load_episodes", "obstructions", "pair_table"]

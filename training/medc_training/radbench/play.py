@@ -16,7 +16,7 @@ under the team's sensor model, :data:`TEAM_SENSING` by default (the ``realistic`
 strength range of the benchmark, 100-1000 counts/s: the estimator's 1 / (1 + d²) law is within 4% of
 the world's 1 / d² beyond 5 m and halves it at 1 m, a model error the team lives with). The core also
 records, per episode, the team's first declaration (:func:`medc_training.envs.tl_estimate.declare`)
-and its posterior-mean tracking error, the figures :mod:`medc_training.radbench.metrics` reports.
+and its posterior-mean tracking error, the figures :mod:`medc_training.radbench.results` reports.
 
 :func:`play_set` plays a set (or its first episodes) with ``random``, a classical controller
 (:data:`medc_training.controllers.CONTROLLERS`), a policy bundle or any policy factory, through
@@ -39,8 +39,8 @@ from medc_training.envs.tl_observation import TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, parse_sensing
 
 from .departure import Departure, jittered_positions
-from .metrics import EpisodeResult
 from .physics import TEAM_SENSING, episode_tensors, world_rates
+from .results import EpisodeResult
 from .scenario import noise_uniforms
 from .sets import BenchSet
 

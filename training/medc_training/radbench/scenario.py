@@ -1,58 +1,11 @@
 """RAD-A2C's search scenarios on a grid: the physics in its units, the SNR bins, and a seeded
 generator of episode definitions.
 
-RAD-A2C (Proctor et al., "Proximal Policy Optimization for Radiation Source Search", J. Nucl. Eng.
-2(4):368-397, 2021) evaluates one detector searching for one source in a 20 m x 20 m area, 0-7
-rectangular obstructions, on test sets binned by the signal-to-noise ratio at the start. This module
-states that scenario on a grid of one-metre cells and draws episodes from it:
-
-Physics (per episode; :data:`PHYSICS`)
-    Rate at distance d metres from a source of strength S: ``S / d**2 + B`` counts/s, with S drawn
-    uniformly in [100, 1000) counts/s at 1 m (RAD-A2C: 10^6-10^7 counts/s at 1 cm, the same law in
-    centimetres) and the background B uniformly among the integers 10..50 counts/s. An obstruction
-    on the straight line between the source and the detector leaves the background only. Counts are
-    Poisson in a 1 s dwell. A search succeeds when a detector is within 1.1 m of the source; it has
-    120 moves.
-
-Areas (:data:`GRIDS`)
-    ``20``: 20 x 20 cells of 1 m, RAD-A2C's search area. ``30``: 30 x 30 cells of 1 m, the paper's
-    grid side with RAD-A2C's metric physics (a larger area than RAD-A2C's; nothing else changes).
-
-Obstructions
-    Each is a solid rectangle of 2-5 cells per side (uniform, independent per side; RAD-A2C's are
-    2.00-4.99 m), its top-left cell uniform in the first ``ceil(0.89 G)`` rows and columns (RAD-A2C:
-    the lower 89% of the area), clipped to the grid. An obstruction that would touch an earlier one
-    (no free cell between them, diagonals included) is drawn again, as RAD-A2C draws a colliding one
-    again; a layout whose free cells are not all connected is drawn again (none was, in the frozen
-    sets).
-
-Starts
-    Each agent starts on a distinct free cell, uniformly. The source is drawn uniformly among the
-    cells at least 10 m (cell centre to cell centre) from every start; a candidate on an obstruction
-    is drawn again, and while obstructions exist a candidate that some start sees (clear line of
-    sight) is drawn again, up to 21 candidates; after that any free candidate is taken (RAD-A2C's
-    "preferably out of sight" rule).
-
-SNR (:func:`snr`, :data:`SNR_BINS`)
-    ``(S / d**2 + B) / B`` at a start, d in metres, line of sight ignored (as RAD-A2C computes it).
-    Bins ``low`` (1.0, 1.2], ``medium`` (1.2, 1.6], ``high`` (1.6, 2.0], each split into 4 equal
-    sub-bins that get a quarter of a set's episodes each (RAD-A2C's stratification). A team's SNR is
-    its best start's (the highest; with one agent, RAD-A2C's own): that one is in the bin and the
-    sub-bin, every other start is farther from the source (lower SNR) and at least 10 m away.
-    ``none``: no SNR condition.
-
-The generator (:func:`generate_set`) is rejection sampling, equal in distribution to RAD-A2C's
-generate-and-discard loop and far cheaper: a geometry (obstructions, starts, source) is drawn as
-above and kept with probability q / q_max, q = the probability that a uniform (S, B) puts it in the
-sub-bin (computed exactly over the discrete (S, B) grid) and q_max its largest value over every
-distance the area allows; (S, B) is then drawn uniformly among the pairs that do. Every random
-number comes from one numpy PCG64 stream per set, seeded from (seed, grid, agents, obstructions,
-SNR bin).
-
-An episode definition (:class:`Episode`) holds the obstructions, the source cell, S, B, the starts
-and a count-noise seed: the seed of the uniform numbers the counts are drawn from
-(:func:`noise_uniforms`), so two policies played on the same episode read the same counts wherever
-they stand on the same cell at the same step.
+RAD-A2C (Proctor et al., J. Nucl. Eng. 2(4):368-397, 2021) searches for one source in a 20 m x 20 m
+area with 0-7 obstructions, on test sets binned by the start's signal-to-noise ratio. This module
+states that scenario on 1 m cells (:data:`PHYSICS`, :data:`GRIDS`, :data:`SNR_BINS`) and draws
+:class:`Episode` definitions by rejection sampling (:func:`generate_set`). The rules and every
+difference from RAD-A2C: docs/radbench.md, "The scenario, and every difference from RAD-A2C".
 """
 
 from __future__ import annotations

@@ -46,8 +46,8 @@ from typing import Any
 
 from medc_training.stats import mean_ci
 
-from .metrics import scored_length
 from .pairing import load_episodes, obstructions
+from .results import scored_length
 from .scenario import MAX_STEPS, OBSTRUCTION_COUNTS
 
 __all__ = ["GOAL_COUNTS", "GOAL_RATIO", "MARGIN", "frozen_verdict", "steps_to_level"]

@@ -34,7 +34,7 @@ def controller_name(source: object) -> str | None:
 
 @dataclass
 class ControllerPolicy:
-    """A running controller, in the place of a :class:`~medc_agents.policy.LoadedPolicy`."""
+    """A running controller, in the place of a :class:`~medc_agents.policy_slot.LoadedPolicy`."""
 
     controller: str
     #: Controllers have no network: nothing to batch across agents.

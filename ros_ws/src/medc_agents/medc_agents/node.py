@@ -53,7 +53,7 @@ from medc_agents import guard
 from medc_agents.controller import controller_move, controller_name, controller_scenario
 from medc_agents.estimate import TeamEstimate
 from medc_agents.map_faults import MapFaults
-from medc_agents.policy import (
+from medc_agents.policy_slot import (
     PolicyRejected,
     PolicySlot,
     read_policy_manifest,

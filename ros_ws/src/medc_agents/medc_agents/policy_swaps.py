@@ -4,7 +4,7 @@ through the registry bridge), and refusals that keep the running policy.
 :class:`PolicySwaps` is owned by :class:`medc_agents.node.AgentNode` and built from the slot it
 swaps, the observer that follows the slot's observation, a logger and a fetch callable (a
 :class:`BridgeFetch`); the slot itself (validation, dry run, cache) is
-:class:`medc_agents.policy.PolicySlot`.
+:class:`medc_agents.policy_slot.PolicySlot`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from medc_training.untrusted import printable
 from rcl_interfaces.msg import SetParametersResult
 from std_msgs.msg import String
 
-from medc_agents.policy import PolicyRejected, looks_like_cid, shown, strip_cid
+from medc_agents.policy_slot import PolicyRejected, looks_like_cid, shown, strip_cid
 
 
 def refusal_reason(exc: BaseException) -> str:

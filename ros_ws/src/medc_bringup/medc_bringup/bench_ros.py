@@ -85,7 +85,7 @@ def _start_graph(cfg, agents: int, bundle: str, in_process: bool) -> tuple:
     import subprocess
 
     from medc_common.contract import agent_node_name
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.parameter import Parameter
 
     from medc_bringup.launcher import _child_env, agent_parameters, build_graph, ros_args, sim_parameters

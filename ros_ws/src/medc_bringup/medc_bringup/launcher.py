@@ -385,7 +385,7 @@ def build_graph(
     Returns ``(sim, agents, nodes)``, ``nodes`` = every node to spin (the feed included).
     """
     from medc_agents.node import AgentNode, TeamFeed
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
     from rclpy.parameter import Parameter
 
     def overrides(params: dict[str, Any]) -> list[Parameter]:

@@ -3,7 +3,7 @@ that names the episode in play, comes from a member of the team and cannot be to
 ends the episode; the others are dropped, a refused one reported on /diagnostics (part
 ``declarations``) until one is taken.
 
-Owned by :class:`medc_sim.node.SimNode` and built from what it reads (the core, the move book, the
+Owned by :class:`medc_sim.simulator.SimNode` and built from what it reads (the core, the move book, the
 episode's map stamp, the graph's publishers) and callables that end the episode and count a drop;
 the cell rule is :func:`medc_sim.episode_end.declared_cell`.
 """

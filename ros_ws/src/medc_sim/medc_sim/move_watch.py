@@ -2,7 +2,7 @@
 mode, re-sent steps, stall reports, agents taken out after move_timeout_s and taken back when they
 move again.
 
-:class:`MoveFaults` and :class:`StepWatch` are owned by :class:`medc_sim.node.SimNode`, each built
+:class:`MoveFaults` and :class:`StepWatch` are owned by :class:`medc_sim.simulator.SimNode`, each built
 from what it reads and reports to (the move book, a Health, a logger, callables that re-send or
 advance the step, a clock) and tested without a node; the bookkeeping rules are
 :class:`medc_sim.moves.MoveBook`'s.

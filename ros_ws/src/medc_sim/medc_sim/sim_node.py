@@ -1,4 +1,4 @@
-"""medc-sim: run the simulator node (medc_sim.node.SimNode) until Ctrl-C or ``episodes`` done.
+"""medc-sim: run the simulator node (medc_sim.simulator.SimNode) until Ctrl-C or ``episodes`` done.
 
 Usage: ``medc-sim --ros-args -p agents:=3 -p seed:=0 --params-file config/sim.yaml``.
 """
@@ -43,12 +43,12 @@ def main(argv: list[str] | None = None) -> int:
         return print_node_help(
             "medc-sim", "The simulator node: plays the UAV team's drivers (poses, readings, the walls map, "
                         "the episode status) and applies the agents' moves.",
-            ["medc_sim.node", "medc_common.auth_node"],
+            ["medc_sim.simulator", "medc_common.auth_node"],
             "medc-sim --ros-args -p agents:=3 -p grid:=13 -p seed:=0")
     require_interfaces()
     from medc_common.executors import run_node
 
-    from medc_sim.node import SimNode
+    from medc_sim.simulator import SimNode
 
     return run_node("medc-sim", argv, SimNode, spin=spin_episodes)
 

@@ -18,7 +18,7 @@ episodes of each set (2 per SNR sub-bin: 72 episodes per policy), with random, g
 infotaxis: under two minutes on the 2-core development machine.
 
 Human-readable lines go to stdout (none with --quiet); the last line is one JSON object: per set its
-SHA-256 and every policy's figures (medc_training.radbench.metrics), pooled by obstruction count, by
+SHA-256 and every policy's figures (medc_training.radbench.results), pooled by obstruction count, by
 SNR bin and overall, the paired comparisons, the set file's SHA-256 and the time each policy took.
 docs/radbench.md states the scenario and every difference from RAD-A2C.
 """
@@ -49,7 +49,7 @@ def _int_list(text: str) -> list[int]:
 
 
 def _snr_list(text: str) -> list[str]:
-    from .scenario import SNR_BINS
+    from ..radbench.scenario import SNR_BINS
 
     values = [v.strip() for v in text.split(",") if v.strip()]
     bad = [v for v in values if v not in SNR_BINS]
@@ -126,7 +126,7 @@ def _fmt(summary: dict[str, Any]) -> str:
 
 
 def _list(args: argparse.Namespace) -> int:
-    from .sets import FROZEN, SETS_DIR, load_file
+    from ..radbench.sets import FROZEN, SETS_DIR, load_file
 
     files = {}
     for name in sorted(FROZEN):
@@ -142,8 +142,8 @@ def _list(args: argparse.Namespace) -> int:
 
 def _generate(args: argparse.Namespace) -> int:
     from ..console import progress_bar
-    from .scenario import DEFAULT_SEED, GRIDS, OBSTRUCTION_COUNTS, SNR_BINS
-    from .sets import FROZEN, FROZEN_EPISODES, file_name, generate_file, write_file
+    from ..radbench.scenario import DEFAULT_SEED, GRIDS, OBSTRUCTION_COUNTS, SNR_BINS
+    from ..radbench.sets import FROZEN, FROZEN_EPISODES, file_name, generate_file, write_file
 
     grids = [args.grid] if args.grid else sorted(GRIDS)
     teams = [args.agents] if args.agents else [1, 3]
@@ -180,7 +180,7 @@ def _report(args: argparse.Namespace, sets: list, results: dict[str, dict[str, l
             reference: str) -> tuple[dict, dict, dict]:
     """(per set, pooled, pooled paired) figures of the played ``results`` (set id -> policy ->
     EpisodeResult list), printed as they are made (unless --quiet)."""
-    from .metrics import paired, summarize
+    from ..radbench.results import paired, summarize
 
     max_steps = sets[0].max_steps
     others = [p for p in policies if p != reference]
@@ -218,7 +218,7 @@ def _report(args: argparse.Namespace, sets: list, results: dict[str, dict[str, l
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from .sets import SetFileError
+    from ..radbench.sets import SetFileError
 
     try:
         if args.list:
@@ -236,8 +236,8 @@ def main(argv: list[str] | None = None) -> int:
 def _cost(args: argparse.Namespace) -> int:
     import torch
 
-    from .cost import decision_cost
-    from .sets import load_sets
+    from ..radbench.cost import decision_cost
+    from ..radbench.sets import load_sets
 
     torch.set_num_threads(args.threads)
     grid, agents = args.grid or 20, args.agents or 1
@@ -284,7 +284,7 @@ def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, e
     """(the sets to play, where they come from): ``--sets-file``'s (ValueError when ``--grid`` or
     ``--agents`` disagree with it) or the committed file of ``grid`` and ``agents``; the first
     ``episodes`` of each when given."""
-    from .sets import file_name, load_sets
+    from ..radbench.sets import file_name, load_sets
 
     if args.sets_file is not None:
         sets = load_sets(path=args.sets_file, sha256=args.sha256, obstructions=counts, snrs=snrs)
@@ -304,8 +304,8 @@ def _play(args: argparse.Namespace) -> int:
     import torch
 
     from ..console import progress_bar
-    from .departure import Departure
-    from .play import TEAM_SENSING, play_set, policy_names
+    from ..radbench.departure import Departure
+    from ..radbench.play import TEAM_SENSING, play_set, policy_names
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--threads, --batch and --episodes must be positive")

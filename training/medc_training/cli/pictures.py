@@ -1,4 +1,4 @@
-"""``python -m medc_training.cli.render OUT_DIR``: Fig. 5-style pictures of each application.
+"""``python -m medc_training.cli.pictures OUT_DIR``: Fig. 5-style pictures of each application.
 
 Plays a few random valid moves in each environment, then writes ``<name>_area.png`` (the area)
 and ``<name>_agent_0.png`` (agent 0's observation maps) under OUT_DIR, with the picture functions
@@ -19,7 +19,7 @@ from medc_training.envs.render import save_frame_png, save_observation_png
 
 def main(argv: list[str] | None = None) -> int:
     """Write the pictures (see the module docstring); prints each file written."""
-    p = argparse.ArgumentParser(prog="python -m medc_training.cli.render",
+    p = argparse.ArgumentParser(prog="python -m medc_training.cli.pictures",
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("out_dir", type=Path)
     p.add_argument("--steps", type=int, default=25, help="random moves before the picture")
