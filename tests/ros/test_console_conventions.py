@@ -36,7 +36,7 @@ def test_help_exits_0_and_prints_the_description_once(script, capsys):
 
 
 def test_bench_help_names_each_benchmark_with_what_it_measures(capsys):
-    from medc_training import bench
+    from medc_training.cli import bench
 
     assert bench.main(["--help"]) == 0
     text = capsys.readouterr().out
