@@ -28,10 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from medc_training.stats import mean_ci
-
 from .pairing import load_episodes
-from .results import EpisodeResult, scored_length
+from .results import EpisodeResult, paired, summarize
 from .scenario import MAX_STEPS
 
 __all__ = ["BOUND", "COMPLETION", "LOSS", "load_sweep", "mismatch_verdict"]
@@ -82,15 +80,15 @@ def _common(played: Played) -> list[tuple]:
 
 
 def _level(episodes: dict[tuple, EpisodeResult], keys: list[tuple], max_steps: int) -> dict[str, float]:
-    lengths = [scored_length(episodes[k], max_steps) for k in keys]
-    return {"mean_length": sum(lengths) / len(lengths),
-            "completion": sum(float(episodes[k].success) for k in keys) / len(keys)}
+    summary = summarize([episodes[k] for k in keys], max_steps)
+    return {"mean_length": summary["mean_length"], "completion": summary["completion_rate"]}
 
 
 def _paired(mine: dict[tuple, EpisodeResult], theirs: dict[tuple, EpisodeResult], keys: list[tuple],
             max_steps: int) -> dict[str, float]:
-    diffs = [scored_length(mine[k], max_steps) - scored_length(theirs[k], max_steps) for k in keys]
-    mean, half = mean_ci(diffs)
+    comparison = paired([mine[k] for k in keys], [theirs[k] for k in keys], max_steps)
+    mean = comparison["mean_diff"]
+    half = comparison["mean_diff_ci95"] if comparison["mean_diff_ci95"] is not None else float("nan")
     return {"mean": mean, "lo": mean - half, "hi": mean + half}
 
 
