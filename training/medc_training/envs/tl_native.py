@@ -251,6 +251,12 @@ def _check(t: torch.Tensor, dtype: torch.dtype, shape: tuple[int, ...], name: st
     return t.data_ptr()
 
 
+def _episode_bytes(at: dict[int, torch.Tensor | None]) -> dict[int, int]:
+    """{argument index: the bytes one episode takes} of the per-episode tensors passed at those
+    indices (contiguous, episodes first; None: no tensor), for :func:`_spread`."""
+    return {i: 0 if t is None else t.stride(0) * t.element_size() for i, t in at.items()}
+
+
 def _check_on_grid(positions: torch.Tensor, g: int) -> None:
     """The kernel indexes its tables by position: one off the grid would read outside them."""
     if bool(((positions < 0) | (positions >= g)).any()):
@@ -291,9 +297,7 @@ def levels_update(post: torch.Tensor, log_rate: torch.Tensor, factor: torch.Tens
         k, n, levels, float(dead_cell),
     ]
     _check_on_grid(positions, g)
-    f32, i64 = 4, 8
-    per_episode = {0: cells * levels * f32, 6: n * 2 * i64, 7: z * 4 * f32, 12: n * f32, 13: cells,
-                   14: cells * f32}
+    per_episode = _episode_bytes({0: post, 6: positions, 7: rects, 12: readings, 13: out, 14: marginal})
     if any(_spread(lib.medc_levels_update, args, per_episode, 15, k, k * cells * (levels + n))):
         raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
 
@@ -305,7 +309,7 @@ def levels_marginal(post: torch.Tensor, marginal: torch.Tensor, dead_cell: float
     k, cells, levels = post.shape
     args = [_check(post, torch.float32, (k, cells, levels), "post"), k, cells, levels,
             _check(marginal, torch.float32, (k, cells), "marginal"), float(dead_cell)]
-    _spread(lib.medc_levels_marginal, args, {0: cells * levels * 4, 4: cells * 4}, 1, k, k * cells * levels)
+    _spread(lib.medc_levels_marginal, args, _episode_bytes({0: post, 4: marginal}), 1, k, k * cells * levels)
 
 
 def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor, span: int,
@@ -336,7 +340,7 @@ def single_update(post: torch.Tensor, rate: torch.Tensor, log_rate: torch.Tensor
         k, n, g,
     ]
     _check_on_grid(positions, g)
-    per_episode = {0: cells * 4, 5: n * 2 * 8, 7: z * 4 * 8, 9: n * 4, 10: cells, 11: cells * 4}
+    per_episode = _episode_bytes({0: post, 5: positions, 7: segments, 9: readings, 10: out, 11: posterior})
     if any(_spread(lib.medc_single_update, args, per_episode, 12, k, k * cells * n * (z + 1))):
         raise ValueError("a (walls crossed, d²) pair or a wall segment falls outside the estimator's tables")
 
@@ -348,7 +352,7 @@ def single_posterior(post: torch.Tensor) -> torch.Tensor:
     k, cells = post.shape
     p = torch.empty((k, cells), device=post.device)
     args = [_check(post, torch.float32, (k, cells), "post"), k, cells, p.data_ptr()]
-    _spread(lib.medc_single_posterior, args, {0: cells * 4, 3: cells * 4}, 1, k, k * cells)
+    _spread(lib.medc_single_posterior, args, _episode_bytes({0: post, 3: p}), 1, k, k * cells)
     return p
 
 
@@ -359,7 +363,7 @@ def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     k = posterior.shape[0]
     expected = torch.empty((k, grid * grid), device=posterior.device)
     args = [_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid, expected.data_ptr()]
-    _spread(lib.medc_expected_moves, args, {0: grid * grid * 4, 3: grid * grid * 4}, 1, k, k * grid * grid)
+    _spread(lib.medc_expected_moves, args, _episode_bytes({0: posterior, 3: expected}), 1, k, k * grid * grid)
     return expected
 
 
