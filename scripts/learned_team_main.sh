@@ -28,7 +28,11 @@
 # MEDC_MAIN_SEED_OFFSET (added to the training seed, default 0: a run started from a bundle trains on
 # a fresh stream of episodes), MEDC_MAIN_GRID (20, the default, or 30: the grid the runs train on,
 # their validation file is drawn at and whose frozen file they play, g20-a3 with 40 episodes per set
-# or g30-a3 with 12, as the searchers' protocol runs).
+# or g30-a3 with 12, as the searchers' protocol runs), MEDC_MAIN_STOP_AT_LEVEL (episode lines of the
+# yardstick on the validation episodes, e.g. docs/reproduction/learned-team/probes/searchers.episodes.jsonl:
+# a run stops at the first piece whose validation play reaches infotaxis-exact's level there, as
+# `python -m medc_training.radbench.verdict steps` reads it, and plays no frozen episodes; for
+# steps-to-level comparisons, which need nothing after that piece).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
@@ -42,6 +46,11 @@ frozen=${MEDC_MAIN_FROZEN:-1}
 init=${MEDC_MAIN_INIT:-}
 seed_offset=${MEDC_MAIN_SEED_OFFSET:-0}
 grid=${MEDC_MAIN_GRID:-20}
+stop_at_level=${MEDC_MAIN_STOP_AT_LEVEL:-}
+if [[ -n $stop_at_level && ! -s $stop_at_level ]]; then
+  echo "learned_team_main: MEDC_MAIN_STOP_AT_LEVEL: no episode lines at '$stop_at_level'" >&2
+  exit 2
+fi
 case $grid in
   20) frozen_episodes=40 ;;
   30) frozen_episodes=12 ;;
@@ -101,6 +110,15 @@ validate() {  # run folder: every piece's bundle that has not played the validat
   done
 }
 
+at_level() {  # run folder: true when one of its piece bundles reached the yardstick's validation level
+  [[ -n $stop_at_level && -s "$1/summary.json" ]] || return 1
+  python -m medc_training.radbench.verdict steps --budget "$budget" --yardstick "$stop_at_level" \
+    --reference infotaxis-exact --focus run "run=$1" | tail -1 | python -c '
+import json, sys
+runs = json.load(sys.stdin)["runs"]["run"]
+sys.exit(0 if any(r["reached"] is not None for r in runs.values()) else 1)'
+}
+
 one_run() {  # METHOD-sSEED
   local name=$1 method seed dir
   if ! [[ "$name" =~ ^(sparse|medc|il|medc-exact)-s([0-9]+)$ ]]; then
@@ -132,7 +150,7 @@ one_run() {  # METHOD-sSEED
   fi
   local done_steps
   done_steps=$(steps_done "$dir")
-  while (( done_steps < budget )); do
+  while (( done_steps < budget )) && ! at_level "$dir"; do
     local target=$(( (done_steps / piece + 1) * piece ))
     (( target > budget )) && target=$budget
     local resume=()
@@ -161,6 +179,11 @@ EOF
     cp "$dir/policy.safetensors" "$dir/policy-$done_steps.safetensors"
   fi
   validate "$dir"
+  if at_level "$dir"; then
+    echo "$(date +%T) $name: reached the yardstick's validation level at $done_steps steps; stopped"
+    exec {claim}>&-
+    return 0
+  fi
   if [[ $frozen == 0 ]]; then
     exec {claim}>&-
     return 0
