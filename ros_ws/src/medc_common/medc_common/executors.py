@@ -38,6 +38,11 @@ def request_stop(*_: object) -> None:
     _STOP.set()
 
 
+def stop_requested() -> bool:
+    """True once SIGINT or SIGTERM asked this process to stop (:func:`install_stop_handlers`)."""
+    return _STOP.is_set()
+
+
 def running() -> bool:
     """True while rclpy is up and no stop was requested: the condition of every spin loop."""
     import rclpy
