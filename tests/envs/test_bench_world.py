@@ -49,6 +49,27 @@ def test_episodes_are_the_generators_mix_and_never_the_frozen_seed():
     assert draw_episodes(20, 3, 4, 60, TRAIN_SEED_BASE + 7) == episodes
 
 
+def test_walls_min_trains_on_the_harder_counts_only_and_is_recorded(monkeypatch):
+    from medc_training.radbench import world
+
+    drawn = []
+
+    def spy(*args):
+        drawn.extend(draw_episodes(*args))
+        return draw_episodes(*args)
+
+    monkeypatch.setattr(world, "draw_episodes", spy)
+    env = _world(walls_min=2, pool=60)
+    assert env.attributes["walls_min"] == 2
+    again = make_batched("target_localization", num_envs=1, seed=0, **env.attributes)
+    assert again.attributes == env.attributes  # a bundle's manifest rebuilds the same mix
+    drawn.clear()
+    env.reset(seed=0)
+    assert {len(e.obstructions) for e in drawn} == {2, 3, 4}  # the pool the world plays
+    with pytest.raises(ValueError, match="walls_min"):
+        _world(walls_min=5)
+
+
 def test_readings_follow_the_benchmark_world():
     env = _world(num_envs=64, seed=11)
     env.reset()

@@ -55,17 +55,19 @@ TRAIN_SEED_BASE = 1_000_000_000
 SNR_MIX: tuple[str, ...] = ("low", "medium", "high")
 
 
-def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int):
+def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int,
+                  min_obstructions: int = 0):
     """About ``count`` fresh benchmark episodes (list of :class:`~medc_training.radbench.scenario.
-    Episode`), an equal share for every obstruction count 0..``max_obstructions`` and SNR bin of
-    :data:`SNR_MIX`, shuffled; the same arguments give the same episodes. The last few draws are
-    kept: a training run's evaluation draws the same pool at every evaluation."""
-    return list(_draw_episodes(grid, agents, max_obstructions, count, seed))
+    Episode`), an equal share for every obstruction count ``min_obstructions``..``max_obstructions``
+    and SNR bin of :data:`SNR_MIX`, shuffled; the same arguments give the same episodes. The last
+    few draws are kept: a training run's evaluation draws the same pool at every evaluation."""
+    return list(_draw_episodes(grid, agents, max_obstructions, count, seed, min_obstructions))
 
 
 @functools.lru_cache(maxsize=4)
-def _draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int) -> tuple:
-    groups = [(o, name) for o in range(max_obstructions + 1) for name in SNR_MIX]
+def _draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int,
+                   min_obstructions: int) -> tuple:
+    groups = [(o, name) for o in range(min_obstructions, max_obstructions + 1) for name in SNR_MIX]
     per = max(1, -(-count // len(groups)))
     episodes = []
     for o, name in groups:
@@ -78,7 +80,8 @@ def _draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, se
 class BenchWorld(TargetLocalization):
     """Target localization in the benchmark's world, on fresh episodes (module docstring).
 
-    ``walls``: the most obstructions an episode has (0..7; every count up to it in equal shares);
+    ``walls``: the most obstructions an episode has (0..7; every count from ``walls_min``, 0 by
+    default, up to it in equal shares: ``walls_min`` > 0 trains on the harder counts only);
     ``grid``: 20 or 30 (the benchmark's areas); ``max_steps``: the benchmark's 120 by default;
     ``sensing``: the team's model (``"realistic"`` or None: :data:`TEAM_SENSING`; it must have the
     world's cell size, the exact line of sight and obstructions that block it); ``pool``: episodes
@@ -92,12 +95,15 @@ class BenchWorld(TargetLocalization):
                  sensing: SensingModel | str | dict | None = None, pool: int = 2048,
                  transmission_max: float = 0.0, efficiency_spread: float = 0.0, strength_spread: float = 1.0,
                  background_low: float | None = None, background_high: float | None = None,
-                 position_noise_max: float = 0.0) -> None:
+                 position_noise_max: float = 0.0, walls_min: int = 0) -> None:
         if grid not in GRIDS:
             raise ValueError(f"the benchmark's world has grids of {sorted(GRIDS)} cells, got {grid!r}")
         if isinstance(walls, bool) or not isinstance(walls, int) or walls not in OBSTRUCTION_COUNTS:
             raise ValueError("walls (the most obstructions of an episode) must be "
                              f"0..{max(OBSTRUCTION_COUNTS)}, got {walls!r}")
+        if isinstance(walls_min, bool) or not isinstance(walls_min, int) or not 0 <= walls_min <= walls:
+            raise ValueError(f"walls_min (the fewest obstructions of an episode) must be 0..walls ({walls}), "
+                             f"got {walls_min!r}")
         if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
             raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
         self.randomisation = _randomisation(transmission_max, efficiency_spread, strength_spread,
@@ -113,6 +119,7 @@ class BenchWorld(TargetLocalization):
                          max_steps=max_steps, reward_shaping=reward_shaping, copy_obs=copy_obs,
                          observation=observation, sensing=sensing, posterior=True, end_on_find=True)
         self.num_walls = walls
+        self.walls_min = walls_min
         self.cell_m = spec.cell_m
         self.pool_size = pool
         self._slots = max(1, max(OBSTRUCTION_COUNTS))
@@ -130,12 +137,13 @@ class BenchWorld(TargetLocalization):
     def attributes(self) -> dict[str, Any]:
         return {"agents": self.num_agents, "walls": self.num_walls, "grid": self.grid,
                 "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD,
-                **self.randomisation}
+                **({"walls_min": self.walls_min} if self.walls_min else {}), **self.randomisation}
 
     def _draw_pool(self) -> None:
         seed = TRAIN_SEED_BASE + int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator,
                                                    device=self.device))
-        episodes = draw_episodes(self.grid, self.num_agents, self.num_walls, self.pool_size, seed)
+        episodes = draw_episodes(self.grid, self.num_agents, self.num_walls, self.pool_size, seed,
+                                 self.walls_min)
         tensors = episode_tensors(episodes, self.grid, self._slots, self.device)
         tensors.update(_draw_departures(self.randomisation, tensors, seed, self.device))
         self._episodes, self._next = tensors, 0
