@@ -207,3 +207,17 @@ def test_out_replaces_a_link_only_when_asked_and_refuses_a_device_or_folder_firs
     assert victim.read_text() == "precious\n" and not out.is_symlink()
     assert [json.loads(line)["policy"] for line in out.read_text().splitlines()] == ["greedy", "greedy"]
     assert sorted(os.listdir(tmp_path)) == ["lines.jsonl", "victim.txt"]
+
+
+def test_bundles_joined_by_plus_play_as_one_ensemble():
+    """``A+B`` plays the ensemble of the two bundles; an ensemble of one bundle twice plays as that
+    bundle, and a missing member is named."""
+    (s,) = load_sets(20, 3, obstructions=[5], snrs=["low"])
+    s = s.head(4)
+    a = "docs/reproduction/learned-team/main-posterior-ft/medc-s0/policy.safetensors"
+    b = "docs/reproduction/learned-team/main-posterior-hard/medc-s0/policy.safetensors"
+    assert play_set(s, f"{a}+{a}") == play_set(s, a)
+    both = play_set(s, f"{a}+{b}")
+    assert len(both) == 4 and all(r.success or r.length == 120 for r in both)
+    with pytest.raises(ValueError, match=r"no bundle at 'nowhere\.safetensors'"):
+        play_set(s, f"{a}+nowhere.safetensors", episodes=1)

@@ -10,8 +10,10 @@ report what the field reports, per set and pooled, with the sets' SHA-256.
 
 POLICY is ``random``, a classical controller (gradient, greedy, infotaxis, or an information-driven
 searcher: infotaxis-exact, space-aware, infotaxis-2step, team-infotaxis, team-space-aware) or a bundle trained
-under the realistic sensing preset. Every policy plays the same episodes with the same count noise;
-the first policy (``--reference``) is compared with each other one episode by episode (paired).
+under the realistic sensing preset; bundle paths joined by ``+`` play as one ensemble (each move
+from the members' mean probabilities, ``medc_training.bundle.ensemble``). Every policy plays the
+same episodes with the same count noise; the first policy (``--reference``) is compared with each
+other one episode by episode (paired).
 
 ``--quick`` plays grid 20, 1 agent, obstruction counts 0, 3 and 7, every SNR bin, the first 8
 episodes of each set (2 per SNR sub-bin: 72 episodes per policy), with random, gradient, greedy and
@@ -64,8 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="medc-radbench", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter, epilog=epilog(__doc__))
     p.add_argument("policies", nargs="*", metavar="POLICY",
-                   help="random, a controller's name or a bundle path (default: random gradient "
-                        "greedy infotaxis)")
+                   help="random, a controller's name, a bundle path or bundle paths joined by '+' (an "
+                        "ensemble) (default: random gradient greedy infotaxis)")
     p.add_argument("--quick", action="store_true", help="the stated subset above (overrides the set options)")
     p.add_argument("--grid", type=int, choices=(20, 30), help="the area: 20 or 30 cells of 1 m (default 20)")
     p.add_argument("--agents", type=int, choices=(1, 3), help="team size (default 1, RAD-A2C's)")

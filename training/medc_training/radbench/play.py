@@ -248,6 +248,15 @@ def _bundle(policy: Any):
 
     if isinstance(policy, PolicyBundle):
         bundle = policy
+    elif isinstance(policy, str) and "+" in policy and policy not in policy_names():
+        from medc_training.bundle.ensemble import load_ensemble
+
+        members = policy.split("+")
+        missing = [m for m in members if not Path(m).is_file()]
+        if missing:
+            raise ValueError(f"ensemble {policy[:80]!r}: no bundle at {missing[0][:80]!r} (an ensemble is "
+                             "bundle paths joined by '+')")
+        bundle = load_ensemble(members)
     elif isinstance(policy, (str, Path)) and str(policy) not in policy_names():
         if not Path(policy).is_file():
             raise ValueError(f"unknown policy {str(policy)[:80]!r}: give one of {', '.join(policy_names())} "
