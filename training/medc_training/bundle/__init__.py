@@ -4,12 +4,13 @@ A bundle is untrusted data: its header is checked before any tensor is decoded, 
 unpickled, and the network is rebuilt from the manifest's declarative spec (``BundleError`` says
 what is wrong). Split by job, every name importable from here: ``manifest`` (the schema),
 ``fileformat`` (the hardened reader, atomic writes), ``policy`` (``PolicyBundle``, saving, the
-loaders), ``dryrun`` (the timed dry run), ``checkpoint`` (training checkpoints). The manifest and
-what loading checks: docs/bundles.md, "Bundles".
+loaders), ``dryrun`` (the timed dry run), ``checkpoint`` (training checkpoints), ``ensemble`` (several
+bundles as one policy). The manifest and what loading checks: docs/bundles.md, "Bundles".
 """
 
 from medc_training.bundle.checkpoint import load_state, save_state
 from medc_training.bundle.dryrun import dry_run_observations, flush_denormals, flush_subnormal
+from medc_training.bundle.ensemble import ensemble, load_ensemble
 from medc_training.bundle.fileformat import (
     MANIFEST_KEY,
     MAX_HEADER_BYTES,
@@ -52,7 +53,8 @@ __all__ = [
     "MAX_FORWARD_SECONDS", "MAX_HEADER_BYTES", "MAX_JSON_DEPTH", "MAX_MANIFEST_CHARS",
     "MAX_NUMBER_CHARS", "MAX_STRING_CHARS", "BundleError", "PolicyBundle", "bundle_bytes",
     "bundle_digest", "check_sensing", "complete_manifest", "dry_run_observations", "dry_run_seconds",
-    "flush_denormals", "flush_subnormal", "json_depth",
-    "load_bundle", "load_state", "load_untrusted", "manifest_observation", "manifest_sensing",
+    "ensemble", "flush_denormals", "flush_subnormal", "json_depth",
+    "load_bundle", "load_ensemble", "load_state", "load_untrusted", "manifest_observation",
+    "manifest_sensing",
     "parse_json", "printable", "read_manifest", "save_bundle", "save_state", "validate_manifest",
 ]
