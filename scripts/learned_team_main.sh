@@ -32,7 +32,8 @@
 # yardstick on the validation episodes, e.g. docs/reproduction/learned-team/probes/searchers.episodes.jsonl:
 # a run stops at the first piece whose validation play reaches infotaxis-exact's level there, as
 # `python -m medc_training.radbench.verdict steps` reads it, and plays no frozen episodes; for
-# steps-to-level comparisons, which need nothing after that piece).
+# steps-to-level comparisons, which need nothing after that piece), MEDC_MAIN_ENVS (environments
+# stepped together, default 32).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
@@ -47,6 +48,7 @@ init=${MEDC_MAIN_INIT:-}
 seed_offset=${MEDC_MAIN_SEED_OFFSET:-0}
 grid=${MEDC_MAIN_GRID:-20}
 stop_at_level=${MEDC_MAIN_STOP_AT_LEVEL:-}
+envs=${MEDC_MAIN_ENVS:-32}
 if [[ -n $stop_at_level && ! -s $stop_at_level ]]; then
   echo "learned_team_main: MEDC_MAIN_STOP_AT_LEVEL: no episode lines at '$stop_at_level'" >&2
   exit 2
@@ -62,9 +64,9 @@ if ! [[ "$seed_offset" =~ ^[0-9]+$ ]]; then
   echo "learned_team_main: MEDC_MAIN_SEED_OFFSET must be a non-negative integer, got '$seed_offset'" >&2
   exit 2
 fi
-for n in "$budget" "$piece"; do
+for n in "$budget" "$piece" "$envs"; do
   if ! [[ "$n" =~ ^[1-9][0-9]*$ ]]; then
-    echo "learned_team_main: budget and piece must be positive step counts, got '$n'" >&2
+    echo "learned_team_main: budget, piece and environments must be positive integers, got '$n'" >&2
     exit 2
   fi
 done
@@ -158,7 +160,7 @@ one_run() {  # METHOD-sSEED
     local t0; t0=$(date +%s)
     echo "$(date +%T) $name: training to $target steps"
     medc-train --world radbench --grid "$grid" --agents 3 --walls 7 --max-steps 120 --steps "$target" \
-      --seed "$seed" --num-envs 32 --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
+      --seed "$seed" --num-envs "$envs" --eval-every 50000 --eval-episodes 64 --no-tensorboard --quiet \
       --threads "$threads" --method "$method" "${extra[@]}" "${train_args[@]}" --out "$dir" "${resume[@]}" \
       > /dev/null
     python - "$dir" "$(( $(date +%s) - t0 ))" <<'EOF' >> "$dir/pieces.jsonl"
