@@ -15,17 +15,20 @@ os.environ["ROS_DOMAIN_ID"] = str(claim_domain())
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 GRID = 10
+#: The environment a bundle trained in the benchmark's world with domain randomisation records
+#: (besides its grid): the world and two of its options.
+RADBENCH_DR = {"world": "radbench", "transmission_max": 0.3, "walls_min": 2}
 
 
 def make_bundle(
     path: Path, seed: int, grid: int = GRID, favour: int | None = None, gain: float = 300.0,
-    sensing: str | None = None,
+    sensing: str | None = None, environment: dict | None = None,
 ) -> Path:
     """Save a lenet5 bundle with random weights whose greedy choice depends strongly on the input.
 
     ``favour``: the policy head ignores the input and always prefers that action.
     ``sensing``: the sensing preset its manifest records (environment.sensing; None: none, which
-    means paper-simple).
+    means paper-simple). ``environment``: more keys of its manifest's environment.
     """
     import torch
     from medc_training.bundle import save_bundle
@@ -42,13 +45,15 @@ def make_bundle(
             net.policy.bias.zero_()
             net.policy.bias[favour] = 10.0
     env = {"grid": grid} if sensing is None else {"grid": grid, "sensing": sensing}
+    env.update(environment or {})
     return save_bundle(path, net, {"application": "target_localization", "environment": env})
 
 
 @pytest.fixture(scope="session")
 def bundles(tmp_path_factory) -> dict[str, Path]:
     """Test bundles for a 10x10 grid: 'a', 'b' (different random nets), 'north' (always N), 'grid30',
-    'realistic' (trained, says its manifest, under the realistic sensing preset)."""
+    'realistic' (trained, says its manifest, under the realistic sensing preset), 'radbench' (trained,
+    says its manifest, in the benchmark's world with domain randomisation)."""
     d = tmp_path_factory.mktemp("bundles")
     return {
         "a": make_bundle(d / "a.safetensors", 1),
@@ -56,6 +61,7 @@ def bundles(tmp_path_factory) -> dict[str, Path]:
         "north": make_bundle(d / "north.safetensors", 3, favour=0),
         "grid30": make_bundle(d / "grid30.safetensors", 4, grid=30),
         "realistic": make_bundle(d / "realistic.safetensors", 5, sensing="realistic"),
+        "radbench": make_bundle(d / "radbench.safetensors", 6, environment=RADBENCH_DR),
     }
 
 

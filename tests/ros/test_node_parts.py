@@ -195,6 +195,41 @@ def test_a_content_id_the_bridge_cannot_fetch_is_a_refused_policy_message():
                                  "/medc/registry/fetch_bundle is not running"]
 
 
+def test_a_hot_swap_to_a_bundle_from_another_world_is_refused_in_one_line_unless_allowed(bundles):
+    """Swapping (a parameter set, a policy message) to a bundle trained in another world keeps the
+    running policy and logs one line naming the world; an agent started with allow_other_world takes
+    it, and refuses it at start without."""
+    from medc_agents.policy_slot import PolicyRejected, PolicySlot
+    from medc_agents.policy_swaps import PolicySwaps
+    from std_msgs.msg import String
+
+    grid, other = str(bundles["a"]), str(bundles["radbench"])
+
+    def swaps(allow: bool) -> tuple[PolicySwaps, _Log]:
+        observer = SimpleNamespace(observation=None)
+        observer.use_observation = lambda spec: setattr(observer, "observation", SimpleNamespace(name=spec))
+        log = _Log()
+        slot = PolicySlot((5, 10, 10), 8, grid=10, allow_other_world=allow)
+        return PolicySwaps(slot, observer, log, Counter(), lambda cid: None), log
+
+    refusing, log = swaps(False)
+    refusing.start(grid)
+    result = refusing.on_set_parameters([SimpleNamespace(name="policy", value=other)])
+    assert not result.successful and "trained in the 'radbench' world" in result.reason
+    refusing.on_message(String(data=other))
+    errors = log.said("error")
+    assert len(errors) == 2 and all(e.startswith(f"policy '{other}' refused, keeping the running one: "
+                                                 f"policy bundle '{other}' was trained in the 'radbench' "
+                                                 "world with transmission_max=0.3") for e in errors)
+    assert refusing.slot.current.source == grid
+    with pytest.raises(PolicyRejected, match=r"refused, not starting: .*allow_other_world true"):
+        swaps(False)[0].start(other)
+    allowing, log = swaps(True)
+    allowing.start(grid)
+    assert allowing.on_set_parameters([SimpleNamespace(name="policy", value=other)]).successful
+    assert allowing.slot.current.source == other and log.said("error") == []
+
+
 def test_moves_out_publish_each_decision_and_answer_a_resent_step_once_more():
     from medc_agents.node import MoveOut
     from medc_agents.team_episode import Tick

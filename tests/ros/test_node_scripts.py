@@ -10,6 +10,9 @@ import pytest
 
 BIN = Path(sys.executable).parent
 TEAM = str(Path(__file__).resolve().parents[2] / "models" / "team" / "A3W2.safetensors")
+#: A team member trained in the benchmark's world with domain randomisation (its manifest says so).
+RANDOMISED = str(Path(__file__).resolve().parents[2] / "docs" / "reproduction" / "learned-team"
+                 / "main-posterior-dr" / "medc-s0" / "policy.safetensors")
 
 
 @pytest.mark.ros
@@ -28,6 +31,8 @@ TEAM = str(Path(__file__).resolve().parents[2] / "models" / "team" / "A3W2.safet
         # The shipped team was trained under paper-simple (its manifest names no sensing).
         ("medc-agent", [f"policy:={TEAM}", "sensing:=realistic"],
          "trained under the sensing model 'paper-simple', but this team senses with 'realistic'"),
+        ("medc-agent", [f"policy:={RANDOMISED}", "sensing:=realistic"],
+         "trained in the 'radbench' world with transmission_max=0.3, efficiency_spread=0.3"),
     ],
 )
 def test_bad_parameter_is_refused_clearly(script, params, message):

@@ -263,6 +263,35 @@ def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_p
         check_sensing({"environment": {"sensing": "noisy"}}, "paper-simple")
 
 
+def test_bundle_from_another_world_is_refused_unless_allowed(bundles, tmp_path):
+    """A bundle trained in the benchmark's world with domain randomisation (its manifest's
+    environment.world and options) is refused by the policy slot and the launcher, the message naming
+    the world and the options, and taken under allow_other_world, which every agent is given."""
+    grid, other = bundles["a"], bundles["radbench"]
+    said = "trained in the 'radbench' world with transmission_max=0.3, walls_min=2, but it is about to run"
+    slot = PolicySlot((5, 10, 10), 8)
+    slot.swap(str(grid))
+    with pytest.raises(PolicyRejected, match=said):
+        slot.swap(str(other))
+    assert slot.current.source == str(grid)  # the old one keeps running
+    allowed = PolicySlot((5, 10, 10), 8, grid=10, allow_other_world=True)
+    allowed.swap(str(other))
+    assert allowed.current.source == str(other)
+    # The launcher: refused before any node starts unless the config allows it.
+    with pytest.raises(ValueError, match=f"{said}.*launch config key allow_other_world"):
+        resolve_policies(load_config(None, policy=str(other)))
+    with pytest.raises(ValueError, match=said):
+        resolve_policies(load_config(None, policy=str(grid), policies={"agent_2": str(other)}))
+    config = tmp_path / "launch.yaml"
+    config.write_text(f"policy: {other}\nallow_other_world: true\n")
+    cfg = load_config(config)
+    assert resolve_policies(cfg) == [str(other)] * 3
+    assert agent_parameters(cfg, 0, str(other))["allow_other_world"] is True
+    assert agent_parameters(load_config(None, policy=str(grid)), 0, str(grid))["allow_other_world"] is False
+    with pytest.raises(ValueError, match=r"allow_other_world .* must be bool"):
+        load_config(None, allow_other_world="yes")
+
+
 def test_realistic_observer_takes_only_maps_of_wall_segments():
     """Under the realistic preset a map's walls must be segments the exact line of sight takes as one
     rectangle each, at most as many as the environment places on the grid; the paper-simple rule

@@ -151,6 +151,33 @@ def check_sensing(manifest: Mapping[str, Any], sensing: str, what: str = "this b
         )
 
 
+def check_world(manifest: Mapping[str, Any], world: str = "grid", allow: bool = False,
+                what: str = "this bundle") -> None:
+    """Refuse a bundle trained in another environment than the one it is about to run in: the
+    ``world`` (``medc_training.envs.WORLDS``) at the nominal sensor model of its sensing preset.
+    Refused: a manifest whose ``environment.world`` is another (none means 'grid') or that names
+    any of :data:`medc_training.radbench.world.OFF_NOMINAL_OPTIONS` (domain randomisation,
+    ``walls_min``). The BundleError names the world and the options (key=value) and says how to run
+    it anyway; ``what`` names the bundle in it. ``allow``: check nothing."""
+    if allow:
+        return
+    from medc_training.radbench.world import OFF_NOMINAL_OPTIONS
+
+    env = manifest.get("environment") or {}
+    mine = env.get("world", "grid")
+    options = [f"{key}={safe_repr(env[key])}" for key in OFF_NOMINAL_OPTIONS if key in env]
+    if mine == world and not options:
+        return
+    given = f" with {', '.join(options)}" if options else ""
+    raise BundleError(
+        f"{what} was trained in the {safe_repr(mine)} world{given}, but it is about to run in the "
+        f"{world!r} world at the nominal sensor model of its sensing preset, where it was never "
+        f"measured; use a bundle trained there (environment.world in its manifest, none means "
+        f"'grid'; no domain randomisation or walls_min), or run it anyway with allow_other_world "
+        f"true (a medc-launch config key and an agent node parameter)"
+    )
+
+
 def _observation_spec(desc: Application, name: Any):
     """The view ``name`` of application ``desc``; BundleError when it takes no such view."""
     try:

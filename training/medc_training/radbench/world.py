@@ -45,7 +45,8 @@ from .departure import jittered_positions
 from .physics import TEAM_SENSING, episode_tensors, world_rates
 from .scenario import GRIDS, MAX_STEPS, OBSTRUCTION_COUNTS, generate_set
 
-__all__ = ["SNR_MIX", "TRAIN_SEED_BASE", "WORLD", "BenchWorld", "draw_episodes"]
+__all__ = ["OFF_NOMINAL_OPTIONS", "RANDOMISATION_OPTIONS", "SNR_MIX", "TRAIN_SEED_BASE", "WORLD",
+           "BenchWorld", "draw_episodes"]
 
 #: The name a config, a manifest and ``make_batched(..., world=...)`` give this world.
 WORLD = "radbench"
@@ -53,6 +54,21 @@ WORLD = "radbench"
 TRAIN_SEED_BASE = 1_000_000_000
 #: The SNR bins a training world mixes, in equal shares (those of the frozen sets).
 SNR_MIX: tuple[str, ...] = ("low", "medium", "high")
+#: Each numeric randomisation option (module docstring): (its value without randomisation, lowest,
+#: highest).
+_SPREADS: dict[str, tuple[float, float, float]] = {
+    "transmission_max": (0.0, 0.0, 1.0), "efficiency_spread": (0.0, 0.0, 0.9),
+    "strength_spread": (1.0, 1.0, 10.0), "position_noise_max": (0.0, 0.0, 1.0)}
+#: The background range (counts/s), given both or neither.
+_BACKGROUND: tuple[str, str] = ("background_low", "background_high")
+#: The domain-randomisation options, as :attr:`BenchWorld.attributes` (hence a bundle's manifest)
+#: names them.
+RANDOMISATION_OPTIONS: tuple[str, ...] = (*_SPREADS, *_BACKGROUND)
+#: The attributes by which a training world's episodes depart from the nominal world's: the
+#: randomisation options and ``walls_min`` (the harder obstruction counts only). A bundle whose
+#: manifest names any of them is refused where it would run at the nominal model
+#: (``medc_training.bundle.check_world``).
+OFF_NOMINAL_OPTIONS: tuple[str, ...] = (*RANDOMISATION_OPTIONS, "walls_min")
 
 
 def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int,
@@ -106,8 +122,10 @@ class BenchWorld(TargetLocalization):
                              f"got {walls_min!r}")
         if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
             raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
-        self.randomisation = _randomisation(transmission_max, efficiency_spread, strength_spread,
-                                            background_low, background_high, position_noise_max)
+        self.randomisation = _randomisation(dict(
+            transmission_max=transmission_max, efficiency_spread=efficiency_spread,
+            strength_spread=strength_spread, position_noise_max=position_noise_max,
+            background_low=background_low, background_high=background_high))
         if sensing is None or sensing == TEAM_SENSING.name:
             sensing = TEAM_SENSING
         sensing = parse_sensing(sensing)
@@ -186,29 +204,27 @@ class BenchWorld(TargetLocalization):
         return {**super()._episode_state(), **self._departs}
 
 
-def _randomisation(transmission_max: float, efficiency_spread: float, strength_spread: float,
-                   background_low: float | None, background_high: float | None,
-                   position_noise_max: float) -> dict[str, float]:
-    """The checked randomisation options that differ from none (the attributes' form)."""
-    checks = (("transmission_max", transmission_max, 0.0, 0.0, 1.0),
-              ("efficiency_spread", efficiency_spread, 0.0, 0.0, 0.9),
-              ("strength_spread", strength_spread, 1.0, 1.0, 10.0),
-              ("position_noise_max", position_noise_max, 0.0, 0.0, 1.0))
+def _randomisation(given: dict[str, Any]) -> dict[str, float]:
+    """The checked randomisation options of ``given`` (each of :data:`RANDOMISATION_OPTIONS`) that
+    differ from none (the attributes' form)."""
     out: dict[str, float] = {}
-    for name, value, default, lo, hi in checks:
+    for name, (default, lo, hi) in _SPREADS.items():
+        value = given[name]
         if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
             raise ValueError(f"{name} must be a number in [{lo}, {hi}], got {value!r}")
         if value != default:
             out[name] = float(value)
-    if (background_low is None) != (background_high is None):
+    low, high = (given[name] for name in _BACKGROUND)
+    if (low is None) != (high is None):
         raise ValueError("give background_low and background_high together (a background range in counts/s)")
-    if background_low is not None:
-        for name, value in (("background_low", background_low), ("background_high", background_high)):
+    if low is not None:
+        for name in _BACKGROUND:
+            value = given[name]
             if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 10_000.0:
                 raise ValueError(f"{name} must be counts/s in [0, 10000], got {value!r}")
-        if background_low > background_high:
-            raise ValueError(f"background_low {background_low} is above background_high {background_high}")
-        out.update(background_low=float(background_low), background_high=float(background_high))
+        if low > high:
+            raise ValueError(f"background_low {low} is above background_high {high}")
+        out.update(background_low=float(low), background_high=float(high))
     return out
 
 

@@ -179,6 +179,13 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
     )
     if sensing not in SENSING_PRESETS:
         raise ValueError(f"sensing must be one of {sorted(SENSING_PRESETS)}, got {str(sensing)[:40]!r}")
+    allow_other_world = bool(p(
+        "allow_other_world",
+        False,
+        "Run a bundle trained in another world than the graph's grid world or with domain randomisation "
+        "(its manifest's environment.world, randomisation options, walls_min); false: it is refused",
+        True,
+    ))
     bridge_service = p(
         "bridge_service",
         "registry/fetch_bundle",
@@ -203,7 +210,8 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
         agent_id=agent_id, namespace=namespace, agents=count("agents", num_agents),
         grid=count("grid", grid), observation=str(observation),
         resolution=number("resolution", resolution),
-        sensing=sensing, bridge_service=bridge_service, application=application,
+        sensing=sensing, allow_other_world=allow_other_world, bridge_service=bridge_service,
+        application=application,
         threads=count("torch_threads", threads, least=1),
         max_forward_s=seconds("policy_max_forward_s", max_forward_s))
 
@@ -275,6 +283,7 @@ class AgentParameters:
     observation: str
     resolution: float
     sensing: str
+    allow_other_world: bool
     bridge_service: str
     application: str
     threads: int
@@ -396,7 +405,8 @@ class AgentNode(Node):
         shape = observation_shape(self.observer.observation, grid)
         self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
-                               grid=grid if not explicit_observation else None, sensing=sensing)
+                               grid=grid if not explicit_observation else None, sensing=sensing,
+                               allow_other_world=prm.allow_other_world)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.old_statuses = OldStatuses(self.get_logger(), self.dropped_by, OLD_STATUS_SUMMARY_S)

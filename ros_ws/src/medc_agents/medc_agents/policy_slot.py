@@ -73,6 +73,7 @@ def load_policy(
     max_forward_s: float | None = None,
     observation: str | None = None,
     sensing: str | None = None,
+    allow_other_world: bool = False,
 ) -> LoadedPolicy:
     """Load and validate the bundle file at ``source`` for this observation/action space.
 
@@ -84,14 +85,17 @@ def load_policy(
     bundle that takes another variant is refused. ``sensing`` names the team's sensing preset
     (``medc_training.envs.tl_sensing.SENSING_PRESETS``): a target-localization bundle trained under
     another (its manifest's ``environment.sensing``; none = 'paper-simple') is refused, the message
-    naming both; None checks nothing.
+    naming both; None checks nothing. A bundle trained in another world than the graph's grid
+    world or with domain randomisation (``medc_training.bundle.check_world``) is refused unless
+    ``allow_other_world``.
 
     Raises:
         PolicyRejected: for every refusal and for any failure while loading (a RecursionError or
         a MemoryError included): no other exception escapes, whatever the file holds.
     """
     try:
-        return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing)
+        return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing,
+                            allow_other_world)
     except PolicyRejected:
         raise
     except Exception as exc:  # a file or a message must never take the node down
@@ -146,8 +150,14 @@ def read_policy_manifest(source) -> dict:
 
 
 def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
-                 sensing=None) -> LoadedPolicy:
-    from medc_training.bundle import MAX_FORWARD_SECONDS, BundleError, check_sensing, load_untrusted
+                 sensing=None, allow_other_world=False) -> LoadedPolicy:
+    from medc_training.bundle import (
+        MAX_FORWARD_SECONDS,
+        BundleError,
+        check_sensing,
+        check_world,
+        load_untrusted,
+    )
     from medc_training.envs import core_options
     from medc_training.experts import BundleExpert, ExpertError
 
@@ -167,6 +177,10 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
             check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
         except BundleError as exc:
             raise PolicyRejected(str(exc)) from exc
+    try:
+        check_world(bundle.manifest, "grid", allow_other_world, f"policy bundle {shown(source)}")
+    except BundleError as exc:
+        raise PolicyRejected(str(exc)) from exc
     return LoadedPolicy(bundle=bundle, source=str(path))
 
 
@@ -175,8 +189,8 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
 #: The least recently used are forgotten beyond ``MAX_CACHED_POLICIES`` bundles or
 #: ``MAX_CACHED_POLICY_BYTES`` bytes of weights (the latest is always kept); a forgotten bundle that
 #: no agent runs any more is freed, and one asked for again is loaded and checked again.
-_LOADED: OrderedDict[tuple[str, int, int, tuple, int, str | None, str | None, str | None], LoadedPolicy] = \
-    OrderedDict()
+_LOADED: OrderedDict[tuple[str, int, int, tuple, int, str | None, str | None, str | None, bool],
+                     LoadedPolicy] = OrderedDict()
 MAX_CACHED_POLICIES = 4
 MAX_CACHED_POLICY_BYTES = 64 << 20
 
@@ -201,6 +215,7 @@ def load_policy_cached(
     max_forward_s: float | None = None,
     observation: str | None = None,
     sensing: str | None = None,
+    allow_other_world: bool = False,
 ) -> LoadedPolicy:
     """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
     try:
@@ -214,12 +229,14 @@ def load_policy_cached(
             application,
             observation,
             sensing,
+            bool(allow_other_world),
         )
     except Exception:  # not stat-able (or not a path): load_policy gives the reason
-        return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing)
+        return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing,
+                           allow_other_world)
     if key not in _LOADED:
         _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
-                                   sensing)
+                                   sensing, allow_other_world)
     _LOADED.move_to_end(key)
     loaded = _LOADED[key]
     _evict()
@@ -238,11 +255,14 @@ class PolicySlot:
         observation: str | None = None,
         grid: int | None = None,
         sensing: str | None = DEFAULT_SENSING,
+        allow_other_world: bool = False,
     ) -> None:
         """``observation``: the target-localization observation variant a bundle must take; None
         with a ``grid`` means "the one the bundle's manifest names" (its shape on that grid is then
         the observation shape, and :attr:`observation` follows the running bundle). ``sensing``:
-        the team's sensing preset; a bundle trained under another is refused (None: no check)."""
+        the team's sensing preset; a bundle trained under another is refused (None: no check).
+        ``allow_other_world``: take a bundle trained in another world than the graph's grid world or
+        with domain randomisation (refused otherwise)."""
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
@@ -251,6 +271,7 @@ class PolicySlot:
         self.follow_bundle = observation is None and grid is not None
         self.grid = grid
         self.sensing = sensing
+        self.allow_other_world = bool(allow_other_world)
         self.current: LoadedPolicy | ControllerPolicy | None = None
 
     @property
@@ -276,7 +297,7 @@ class PolicySlot:
         if self.follow_bundle:
             obs_shape, observation = self._bundle_observation(source)
         loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application,
-                                    self.max_forward_s, observation, self.sensing)
+                                    self.max_forward_s, observation, self.sensing, self.allow_other_world)
         self.current = loaded
         self.obs_shape, self.observation = obs_shape, observation
         return loaded

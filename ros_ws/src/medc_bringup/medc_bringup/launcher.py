@@ -87,6 +87,9 @@ class LaunchConfig:
     resolution: float = 1.0
     policy: str = "models/team"
     policies: dict[str, str] = field(default_factory=dict)
+    #: Run a bundle trained in another world or with domain randomisation (its manifest's
+    #: environment.world, randomisation options, walls_min) in this graph's grid world anyway.
+    allow_other_world: bool = False
     registry: dict[str, Any] = field(default_factory=lambda: {"enabled": False, "params": {}})
 
 
@@ -118,6 +121,7 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
         ("rate_hz", (int, float)),
         ("resolution", (int, float)),
         ("noise", bool),
+        ("allow_other_world", bool),
         ("policy", str),
         ("policies", dict),
         ("registry", dict),
@@ -203,8 +207,15 @@ def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
 
 def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
-    grid) and have been trained under its sensing preset, or its agent would refuse it."""
-    from medc_training.bundle import BundleError, check_sensing, manifest_observation, read_manifest
+    grid), have been trained under its sensing preset and, unless ``allow_other_world``, in the grid
+    world without domain randomisation, or its agent would refuse it."""
+    from medc_training.bundle import (
+        BundleError,
+        check_sensing,
+        check_world,
+        manifest_observation,
+        read_manifest,
+    )
     from medc_training.envs.tl_observation import observation_shape
 
     for path in sorted({p for p in paths if _controller(p) is None}):
@@ -226,6 +237,10 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
             check_sensing(manifest, cfg.sensing, f"policy {path}")
         except BundleError as exc:  # its message names both presets and what to change
             raise ValueError(f"{exc} (launch config key sensing)") from exc
+        try:
+            check_world(manifest, "grid", cfg.allow_other_world, f"policy {path}")
+        except BundleError as exc:  # its message names the world, the options and the way around
+            raise ValueError(f"{exc} (launch config key allow_other_world)") from exc
 
 
 def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
@@ -240,11 +255,12 @@ def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
     (agents, walls, grid, max_steps, sensing) are filled in from the bundle's manifest (else
     SCENARIO_DEFAULTS and the default sensing preset; a controller has none: CONTROLLER_DEFAULTS
     and CONTROLLER_SENSING). Every bundle must have
-    been trained under ``cfg.sensing``.
+    been trained under ``cfg.sensing`` and, unless ``cfg.allow_other_world``, in the grid world
+    without domain randomisation.
 
     Raises:
         ValueError: a path does not exist, the folder has no usable bundle, or a bundle does not
-        fit the scenario's observation shape or sensing preset.
+        fit the scenario's observation shape, sensing preset or world.
     """
     from medc_common import contract
     from medc_common.contract import agent_index
@@ -324,6 +340,7 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         "noise": cfg.noise,
         # Only a finding that ends the episode lets the team rule out the cells it stood on.
         "source_ends_episode": cfg.end_on != "declaration",
+        "allow_other_world": cfg.allow_other_world,
         "policy": policy,
     }
 
