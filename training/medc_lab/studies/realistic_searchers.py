@@ -81,7 +81,8 @@ def scenario_rows(folder: Path) -> dict:
             policies[f"{team} ({len(seeds)} seeds)"] = _team([d for _, d in seeds], ref)
         for name, data in seeds:
             add(name, data)
-    return {"policies": policies, **_shortest(singles)}
+    missing = [n for n in EXTRA if n not in singles]
+    return {"policies": policies, "not_played": missing, **_shortest(singles)}
 
 
 def _shortest(singles: dict[str, list[float]]) -> dict:
@@ -150,7 +151,10 @@ def markdown(rows: list[dict]) -> str:
             lines.append(f"| {name} | {_ci(p['length'])}{spread} | {_ci(p['success'], 100.0, 1)} | "
                          f"{'–' if diff is None else _ci(diff, sign=True)} | "
                          f"{'✓' if diff is not None and _excludes_zero(diff) else ''} |")
-        lines += ["", _verdict_line(row), ""]
+        lines += ["", _verdict_line(row)]
+        if row["not_played"]:
+            lines.append(f"Not played on these episodes: {', '.join(row['not_played'])}.")
+        lines.append("")
     return "\n".join(lines)
 
 
