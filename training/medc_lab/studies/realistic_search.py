@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +35,15 @@ EVAL_SEED = 20261202
 SEEDS = (0, 1, 2)
 CLASSICAL = ("gradient", "greedy", "infotaxis")
 BASELINES = ("random", *CLASSICAL)
+#: Searchers played on the same episodes for the paired comparison
+#: (:mod:`medc_lab.studies.realistic_searchers`), outside the protocol's table: the
+#: information-driven controllers and the benchmark-trained team's bundles (repository paths).
+SEARCHERS = ("infotaxis-exact", "space-aware")
+TEAM_BUNDLES = {f"team-post-ft-s{k}": f"docs/reproduction/learned-team/main-posterior-ft/medc-s{k}/"
+                                       "policy.safetensors" for k in SEEDS}
+EXTRA = (*SEARCHERS, *TEAM_BUNDLES)
+#: The repository root (TEAM_BUNDLES' relative paths start there).
+ROOT = Path(__file__).resolve().parents[3]
 
 
 @dataclass(frozen=True)
@@ -54,25 +64,30 @@ class Scenario:
 
         return make_batched(TARGET_LOCALIZATION, num_envs=EPISODES, seed=EVAL_SEED, agents=AGENTS,
                             walls=self.walls, grid=self.grid, max_steps=MAX_STEPS, sensing="realistic",
-                            posterior=policy in CLASSICAL, copy_obs=False, observation=observation)
+                            posterior=policy in CLASSICAL or policy in SEARCHERS, copy_obs=False,
+                            observation=observation)
 
 
 SCENARIOS = tuple(Scenario(g, w) for g in GRIDS for w in WALLS)
 
 
 def _bundle_path(name: str, out: Path, scenario: Scenario) -> Path:
-    """'learned-seed{k}': the study's run; 'probe-{name}': ``<out>/probes/{name}/seed0``."""
+    """'learned-seed{k}': the study's run; 'probe-{name}': ``<out>/probes/{name}/seed0``; a
+    TEAM_BUNDLES name: its bundle in the repository."""
+    if name in TEAM_BUNDLES:
+        return ROOT / TEAM_BUNDLES[name]
     if name.startswith("probe-"):
         return out / "probes" / name.removeprefix("probe-") / "seed0" / "policy.safetensors"
     return out / "runs" / scenario.name / f"seed{name.removeprefix('learned-seed')}" / "policy.safetensors"
 
 
 def _play(name: str, out: Path, scenario: Scenario):
-    """Play policy ``name`` ('random', a controller, 'learned-seed{k}' or 'probe-{name}') on the
-    scenario's fixed episodes."""
+    """Play policy ``name`` ('random', a controller, 'learned-seed{k}', 'probe-{name}' or an EXTRA
+    name) on the scenario's fixed episodes. A bundle trained under another sensing preset than
+    the study's is refused (BundleError)."""
     from medc_training.evaluate import net_policy, play_episodes
 
-    if name == "random" or name in CLASSICAL:
+    if name == "random" or name in CLASSICAL or name in SEARCHERS:
         env = scenario.make_env(name)
         if name == "random":
             policy, greedy = None, False
@@ -81,36 +96,44 @@ def _play(name: str, out: Path, scenario: Scenario):
 
             policy, greedy = controller_policy(name, env), True
     else:
-        from medc_training.bundle import load_bundle, manifest_observation
+        from medc_training.bundle import check_sensing, load_bundle, manifest_observation
 
         bundle = load_bundle(_bundle_path(name, out, scenario))
+        check_sensing(bundle.manifest, "realistic", name)
         env = scenario.make_env(name, manifest_observation(bundle.manifest))
         policy, greedy = net_policy(bundle.net), True
     return play_episodes(env, policy, episodes=EPISODES, seed=EVAL_SEED, greedy=greedy)
 
 
 def evaluate(out: Path, policies: list[str] | None = None, scenarios: list[str] | None = None,
-             probes: list[str] | None = None) -> list[Path]:
-    """Play every missing (scenario, policy) evaluation, and each named probe on the scenarios
-    given; returns the files written."""
+             probes: list[str] | None = None, extra: list[str] | None = None) -> list[Path]:
+    """Play every missing (scenario, policy) evaluation, each named probe on the scenarios given
+    and each EXTRA name in ``extra`` on every scenario selected; returns the files written.
+    With ``extra`` given, ``policies`` selects among the protocol's policies only when named."""
     written = []
     for sc in SCENARIOS:
         if scenarios and sc.name not in scenarios:
             continue
         names = list(BASELINES) + [f"learned-seed{k}" for k in SEEDS
                                    if (out / "runs" / sc.name / f"seed{k}" / "summary.json").exists()]
-        names = [n for n in names if not policies or n in policies or n.split("-")[0] in policies]
+        names = [n for n in names if (not policies and not extra) or n in (policies or ())
+                 or n.split("-")[0] in (policies or ())]
         names += [f"probe-{p}" for p in probes or () if scenarios]
+        names += [n for n in EXTRA if n in (extra or ())]
         for name in names:
             path = out / "eval" / sc.name / f"{name}.json"
             if path.exists():
                 continue
             print(f"[search-study] {sc.name} {name} ...", file=sys.stderr, flush=True)
+            start = time.perf_counter()
             result = _play(name, out, sc)
+            seconds = round(time.perf_counter() - start, 1)
+            print(f"[search-study] {sc.name} {name}: {seconds} s", file=sys.stderr, flush=True)
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps({"scenario": sc.name, "policy": name, "episodes": EPISODES,
                                         "seed": EVAL_SEED, "lengths": list(result.lengths),
-                                        "successes": [bool(s) for s in result.successes]}))
+                                        "successes": [bool(s) for s in result.successes],
+                                        "seconds": seconds}))
             written.append(path)
     return written
 
