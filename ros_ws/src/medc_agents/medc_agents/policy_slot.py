@@ -172,12 +172,9 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
                                               application=application)
     except ExpertError as exc:
         raise PolicyRejected(str(exc)) from exc
-    if sensing is not None and "sensing" in core_options(bundle.manifest.get("application")):
-        try:
-            check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
-        except BundleError as exc:
-            raise PolicyRejected(str(exc)) from exc
     try:
+        if sensing is not None and "sensing" in core_options(bundle.manifest.get("application")):
+            check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
         check_world(bundle.manifest, "grid", allow_other_world, f"policy bundle {shown(source)}")
     except BundleError as exc:
         raise PolicyRejected(str(exc)) from exc

@@ -718,7 +718,7 @@ def _run(args: argparse.Namespace, cfg: LaunchConfig, policies: list[str]) -> in
         ok = run(cfg, policies, args.episodes, log, timeout_s=args.timeout,
                  extra_listeners=(recorder is not None) + args.listeners)
         interrupted = not ok and stop_requested()
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except ExternalShutdownException:
         interrupted = True
     finally:
         rclpy.try_shutdown()
