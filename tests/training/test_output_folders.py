@@ -50,3 +50,19 @@ def test_a_sweep_is_refused_before_any_worker_starts(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "is not a folder" in err, err
     assert sorted(os.listdir(tmp_path)) == ["victim.txt"]
+
+
+def test_a_folder_made_by_a_parallel_run_during_the_check_is_accepted(tmp_path, monkeypatch):
+    """Two runs of one plan check their folders at once: the walk sees ``runs/`` missing, the other
+    run makes it before the walk's next look. The folder it finds then is accepted, a file is not."""
+    from medc_training import outfiles
+
+    made = tmp_path / "runs"
+    made.mkdir()
+    monkeypatch.setattr(outfiles, "_nearest_folder", lambda target: tmp_path)  # the walk's stale view
+    target = made / "medc" / "seed1"
+    assert outfiles.check_output_folder(target) == target
+    made.rmdir()
+    made.write_text("not a folder\n")
+    with pytest.raises(outfiles.OutputError, match="is not a folder"):
+        outfiles.check_output_folder(target)

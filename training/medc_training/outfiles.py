@@ -84,11 +84,11 @@ def check_output_folder(path: str | os.PathLike[str]) -> Path:
             write into (or the nearest one that exists) cannot be written.
     """
     target = Path(os.path.abspath(os.fspath(path)))
-    existing = target
-    while not os.path.isdir(existing):  # False for what is missing or cannot be looked at
-        existing = existing.parent
+    existing = _nearest_folder(target)
     below = target.relative_to(existing).parts
-    if below and os.path.lexists(existing / below[0]):
+    # another process (a parallel run of the same plan) may make the folder between the walk and
+    # this check: what exists and is not a folder the second time round is refused
+    if below and os.path.lexists(existing / below[0]) and not os.path.isdir(existing / below[0]):
         there = existing / below[0]
         raise OutputError(f"{_shown(there)} is not a folder: give a folder to write into"
                           + ("" if there == target else f" (for {_shown(target)})"))
@@ -101,6 +101,14 @@ def check_output_folder(path: str | os.PathLike[str]) -> Path:
         raise OutputError(f"cannot write into {_shown(target)}: the folder {_shown(existing)} is not "
                           "writable")
     return target
+
+
+def _nearest_folder(target: Path) -> Path:
+    """``target`` or the nearest of its parents that is a folder (a missing name is not)."""
+    existing = target
+    while not os.path.isdir(existing):  # False for what is missing or cannot be looked at
+        existing = existing.parent
+    return existing
 
 
 class AtomicOutput:
