@@ -242,6 +242,8 @@ class TrainConfig(RunConfig):
             raise ValueError(f"expert_rate (R_E) must be in [0, 1], got {self.expert_rate}")
         if not 0.0 <= self.q_threshold <= 1.0:
             raise ValueError(f"q_threshold (Q) must be in [0, 1], got {self.q_threshold}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"gamma (the discount) must be in (0, 1], got {self.gamma}")
         return self
 
     @property

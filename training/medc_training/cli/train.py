@@ -120,6 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-anneal-steps", type=int, metavar="N",
                    help="lower the learning rate linearly to 0 at training step N (the run's whole budget "
                         "when it is trained in --resume pieces); default 0: constant")
+    p.add_argument("--gamma", type=float,
+                   help="discount factor γ (default 0.99, the paper's); lower values weigh each move "
+                        "of a short episode more")
     p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
     p.add_argument("--eval-episodes", type=int,
                    help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
@@ -153,7 +156,7 @@ def config_from_args(args: argparse.Namespace):
                  "total_steps": args.steps, "seed": args.seed, "device": args.device,
                  "torch_threads": args.threads}
     for name in ("grid", "max_steps", "observation", "arch", "num_envs", "horizon", "epochs", "lr",
-                 "lr_anneal_steps", "eval_every", "eval_episodes",
+                 "lr_anneal_steps", "gamma", "eval_every", "eval_episodes",
                  "eval_steps", "eval_envs", "expert_rate", "q_threshold", "frl_every"):
         value = getattr(args, name)
         if value is not None:
