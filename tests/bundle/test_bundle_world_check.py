@@ -11,11 +11,11 @@ from medc_training.nets import make_actor_critic
 from medc_training.radbench.world import OFF_NOMINAL_OPTIONS, RANDOMISATION_OPTIONS
 
 #: What ``medc-train --world radbench`` with every randomisation option records (the randomised
-#: reproduction's, plus walls_min).
+#: reproduction's, plus walls_min and snr_max).
 RADBENCH_DR = {"agents": 3, "grid": 20, "walls": 7, "max_steps": 120, "sensing": "realistic",
                "world": "radbench", "transmission_max": 0.3, "efficiency_spread": 0.3,
                "strength_spread": 2.0, "background_low": 5.0, "background_high": 100.0,
-               "position_noise_max": 0.2, "walls_min": 5}
+               "position_noise_max": 0.2, "walls_min": 5, "snr_max": 0}
 
 
 def _manifest(tmp_path, environment: dict) -> dict:
@@ -63,7 +63,7 @@ def test_the_options_refused_are_those_a_training_world_records():
                "background_low": 5.0, "background_high": 60.0, "position_noise_max": 0.1}
     assert set(options) == set(RANDOMISATION_OPTIONS)
     world = make_batched("target_localization", num_envs=1, seed=0, world="radbench", grid=20, walls=7,
-                         walls_min=3, pool=4, **options)
+                         walls_min=3, snr_max=1, pool=4, **options)
     nominal = make_batched("target_localization", num_envs=1, seed=0, world="radbench", grid=20, pool=4)
     assert set(world.attributes) - set(nominal.attributes) == set(OFF_NOMINAL_OPTIONS)
     with pytest.raises(BundleError) as err:

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 from medc_training.envs import make_batched
-from medc_training.radbench.scenario import MIN_START_M
+from medc_training.radbench.scenario import MIN_START_M, snr_bin
 from medc_training.radbench.world import TRAIN_SEED_BASE, BenchWorld, draw_episodes
 
 OPTIONS = dict(world="radbench", agents=3, walls=4, grid=20, max_steps=120, sensing="realistic", pool=40)
@@ -68,6 +68,31 @@ def test_walls_min_trains_on_the_harder_counts_only_and_is_recorded(monkeypatch)
     assert {len(e.obstructions) for e in drawn} == {2, 3, 4}  # the pool the world plays
     with pytest.raises(ValueError, match="walls_min"):
         _world(walls_min=5)
+
+
+def test_snr_max_trains_on_the_weaker_signals_only_and_is_recorded(monkeypatch):
+    from medc_training.radbench import world
+
+    drawn = []
+
+    def spy(*args):
+        drawn.extend(draw_episodes(*args))
+        return draw_episodes(*args)
+
+    monkeypatch.setattr(world, "draw_episodes", spy)
+    assert "snr_max" not in _world().attributes  # the default mixes every bin and is not named
+    env = _world(snr_max=0, pool=60)
+    assert env.attributes["snr_max"] == 0 and "snr_max" in world.OFF_NOMINAL_OPTIONS
+    again = make_batched("target_localization", num_envs=1, seed=0, **env.attributes)
+    assert again.attributes == env.attributes
+    mixed = {snr_bin(max(e.snrs())) for e in draw_episodes(20, 3, 4, 60, TRAIN_SEED_BASE + 7)}
+    assert mixed == {"low", "medium", "high"}
+    drawn.clear()
+    env.reset(seed=0)
+    assert drawn and {snr_bin(max(e.snrs())) for e in drawn} == {"low"}  # a set's bin: its best start
+    for bad in (3, -1, True):
+        with pytest.raises(ValueError, match="snr_max"):
+            _world(snr_max=bad)
 
 
 def test_readings_follow_the_benchmark_world():

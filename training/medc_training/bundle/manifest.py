@@ -157,7 +157,7 @@ def check_world(manifest: Mapping[str, Any], world: str = "grid", allow: bool = 
     ``world`` (``medc_training.envs.WORLDS``) at the nominal sensor model of its sensing preset.
     Refused: a manifest whose ``environment.world`` is another (none means 'grid') or that names
     any of :data:`medc_training.radbench.world.OFF_NOMINAL_OPTIONS` (domain randomisation,
-    ``walls_min``). The BundleError names the world and the options (key=value) and says how to run
+    ``walls_min``, ``snr_max``). The BundleError names the world and the options (key=value) and says how to run
     it anyway; ``what`` names the bundle in it. ``allow``: check nothing."""
     if allow:
         return
@@ -173,7 +173,7 @@ def check_world(manifest: Mapping[str, Any], world: str = "grid", allow: bool = 
         f"{what} was trained in the {safe_repr(mine)} world{given}, but it is about to run in the "
         f"{world!r} world at the nominal sensor model of its sensing preset, where it was never "
         f"measured; use a bundle trained there (environment.world in its manifest, none means "
-        f"'grid'; no domain randomisation or walls_min), or run it anyway with allow_other_world "
+        f"'grid'; no domain randomisation, walls_min or snr_max), or run it anyway with allow_other_world "
         f"true (a medc-launch config key and an agent node parameter)"
     )
 

@@ -65,25 +65,27 @@ _BACKGROUND: tuple[str, str] = ("background_low", "background_high")
 #: names them.
 RANDOMISATION_OPTIONS: tuple[str, ...] = (*_SPREADS, *_BACKGROUND)
 #: The attributes by which a training world's episodes depart from the nominal world's: the
-#: randomisation options and ``walls_min`` (the harder obstruction counts only). A bundle whose
-#: manifest names any of them is refused where it would run at the nominal model
-#: (``medc_training.bundle.check_world``).
-OFF_NOMINAL_OPTIONS: tuple[str, ...] = (*RANDOMISATION_OPTIONS, "walls_min")
+#: randomisation options, ``walls_min`` (the harder obstruction counts only) and ``snr_max`` (the
+#: weaker SNR bins only). A bundle whose manifest names any of them is refused where it would run at
+#: the nominal model (``medc_training.bundle.check_world``).
+OFF_NOMINAL_OPTIONS: tuple[str, ...] = (*RANDOMISATION_OPTIONS, "walls_min", "snr_max")
 
 
 def draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int,
-                  min_obstructions: int = 0):
+                  min_obstructions: int = 0, snr_max: int = len(SNR_MIX) - 1):
     """About ``count`` fresh benchmark episodes (list of :class:`~medc_training.radbench.scenario.
     Episode`), an equal share for every obstruction count ``min_obstructions``..``max_obstructions``
-    and SNR bin of :data:`SNR_MIX`, shuffled; the same arguments give the same episodes. The last
-    few draws are kept: a training run's evaluation draws the same pool at every evaluation."""
-    return list(_draw_episodes(grid, agents, max_obstructions, count, seed, min_obstructions))
+    and SNR bin of :data:`SNR_MIX` up to index ``snr_max`` (all three by default), shuffled; the same
+    arguments give the same episodes. The last few draws are kept: a training run's evaluation draws
+    the same pool at every evaluation."""
+    return list(_draw_episodes(grid, agents, max_obstructions, count, seed, min_obstructions, snr_max))
 
 
 @functools.lru_cache(maxsize=4)
 def _draw_episodes(grid: int, agents: int, max_obstructions: int, count: int, seed: int,
-                   min_obstructions: int) -> tuple:
-    groups = [(o, name) for o in range(min_obstructions, max_obstructions + 1) for name in SNR_MIX]
+                   min_obstructions: int, snr_max: int) -> tuple:
+    groups = [(o, name) for o in range(min_obstructions, max_obstructions + 1)
+              for name in SNR_MIX[:snr_max + 1]]
     per = max(1, -(-count // len(groups)))
     episodes = []
     for o, name in groups:
@@ -98,6 +100,8 @@ class BenchWorld(TargetLocalization):
 
     ``walls``: the most obstructions an episode has (0..7; every count from ``walls_min``, 0 by
     default, up to it in equal shares: ``walls_min`` > 0 trains on the harder counts only);
+    ``snr_max``: the strongest SNR bin of :data:`SNR_MIX` an episode has (0 low, 1 medium, 2 high, the
+    default: every bin up to it in equal shares, so 0 trains on the weakest signals only);
     ``grid``: 20 or 30 (the benchmark's areas); ``max_steps``: the benchmark's 120 by default;
     ``sensing``: the team's model (``"realistic"`` or None: :data:`TEAM_SENSING`; it must have the
     world's cell size, the exact line of sight and obstructions that block it); ``pool``: episodes
@@ -111,7 +115,8 @@ class BenchWorld(TargetLocalization):
                  sensing: SensingModel | str | dict | None = None, pool: int = 2048,
                  transmission_max: float = 0.0, efficiency_spread: float = 0.0, strength_spread: float = 1.0,
                  background_low: float | None = None, background_high: float | None = None,
-                 position_noise_max: float = 0.0, walls_min: int = 0) -> None:
+                 position_noise_max: float = 0.0, walls_min: int = 0,
+                 snr_max: int = len(SNR_MIX) - 1) -> None:
         if grid not in GRIDS:
             raise ValueError(f"the benchmark's world has grids of {sorted(GRIDS)} cells, got {grid!r}")
         if isinstance(walls, bool) or not isinstance(walls, int) or walls not in OBSTRUCTION_COUNTS:
@@ -120,6 +125,9 @@ class BenchWorld(TargetLocalization):
         if isinstance(walls_min, bool) or not isinstance(walls_min, int) or not 0 <= walls_min <= walls:
             raise ValueError(f"walls_min (the fewest obstructions of an episode) must be 0..walls ({walls}), "
                              f"got {walls_min!r}")
+        if isinstance(snr_max, bool) or not isinstance(snr_max, int) or not 0 <= snr_max < len(SNR_MIX):
+            raise ValueError(f"snr_max (the strongest SNR bin of an episode: 0 low, 1 medium, 2 high) must be "
+                             f"0..{len(SNR_MIX) - 1}, got {snr_max!r}")
         if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
             raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
         self.randomisation = _randomisation(dict(
@@ -138,6 +146,7 @@ class BenchWorld(TargetLocalization):
                          observation=observation, sensing=sensing, posterior=True, end_on_find=True)
         self.num_walls = walls
         self.walls_min = walls_min
+        self.snr_max = snr_max
         self.cell_m = spec.cell_m
         self.pool_size = pool
         self._slots = max(1, max(OBSTRUCTION_COUNTS))
@@ -155,13 +164,14 @@ class BenchWorld(TargetLocalization):
     def attributes(self) -> dict[str, Any]:
         return {"agents": self.num_agents, "walls": self.num_walls, "grid": self.grid,
                 "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD,
-                **({"walls_min": self.walls_min} if self.walls_min else {}), **self.randomisation}
+                **({"walls_min": self.walls_min} if self.walls_min else {}),
+                **({"snr_max": self.snr_max} if self.snr_max < len(SNR_MIX) - 1 else {}), **self.randomisation}
 
     def _draw_pool(self) -> None:
         seed = TRAIN_SEED_BASE + int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator,
                                                    device=self.device))
         episodes = draw_episodes(self.grid, self.num_agents, self.num_walls, self.pool_size, seed,
-                                 self.walls_min)
+                                 self.walls_min, self.snr_max)
         tensors = episode_tensors(episodes, self.grid, self._slots, self.device)
         tensors.update(_draw_departures(self.randomisation, tensors, seed, self.device))
         self._episodes, self._next = tensors, 0

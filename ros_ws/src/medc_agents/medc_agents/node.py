@@ -183,7 +183,7 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
         "allow_other_world",
         False,
         "Run a bundle trained in another world than the graph's grid world or with domain randomisation "
-        "(its manifest's environment.world, randomisation options, walls_min); false: it is refused",
+        "(its manifest's environment.world, randomisation options, walls_min, snr_max); false: it is refused",
         True,
     ))
     bridge_service = p(

@@ -88,7 +88,7 @@ class LaunchConfig:
     policy: str = "models/team"
     policies: dict[str, str] = field(default_factory=dict)
     #: Run a bundle trained in another world or with domain randomisation (its manifest's
-    #: environment.world, randomisation options, walls_min) in this graph's grid world anyway.
+    #: environment.world, randomisation options, walls_min, snr_max) in this graph's grid world anyway.
     allow_other_world: bool = False
     registry: dict[str, Any] = field(default_factory=lambda: {"enabled": False, "params": {}})
 
