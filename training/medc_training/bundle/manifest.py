@@ -157,8 +157,8 @@ def check_world(manifest: Mapping[str, Any], world: str = "grid", allow: bool = 
     ``world`` (``medc_training.envs.WORLDS``) at the nominal sensor model of its sensing preset.
     Refused: a manifest whose ``environment.world`` is another (none means 'grid') or that names
     any of :data:`medc_training.radbench.world.OFF_NOMINAL_OPTIONS` (domain randomisation,
-    ``walls_min``, ``snr_max``). The BundleError names the world and the options (key=value) and says how to run
-    it anyway; ``what`` names the bundle in it. ``allow``: check nothing."""
+    ``walls_min``, ``snr_max``). The BundleError names the world and the options (key=value) and says
+    how to run it anyway; ``what`` names the bundle in it. ``allow``: check nothing."""
     if allow:
         return
     from medc_training.radbench.world import OFF_NOMINAL_OPTIONS

@@ -126,8 +126,8 @@ class BenchWorld(TargetLocalization):
             raise ValueError(f"walls_min (the fewest obstructions of an episode) must be 0..walls ({walls}), "
                              f"got {walls_min!r}")
         if isinstance(snr_max, bool) or not isinstance(snr_max, int) or not 0 <= snr_max < len(SNR_MIX):
-            raise ValueError(f"snr_max (the strongest SNR bin of an episode: 0 low, 1 medium, 2 high) must be "
-                             f"0..{len(SNR_MIX) - 1}, got {snr_max!r}")
+            raise ValueError("snr_max (the strongest SNR bin of an episode: 0 low, 1 medium, 2 high) "
+                             f"must be 0..{len(SNR_MIX) - 1}, got {snr_max!r}")
         if isinstance(pool, bool) or not isinstance(pool, int) or not 1 <= pool <= 100_000:
             raise ValueError(f"pool must be an integer in 1..100000, got {pool!r}")
         self.randomisation = _randomisation(dict(
@@ -165,7 +165,8 @@ class BenchWorld(TargetLocalization):
         return {"agents": self.num_agents, "walls": self.num_walls, "grid": self.grid,
                 "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD,
                 **({"walls_min": self.walls_min} if self.walls_min else {}),
-                **({"snr_max": self.snr_max} if self.snr_max < len(SNR_MIX) - 1 else {}), **self.randomisation}
+                **({"snr_max": self.snr_max} if self.snr_max < len(SNR_MIX) - 1 else {}),
+                **self.randomisation}
 
     def _draw_pool(self) -> None:
         seed = TRAIN_SEED_BASE + int(torch.randint(0, 2**31 - 1, (1,), generator=self.generator,
