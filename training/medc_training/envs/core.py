@@ -208,7 +208,7 @@ class BatchedEnv(ABC):
         """Whether the observations are the absolute maps a picture is drawn from (then a
         finished episode's picture is its final observation)."""
         spec = self.observation
-        return spec.view == "maps" and not spec.estimate and not spec.posterior
+        return spec.view == "maps" and not spec.source_views
 
     @abstractmethod
     def oracle_action_scores(self) -> torch.Tensor:

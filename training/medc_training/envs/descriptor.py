@@ -87,7 +87,7 @@ class Application:
         """The view ``observation`` names (a name, manifest dict or spec); ValueError when it is
         not one this application takes."""
         spec = parse_observation(observation)
-        if (spec.estimate or spec.posterior) and not self.has_estimate:
+        if spec.source_views and not self.has_estimate:
             raise ValueError(f"{self.name} has no source estimate: use observation 'maps' or 'egoR' "
                              f"(R = window radius, e.g. ego9), not {spec.name!r}")
         return spec

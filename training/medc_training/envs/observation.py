@@ -14,6 +14,9 @@ Names (written on the command line and as ``observation.name`` in every bundle m
     The same plus the team's source estimate (an application without one refuses them).
 ``maps+posterior`` / ``egoR+posterior`` / ``maps+estimate+posterior`` / ``egoR+estimate+posterior``
     The same plus the team's source posterior itself, last (refused where ``+estimate`` is).
+``...+information`` (after any of the above, e.g. ``ego6+estimate+posterior+information``)
+    The same plus the information a reading would bring at each cell the team can stand on next,
+    last (refused where ``+estimate`` is).
 
 Which views an application takes and the names of their channels are its descriptor's
 (:class:`medc_training.envs.Application`).
@@ -38,22 +41,26 @@ OBSERVATION_NAMES: tuple[str, ...] = ("maps", "maps+estimate", "ego6", "ego6+est
                                       "ego6+estimate+posterior")
 #: The forms of every accepted name, as error messages list them.
 OBSERVATION_FORMS: tuple[str, ...] = ("maps", "egoR", "maps+estimate", "egoR+estimate", "maps+posterior",
-                                      "egoR+posterior", "maps+estimate+posterior", "egoR+estimate+posterior")
+                                      "egoR+posterior", "maps+estimate+posterior", "egoR+estimate+posterior",
+                                      "egoR+estimate+posterior+information")
 MAX_RADIUS = 255
-#: Longest name parse_observation reads; the longest accepted one, 'ego255+estimate+posterior', fits.
-MAX_NAME_LENGTH = 32
-_NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?(\+posterior)?$")
+#: Longest name parse_observation reads; the longest accepted one,
+#: 'ego255+estimate+posterior+information', fits.
+MAX_NAME_LENGTH = 40
+_NAME = re.compile(r"^(maps|ego([1-9][0-9]{0,2}))(\+estimate)?(\+posterior)?(\+information)?$")
 
 
 @dataclass(frozen=True)
 class ObservationSpec:
     """Which observation a model takes: ``view`` 'maps' or 'ego', ego ``radius``, whether it shows
-    the team's source ``estimate`` and its source ``posterior``."""
+    the team's source ``estimate``, its source ``posterior`` and the ``information`` of a reading at
+    the cells the team can stand on next."""
 
     view: str = "maps"
     radius: int = 0
     estimate: bool = False
     posterior: bool = False
+    information: bool = False
 
     def __post_init__(self) -> None:
         if self.view not in ("maps", "ego"):
@@ -66,7 +73,13 @@ class ObservationSpec:
     @property
     def name(self) -> str:
         base = "maps" if self.view == "maps" else f"ego{self.radius}"
-        return base + ("+estimate" if self.estimate else "") + ("+posterior" if self.posterior else "")
+        return (base + ("+estimate" if self.estimate else "") + ("+posterior" if self.posterior else "")
+                + ("+information" if self.information else ""))
+
+    @property
+    def source_views(self) -> bool:
+        """Whether it shows any of the team's source maps (estimate, posterior, information)."""
+        return self.estimate or self.posterior or self.information
 
     def side(self, grid: int) -> int:
         """Height and width of one map of this view on a ``grid``×``grid`` area."""
@@ -94,9 +107,9 @@ def parse_observation(value) -> ObservationSpec:
         forms = ", ".join(repr(f) for f in OBSERVATION_FORMS)
         raise ValueError(
             f"unknown observation {value[:MAX_NAME_LENGTH]!r}; use one of {forms} (R = window radius in "
-            "cells, e.g. ego6+estimate; +estimate comes before +posterior)"
+            "cells, e.g. ego6+estimate; +estimate comes before +posterior, +information last)"
         )
-    estimate, posterior = bool(m.group(3)), bool(m.group(4))
+    estimate, posterior, information = bool(m.group(3)), bool(m.group(4)), bool(m.group(5))
     if m.group(2):
-        return ObservationSpec("ego", int(m.group(2)), estimate, posterior)
-    return ObservationSpec("maps", 0, estimate, posterior)
+        return ObservationSpec("ego", int(m.group(2)), estimate, posterior, information)
+    return ObservationSpec("maps", 0, estimate, posterior, information)

@@ -10,7 +10,9 @@
  *     episode's maximum and the floor at LOG_FLOOR; the marginal over the levels, normalised;
  *   medc_single_update (one level): walls crossed from the sampled rule's crossing tables, the rate
  *     lookups, the same update and the posterior;
- *   medc_expected_moves: the expected-distance map of a posterior.
+ *   medc_expected_moves: the expected-distance map of a posterior;
+ *   medc_factor_moments: the geometric factor's first two moments over a posterior, per candidate
+ *     sensor cell (the information map).
  *
  * Built with -O3 -march=x86-64-v2 -fopenmp-simd -ffinite-math-only -fno-signed-zeros -ffp-contract=off
  * (tl_native.FLAGS: no fused multiply-adds, so each product and sum rounds as torch's do; any x86-64
@@ -207,6 +209,37 @@ int medc_levels_update(float *post, const float *log_rate, const float *factor,
         float m = LOG_FLOOR;
         for (int64_t l = 0; l < levels; ++l) m = top[l] > m ? top[l] : m;
         shift_and_marginal(block, m, cells, levels, marginal ? marginal + e * cells : NULL, dead_cell, 1);
+    }
+    return 0;
+}
+
+/* The moments of the geometric factor over the source posterior, for the information map: for each
+ * of M candidate sensor cells of an episode, m1 = sum_s p_s f_q and m2 = sum_s p_s f_q², q the
+ * (d², walls crossed) pair of the candidate and source cell s (sight_pairs), f the factor table.
+ *   posterior float32 [K, C]; factor float32 [Q]; cand int64 [K, M, 2]; rects float32 [K, Z, 4]
+ *   m1, m2    float32 [K, M]
+ * Returns 0, or 1 when a pair falls outside the table. */
+MEDC_CLONES
+int medc_factor_moments(const float *posterior, const float *factor, int64_t q_rows, const int64_t *cand,
+                        const float *rects, int64_t z, int count, int64_t g, int64_t span, float *m1,
+                        float *m2, int64_t k, int64_t m) {
+    const int64_t cells = g * g;
+    int32_t pairs[cells];
+    for (int64_t e = 0; e < k; ++e) {
+        const float *restrict p = posterior + e * cells;
+        for (int64_t j = 0; j < m; ++j) {
+            sight_pairs(cand + (e * m + j) * 2, rects + e * z * 4, z, count, g, span, pairs);
+            double first = 0.0, second = 0.0;
+            for (int64_t c = 0; c < cells; ++c) {
+                const int32_t q = pairs[c];
+                if (q < 0 || q >= q_rows) return 1;
+                const double pf = (double)p[c] * (double)factor[q];
+                first += pf;
+                second += pf * (double)factor[q];
+            }
+            m1[e * m + j] = (float)first;
+            m2[e * m + j] = (float)second;
+        }
     }
     return 0;
 }

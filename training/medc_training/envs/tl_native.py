@@ -211,6 +211,9 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.medc_single_posterior.argtypes = [_ptr, _i64, _i64, _ptr]
     lib.medc_expected_moves.restype = None
     lib.medc_expected_moves.argtypes = [_ptr, _i64, _i64, _ptr]
+    lib.medc_factor_moments.restype = ctypes.c_int
+    lib.medc_factor_moments.argtypes = [_ptr, _ptr, _i64, _ptr, _ptr, _i64, ctypes.c_int, _i64, _i64, _ptr,
+                                        _ptr, _i64, _i64]
     return lib
 
 
@@ -365,6 +368,34 @@ def expected_moves(posterior: torch.Tensor, grid: int) -> torch.Tensor:
     args = [_check(posterior, torch.float32, (k, grid * grid), "posterior"), k, grid, expected.data_ptr()]
     _spread(lib.medc_expected_moves, args, _episode_bytes({0: posterior, 3: expected}), 1, k, k * grid * grid)
     return expected
+
+
+def factor_moments(posterior: torch.Tensor, factor: torch.Tensor, cand: torch.Tensor, rects: torch.Tensor,
+                   count: bool, span: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(m1, m2) float32 [K, M]: the first two moments over the posterior float32 [K, G²] of the
+    geometric factor between each candidate sensor cell ``cand`` int64 [K, M, 2] and every source
+    cell, the factor looked up in ``factor`` float32 [Q] by the pair q = d² + span * walls crossed
+    (the exact line rule through ``rects`` float32 [K, Z, 4]; ``count``: walls crossed are counted,
+    else whether any is), for ``TeamMemory.information_map``."""
+    lib = _library_or_raise()
+    k, cells = posterior.shape
+    g = math.isqrt(cells)
+    m, z, q = cand.shape[1], rects.shape[1], factor.shape[0]
+    m1 = torch.empty((k, m), device=posterior.device)
+    m2 = torch.empty((k, m), device=posterior.device)
+    args = [
+        _check(posterior, torch.float32, (k, g * g), "posterior"),
+        _check(factor, torch.float32, (q,), "factor"),
+        q,
+        _check(cand, torch.int64, (k, m, 2), "cand"),
+        _check(rects, torch.float32, (k, z, 4), "rects"),
+        z, int(bool(count)), g, int(span), m1.data_ptr(), m2.data_ptr(), k, m,
+    ]
+    _check_on_grid(cand, g)
+    per_episode = _episode_bytes({0: posterior, 3: cand, 4: rects, 9: m1, 10: m2})
+    if any(_spread(lib.medc_factor_moments, args, per_episode, 11, k, k * m * cells * (z + 1))):
+        raise ValueError("a (d², walls crossed) pair falls outside the estimator's tables")
+    return m1, m2
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,7 +4,8 @@ One pure builder serves the batched core, the PettingZoo env, the experts and th
 node: each keeps the same team memory (:class:`TeamMemory`: latest normalised reading and visit
 count per cell, and the log posterior over source cells) and calls :func:`observe` on it, so a
 policy sees in ROS exactly what it saw in training. The variants (:class:`ObservationSpec`:
-``maps``, ``egoR``, each with ``+estimate``, ``+posterior`` or both), the source estimator's
+``maps``, ``egoR``, each with ``+estimate``, ``+posterior`` or both, and ``+information`` after
+them), the source estimator's
 Poisson posterior (:class:`SourceEstimator`) and the maps drawn from it: docs/environments.md,
 "Target-localization observations".
 """
@@ -20,7 +21,7 @@ import torch
 
 from medc_training.envs import tl_native
 from medc_training.envs.allocator import keep_freed_memory
-from medc_training.envs.grid import grid_cells, team_windows
+from medc_training.envs.grid import action_deltas, grid_cells, team_windows
 from medc_training.envs.observation import OBSERVATION_NAMES, ObservationSpec, parse_observation
 from medc_training.envs.tl_sensing import (
     CHANNELS,
@@ -43,6 +44,7 @@ __all__ = [
     "DEFAULT_OBSERVATION",
     "EGO_CHANNELS",
     "ESTIMATE_CHANNEL",
+    "INFORMATION_CHANNEL",
     "LOG_FLOOR",
     "MAP_CHANNELS",
     "OBSERVATION_NAMES",
@@ -65,8 +67,10 @@ MAP_CHANNELS: tuple[str, ...] = CHANNELS
 EGO_CHANNELS: tuple[str, ...] = ("walls", "team_locations", "readings", "visit_counts")
 #: Last when the view shows the team's source estimate (before the posterior when it shows both).
 ESTIMATE_CHANNEL = "source_estimate"
-#: Last when the view shows the team's source posterior.
+#: After the estimate when the view shows the team's source posterior.
 POSTERIOR_CHANNEL = "source_posterior"
+#: Last when the view shows the information a reading would bring where the team can stand next.
+INFORMATION_CHANNEL = "source_information"
 #: Relative log-probability floor of the source posterior (exp(-104) underflows float32 to 0).
 LOG_FLOOR = -104.0
 #: Below this relative log probability a cell's weight is taken as 0 (exp(-87) is about float32's
@@ -99,7 +103,8 @@ def observation_channels(observation) -> tuple[str, ...]:
     spec = parse_observation(observation)
     base = MAP_CHANNELS if spec.view == "maps" else EGO_CHANNELS
     return (base + ((ESTIMATE_CHANNEL,) if spec.estimate else ())
-            + ((POSTERIOR_CHANNEL,) if spec.posterior else ()))
+            + ((POSTERIOR_CHANNEL,) if spec.posterior else ())
+            + ((INFORMATION_CHANNEL,) if spec.information else ()))
 
 
 def observation_shape(observation, grid: int) -> tuple[int, int, int]:
@@ -629,7 +634,7 @@ class TeamMemory:
         g = self.grid
         self.reading_map = torch.zeros((batch, g, g), device=self.device)
         self.visit_map = torch.zeros((batch, g, g), device=self.device)
-        keep = self.spec.estimate or self.spec.posterior or posterior
+        keep = self.spec.source_views or posterior
         self.estimator = SourceEstimator(g, self.device, self.sensing, rule_out, path) if keep else None
         #: The fused path's marginal posterior [B, G²] of ``log_post`` as it was at (data pointer,
         #: version) ``_post_key``.
@@ -755,6 +760,70 @@ class TeamMemory:
     def _posterior_map(self, p: torch.Tensor) -> torch.Tensor:
         return (p / p.amax(1, keepdim=True)).view(-1, self.grid, self.grid)
 
+    def information_map(self, positions: torch.Tensor, walls: torch.Tensor,
+                        rows: torch.Tensor | None = None) -> torch.Tensor | None:
+        """float32 [B,G,G] ([R,G,G] of ``rows``) the map the ``+information`` views show, or None when
+        this memory keeps no posterior: at every free cell a member of the team stands on or can move
+        to next, the share of a reading's variance there that the unknown source cell explains,
+        Var / (E + Var), with E and Var the mean and variance over the posterior of the reading's
+        rate (the sensing model's, at the posterior-mean strength and background) and E also the
+        reading's Poisson noise; 0 at every other cell. A cell where the hypotheses agree tells
+        nothing (0); one where they differ far more than the counting noise approaches 1. Cheap: one
+        geometric factor per (candidate cell, source cell), no quadrature.
+
+        positions int64 [B,N,2] and walls [B,G,G] of the whole batch (as :meth:`observe` takes them).
+        """
+        if self.estimator is None:
+            return None
+        if rows is not None:
+            positions, walls = positions[rows], walls[rows]
+        est, g = self.estimator, self.grid
+        k, n = positions.shape[:2]
+        p = self._posterior(rows)  # [K, G²]
+        log_post = self.log_post if rows is None else self.log_post[rows]
+        if log_post.dim() == 2:
+            strength = est.level_strength[0].expand(k)
+            background = est.level_background[0].expand(k)
+        else:  # the posterior means of the strength and background levels (the update keeps every
+            # episode's largest log weight at 0, so the weights' exp cannot overflow; those below
+            # e^-30 count as e^-30, which moves no mean and keeps exp off its slow near-underflow path)
+            cells_major = log_post.transpose(1, 2)  # [K, G², L]: contiguous on the fused path
+            w = cells_major.clamp(min=-30.0).exp_().sum(1)  # [K, L]
+            w = w / w.sum(1, keepdim=True)
+            strength, background = w @ est.level_strength, w @ est.level_background
+        steps = torch.cat((torch.zeros((1, 2), dtype=torch.long, device=self.device),
+                           action_deltas(self.device)))
+        cand = (positions.unsqueeze(2) + steps).clamp_(0, g - 1).view(k, n * len(steps), 2)
+        blocked = walls.bool() if walls.dtype == torch.bool else walls > 0.5
+        mean_f, square_f = self._factor_moments(p, cand, blocked, rows)
+        var = strength.view(-1, 1) ** 2 * (square_f - mean_f * mean_f).clamp_(min=0.0)
+        mean = strength.view(-1, 1) * mean_f + background.view(-1, 1)
+        share = var / (mean + var).clamp_(min=1e-12)
+        cell = cand[..., 0] * g + cand[..., 1]  # [K, M]
+        share = share.masked_fill_(blocked.view(k, -1).gather(1, cell), 0.0)
+        out = torch.zeros((k, g * g), device=self.device).scatter_(1, cell, share)
+        return out.view(k, g, g)
+
+    def _factor_moments(self, p: torch.Tensor, cand: torch.Tensor, walls: torch.Tensor,
+                        rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """float32 [K, M] each: the first two moments over posterior ``p`` [K, G²] of the geometric
+        factor between each candidate cell ``cand`` int64 [K, M, 2] and every source cell; in one C
+        pass per episode under the exact line rule where the kernel is there."""
+        est = self.estimator
+        if self.sensing.line == "exact":
+            rects = (self.rects if rows is None else self.rects[rows]).to(torch.float32).contiguous()
+            count = self.sensing.attenuation > 0.0
+            cand = cand.contiguous()
+            if tl_native.usable(p, cand, rects):
+                est._levels_table(rects.shape[1] if count else 1)
+                return tl_native.factor_moments(p.contiguous(), est._bag_factor, cand, rects, count,
+                                                est._span)
+            f = geometric_factor(self.sensing, cand, est.cells, walls, rects)
+        else:
+            f = geometric_factor(self.sensing, cand, est.cells, walls)  # [K, M, G²]
+        pm = p.unsqueeze(1)
+        return (f * pm).sum(-1), (f * f * pm).sum(-1)
+
     def source_maps(self, spec: ObservationSpec | None = None, rows: torch.Tensor | None = None
                     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
         """The source-estimate map and the source-posterior map, float32 [B,G,G] ([R,G,G] of
@@ -772,11 +841,12 @@ class TeamMemory:
         """Every agent's observation, float32 [B,N,C,H,W] (see :func:`observe`); with ``rows``
         only those episodes' ([R,N,C,H,W]; ``positions`` and ``walls`` are still the whole batch)."""
         estimate, posterior = self.source_maps(rows=rows)
+        information = self.information_map(positions, walls, rows) if self.spec.information else None
         if rows is None:
             return observe(self.spec, positions, self.reading_map, self.visit_map, walls, estimate,
-                           out=out, posterior_map=posterior)
+                           out=out, posterior_map=posterior, information_map=information)
         return observe(self.spec, positions[rows], self.reading_map[rows], self.visit_map[rows], walls[rows],
-                       estimate, out=out, posterior_map=posterior)
+                       estimate, out=out, posterior_map=posterior, information_map=information)
 
 
 def observe(
@@ -788,21 +858,26 @@ def observe(
     estimate: torch.Tensor | None = None,
     out: torch.Tensor | None = None,
     posterior_map: torch.Tensor | None = None,
+    information_map: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Every agent's observation of variant ``spec``, float32 [B,N,C,H,W] in [0, 1].
 
     positions int64 [B,N,2]; reading_map, visit_map float32 [B,G,G] (:class:`TeamMemory`);
     walls bool or float [B,G,G]; estimate float32 [B,G,G] (required when ``spec.estimate``);
     posterior_map float32 [B,G,G] (:meth:`TeamMemory.posterior_map`; required when
-    ``spec.posterior``).
+    ``spec.posterior``); information_map float32 [B,G,G] (:meth:`TeamMemory.information_map`;
+    required when ``spec.information``).
     """
     spec = parse_observation(spec)
     if spec.estimate and estimate is None:
         raise ValueError(f"observation {spec.name} needs the source estimate map")
     if spec.posterior and posterior_map is None:
         raise ValueError(f"observation {spec.name} needs the source posterior map (posterior_map)")
+    if spec.information and information_map is None:
+        raise ValueError(f"observation {spec.name} needs the information map (information_map)")
     # The team's source maps the view shows, in channel order, after the application's own.
-    extra = ([estimate] if spec.estimate else []) + ([posterior_map] if spec.posterior else [])
+    extra = (([estimate] if spec.estimate else []) + ([posterior_map] if spec.posterior else [])
+             + ([information_map] if spec.information else []))
     b, n = positions.shape[:2]
     g = walls.shape[-1]
     if spec.view == "maps":

@@ -69,8 +69,9 @@ class AgentMemory:
 
         m = self.memory
         estimate, posterior = m.source_maps(observation)
+        information = m.information_map(positions, walls) if observation.information else None
         obs = observe(observation, positions, m.reading_map, m.visit_map, walls.float(), estimate,
-                      posterior_map=posterior)
+                      posterior_map=posterior, information_map=information)
         team_mask = move_mask(positions, pad_blocked(walls), self._deltas)
         self.positions, self.walls, self.team_mask = positions, walls, team_mask
         return obs[0, index], team_mask[0, index]
