@@ -49,16 +49,22 @@ def test_episodes_are_the_generators_mix_and_never_the_frozen_seed():
     assert draw_episodes(20, 3, 4, 60, TRAIN_SEED_BASE + 7) == episodes
 
 
-def test_walls_min_trains_on_the_harder_counts_only_and_is_recorded(monkeypatch):
+@pytest.fixture
+def drawn(monkeypatch) -> list:
+    """The episodes the training world draws for its pools from now on (a spy on draw_episodes)."""
     from medc_training.radbench import world
 
-    drawn = []
+    seen: list = []
 
     def spy(*args):
-        drawn.extend(draw_episodes(*args))
+        seen.extend(draw_episodes(*args))
         return draw_episodes(*args)
 
     monkeypatch.setattr(world, "draw_episodes", spy)
+    return seen
+
+
+def test_walls_min_trains_on_the_harder_counts_only_and_is_recorded(drawn):
     env = _world(walls_min=2, pool=60)
     assert env.attributes["walls_min"] == 2
     again = make_batched("target_localization", num_envs=1, seed=0, **env.attributes)
@@ -70,16 +76,9 @@ def test_walls_min_trains_on_the_harder_counts_only_and_is_recorded(monkeypatch)
         _world(walls_min=5)
 
 
-def test_snr_max_trains_on_the_weaker_signals_only_and_is_recorded(monkeypatch):
+def test_snr_max_trains_on_the_weaker_signals_only_and_is_recorded(drawn):
     from medc_training.radbench import world
 
-    drawn = []
-
-    def spy(*args):
-        drawn.extend(draw_episodes(*args))
-        return draw_episodes(*args)
-
-    monkeypatch.setattr(world, "draw_episodes", spy)
     assert "snr_max" not in _world().attributes  # the default mixes every bin and is not named
     env = _world(snr_max=0, pool=60)
     assert env.attributes["snr_max"] == 0 and "snr_max" in world.OFF_NOMINAL_OPTIONS
