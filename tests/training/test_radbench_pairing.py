@@ -41,3 +41,20 @@ def test_refuses_what_does_not_pair(tmp_path, capsys):
     (tmp_path / "bad.jsonl").write_text("{}\n")
     assert main(["--reference", "searcher", str(tmp_path / "bad.jsonl")]) == 2
     assert "not a medc-radbench episode line" in capsys.readouterr().err
+
+
+def test_splits_by_snr_bin_and_names_bundles_of_same_named_runs_apart(tmp_path, capsys):
+    _lines(tmp_path / "a.jsonl", "probes/one/medc-s0/policy.safetensors", [(10, 12), (20, 30)])
+    _lines(tmp_path / "b.jsonl", "probes/two/medc-s0/policy.safetensors", [(8, 12), (16, 25)])
+    files = [tmp_path / "a.jsonl", tmp_path / "b.jsonl"]
+    with pytest.raises(ValueError, match="twice"):  # one folder name for both: the same policy
+        load_episodes(files)
+    table = pair_table(load_episodes(files, parents=2), "one/medc-s0", by_snr=True)
+    groups = table["groups"]
+    assert groups["all/high"]["two/medc-s0"]["paired"]["mean_diff"] == pytest.approx((-4 - 5) / 2)
+    assert groups["obs5-7/high"]["two/medc-s0"]["summary"]["episodes"] == 2
+    assert groups["obs0-2/low"]["two/medc-s0"]["paired"]["mean_diff"] == pytest.approx(-1.0)
+    assert "obs0-2/high" not in groups
+    assert main(["--reference", "one/medc-s0", "--by-snr", "--parents", "2", *map(str, files)]) == 0
+    assert "all/low:" in capsys.readouterr().out
+    assert main(["--reference", "one/medc-s0", "--parents", "0", *map(str, files)]) == 2

@@ -6,7 +6,9 @@ played later pairs with the searchers played earlier on the same episodes and co
 
 prints, per obstruction group (0-2, 3-4, 5-7) and pooled, each policy's mean length with failures at
 the limit and completion, and the paired mean difference against the reference with its 95% t
-interval; the last line is JSON.
+interval; the last line is JSON. ``--by-snr`` adds each group's SNR bins (the set's: low, medium,
+high); ``--parents N`` names a bundle by the N folders above it (default 1: ``medc-s0``), for bundles
+whose run folders share a name.
 """
 
 from __future__ import annotations
@@ -29,15 +31,16 @@ GROUPS: dict[str, tuple[int, ...]] = {"obs0-2": (0, 1, 2), "obs3-4": (3, 4), "ob
 _FIELDS = ("set_id", "index", "length", "success", "declared_step", "declared_error_m", "track_rmse_m")
 
 
-def _policy_name(policy: str) -> str:
+def _policy_name(policy: str, parents: int = 1) -> str:
     if policy.endswith(".safetensors"):
-        return "/".join(Path(policy).parts[-2:-1]) or policy
+        return "/".join(Path(policy).parts[-1 - parents:-1]) or policy
     return policy
 
 
-def load_episodes(paths: Iterable[str | Path]) -> dict[str, dict[tuple, EpisodeResult]]:
-    """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files. Raises
-    ValueError for a line that is not one, or for one episode of one policy given twice."""
+def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, dict[tuple, EpisodeResult]]:
+    """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files (a bundle
+    named by the ``parents`` folders above it). Raises ValueError for a line that is not one, or for
+    one episode of one policy given twice."""
     out: dict[str, dict[tuple, EpisodeResult]] = {}
     for path in paths:
         with open(path, encoding="utf-8") as fh:
@@ -47,7 +50,7 @@ def load_episodes(paths: Iterable[str | Path]) -> dict[str, dict[tuple, EpisodeR
                     key = (doc["set_sha256"], doc["set_id"], int(doc["index"]), int(doc.get("run", 0)),
                            json.dumps(doc.get("departure", {}), sort_keys=True))
                     result = EpisodeResult(**{k: doc[k] for k in _FIELDS})
-                    policy = _policy_name(str(doc["policy"]))
+                    policy = _policy_name(str(doc["policy"]), parents)
                     if doc.get("temperature"):
                         policy += f"@T{float(doc['temperature']):g}"
                 except (ValueError, KeyError, TypeError) as exc:
@@ -67,11 +70,19 @@ def obstructions(set_id: str) -> int:
     return int(match.group(1))
 
 
+def snr_bin(set_id: str) -> str:
+    """The SNR bin a set id (``obs5-low[:40]``) names."""
+    match = re.match(r"obs\d+-([a-z]+)", set_id)
+    if match is None:
+        raise ValueError(f"set id {set_id!r} does not name its SNR bin")
+    return match.group(1)
+
+
 def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
-               max_steps: int = MAX_STEPS) -> dict[str, Any]:
-    """Per group and pooled: every policy's summary on the episodes all policies played, and its
-    paired comparison with ``reference``. Raises ValueError when the reference is missing or the
-    policies share no episode."""
+               max_steps: int = MAX_STEPS, by_snr: bool = False) -> dict[str, Any]:
+    """Per group and pooled (``by_snr``: and per SNR bin within each): every policy's summary on the
+    episodes all policies played, and its paired comparison with ``reference``. Raises ValueError
+    when the reference is missing or the policies share no episode."""
     if reference not in episodes:
         raise ValueError(f"reference {reference!r} is not among the policies: {', '.join(episodes)}")
     common = set.intersection(*(set(e) for e in episodes.values()))
@@ -80,6 +91,10 @@ def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
     keys = sorted(common, key=lambda k: (k[1], k[2]))
     groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
     groups["all"] = keys
+    if by_snr:
+        for name, chosen in list(groups.items()):
+            for bin_name in sorted({snr_bin(k[1]) for k in chosen}):
+                groups[f"{name}/{bin_name}"] = [k for k in chosen if snr_bin(k[1]) == bin_name]
     table: dict[str, Any] = {"reference": reference, "episodes": len(keys), "groups": {}}
     for name, chosen in groups.items():
         if not chosen:
@@ -101,9 +116,14 @@ def main(argv: list[str] | None = None) -> int:
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("files", nargs="+", help="episode-line files of medc-radbench runs (--out)")
     p.add_argument("--reference", required=True, help="the policy the others are compared with")
+    p.add_argument("--by-snr", action="store_true", help="also split every group by the sets' SNR bin")
+    p.add_argument("--parents", type=int, default=1,
+                   help="name a bundle by this many folders above it (default 1, e.g. medc-s0)")
     args = p.parse_args(argv)
     try:
-        table = pair_table(load_episodes(args.files), args.reference)
+        if args.parents < 1:
+            raise ValueError("--parents must be at least 1")
+        table = pair_table(load_episodes(args.files, args.parents), args.reference, by_snr=args.by_snr)
     except (OSError, ValueError) as exc:
         print(f"pairing: {exc}", file=sys.stderr)
         return 2
