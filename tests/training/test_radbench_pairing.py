@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 
 import pytest
@@ -58,3 +59,6 @@ def test_splits_by_snr_bin_and_names_bundles_of_same_named_runs_apart(tmp_path, 
     assert main(["--reference", "one/medc-s0", "--by-snr", "--parents", "2", *map(str, files)]) == 0
     assert "all/low:" in capsys.readouterr().out
     assert main(["--reference", "one/medc-s0", "--parents", "0", *map(str, files)]) == 2
+    zipped = tmp_path / "b.jsonl.gz"  # a gzipped file of episode lines reads the same
+    zipped.write_bytes(gzip.compress((tmp_path / "b.jsonl").read_bytes()))
+    assert load_episodes([zipped], parents=2) == load_episodes([files[1]], parents=2)

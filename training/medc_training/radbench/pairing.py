@@ -14,6 +14,7 @@ whose run folders share a name.
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import re
 import sys
@@ -38,12 +39,13 @@ def _policy_name(policy: str, parents: int = 1) -> str:
 
 
 def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, dict[tuple, EpisodeResult]]:
-    """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files (a bundle
-    named by the ``parents`` folders above it). Raises ValueError for a line that is not one, or for
+    """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files, plain or
+    gzipped (``.gz``; a bundle named by the ``parents`` folders above it). Raises ValueError for a line that is not one, or for
     one episode of one policy given twice."""
     out: dict[str, dict[tuple, EpisodeResult]] = {}
     for path in paths:
-        with open(path, encoding="utf-8") as fh:
+        opener = gzip.open if str(path).endswith(".gz") else open
+        with opener(path, "rt", encoding="utf-8") as fh:
             for number, line in enumerate(fh, 1):
                 try:
                     doc = json.loads(line)
