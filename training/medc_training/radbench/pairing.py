@@ -40,8 +40,8 @@ def _policy_name(policy: str, parents: int = 1) -> str:
 
 def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, dict[tuple, EpisodeResult]]:
     """policy -> {(set_sha256, set_id, index, run): EpisodeResult} from episode-line files, plain or
-    gzipped (``.gz``; a bundle named by the ``parents`` folders above it). Raises ValueError for a line that is not one, or for
-    one episode of one policy given twice."""
+    gzipped (``.gz``; a bundle named by the ``parents`` folders above it). Raises ValueError for a
+    line that is not one, or for one episode of one policy given twice."""
     out: dict[str, dict[tuple, EpisodeResult]] = {}
     for path in paths:
         opener = gzip.open if str(path).endswith(".gz") else open
