@@ -66,6 +66,21 @@ def parse_env_options(items: list[str]) -> dict:
     return options
 
 
+def _add_evaluation_arguments(p: argparse.ArgumentParser) -> None:
+    """How a run evaluates its policy while it trains."""
+    p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
+    p.add_argument("--eval-episodes", type=int,
+                   help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
+                        "window of --eval-steps test steps, which the research harness keeps for the "
+                        "committed reproduction's runs (medc-reproduce)")
+    p.add_argument("--eval-steps", type=int,
+                   help="test steps per evaluation on the legacy window (--eval-episodes 0)")
+    p.add_argument("--eval-envs", type=int,
+                   help="environments the evaluation episodes (or test steps) are split over")
+    p.add_argument("--eval-sampled", action="store_true",
+                   help="test on actions sampled from the policy instead of its argmax")
+
+
 def build_parser() -> argparse.ArgumentParser:
     default = application(DEFAULT_APPLICATION)
     p = argparse.ArgumentParser(prog="medc-train", description=__doc__.split("\n\n")[0],
@@ -78,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--observation",
                    help="observation: maps (the application's absolute maps) | egoR (agent-centred "
                         "windows) | for target localization also maps+estimate | egoR+estimate, and any "
-                        "of these four with +posterior (e.g. ego6+estimate+posterior) (default: "
+                        "of these four followed by +posterior, +information or both (e.g. ego6+estimate+posterior) "
+                        "(default: "
                         f"{default.default_observation} for target localization, maps for the others; "
                         "docs/environments.md)")
     p.add_argument("--sensing", choices=sorted(default.sensing_presets),
@@ -123,17 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gamma", type=float,
                    help="discount factor γ (default 0.99, the paper's); lower values weigh each move "
                         "of a short episode more")
-    p.add_argument("--eval-every", type=int, help="evaluate every E training steps")
-    p.add_argument("--eval-episodes", type=int,
-                   help="fixed episodes per evaluation, each played to its end (default 64); 0: the legacy "
-                        "window of --eval-steps test steps, which the research harness keeps for the "
-                        "committed reproduction's runs (medc-reproduce)")
-    p.add_argument("--eval-steps", type=int,
-                   help="test steps per evaluation on the legacy window (--eval-episodes 0)")
-    p.add_argument("--eval-envs", type=int,
-                   help="environments the evaluation episodes (or test steps) are split over")
-    p.add_argument("--eval-sampled", action="store_true",
-                   help="test on actions sampled from the policy instead of its argmax")
+    _add_evaluation_arguments(p)
     p.add_argument("--expert-rate", type=float, help="R_E (default 0.1)")
     p.add_argument("--q", type=float, dest="q_threshold", help="Q (default 0.05)")
     p.add_argument("--frl-users",
