@@ -93,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--observation",
                    help="observation: maps (the application's absolute maps) | egoR (agent-centred "
                         "windows) | for target localization also maps+estimate | egoR+estimate, and any "
-                        "of these four followed by +posterior, +information or both (e.g. ego6+estimate+posterior) "
-                        "(default: "
+                        "of these four followed by +posterior, +information or both (e.g. "
+                        "ego6+estimate+posterior) (default: "
                         f"{default.default_observation} for target localization, maps for the others; "
                         "docs/environments.md)")
     p.add_argument("--sensing", choices=sorted(default.sensing_presets),
