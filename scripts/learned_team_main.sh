@@ -25,6 +25,8 @@
 # MEDC_MAIN_FROZEN (1, the default: a finished run plays the frozen episodes; 0: it does not, as a
 # probe, which plays validation episodes only), MEDC_MAIN_INIT (a folder of finished runs: run
 # METHOD-sSEED starts from FOLDER/METHOD-sSEED/policy.safetensors with --init-from),
+# MEDC_MAIN_INIT_METHOD (the method whose bundles MEDC_MAIN_INIT holds, default each run's own:
+# e.g. medc, so that sparse-s1 starts from FOLDER/medc-s1/policy.safetensors),
 # MEDC_MAIN_SEED_OFFSET (added to the training seed, default 0: a run started from a bundle trains on
 # a fresh stream of episodes), MEDC_MAIN_GRID (20, the default, or 30: the grid the runs train on,
 # their validation file is drawn at and whose frozen file they play, g20-a3 with 40 episodes per set
@@ -45,6 +47,7 @@ out=${MEDC_MAIN_OUT:-docs/reproduction/learned-team/main}
 read -r -a train_args <<< "${MEDC_MAIN_TRAIN_ARGS:-}"
 frozen=${MEDC_MAIN_FROZEN:-1}
 init=${MEDC_MAIN_INIT:-}
+init_method=${MEDC_MAIN_INIT_METHOD:-}
 seed_offset=${MEDC_MAIN_SEED_OFFSET:-0}
 grid=${MEDC_MAIN_GRID:-20}
 stop_at_level=${MEDC_MAIN_STOP_AT_LEVEL:-}
@@ -128,7 +131,8 @@ one_run() {  # METHOD-sSEED
     return 2
   fi
   method=${BASH_REMATCH[1]}
-  seed=$(( BASH_REMATCH[2] + seed_offset ))
+  local run_seed=${BASH_REMATCH[2]}
+  seed=$(( run_seed + seed_offset ))
   dir=$out/$name
   local claim
   exec {claim}>"$out/.$name.claim"
@@ -143,12 +147,13 @@ one_run() {  # METHOD-sSEED
     medc-exact) method=medc; extra=(--expert controller:infotaxis-exact) ;;
   esac
   if [[ -n $init ]]; then
-    if [[ ! -s "$init/$name/policy.safetensors" ]]; then
-      echo "learned_team_main: MEDC_MAIN_INIT: no bundle at $init/$name/policy.safetensors" >&2
+    local start=$init/${init_method:-${name%-s*}}-s$run_seed/policy.safetensors
+    if [[ ! -s "$start" ]]; then
+      echo "learned_team_main: MEDC_MAIN_INIT: no bundle at $start" >&2
       exec {claim}>&-
       return 2
     fi
-    extra+=(--init-from "$init/$name/policy.safetensors")
+    extra+=(--init-from "$start")
   fi
   local done_steps
   done_steps=$(steps_done "$dir")
