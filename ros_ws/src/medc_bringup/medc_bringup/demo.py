@@ -3,17 +3,20 @@
 On the embedded defaults (an in-process Ethereum chain, a local IPFS-compatible content store):
 
 1. users register with the Users Manager Contract;
-2. owners share expert bundles trained by this code (models/experts): each bundle goes to the
-   content store and is added to the Models Manager Contract with its environment details;
+2. owners share expert bundles trained by this code (models/claims/experts): each bundle goes to
+   the content store and is added to the Models Manager Contract with its environment details;
 3. a requester with an A3W2 environment asks for experts, pays, and gets them allocated by QoS;
    the bundles are fetched by CID and verified;
 4. the requester trains with MEDC (the experts weighted by R_S = QoS_i / sum QoS_j) and, for the
-   same budget and seed, with the sparse reward alone;
+   same budget and seed, with the sparse reward alone, where reward is rare (REGIME: the realistic
+   preset on 40x40 cells, 50-step episodes; random moves find the source in about one episode in
+   ten), the regime where borrowed experts speed learning up;
 5. the requester reviews each expert (by how well it plays the requester's environment);
    reputations change; owners withdraw their payments;
 6. the ROS 2 graph (simulator + one policy node per agent, separate processes over DDS) runs
-   the newly trained policy for a few episodes, printed live, then the team measured best on the
-   realistic sensing preset (REALISTIC: infotaxis, which no learned team has beaten there yet);
+   the newly trained policy for a few episodes, printed live, then infotaxis on the same episodes
+   (the classical searcher a user would field there, which no learned team has beaten yet), then
+   the shipped team (models/team) in the regime it was trained for;
 7. a summary, a Markdown report with figures, and one JSON line.
 
 ``--quick`` shrinks the budgets (the end-to-end test runs it).
@@ -77,16 +80,16 @@ def _features(manifest: dict) -> dict[str, int]:
     return {"agents": int(env["agents"]), "walls": int(env["walls"])}
 
 
-def play_bundle(bundle, agents: int, walls: int, grid: int, max_steps: int, episodes: int, seed: int) -> dict:
-    """Greedy play of ``bundle`` for every agent of AyWz on ``episodes`` fixed episodes, each played
-    to its end; mean episode length and success rate (the summary of
-    medc_training.evaluate.evaluate_policy)."""
+def play_bundle(bundle, agents: int, walls: int, cfg, episodes: int, seed: int) -> dict:
+    """Greedy play of ``bundle`` for every agent of AyWz on ``episodes`` fixed episodes of the
+    configuration ``cfg`` (its grid, episode cap and environment options), each played to its end;
+    mean episode length and success rate (the summary of medc_training.evaluate.evaluate_policy)."""
     from medc_training.envs import make_batched
     from medc_training.evaluate import evaluate_policy
 
     env = make_batched(
-        APPLICATION, num_envs=min(episodes, 32), seed=seed, agents=agents, walls=walls, grid=grid,
-        max_steps=max_steps, observation=bundle.observation,
+        APPLICATION, num_envs=min(episodes, 32), seed=seed, agents=agents, walls=walls, grid=cfg.grid,
+        max_steps=cfg.max_steps, observation=bundle.observation, **cfg.env_options,
     )
     return evaluate_policy(env, bundle, episodes, greedy=True, seed=seed)
 
@@ -128,7 +131,7 @@ def trajectory_png(bundle, cfg, seed: int, path: Path) -> dict:
 
     env = make_env(
         APPLICATION, agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, max_steps=cfg.max_steps, seed=seed,
-        observation=bundle.observation,
+        observation=bundle.observation, **cfg.env_options,
     )
     obs, _ = env.reset(seed=seed)
     core = env.unwrapped.core  # the batched core (B = 1) under the PettingZoo wrapper
@@ -285,17 +288,21 @@ class _Graph:
     random_len: float
     graph: dict[str, Any]
     shipped_team: dict[str, Any]
-    #: The realistic preset's team (REALISTIC) in the graph, with random moves' length there.
-    realistic: dict[str, Any] = field(default_factory=lambda: {"skipped": True})
+    #: The classical searcher (SEARCHER) on the new policy's episodes in the graph.
+    searcher: dict[str, Any] = field(default_factory=lambda: {"skipped": True})
 
 
 TARGET = {"agents": 3, "walls": 2}
-#: The realistic sensing preset's scenario and the team measured best on it: on 512 fixed episodes
-#: of 20x20 with 2 walls and 100 steps, infotaxis needs 7.3 ± 0.4 steps, the greedy walk 8.7 ± 1.2,
-#: MDRL-sparse's learned team (3 seeds, 100k steps) 11.9 ± 3.2 (docs/environments.md, "Realistic
-#: search results"), so the graph's realistic default (config/launch.yaml) is infotaxis.
-REALISTIC = {"agents": 3, "walls": 2, "grid": 20, "max_steps": 100, "sensing": "realistic",
-             "policy": "infotaxis"}
+#: The regime the requester trains in: the training scale of docs/reproduction/claims/PROTOCOL.md
+#: (the realistic preset on 40x40 cells, 50-step episodes, random moves finding the source in about
+#: one episode in ten) and the experts cloned for it. There MEDC with proper experts led MDRL-sparse
+#: on every one of 5 seeds (learning score over the first 100k steps 33-37 against 41-46 steps,
+#: docs/reproduction/claims/runs), where on the paper-simple 13x13 sparse learns as fast alone.
+REGIME = {"scale": "claims", "experts": ("models", "claims", "experts")}
+#: The classical searcher the graph plays on the new policy's episodes: on the regime's 512 fixed
+#: episodes infotaxis needs 17.4 steps and finds the source in 97% (docs/reproduction/claims), ahead of
+#: every learned team, and the realistic graph's default (config/launch.yaml) is infotaxis.
+SEARCHER = "infotaxis"
 EXPERTS_REQUESTED = 3
 
 
@@ -309,7 +316,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     torch.set_num_threads(max(1, args.threads))
     quiet = bool(getattr(args, "quiet", False))
     demo = _Demo(args, out, repo_root(), Narrator(quiet=quiet), quiet)
-    steps = args.steps or (40_960 if args.quick else 409_600)
+    steps = args.steps or (40_960 if args.quick else 204_800)
     episodes = args.episodes or (5 if args.quick else 10)
     users = _register_users(demo)
     shared = _share_experts(demo, users)
@@ -345,9 +352,10 @@ def _share_experts(demo: _Demo, users: _Users) -> list[Any]:
     from medc_training.bundle import read_manifest
 
     demo.say.step("2. Owners share expert bundles: content store (CID) + Models Manager Contract")
-    expert_files = sorted((demo.root / "models" / "experts").glob("*.safetensors"))
+    folder = demo.root.joinpath(*REGIME["experts"])
+    expert_files = sorted(folder.glob("*.safetensors"))
     if not expert_files:
-        raise RuntimeError("models/experts holds no bundles; regenerate them (see models/README.md)")
+        raise RuntimeError(f"{folder} holds no bundles; regenerate them (see models/README.md)")
     owners = users.owners
     shared = []
     for i, path in enumerate(expert_files):
@@ -414,19 +422,27 @@ def _request_experts(demo: _Demo, users: _Users, shared: list[Any]) -> _Allocati
                        owner_rep_before)
 
 
+def _regime_words(cfg) -> str:
+    """The training regime in words, e.g. "the realistic preset, 40x40 cells, 50-step episodes"."""
+    sensing = cfg.env_options.get("sensing", "paper-simple")
+    return f"the {sensing} preset, {cfg.grid}x{cfg.grid} cells, {cfg.max_steps}-step episodes"
+
+
 def _train(demo: _Demo, allocation: _Allocation, steps: int) -> _Training:
     from medc_training.config import scaled_config
     from medc_training.ppo import Trainer
     from medc_training.runner import run_training
 
     say, out, args = demo.say, demo.out, demo.args
-    say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone")
+    cfg = scaled_config(REGIME["scale"], agents=TARGET["agents"], walls=TARGET["walls"], method="medc",
+                        total_steps=steps, seed=args.seed, torch_threads=1)
+    say.step(f"4. The requester trains with MEDC for {steps:,} steps, and with the sparse reward alone "
+             f"({_regime_words(cfg)})")
     # The sparse baseline runs beside MEDC as its own `medc-train` process (one core each).
     results: dict[str, dict] = {}
     policy_paths = {m: out / m / "policy.safetensors" for m in ("medc", "sparse")}
-    cfg = scaled_config("cpu", agents=TARGET["agents"], walls=TARGET["walls"], method="medc",
-                        total_steps=steps, seed=args.seed, torch_threads=1)
-    sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--agents", str(TARGET["agents"]),
+    sparse_cmd = [str(Path(sys.executable).parent / "medc-train"), "--scale", REGIME["scale"],
+                  "--agents", str(TARGET["agents"]),
                   "--walls", str(TARGET["walls"]), "--method", "sparse", "--steps", str(steps),
                   "--seed", str(args.seed), "--threads", "1", "--quiet", "--overwrite",
                   "--out", str(out / "sparse")]
@@ -453,7 +469,8 @@ def _train(demo: _Demo, allocation: _Allocation, steps: int) -> _Training:
         f"learning score (mean greedy evaluation episode length over the run, lower = faster): MEDC "
         f"{training.scores['medc']:.2f}, sparse {training.scores['sparse']:.2f}: MEDC learned "
         f"{'faster' if training.medc_faster else 'no faster'} than sparse on this seed "
-        "(one seed: a measurement, not a verdict; the reproduction report has the multi-seed claims)"
+        "(one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
+        "over 5 seeds in this regime)"
     )
     curves_png(
         {
@@ -473,8 +490,8 @@ def _review_and_pay(demo: _Demo, users: _Users, shared: list[Any], allocation: _
     say.step("5. The requester reviews the experts; reputations update; owners withdraw")
     reviews = []
     for a, expert in zip(allocation.allocations, allocation.experts):
-        played = play_bundle(expert.bundle, TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps,
-                             episodes=32, seed=demo.args.seed + 99)
+        played = play_bundle(expert.bundle, TARGET["agents"], TARGET["walls"], cfg, episodes=32,
+                             seed=demo.args.seed + 99)
         value = round(float(played["success_rate"]), 3)
         tx = requester.review(a.allocation_id, value)
         demo.spent("updateModelRep", tx.gas_used)
@@ -510,11 +527,11 @@ def _review_and_pay(demo: _Demo, users: _Users, shared: list[Any], allocation: _
 
 def _run_graph_phase(demo: _Demo, training: _Training, episodes: int) -> _Graph:
     say, args, cfg, root = demo.say, demo.args, training.cfg, demo.root
+    sensing = cfg.env_options.get("sensing")
     random_len = random_policy_length(TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps, 200,
-                                      seed=args.seed + 5)
+                                      seed=args.seed + 5, sensing=sensing)
     graph: dict[str, Any] = {"skipped": True}
     graph_team: dict[str, Any] = {"skipped": True}
-    team_path = root / "models" / "team" / "A3W2.safetensors"
     if args.no_ros:
         return _Graph(random_len, graph, graph_team)
     say.step(f"6. The ROS 2 graph runs the new MEDC policy ({episodes} episodes, one process per node)")
@@ -527,32 +544,43 @@ def _run_graph_phase(demo: _Demo, training: _Training, episodes: int) -> _Graph:
         f"success {graph['success_rate']:.0%}: it "
         f"{'beats' if graph['beats_random'] else 'does not beat'} random moves in the graph"
     )
+    searcher = _run_searcher(demo, cfg, episodes)
+    team_path = root / "models" / "team" / "A3W2.safetensors"
     if team_path.is_file():
-        say.say(f"the same episodes with the shipped team ({team_path.relative_to(root)}):")
-        graph_team = run_graph(team_path, TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet)
-        graph_team["skipped"] = False
-        say.say(
-            f"shipped team: mean episode length {graph_team['mean_length']:.1f} "
-            f"(random moves: {random_len:.1f}); success {graph_team['success_rate']:.0%}"
-        )
-    return _Graph(random_len, graph, graph_team, _run_realistic(demo, episodes))
+        graph_team = _run_shipped_team(demo, team_path, episodes)
+    return _Graph(random_len, graph, graph_team, searcher)
 
 
-def _run_realistic(demo: _Demo, episodes: int) -> dict[str, Any]:
-    """The graph on the realistic preset with the team measured best there (REALISTIC)."""
-    say, args, r = demo.say, demo.args, REALISTIC
-    say.say(f"the realistic preset (unknown strength and background, walls that block the line of sight; "
-            f"{r['grid']}x{r['grid']}, {r['max_steps']} steps): the team measured best there is "
-            f"{r['policy']}, which no learned team has beaten yet (docs/environments.md):")
-    cfg = argparse.Namespace(grid=r["grid"], max_steps=r["max_steps"])
-    result = run_graph(r["policy"], TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet,
-                       sensing=r["sensing"])
+def _run_searcher(demo: _Demo, cfg, episodes: int) -> dict[str, Any]:
+    """The graph with the classical searcher (SEARCHER) on the new policy's episodes."""
+    say, args = demo.say, demo.args
+    say.say(f"the same episodes with {SEARCHER}, the classical searcher a user would field here "
+            "(no learned team has beaten it in this regime yet: docs/reproduction/claims):")
+    result = run_graph(SEARCHER, TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet,
+                       sensing=cfg.env_options.get("sensing"))
     result["skipped"] = False
-    result["policy"] = r["policy"]
+    result["policy"] = SEARCHER
+    say.say(f"{SEARCHER}: mean episode length {result['mean_length']:.1f}; "
+            f"success {result['success_rate']:.0%}")
+    return result
+
+
+def _run_shipped_team(demo: _Demo, team_path: Path, episodes: int) -> dict[str, Any]:
+    """The graph with the shipped team (models/team) in the environment its manifest records."""
+    from medc_training.bundle import read_manifest
+
+    say, args = demo.say, demo.args
+    env = read_manifest(team_path.read_bytes())["environment"]
+    cfg = argparse.Namespace(grid=int(env["grid"]), max_steps=int(env["max_steps"]))
+    sensing = env.get("sensing")
+    say.say(f"the shipped team ({team_path.relative_to(demo.root)}) in the regime it was trained for "
+            f"({sensing or 'paper-simple'} preset, {cfg.grid}x{cfg.grid} cells, "
+            f"{cfg.max_steps}-step episodes):")
+    result = run_graph(team_path, TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet)
+    result["skipped"] = False
     result["random_episode_length"] = random_policy_length(
-        TARGET["agents"], TARGET["walls"], r["grid"], r["max_steps"], 200, args.seed + 5,
-        sensing=r["sensing"])
-    say.say(f"{r['policy']}: mean episode length {result['mean_length']:.1f} (random moves: "
+        TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps, 200, args.seed + 5, sensing=sensing)
+    say.say(f"shipped team: mean episode length {result['mean_length']:.1f} (random moves there: "
             f"{result['random_episode_length']:.1f}); success {result['success_rate']:.0%}")
     return result
 
@@ -598,10 +626,11 @@ def _summarise(demo: _Demo, allocation: _Allocation, training: _Training, settle
         "medc_learned_faster_than_sparse": training.medc_faster,
         "new_policy_beats_random_in_graph": graph.graph.get("beats_random"),
         "graph": _graph_summary(graph.graph),
-        "graph_shipped_team": _graph_summary(graph.shipped_team),
-        "graph_realistic": {**_graph_summary(graph.realistic),
-                            **{k: graph.realistic[k] for k in ("policy", "random_episode_length")
-                               if k in graph.realistic}},
+        "graph_searcher": {**_graph_summary(graph.searcher),
+                           **({"policy": graph.searcher["policy"]} if "policy" in graph.searcher else {})},
+        "graph_shipped_team": {**_graph_summary(graph.shipped_team),
+                               **{k: graph.shipped_team[k] for k in ("random_episode_length",)
+                                  if k in graph.shipped_team}},
         "trajectory": traj,
         "gas": dict(demo.gas),
         "timings_s": say.timings,
@@ -655,8 +684,8 @@ def write_report(out: Path, s: dict, cfg) -> None:
     lines = [
         "# MEDC demo report",
         "",
-        f"Run {'(quick)' if s['quick'] else ''} in {s['seconds']:.0f} s; environment A3W2 on a "
-        f"{cfg.grid}x{cfg.grid} grid, episodes capped at {cfg.max_steps} steps.",
+        f"Run {'(quick)' if s['quick'] else ''} in {s['seconds']:.0f} s; environment A3W2, "
+        f"{_regime_words(cfg)}.",
         *_market_lines(s),
         *_learning_lines(s),
         *_graph_lines(s),
@@ -729,12 +758,14 @@ def _learning_lines(s: dict) -> list[str]:
     lines += ["", f"Learning score (mean greedy evaluation episode length over the run, lower = faster): "
               f"MEDC {sc['medc']:.2f}, sparse {sc['sparse']:.2f}; MEDC learned "
               f"{'faster' if s['medc_learned_faster_than_sparse'] else 'no faster'} than sparse on this seed "
-              "(one seed: see docs/reproduction/report.md for the multi-seed claims)."]
+              "(one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
+              "over 5 seeds in this regime)."]
     return [*lines, "", "![learning curves](learning_curves.png)"]
 
 
 def _graph_lines(s: dict) -> list[str]:
-    """The report's ROS 2 graph section: the new policy's episodes, and on the realistic preset."""
+    """The report's ROS 2 graph section: the new policy's episodes, the searcher's on the same ones and
+    the shipped team's."""
     lines = ["", "## The ROS 2 graph", ""]
     g = s["graph"]
     if g.get("skipped"):
@@ -746,13 +777,17 @@ def _graph_lines(s: dict) -> list[str]:
             f"{s['random_policy_episode_length']:.1f} steps: the new policy "
             f"{'beats' if s['new_policy_beats_random_in_graph'] else 'does not beat'} random moves."
         )
-    r = s.get("graph_realistic") or {}
+    r = s.get("graph_searcher") or {}
     if not r.get("skipped", True):
-        grid = REALISTIC["grid"]
-        lines += ["", f"On the realistic sensing preset ({grid}x{grid}, {REALISTIC['max_steps']} steps) the "
-                  f"graph runs {r['policy']}, the team measured best there: {r['episodes']} episodes, "
-                  f"lengths {r['episode_lengths']}, mean {r['mean_length']:.1f}, success "
-                  f"{r['success_rate']:.0%}; random moves average {r['random_episode_length']:.1f} steps."]
+        lines += ["", f"The same episodes with {r['policy']}, the classical searcher a user would field "
+                  f"here: lengths {r['episode_lengths']}, mean {r['mean_length']:.1f}, success "
+                  f"{r['success_rate']:.0%}."]
+    t = s.get("graph_shipped_team") or {}
+    if not t.get("skipped", True):
+        lines += ["", f"The shipped team (models/team) in the regime it was trained for: {t['episodes']} "
+                  f"episodes, lengths {t['episode_lengths']}, mean {t['mean_length']:.1f}, success "
+                  f"{t['success_rate']:.0%}; random moves average {t['random_episode_length']:.1f} steps "
+                  "there."]
     return lines
 
 
@@ -761,10 +796,10 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="medc-demo", description=__doc__.split("\n\n")[0],
                                 formatter_class=HelpFormatter, epilog=epilog(__doc__))
-    p.add_argument("--quick", action="store_true", help="small budgets (about 3 minutes)")
+    p.add_argument("--quick", action="store_true", help="small budgets (about 1.5 minutes after set-up)")
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, help="training steps per method (default 409,600; quick 40,960)")
+    p.add_argument("--steps", type=int, help="training steps per method (default 204,800; quick 40,960)")
     p.add_argument("--episodes", type=int, help="episodes the ROS graph runs (default 10; quick 5)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--no-ros", action="store_true", help="skip step 6 (the ROS 2 graph)")
