@@ -296,7 +296,7 @@ TARGET = {"agents": 3, "walls": 2}
 #: The regime the requester trains in: the training scale of docs/reproduction/claims/PROTOCOL.md
 #: (the realistic preset on 40x40 cells, 50-step episodes, random moves finding the source in about
 #: one episode in ten) and the experts cloned for it. There MEDC with proper experts led MDRL-sparse
-#: on every one of 5 seeds (learning score over the first 100k steps 33-37 against 41-46 steps,
+#: on every one of 5 seeds (learning score over the first 100k steps 33-38 against 41-46 steps,
 #: docs/reproduction/claims/runs), where on the paper-simple 13x13 sparse learns as fast alone.
 REGIME = {"scale": "claims", "experts": ("models", "claims", "experts")}
 #: The classical searcher the graph plays on the new policy's episodes: on the regime's 512 fixed
