@@ -72,8 +72,9 @@ def obstructions(set_id: str) -> int:
     return int(match.group(1))
 
 
-def snr_bin(set_id: str) -> str:
-    """The SNR bin a set id (``obs5-low[:40]``) names."""
+def _snr_name(set_id: str) -> str:
+    """The SNR bin a set id (``obs5-low[:40]``) names (the set's, not a value's:
+    :func:`medc_training.radbench.scenario.snr_bin` bins a value)."""
     match = re.match(r"obs\d+-([a-z]+)", set_id)
     if match is None:
         raise ValueError(f"set id {set_id!r} does not name its SNR bin")
@@ -95,8 +96,9 @@ def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
     groups["all"] = keys
     if by_snr:
         for name, chosen in list(groups.items()):
-            for bin_name in sorted({snr_bin(k[1]) for k in chosen}):
-                groups[f"{name}/{bin_name}"] = [k for k in chosen if snr_bin(k[1]) == bin_name]
+            bins = {k: _snr_name(k[1]) for k in chosen}
+            for bin_name in sorted(set(bins.values())):
+                groups[f"{name}/{bin_name}"] = [k for k in chosen if bins[k] == bin_name]
     table: dict[str, Any] = {"reference": reference, "episodes": len(keys), "groups": {}}
     for name, chosen in groups.items():
         if not chosen:
