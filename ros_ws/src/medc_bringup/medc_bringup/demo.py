@@ -303,6 +303,9 @@ REGIME = {"scale": "claims", "experts": ("models", "claims", "experts")}
 #: episodes infotaxis needs 17.4 steps and finds the source in 97% (docs/reproduction/claims), ahead of
 #: every learned team, and the realistic graph's default (config/launch.yaml) is infotaxis.
 SEARCHER = "infotaxis"
+#: What one seed's MEDC-against-sparse comparison is, said wherever the demo reports it.
+ONE_SEED = ("one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
+            "over 5 seeds in this regime")
 EXPERTS_REQUESTED = 3
 
 
@@ -469,8 +472,7 @@ def _train(demo: _Demo, allocation: _Allocation, steps: int) -> _Training:
         f"learning score (mean greedy evaluation episode length over the run, lower = faster): MEDC "
         f"{training.scores['medc']:.2f}, sparse {training.scores['sparse']:.2f}: MEDC learned "
         f"{'faster' if training.medc_faster else 'no faster'} than sparse on this seed "
-        "(one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
-        "over 5 seeds in this regime)"
+        f"({ONE_SEED})"
     )
     curves_png(
         {
@@ -571,11 +573,11 @@ def _run_shipped_team(demo: _Demo, team_path: Path, episodes: int) -> dict[str, 
 
     say, args = demo.say, demo.args
     env = read_manifest(team_path.read_bytes())["environment"]
-    cfg = argparse.Namespace(grid=int(env["grid"]), max_steps=int(env["max_steps"]))
     sensing = env.get("sensing")
+    cfg = argparse.Namespace(grid=int(env["grid"]), max_steps=int(env["max_steps"]),
+                             env_options={"sensing": sensing} if sensing else {})
     say.say(f"the shipped team ({team_path.relative_to(demo.root)}) in the regime it was trained for "
-            f"({sensing or 'paper-simple'} preset, {cfg.grid}x{cfg.grid} cells, "
-            f"{cfg.max_steps}-step episodes):")
+            f"({_regime_words(cfg)}):")
     result = run_graph(team_path, TARGET, cfg, episodes, args.seed, demo.out, quiet=demo.quiet)
     result["skipped"] = False
     result["random_episode_length"] = random_policy_length(
@@ -626,11 +628,8 @@ def _summarise(demo: _Demo, allocation: _Allocation, training: _Training, settle
         "medc_learned_faster_than_sparse": training.medc_faster,
         "new_policy_beats_random_in_graph": graph.graph.get("beats_random"),
         "graph": _graph_summary(graph.graph),
-        "graph_searcher": {**_graph_summary(graph.searcher),
-                           **({"policy": graph.searcher["policy"]} if "policy" in graph.searcher else {})},
-        "graph_shipped_team": {**_graph_summary(graph.shipped_team),
-                               **{k: graph.shipped_team[k] for k in ("random_episode_length",)
-                                  if k in graph.shipped_team}},
+        "graph_searcher": _graph_summary(graph.searcher, "policy"),
+        "graph_shipped_team": _graph_summary(graph.shipped_team, "random_episode_length"),
         "trajectory": traj,
         "gas": dict(demo.gas),
         "timings_s": say.timings,
@@ -640,8 +639,9 @@ def _summarise(demo: _Demo, allocation: _Allocation, training: _Training, settle
     return summary
 
 
-def _graph_summary(graph: dict) -> dict:
-    keys = ("skipped", "episodes", "mean_length", "success_rate", "episode_lengths", "wall_s")
+def _graph_summary(graph: dict, *extra: str) -> dict:
+    """A graph run's figures for the summary, with the ``extra`` keys it holds."""
+    keys = ("skipped", "episodes", "mean_length", "success_rate", "episode_lengths", "wall_s", *extra)
     return {k: graph[k] for k in keys if k in graph}
 
 
@@ -758,8 +758,7 @@ def _learning_lines(s: dict) -> list[str]:
     lines += ["", f"Learning score (mean greedy evaluation episode length over the run, lower = faster): "
               f"MEDC {sc['medc']:.2f}, sparse {sc['sparse']:.2f}; MEDC learned "
               f"{'faster' if s['medc_learned_faster_than_sparse'] else 'no faster'} than sparse on this seed "
-              "(one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
-              "over 5 seeds in this regime)."]
+              f"({ONE_SEED})."]
     return [*lines, "", "![learning curves](learning_curves.png)"]
 
 
