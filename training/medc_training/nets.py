@@ -335,22 +335,30 @@ def _lenet5(channels: int, height: int, width: int, num_actions: int) -> list[di
     ]
 
 
-def _convnet_small(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
-    return [
-        {"type": "conv2d", "out_channels": 16, "kernel_size": 3, "stride": 1, "padding": 1},
-        {"type": "relu"},
-        {"type": "conv2d", "out_channels": 32, "kernel_size": 3, "stride": 2, "padding": 1},
-        {"type": "relu"},
-        {"type": "conv2d", "out_channels": 32, "kernel_size": 3, "stride": 2, "padding": 1},
-        {"type": "relu"},
-        {"type": "flatten"},
-        {"type": "linear", "out_features": 128},
-        {"type": "relu"},
-        {"type": "heads", "num_actions": num_actions},
-    ]
+LayerBuilder = Callable[[int, int, int, int], list[dict[str, Any]]]
+"""``(C, H, W, A) -> layers``: a built-in architecture's layer list for the given shapes."""
 
 
-def _mlp_of_width(width: int) -> Callable[[int, int, int, int], list[dict[str, Any]]]:
+def _convnet_of_width(first: int, second: int, hidden: int) -> LayerBuilder:
+    """Three 3x3 convolutions (``first`` channels at full resolution, then ``second`` at stride 2,
+    twice), one hidden layer of ``hidden`` units, the heads."""
+    def build(channels: int, height: int, width: int, num_actions: int) -> list[dict[str, Any]]:
+        return [
+            {"type": "conv2d", "out_channels": first, "kernel_size": 3, "stride": 1, "padding": 1},
+            {"type": "relu"},
+            {"type": "conv2d", "out_channels": second, "kernel_size": 3, "stride": 2, "padding": 1},
+            {"type": "relu"},
+            {"type": "conv2d", "out_channels": second, "kernel_size": 3, "stride": 2, "padding": 1},
+            {"type": "relu"},
+            {"type": "flatten"},
+            {"type": "linear", "out_features": hidden},
+            {"type": "relu"},
+            {"type": "heads", "num_actions": num_actions},
+        ]
+    return build
+
+
+def _mlp_of_width(width: int) -> LayerBuilder:
     def build(channels: int, height: int, grid_width: int, num_actions: int) -> list[dict[str, Any]]:
         return [
             {"type": "flatten"},
@@ -363,9 +371,10 @@ def _mlp_of_width(width: int) -> Callable[[int, int, int, int], list[dict[str, A
     return build
 
 
-ARCHITECTURES: dict[str, Callable[[int, int, int, int], list[dict[str, Any]]]] = {
+ARCHITECTURES: dict[str, LayerBuilder] = {
     "lenet5": _lenet5,
-    "convnet-small": _convnet_small,
+    "convnet-small": _convnet_of_width(16, 32, 128),
+    "convnet-wide": _convnet_of_width(32, 64, 256),
     "mlp": _mlp_of_width(128),
     "mlp-wide": _mlp_of_width(256),
 }

@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace a run already in OUT (refused without it; a sweep: seeds of another config)")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu",
                    help="base hyperparameters (default cpu)")
-    p.add_argument("--arch", help="network architecture (lenet5, convnet-small, mlp, mlp-wide)")
+    p.add_argument("--arch", help="network architecture (lenet5, convnet-small, convnet-wide, mlp, mlp-wide)")
     p.add_argument("--num-envs", type=int, help="environments stepped together")
     p.add_argument("--horizon", type=int, help="training steps per PPO update")
     p.add_argument("--epochs", type=int, help="PPO epochs per update")
