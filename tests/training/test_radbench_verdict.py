@@ -7,7 +7,7 @@ import json
 import math
 
 import pytest
-from medc_training.radbench.verdict import frozen_verdict, main, steps_to_level
+from medc_training.radbench.verdict import frozen_verdict, main, seeds_gate, steps_to_level
 
 
 def _write(path, policy, rows):
@@ -136,3 +136,47 @@ def test_command_line(tmp_path, capsys):
     assert main(["steps", "--yardstick", str(yard), "--reference", "infotaxis-exact", "--budget", "10",
                  "medc"]) == 2
     assert "METHOD=RUN_FOLDER" in capsys.readouterr().err
+
+
+def test_gate_pools_the_seeds_per_episode():
+    old = [_episodes({0: [10, 12, 14, 12], 5: [14, 15, 13, 14]}),
+           _episodes({0: [11, 12, 13, 12], 5: [15, 15, 14, 14]})]
+    new = [_episodes({0: [9, 11, 13, 11], 5: [13, 14, 12, 13]}),   # one shorter everywhere
+           _episodes({0: [10, 12, 11, 12], 5: [15, 13, 13, 13]})]  # 0, 0, -2, 0; 0, -2, -1, -1
+    v = seeds_gate(list(zip(new, old)))
+    hard = v["groups"]["obs5-7"]
+    assert hard["candidate_means"] == pytest.approx([13.0, 13.5])
+    assert [p["mean"] for p in hard["per_seed"]] == pytest.approx([-1.0, -1.0])
+    # pooled: per episode the two seeds' differences averaged, (-1 + 0) / 2, (-1 - 2) / 2, ...
+    assert hard["pooled"]["n"] == 4
+    assert hard["pooled"]["mean"] == pytest.approx((-0.5 - 1.5 - 1.0 - 1.0) / 4)
+    assert hard["pooled"]["hi"] < 0 and v["groups"]["all"]["pooled"]["hi"] < 0 and v["passes"]
+    assert "obs3-4" not in v["groups"]  # no episode there
+    # one seed longer on the hardest sets: the pooled interval reaches above 0 and the gate fails
+    worse = _episodes({0: [9, 11, 13, 11], 5: [17, 15, 19, 14]})
+    v = seeds_gate([(new[0], old[0]), (worse, old[1])])
+    assert v["groups"]["obs5-7"]["pooled"]["hi"] > 0 and not v["passes"]
+    # failures count at the limit
+    failed = _episodes({0: [9, 11, 13, 11], 5: [13, 14, 12, 13]},
+                       successes={0: [True] * 4, 5: [False, True, True, True]})
+    v = seeds_gate([(failed, old[0])])
+    assert v["groups"]["obs5-7"]["per_seed"][0]["mean"] == pytest.approx((120 - 14 - 1 - 1 - 1) / 4)
+    with pytest.raises(ValueError, match="no seed"):
+        seeds_gate([])
+    with pytest.raises(ValueError, match="share no validation episode"):
+        seeds_gate([(new[0], _episodes({3: [10]}))])
+
+
+def test_gate_command_line(tmp_path, capsys):
+    rows = [("obs5-low[:3]", i, 20 + i, True) for i in range(3)] + [("obs0-low[:3]", i, 10 + i, True)
+                                                                    for i in range(3)]
+    old, new = tmp_path / "old.jsonl", tmp_path / "new.jsonl"
+    _write(old, "runs/a/medc-s0/policy.safetensors", rows)
+    _write(new, "runs/b/medc-s0/policy.safetensors",
+           [(set_id, i, length - 2 - i % 2, ok) for set_id, i, length, ok in rows])
+    assert main(["gate", "--candidate", str(new), "--against", str(old)]) == 0
+    out = capsys.readouterr().out
+    assert "gate (pooled upper bound below 0 on obs5-7 and all): passes" in out
+    assert json.loads(out.splitlines()[-1])["passes"] is True
+    assert main(["gate", "--candidate", str(new), str(new), "--against", str(old)]) == 2
+    assert "one of each per training seed" in capsys.readouterr().err

@@ -18,6 +18,13 @@ completion difference there, and of (learned - yardstick) on every obstruction c
   the 5% margin), *loses* (lower bound above 0: shown longer), *not resolved* (otherwise: the
   interval reaches past the margin and below 0). Only *beats* and *matches* are non-inferior.
 
+**A gate on the validation episodes** (:func:`seeds_gate`): a candidate bundle of every training seed
+against another bundle of the same seed (the team it would replace), both having played the same
+validation episodes. Per seed the paired difference (candidate - other), and the seeds pooled as
+above: per episode the seeds' differences averaged, a Student-t 95% interval over the episodes, per
+obstruction group (0-2, 3-4, 5-7) and over all. The gate *passes* when the pooled upper bound is below
+0 both on 5-7 obstructions and over all.
+
 **Steps to the yardstick** (:func:`steps_to_level`, the protocol's MEDC claim): every run's piece
 bundles played the validation episodes (``validation-STEPS.episodes.jsonl`` in its folder); a run
 reaches the yardstick's level at the first piece whose mean length is at most the yardstick's on the
@@ -29,6 +36,8 @@ log(steps_other / steps_medc) over the seeds excludes 0; otherwise *not resolved
         --reference infotaxis-exact RUN/frozen-g20-a3.episodes.jsonl ...
     python -m medc_training.radbench.verdict steps --yardstick VALIDATION_SEARCHERS.episodes.jsonl \\
         --reference infotaxis-exact --budget 2000000 medc=RUN,RUN,RUN sparse=RUN,RUN,RUN ...
+    python -m medc_training.radbench.verdict gate --candidate NEW_S0.episodes.jsonl NEW_S1... \\
+        --against OLD_S0.episodes.jsonl OLD_S1...
 
 Each prints a table and, last, one JSON line.
 """
@@ -46,11 +55,11 @@ from typing import Any
 
 from medc_training.stats import mean_ci
 
-from .pairing import load_episodes, obstructions
+from .pairing import GROUPS, load_episodes, obstructions
 from .results import scored_length
 from .scenario import MAX_STEPS, OBSTRUCTION_COUNTS
 
-__all__ = ["GOAL_COUNTS", "GOAL_RATIO", "MARGIN", "frozen_verdict", "steps_to_level"]
+__all__ = ["GOAL_COUNTS", "GOAL_RATIO", "MARGIN", "frozen_verdict", "seeds_gate", "steps_to_level"]
 
 #: The obstruction counts the goal is stated on, and the ratio of the yardstick it asks for.
 GOAL_COUNTS: tuple[int, ...] = (5, 6, 7)
@@ -134,6 +143,35 @@ def frozen_verdict(yardstick: dict, seeds: Sequence[dict], max_steps: int = MAX_
     out["counts"] = counts
     out["checks"] = checks
     out["goal_met"] = bool(goal) and all(checks.values())
+    return out
+
+
+def seeds_gate(pairs: Sequence[tuple[dict, dict]], max_steps: int = MAX_STEPS) -> dict[str, Any]:
+    """The validation gate (module docstring): ``pairs`` holds, per training seed, (candidate, other),
+    each {episode key: EpisodeResult}; compared on the episodes every one of them played. Raises
+    ValueError when there is no pair or no shared episode."""
+    if not pairs:
+        raise ValueError("no seed to compare")
+    played = [d for pair in pairs for d in pair]
+    common = set(played[0]).intersection(*(set(d) for d in played[1:]))
+    if not common:
+        raise ValueError("the bundles share no validation episode (another set file?)")
+    keys = sorted(common, key=lambda k: (k[1], k[2]))
+    groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
+    groups["all"] = keys
+    out: dict[str, Any] = {"episodes": len(keys), "seeds": len(pairs), "groups": {}}
+    for name, chosen in groups.items():
+        if not chosen:
+            continue
+        diffs = [[scored_length(new[k], max_steps) - scored_length(old[k], max_steps) for k in chosen]
+                 for new, old in pairs]
+        candidate = [sum(scored_length(new[k], max_steps) for k in chosen) / len(chosen) for new, _ in pairs]
+        out["groups"][name] = {
+            "episodes": len(chosen), "candidate_means": candidate,
+            "per_seed": [_interval(d) for d in diffs],
+            "pooled": _interval([sum(column) / len(pairs) for column in zip(*diffs)])}
+    needed = [g for g in ("obs5-7", "all") if g in out["groups"]]
+    out["passes"] = len(needed) == 2 and all(out["groups"][g]["pooled"]["hi"] < 0 for g in needed)
     return out
 
 
@@ -222,6 +260,16 @@ def _print_frozen(v: dict[str, Any]) -> None:
     print(f"goal met: {'yes' if v['goal_met'] else 'no'}")
 
 
+def _print_gate(v: dict[str, Any]) -> None:
+    print(f"{v['episodes']} validation episodes, {v['seeds']} seeds; candidate - other:")
+    for name, g in v["groups"].items():
+        seeds = ", ".join(f"#{k} {m:.2f} {_fmt(i)}" for k, (m, i) in
+                          enumerate(zip(g["candidate_means"], g["per_seed"])))
+        print(f"  {name} ({g['episodes']}): pooled {_fmt(g['pooled'])}; per seed {seeds}")
+    verdict = "passes" if v["passes"] else "does not pass"
+    print(f"gate (pooled upper bound below 0 on obs5-7 and all): {verdict}")
+
+
 def _print_steps(v: dict[str, Any]) -> None:
     for method, seeds in v["runs"].items():
         for seed, row in sorted(seeds.items()):
@@ -244,10 +292,30 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("runs", nargs="+", help="METHOD=RUN_FOLDER,RUN_FOLDER,...")
     s.add_argument("--budget", type=int, required=True, help="the runs' training budget (censoring)")
     s.add_argument("--focus", default="medc", help="the method whose claim is judged (default medc)")
+    g = sub.add_parser("gate", help="candidate bundles against other bundles of the same seeds, "
+                                    "on the validation episodes")
+    g.add_argument("--candidate", nargs="+", required=True,
+                   help="one episode-line file per training seed: the candidate bundles' play")
+    g.add_argument("--against", nargs="+", required=True,
+                   help="one episode-line file per training seed, in the same order: the bundles it "
+                        "would replace")
     for q in (f, s):
         q.add_argument("--yardstick", required=True, help="episode lines holding the yardstick's episodes")
         q.add_argument("--reference", required=True, help="the yardstick's policy name in that file")
     args = p.parse_args(argv)
+    if args.what == "gate":
+        try:
+            if len(args.candidate) != len(args.against):
+                raise ValueError(f"--candidate names {len(args.candidate)} files and --against "
+                                 f"{len(args.against)}: give one of each per training seed")
+            verdict = seeds_gate([(_only_policy(a), _only_policy(b))
+                                  for a, b in zip(args.candidate, args.against)])
+        except (OSError, ValueError) as exc:
+            print(f"verdict: {exc}", file=sys.stderr)
+            return 2
+        _print_gate(verdict)
+        print(json.dumps(verdict))
+        return 0
     try:
         played = load_episodes([args.yardstick])
         if args.reference not in played:
