@@ -6,7 +6,7 @@ import gzip
 import json
 
 import pytest
-from medc_training.radbench.pairing import load_episodes, main, pair_table
+from medc_training.radbench.pairing import load_episodes, main, obstructions, pair_table
 
 
 def _lines(path, policy, lengths, sets=("obs0-low[:2]", "obs6-high[:2]"), run=0):
@@ -62,3 +62,10 @@ def test_splits_by_snr_bin_and_names_bundles_of_same_named_runs_apart(tmp_path, 
     zipped = tmp_path / "b.jsonl.gz"  # a gzipped file of episode lines reads the same
     zipped.write_bytes(gzip.compress((tmp_path / "b.jsonl").read_bytes()))
     assert load_episodes([zipped], parents=2) == load_episodes([files[1]], parents=2)
+
+
+def test_a_set_id_names_its_obstruction_count_and_snr_bin():
+    assert obstructions("obs5-low[:40]") == 5 and obstructions("obs12-high") == 12
+    for bad in ("obstacles5-low", "obs-low", "obs5", "5-low"):
+        with pytest.raises(ValueError, match="obsN-BIN"):
+            obstructions(bad)

@@ -25,7 +25,7 @@ from typing import Any
 from .results import EpisodeResult, paired, summarize
 from .scenario import MAX_STEPS
 
-__all__ = ["GROUPS", "load_episodes", "obstructions", "pair_table"]
+__all__ = ["GROUPS", "group_keys", "load_episodes", "obstructions", "pair_table"]
 
 #: Obstruction-count groups the table reports (the goal is stated on 5-7).
 GROUPS: dict[str, tuple[int, ...]] = {"obs0-2": (0, 1, 2), "obs3-4": (3, 4), "obs5-7": (5, 6, 7)}
@@ -64,21 +64,35 @@ def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, di
     return out
 
 
+#: A set id: its obstruction count and SNR bin (``obs5-low[:40]``).
+_SET_ID = re.compile(r"obs(\d+)-([a-z]+)")
+
+
+def _set_id_parts(set_id: str) -> tuple[int, str]:
+    match = _SET_ID.match(set_id)
+    if match is None:
+        raise ValueError(f"set id {set_id!r} does not name its obstruction count and SNR bin "
+                         "(obsN-BIN, e.g. obs5-low)")
+    return int(match.group(1)), match.group(2)
+
+
 def obstructions(set_id: str) -> int:
     """The obstruction count a set id (``obs5-low[:40]``) names."""
-    match = re.match(r"obs(\d+)-", set_id)
-    if match is None:
-        raise ValueError(f"set id {set_id!r} does not name its obstruction count")
-    return int(match.group(1))
+    return _set_id_parts(set_id)[0]
 
 
 def _snr_name(set_id: str) -> str:
     """The SNR bin a set id (``obs5-low[:40]``) names (the set's, not a value's:
     :func:`medc_training.radbench.scenario.snr_bin` bins a value)."""
-    match = re.match(r"obs\d+-([a-z]+)", set_id)
-    if match is None:
-        raise ValueError(f"set id {set_id!r} does not name its SNR bin")
-    return match.group(1)
+    return _set_id_parts(set_id)[1]
+
+
+def group_keys(keys: list[tuple]) -> dict[str, list[tuple]]:
+    """Episode keys (set hash, set id, ...) split into :data:`GROUPS` by the obstruction count their
+    set names, and ``all``, each in the given order."""
+    groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
+    groups["all"] = list(keys)
+    return groups
 
 
 def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
@@ -92,8 +106,7 @@ def pair_table(episodes: dict[str, dict[tuple, EpisodeResult]], reference: str,
     if not common:
         raise ValueError("the policies share no episode (another set file, run or departure?)")
     keys = sorted(common, key=lambda k: (k[1], k[2]))
-    groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
-    groups["all"] = keys
+    groups = group_keys(keys)
     if by_snr:
         for name, chosen in list(groups.items()):
             bins = {k: _snr_name(k[1]) for k in chosen}

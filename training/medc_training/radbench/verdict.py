@@ -55,7 +55,7 @@ from typing import Any
 
 from medc_training.stats import mean_ci
 
-from .pairing import GROUPS, load_episodes, obstructions
+from .pairing import group_keys, load_episodes, obstructions
 from .results import scored_length
 from .scenario import MAX_STEPS, OBSTRUCTION_COUNTS
 
@@ -157,10 +157,8 @@ def seeds_gate(pairs: Sequence[tuple[dict, dict]], max_steps: int = MAX_STEPS) -
     if not common:
         raise ValueError("the bundles share no validation episode (another set file?)")
     keys = sorted(common, key=lambda k: (k[1], k[2]))
-    groups = {name: [k for k in keys if obstructions(k[1]) in counts] for name, counts in GROUPS.items()}
-    groups["all"] = keys
     out: dict[str, Any] = {"episodes": len(keys), "seeds": len(pairs), "groups": {}}
-    for name, chosen in groups.items():
+    for name, chosen in group_keys(keys).items():
         if not chosen:
             continue
         diffs = [[scored_length(new[k], max_steps) - scored_length(old[k], max_steps) for k in chosen]
