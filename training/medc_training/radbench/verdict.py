@@ -301,41 +301,42 @@ def main(argv: list[str] | None = None) -> int:
         q.add_argument("--yardstick", required=True, help="episode lines holding the yardstick's episodes")
         q.add_argument("--reference", required=True, help="the yardstick's policy name in that file")
     args = p.parse_args(argv)
-    if args.what == "gate":
-        try:
-            if len(args.candidate) != len(args.against):
-                raise ValueError(f"--candidate names {len(args.candidate)} files and --against "
-                                 f"{len(args.against)}: give one of each per training seed")
-            verdict = seeds_gate([(_only_policy(a), _only_policy(b))
-                                  for a, b in zip(args.candidate, args.against)])
-        except (OSError, ValueError) as exc:
-            print(f"verdict: {exc}", file=sys.stderr)
-            return 2
-        _print_gate(verdict)
-        print(json.dumps(verdict))
-        return 0
     try:
-        played = load_episodes([args.yardstick])
-        if args.reference not in played:
-            raise ValueError(f"{args.yardstick} holds no {args.reference!r} (it holds {sorted(played)})")
-        reference = played[args.reference]
-        if args.what == "frozen":
-            verdict = frozen_verdict(reference, [_only_policy(path) for path in args.seeds])
-            _print_frozen(verdict)
-        else:
-            runs: dict[str, list[str]] = {}
-            for item in args.runs:
-                method, sep, folders = item.partition("=")
-                if not sep or not method or not folders:
-                    raise ValueError(f"{item!r}: give METHOD=RUN_FOLDER,RUN_FOLDER,...")
-                runs.setdefault(method, []).extend(x for x in folders.split(",") if x)
-            verdict = steps_to_level(reference, runs, args.budget, focus=args.focus)
-            _print_steps(verdict)
+        verdict = _gate(args) if args.what == "gate" else _against_yardstick(args)
     except (OSError, ValueError) as exc:
         print(f"verdict: {exc}", file=sys.stderr)
         return 2
     print(json.dumps(verdict))
     return 0
+
+
+def _gate(args: argparse.Namespace) -> dict[str, Any]:
+    if len(args.candidate) != len(args.against):
+        raise ValueError(f"--candidate names {len(args.candidate)} files and --against "
+                         f"{len(args.against)}: give one of each per training seed")
+    verdict = seeds_gate([(_only_policy(a), _only_policy(b)) for a, b in zip(args.candidate, args.against)])
+    _print_gate(verdict)
+    return verdict
+
+
+def _against_yardstick(args: argparse.Namespace) -> dict[str, Any]:
+    played = load_episodes([args.yardstick])
+    if args.reference not in played:
+        raise ValueError(f"{args.yardstick} holds no {args.reference!r} (it holds {sorted(played)})")
+    reference = played[args.reference]
+    if args.what == "frozen":
+        verdict = frozen_verdict(reference, [_only_policy(path) for path in args.seeds])
+        _print_frozen(verdict)
+        return verdict
+    runs: dict[str, list[str]] = {}
+    for item in args.runs:
+        method, sep, folders = item.partition("=")
+        if not sep or not method or not folders:
+            raise ValueError(f"{item!r}: give METHOD=RUN_FOLDER,RUN_FOLDER,...")
+        runs.setdefault(method, []).extend(x for x in folders.split(",") if x)
+    verdict = steps_to_level(reference, runs, args.budget, focus=args.focus)
+    _print_steps(verdict)
+    return verdict
 
 
 if __name__ == "__main__":
