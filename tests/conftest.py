@@ -40,6 +40,19 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log):
     return GraphTestsTogether(config, log)
 
 
+@pytest.fixture
+def one_thread():
+    """One torch intra-op thread for the test, as an agent node and medc-radbench run (their
+    ``threads``, default 1): the tensors of these tests are small, and on two busy cores a second
+    thread mostly waits on the first (a layer waits for its slower thread, 10x slower under load)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(autouse=True)
 def _bundle_refusals_forgotten():
     """Each test starts with no bundle refusal remembered in this process (nor a pause of dry runs

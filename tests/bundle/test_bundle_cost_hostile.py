@@ -123,17 +123,6 @@ def _refuse_once(full, blank: torch.Tensor, allowed: torch.Tensor) -> tuple[floa
 TRIES, RETRY_PAUSE_S = 5, 1.5
 
 
-@pytest.fixture
-def one_thread():
-    """Time on one intra-op thread, as an agent node runs (its ``threads`` parameter, default 1):
-    with two threads on two busy cores, a layer waits for its slower thread and the estimate from a
-    strip says little about the full layer."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.mark.timing
 def test_a_slow_bundle_is_refused_after_about_the_limit_and_a_republish_costs_nothing(
         tmp_path, monkeypatch, one_thread) -> None:

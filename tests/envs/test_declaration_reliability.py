@@ -5,23 +5,12 @@ rate whose Wilson 95 % interval reaches the threshold."""
 from __future__ import annotations
 
 import pytest
-import torch
 from medc_lab.studies.calibration import reliability, wilson
 from medc_training.controllers import controller_policy
 from medc_training.declaration_eval import threshold_episodes
 from medc_training.envs import make_batched
 
 THRESHOLDS = (0.9, 0.95, 0.99)
-
-
-@pytest.fixture
-def one_thread():
-    """One torch thread: the estimator's per-step tensors are small, and on a shared machine a
-    second thread costs more in synchronisation than it gains (10x here under load)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def study(sensing, episodes: int, **options) -> dict:

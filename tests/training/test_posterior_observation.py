@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 from medc_training.bundle import load_bundle, read_manifest
 from medc_training.cli.radbench import main as radbench_main
 from medc_training.cli.train import main as train_main
@@ -23,13 +22,7 @@ TRAIN_ARGS = ["--world", "radbench", "--observation", VIEW, "--agents", "3", "--
               "--arch", "mlp", "--steps", "64", "--quiet", "--no-tensorboard", "--threads", "1"]
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors: a second torch thread only waits on a busy 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_a_team_trained_on_the_posterior_view_plays_the_benchmark(tmp_path, capsys):

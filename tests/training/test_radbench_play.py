@@ -17,15 +17,7 @@ from medc_training.radbench import BenchCore, BenchSet, Episode, load_sets, pair
 from medc_training.radbench.scenario import noise_uniforms
 from medc_training.radbench.sets import FROZEN, SETS_DIR
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """The benchmark's tensors are small: a second torch thread only waits on a busy 2-core machine
-    (medc-radbench plays on one, ``--threads``)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_poisson_counts_by_inverse_cdf():
