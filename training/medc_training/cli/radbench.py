@@ -307,6 +307,7 @@ def _play(args: argparse.Namespace) -> int:
 
     from ..console import progress_bar
     from ..radbench.departure import Departure
+    from ..radbench.pairing import episode_record
     from ..radbench.play import TEAM_SENSING, play_set, policy_names
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
@@ -347,15 +348,11 @@ def _play(args: argparse.Namespace) -> int:
                 seconds[policy] += time.perf_counter() - start
                 results[s.id][policy] = played
                 if out is not None:
+                    extra = {**({"departure": departure.to_dict()} if not departure.nominal else {}),
+                             **({"temperature": args.temperature}
+                                if args.temperature and policy not in names else {})}
                     for r in played:
-                        out.file.write(_line({"policy": policy, "grid": grid, "agents": agents,
-                                              "run": args.run, "set_sha256": s.sha256,
-                                              **({"departure": departure.to_dict()}
-                                                 if not departure.nominal else {}),
-                                              **({"temperature": args.temperature}
-                                                 if args.temperature and policy not in names
-                                                 else {}),
-                                              **r.to_json()}))
+                        out.file.write(_line(episode_record(policy, s, r, args.run, **extra)))
     per_set, pooled, pooled_pairs = _report(args, sets, results, policies, reference)
     print(json.dumps({
         "benchmark": "medc-radbench", "grid": grid, "cell_m": sets[0].cell_m, "agents": agents,

@@ -50,7 +50,7 @@ from medc_training.envs.grid import (
 )
 from medc_training.envs.tl_sensing import SensingModel
 
-from .pairing import GROUPS
+from .pairing import GROUPS, episode_record
 from .physics import TEAM_SENSING, episode_tensors
 from .results import EpisodeResult, summarize
 from .sets import BenchSet
@@ -122,8 +122,7 @@ def oracle_policy(core) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
 
 
 def _line(bench_set: BenchSet, result: EpisodeResult) -> str:
-    return json.dumps({"policy": POLICY, "grid": bench_set.grid, "agents": bench_set.agents, "run": 0,
-                       "set_sha256": bench_set.sha256, **result.to_json()}) + "\n"
+    return json.dumps(episode_record(POLICY, bench_set, result)) + "\n"
 
 
 def _verify(bench_set: BenchSet, results: list[EpisodeResult]) -> None:

@@ -25,7 +25,7 @@ from typing import Any
 from .results import EpisodeResult, paired, summarize
 from .scenario import MAX_STEPS
 
-__all__ = ["GROUPS", "group_keys", "load_episodes", "obstructions", "pair_table"]
+__all__ = ["GROUPS", "episode_record", "group_keys", "load_episodes", "obstructions", "pair_table"]
 
 #: Obstruction-count groups the table reports (the goal is stated on 5-7).
 GROUPS: dict[str, tuple[int, ...]] = {"obs0-2": (0, 1, 2), "obs3-4": (3, 4), "obs5-7": (5, 6, 7)}
@@ -36,6 +36,15 @@ def _policy_name(policy: str, parents: int = 1) -> str:
     if policy.endswith(".safetensors"):
         return "/".join(Path(policy).parts[-1 - parents:-1]) or policy
     return policy
+
+
+def episode_record(policy: str, bench_set: Any, result: EpisodeResult, run: int = 0, **extra: Any
+                   ) -> dict[str, Any]:
+    """One episode line (``medc-radbench --out``), as :func:`load_episodes` reads it: the policy, the
+    set's grid, team and hash (``bench_set``, a :class:`~medc_training.radbench.sets.BenchSet`), the
+    count-noise run, ``extra`` (a departure, a temperature) and the result's fields."""
+    return {"policy": policy, "grid": bench_set.grid, "agents": bench_set.agents, "run": run,
+            "set_sha256": bench_set.sha256, **extra, **result.to_json()}
 
 
 def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, dict[tuple, EpisodeResult]]:

@@ -161,9 +161,10 @@ def seeds_gate(pairs: Sequence[tuple[dict, dict]], max_steps: int = MAX_STEPS) -
     for name, chosen in group_keys(keys).items():
         if not chosen:
             continue
-        diffs = [[scored_length(new[k], max_steps) - scored_length(old[k], max_steps) for k in chosen]
-                 for new, old in pairs]
-        candidate = [sum(scored_length(new[k], max_steps) for k in chosen) / len(chosen) for new, _ in pairs]
+        lengths = [([scored_length(new[k], max_steps) for k in chosen],
+                    [scored_length(old[k], max_steps) for k in chosen]) for new, old in pairs]
+        diffs = [[a - b for a, b in zip(mine, theirs)] for mine, theirs in lengths]
+        candidate = [sum(mine) / len(mine) for mine, _ in lengths]
         out["groups"][name] = {
             "episodes": len(chosen), "candidate_means": candidate,
             "per_seed": [_interval(d) for d in diffs],
