@@ -248,8 +248,30 @@ def test_core_observations_equal_a_replay_from_scratch_at_any_batch_size(variant
             else:
                 m.record(env.walls[sl], env.positions[sl], env.readings[sl])
             assert torch.equal(m.observe(env.positions[sl], env.walls[sl])[0], out.obs[b]), (variant, b)
+            for i in range(3):  # one agent's view, as its node builds it
+                assert torch.equal(m.observe_agent(env.positions[sl], env.walls[sl], i)[0], out.obs[b, i])
         mask = out.mask
     assert resets > 0
+
+
+@pytest.mark.parametrize("variant", ["ego9+estimate+posterior", "ego4+estimate+posterior+information",
+                                     "maps"])
+def test_one_agents_view_equals_its_row_of_the_teams_views(variant):
+    """observe_agent builds an agent's window from a padded grid: the same values as observe's row,
+    at every batch row, for agents on the edges and corners (off-grid cells a wall) and on a shared
+    cell (the team channel counts only the others)."""
+    env = make_batched("target_localization", num_envs=4, seed=3, agents=3, walls=1, grid=9, max_steps=40,
+                       observation=variant)
+    env.reset()
+    corners = torch.tensor([[[0, 0], [8, 8], [0, 8]], [[4, 4], [4, 4], [8, 0]],
+                            [[0, 3], [5, 8], [8, 2]], [[1, 1], [7, 7], [1, 1]]])
+    walls = env.walls.clone()
+    walls[torch.arange(4).view(4, 1), corners[..., 0], corners[..., 1]] = False  # the team on free cells
+    assert bool(walls.any()), "the views must show walls"
+    m = env.memory
+    team = m.observe(corners, walls)
+    for i in range(3):
+        assert torch.equal(m.observe_agent(corners, walls, i), team[:, i]), (variant, i)
 
 
 @pytest.mark.parametrize("variant", ["maps+estimate", "ego5+estimate", "ego6+estimate+posterior"])

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 from builtin_interfaces.msg import Time
+from conftest import make_bundle
 from medc_agents.policy_slot import PolicyRejected, PolicySlot, looks_like_cid
 from medc_agents.team_state import TeamObserver
 from medc_bringup.launcher import agent_parameters, load_config, resolve_policies, ros_args, sim_parameters
@@ -182,6 +183,33 @@ def test_policy_slot_refuses_bad_bundles_and_keeps_the_old_one(bundles, tmp_path
     north.swap(str(bundles["north"]))
     assert north.act(torch.zeros(5, 10, 10), torch.ones(8, dtype=torch.bool)) == 0
     assert north.act(torch.zeros(5, 10, 10), torch.tensor([False] + [True] * 7)) != 0
+
+
+def test_policy_slot_runs_the_network_in_its_runtime_and_says_which(bundles, monkeypatch, tmp_path):
+    """The default 'auto' runs a bundle in onnxruntime (the same moves as PyTorch); 'torch' in
+    PyTorch; 'onnxruntime' where it is missing refuses the bundle and keeps the running one; a
+    controller runs in neither."""
+    obs = torch.rand((5, 10, 10), generator=torch.Generator().manual_seed(0))
+    mask = torch.ones(8, dtype=torch.bool)
+    auto, plain = PolicySlot((5, 10, 10), 8), PolicySlot((5, 10, 10), 8, runtime="torch")
+    for slot in (auto, plain):
+        slot.swap(str(bundles["a"]))
+    assert auto.runs_in() == ", network in onnxruntime" and plain.runs_in() == ", network in torch"
+    assert auto.act(obs, mask) == plain.act(obs, mask) == int(auto.current.bundle.act(obs[None])[0])
+    strict = PolicySlot((5, 10, 10), 8, runtime="onnxruntime")
+    strict.swap(str(bundles["north"]))
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    fresh = make_bundle(tmp_path / "fresh.safetensors", 7)  # loaded in no runtime yet
+    with pytest.raises(PolicyRejected, match="onnxruntime is not installed"):
+        strict.swap(str(fresh))
+    assert strict.current.source == str(bundles["north"]) and strict.decider.runtime == "onnxruntime"
+    fallback = PolicySlot((5, 10, 10), 8)
+    fallback.swap(str(fresh))
+    assert fallback.runs_in().startswith(", network in torch (onnxruntime is not installed")
+    fallback.swap("greedy")
+    assert fallback.decider is None and fallback.runs_in() == ""
+    with pytest.raises(ValueError, match="runtime must be one of"):
+        PolicySlot((5, 10, 10), 8, runtime="tensorrt")
 
 
 def test_policy_slot_follows_or_enforces_the_bundle_observation(bundles, tmp_path):

@@ -145,6 +145,10 @@ def test_cost_measures_every_kind_of_policy_the_same_way(capsys, tmp_path):
     bundle = save_bundle(tmp_path / "b.safetensors", net, manifest)
     learned = decision_cost(s, bundle, batch=4, steps=1, node_steps=2)
     assert learned["macs_per_decision"] > 1000 and learned["likelihood_terms_per_decision"] == 0
+    assert learned["node_runtime"] == "onnxruntime"  # as an agent node runs it by default
+    in_torch = decision_cost(s, bundle, batch=4, steps=1, node_steps=2, runtime="torch")
+    assert in_torch["node_runtime"] == "torch" and in_torch["node_ms_p50"] > 0
+    assert "node_runtime" not in team
     assert main(["--cost", "random", "greedy", "--batch", "4", "--quiet"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(out["cost"]) == {"random", "greedy"} and out["set"] == "obs3-medium"

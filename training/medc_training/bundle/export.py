@@ -25,23 +25,10 @@ from medc_training.bundle import policy
 from medc_training.bundle.fileformat import BundleError
 from medc_training.bundle.manifest import manifest_observation, manifest_sensing
 from medc_training.bundle.policy import PolicyBundle, load_untrusted
+from medc_training.bundle.runtime import ONNX_OPSET, Heads, onnx_bytes
 from medc_training.outfiles import OutputError, check_output, is_same_file, write_output
 
 FORMATS = ("onnx", "torchscript")
-#: ONNX opset of the exported graph (onnxruntime >= 1.16 runs it).
-ONNX_OPSET = 17
-
-
-class _Heads(torch.nn.Module):
-    """The bundle's network with a plain tuple output (the exporters want tensors, not objects)."""
-
-    def __init__(self, net: torch.nn.Module) -> None:
-        super().__init__()
-        self.net = net
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        logits, value = self.net(obs)
-        return logits, value
 
 
 def contract(bundle: PolicyBundle, fmt: str, model_file: str) -> dict[str, Any]:
@@ -103,28 +90,24 @@ def export_bundle(source: str | os.PathLike[str], out: str | os.PathLike[str], f
                               "file to write")
     limit = policy.MAX_FORWARD_SECONDS if max_forward_s is None else max_forward_s
     bundle = load_untrusted(source, max_forward_s=limit).to("cpu")
-    model = _Heads(bundle.net).eval()
-    example = torch.zeros(1, *bundle.obs_shape)
-    buffer = io.BytesIO()
-    # The exporters warn about their own deprecations (TorchScript, the non-dynamo ONNX path).
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        if fmt == "onnx":
-            import onnx  # noqa: F401  (the exporter needs it; fail here with a clear ImportError)
+    if fmt == "onnx":
+        import onnx  # noqa: F401  (the exporter needs it; fail here with a clear ImportError)
 
-            torch.onnx.export(
-                model, (example,), buffer, input_names=["obs"], output_names=["logits", "value"],
-                dynamic_axes={"obs": {0: "batch"}, "logits": {0: "batch"}, "value": {0: "batch"}},
-                opset_version=ONNX_OPSET, dynamo=False,
-            )
-        else:
-            traced = torch.jit.trace(model, example)
-            torch.jit.save(traced, buffer)
+        data = onnx_bytes(bundle)
+    else:
+        buffer = io.BytesIO()
+        # TorchScript warns about its own deprecation.
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            example = torch.zeros(1, *bundle.obs_shape)
+            torch.jit.save(torch.jit.trace(Heads(bundle.net).eval(), example), buffer)
+        data = buffer.getvalue()
     model_path, side = targets
     text = json.dumps(contract(bundle, fmt, model_path.name), indent=2, sort_keys=True) + "\n"
-    write_output(model_path, buffer.getvalue(), overwrite)
+    write_output(model_path, data, overwrite)
     write_output(side, text.encode(), overwrite)
     return model_path, side
 
 
-__all__ = ["FORMATS", "BundleError", "OutputError", "contract", "contract_path", "export_bundle"]
+__all__ = ["FORMATS", "ONNX_OPSET", "BundleError", "OutputError", "contract", "contract_path",
+           "export_bundle"]

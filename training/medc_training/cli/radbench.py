@@ -36,6 +36,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+#: What can run a bundle's network in ``--cost``'s node decision: medc_training.bundle.runtime.RUNTIMES
+#: (named here, so that building the command line imports no torch).
+RUNTIMES = ("auto", "onnxruntime", "torch")
 QUICK = {"grid": 20, "agents": 1, "obstructions": (0, 3, 7), "snrs": ("low", "medium", "high"), "episodes": 8,
          "policies": ("random", "gradient", "greedy", "infotaxis")}
 
@@ -98,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="measure what one decision costs instead of playing the sets: each policy on the "
                         "first episodes of obs3-medium of the --grid/--agents file, at B = 1 and "
                         "B = --batch, and as an agent node decides (medc_training.radbench.cost)")
+    p.add_argument("--runtime", choices=RUNTIMES, default="auto",
+                   help="with --cost: what runs a bundle's network in the agent node's decision (auto, the "
+                        "agent nodes' default: onnxruntime where it agrees with PyTorch; "
+                        "medc_training.bundle.runtime)")
     p.add_argument("--list", action="store_true",
                    help="list the frozen set files and sets with their SHA-256")
     p.add_argument("--generate", type=Path, metavar="DIR",
@@ -250,9 +257,11 @@ def _cost(args: argparse.Namespace) -> int:
     _say(args, f"medc-radbench --cost: {bench_set.id} of grid {grid}, {agents} agent(s), one torch thread "
                f"({args.threads}); ms per call p50/p99, decisions (one agent's move) per second")
     for policy in policies:
-        c = decision_cost(bench_set, policy, batch=args.batch)
+        c = decision_cost(bench_set, policy, batch=args.batch, runtime=args.runtime)
         out[str(policy)] = c
         node = f"node {c['node_ms_p50']}/{c['node_ms_p99']} ms, " if "node_ms_p50" in c else ""
+        if "node_runtime" in c:
+            node = node.replace("node ", f"node ({c['node_runtime']}) ", 1)
         terms = c["likelihood_terms_per_decision"]
         work = (f"{terms:,} likelihood terms" if terms
                 else f"{c['macs_per_decision']:,.0f} MACs" if "macs_per_decision" in c else "")

@@ -55,6 +55,7 @@ __all__ = [
     "observation_channels",
     "observation_shape",
     "observe",
+    "observe_agent",
     "parse_observation",
 ]
 
@@ -849,6 +850,18 @@ class TeamMemory:
                        estimate, out=out, posterior_map=posterior, information_map=information)
 
 
+    def observe_agent(self, positions: torch.Tensor, walls: torch.Tensor, index: int,
+                      spec: ObservationSpec | None = None) -> torch.Tensor:
+        """Agent ``index``'s observation float32 [B,C,H,W] of view ``spec`` (default: this memory's),
+        equal to that agent's row of :meth:`observe` (:func:`observe_agent`): what an agent node
+        builds to decide its own move."""
+        spec = self.spec if spec is None else parse_observation(spec)
+        estimate, posterior = self.source_maps(spec)
+        information = self.information_map(positions, walls) if spec.information else None
+        return observe_agent(spec, positions, index, self.reading_map, self.visit_map, walls, estimate,
+                             posterior_map=posterior, information_map=information)
+
+
 def observe(
     spec: ObservationSpec,
     positions: torch.Tensor,
@@ -869,15 +882,7 @@ def observe(
     required when ``spec.information``).
     """
     spec = parse_observation(spec)
-    if spec.estimate and estimate is None:
-        raise ValueError(f"observation {spec.name} needs the source estimate map")
-    if spec.posterior and posterior_map is None:
-        raise ValueError(f"observation {spec.name} needs the source posterior map (posterior_map)")
-    if spec.information and information_map is None:
-        raise ValueError(f"observation {spec.name} needs the information map (information_map)")
-    # The team's source maps the view shows, in channel order, after the application's own.
-    extra = (([estimate] if spec.estimate else []) + ([posterior_map] if spec.posterior else [])
-             + ([information_map] if spec.information else []))
+    extra = _source_layers(spec, estimate, posterior_map, information_map)
     b, n = positions.shape[:2]
     g = walls.shape[-1]
     if spec.view == "maps":
@@ -895,11 +900,7 @@ def observe(
     side = 2 * r + 1
     # Team-wide maps: walls (off-grid = wall), team count, readings, visits, estimate, posterior;
     # each agent sees them in a window centred on itself (grid.team_windows).
-    layers = [walls.to(torch.float32), None, reading_map, visit_norm(visit_map), *extra]
-    cell = positions[..., 0] * g + positions[..., 1]  # [B,N]
-    count = torch.zeros((b, g * g), device=positions.device).scatter_add_(
-        1, cell, torch.ones(cell.shape, device=positions.device))
-    layers[1] = count.view(b, g, g)
+    layers = [walls.to(torch.float32), _team_count(positions, g), reading_map, visit_norm(visit_map), *extra]
     stack = torch.stack(layers, dim=1)  # [B,C,G,G]
     c = stack.shape[1]
     outside = torch.zeros(c, device=positions.device)
@@ -913,3 +914,65 @@ def observe(
     out[:, :, 1].clamp_(0.0, 1.0)
     return out
 
+
+def _source_layers(spec: ObservationSpec, estimate: torch.Tensor | None, posterior_map: torch.Tensor | None,
+                   information_map: torch.Tensor | None) -> list[torch.Tensor]:
+    """The team's source maps view ``spec`` shows, in channel order (after the application's own);
+    ValueError naming the first one it needs and was not given."""
+    if spec.estimate and estimate is None:
+        raise ValueError(f"observation {spec.name} needs the source estimate map")
+    if spec.posterior and posterior_map is None:
+        raise ValueError(f"observation {spec.name} needs the source posterior map (posterior_map)")
+    if spec.information and information_map is None:
+        raise ValueError(f"observation {spec.name} needs the information map (information_map)")
+    return (([estimate] if spec.estimate else []) + ([posterior_map] if spec.posterior else [])
+            + ([information_map] if spec.information else []))
+
+
+def _team_count(positions: torch.Tensor, g: int) -> torch.Tensor:
+    """float32 [B,G,G]: how many members of the team stand on each cell (positions int64 [B,N,2])."""
+    cell = positions[..., 0] * g + positions[..., 1]  # [B,N]
+    count = torch.zeros((positions.shape[0], g * g), device=positions.device)
+    return count.scatter_add_(1, cell, torch.ones(cell.shape, device=positions.device)).view(-1, g, g)
+
+
+def observe_agent(
+    spec: ObservationSpec,
+    positions: torch.Tensor,
+    index: int,
+    reading_map: torch.Tensor,
+    visit_map: torch.Tensor,
+    walls: torch.Tensor,
+    estimate: torch.Tensor | None = None,
+    posterior_map: torch.Tensor | None = None,
+    information_map: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Agent ``index``'s observation of variant ``spec``, float32 [B,C,H,W]: the same values as
+    ``observe(spec, positions, ...)[:, index]`` with the same arguments, built for that agent alone.
+
+    An agent node decides for one agent: rather than gathering every agent's window cell by cell
+    (:func:`observe`), the team's maps are written once into a grid padded with the off-grid values
+    (a wall; nothing else) and the agent's window is one slice of it, a handful of tensor operations
+    whatever the window's size. The whole-grid view (``maps``) is :func:`observe`'s row.
+    """
+    spec = parse_observation(spec)
+    if spec.view == "maps":
+        return observe(spec, positions, reading_map, visit_map, walls, estimate,
+                       posterior_map=posterior_map, information_map=information_map)[:, index]
+    extra = _source_layers(spec, estimate, posterior_map, information_map)
+    b, g, r = positions.shape[0], walls.shape[-1], spec.radius
+    side = 2 * r + 1
+    layers = [walls, _team_count(positions, g), reading_map, visit_norm(visit_map), *extra]
+    padded = torch.zeros((b, len(layers), g + 2 * r, g + 2 * r), device=positions.device)
+    padded[:, 0] = 1.0  # off the grid is a wall
+    inner = padded[:, :, r:r + g, r:r + g]
+    for i, layer in enumerate(layers):
+        inner[:, i].copy_(layer)
+    out = torch.empty((b, len(layers), side, side), device=positions.device)
+    # A window centred on (y, x) of the grid starts at (y, x) of the padded grid.
+    for k, (y, x) in enumerate(positions[:, index].tolist()):
+        out[k].copy_(padded[k, :, y:y + side, x:x + side])
+    # The team channel counts the others: remove the agent itself from its own centre cell.
+    out[:, 1, r, r] -= 1.0
+    out[:, 1].clamp_(0.0, 1.0)
+    return out

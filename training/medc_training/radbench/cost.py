@@ -8,9 +8,10 @@ thread:
   decisions (one agent's move) per second, at B = 1 and at a large batch;
 * **an agent node's decision** (B = 1): the work ``medc-agent`` does per step for the team's last
   agent, which is the most for a coordinated searcher (it computes its teammates' choices before
-  its own); for a bundle, building the team's observations from its memory and one forward pass
-  for that agent. DDS transport is not in it (``medc-bench
-  ros`` measures the graph: a few milliseconds);
+  its own); for a bundle, building that agent's observation from the team memory and its greedy
+  move from the network in the node's runtime (:mod:`medc_training.bundle.runtime`: ``auto``
+  takes onnxruntime where it agrees with PyTorch, as the agent nodes do). DDS transport is not in
+  it (``medc-bench ros`` measures the graph: a few milliseconds);
 * **the work per decision**: for the information-driven searchers the likelihood terms evaluated
   (hypothesis x count value x candidate move, :data:`medc_training.searchers.STATS`), for a bundle
   its network's multiply-accumulates (``torch.utils.flop_counter``: convolutions and linear layers).
@@ -37,23 +38,27 @@ from .sets import BenchSet
 __all__ = ["decision_cost"]
 
 
-def _node_call(policy: Any, bundle: Any, core: BenchCore):
-    """A callable doing one agent node's decision work on ``core`` (B = 1) for its last agent; None
-    for random moves."""
+def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto"):
+    """A callable doing one agent node's decision work on ``core`` (B = 1) for its last agent, a
+    bundle's network run in ``runtime`` (:mod:`medc_training.bundle.runtime`); None for random
+    moves."""
     from medc_training.controllers import CONTROLLERS, COORDINATED, controller_scores
 
     n = core.num_agents
     if bundle is not None:
-        net = bundle.net
+        from medc_training.bundle.runtime import decider
+
+        runner = decider(bundle, runtime)
 
         def forward(obs: torch.Tensor, mask: torch.Tensor) -> None:
-            # The observation is built from the team memory first (its source maps from the
-            # posterior the step left, as a searcher's scores are; every agent's window, as the
-            # node's observer builds them), then the last agent's row goes through the network.
+            # The node's two steps: the agent's observation from the team memory (its source maps
+            # from the posterior the step left, as a searcher's scores are; the agent's own window),
+            # then its greedy move from the network in the node's runtime.
             with torch.no_grad():
-                views = core.memory.observe(core.positions, core.walls)
-                net(views[:, n - 1])
+                view = core.memory.observe_agent(core.positions, core.walls, n - 1)
+                runner.act(view, core.mask[:, n - 1])
 
+        forward.runtime = runner.runtime
         return forward
     if isinstance(policy, str) and policy in CONTROLLERS:
         rows = slice(0, n) if policy in COORDINATED else slice(n - 1, n)
@@ -78,11 +83,12 @@ def _macs(bundle: Any, obs: torch.Tensor) -> float | None:
 
 
 def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 5,
-                  node_steps: int = 20) -> dict[str, Any]:
+                  node_steps: int = 20, runtime: str = "auto") -> dict[str, Any]:
     """Cost figures of ``policy`` (a name or a bundle, as :func:`~medc_training.radbench.play.play_set`
     takes it) on the first episodes of ``bench_set`` (module docstring): ``steps`` timed calls of the
     batched evaluator at B = ``batch`` (episodes repeated when the set has fewer), ``node_steps`` at
-    B = 1, each after one untimed call."""
+    B = 1, each after one untimed call; an agent node's decision with a bundle's network in ``runtime``
+    (``node_runtime``: the one it ran in)."""
     from medc_training import searchers
 
     bundle, observation = resolve_policy(policy)
@@ -91,7 +97,7 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
         idx = [i % len(bench_set.episodes) for i in range(b)]
         core = BenchCore(bench_set, idx, observation=observation)
         chosen = core_policy(core, policy, bundle)
-        node = _node_call(policy, bundle, core) if b == 1 else None
+        node = _node_call(policy, bundle, core, runtime) if b == 1 else None
         gen = torch.Generator().manual_seed(0)
         obs, mask = core.reset()
         calls, nodes, terms = [], [], []
@@ -129,6 +135,8 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
             if nodes:
                 out["node_ms_p50"] = round(1000 * percentile(nodes, 50), 3)
                 out["node_ms_p99"] = round(1000 * percentile(nodes, 99), 3)
+                if bundle is not None:
+                    out["node_runtime"] = node.runtime
             if bundle is not None:
                 out["macs_per_decision"] = _macs(bundle, flat_obs)
     return out

@@ -38,7 +38,8 @@ from medc_common.auth_node import declare_auth
 from medc_common.health import Health, run_id
 from medc_common.params import count, declare, number, seconds
 from medc_interfaces.msg import AgentMove, EpisodeStatus, RadiationReading
-from medc_training.bundle import MAX_FORWARD_SECONDS, flush_denormals
+from medc_training.bundle import MAX_FORWARD_SECONDS
+from medc_training.bundle.runtime import RUNTIMES
 from medc_training.controllers import CONTROLLERS
 from medc_training.envs.names import DEFAULT_APPLICATION
 from medc_training.envs.target_localization import ACTIONS, DEFAULT_OBSERVATION
@@ -199,6 +200,15 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
     threads = p(
         "torch_threads", 1, "CPU threads for the policy network (1 suits one small net per agent)", True
     )
+    runtime = p(
+        "policy_runtime", "auto",
+        "What runs a bundle's network: auto (onnxruntime where its outputs equal PyTorch's on the dry "
+        "run's observations, else PyTorch; the log says which), onnxruntime (a bundle it cannot run is "
+        "refused) or torch",
+        True,
+    )
+    if runtime not in RUNTIMES:
+        raise ValueError(f"policy_runtime must be one of {', '.join(RUNTIMES)}, got {str(runtime)[:40]!r}")
     max_forward_s = p(
         "policy_max_forward_s",
         MAX_FORWARD_SECONDS,
@@ -212,7 +222,7 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
         resolution=number("resolution", resolution),
         sensing=sensing, allow_other_world=allow_other_world, bridge_service=bridge_service,
         application=application,
-        threads=count("torch_threads", threads, least=1),
+        threads=count("torch_threads", threads, least=1), runtime=runtime,
         max_forward_s=seconds("policy_max_forward_s", max_forward_s))
 
 
@@ -287,6 +297,7 @@ class AgentParameters:
     bridge_service: str
     application: str
     threads: int
+    runtime: str
     max_forward_s: float
     stall_timeout_s: float
     lost_timeout_s: float
@@ -406,7 +417,7 @@ class AgentNode(Node):
         self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing,
-                               allow_other_world=prm.allow_other_world)
+                               allow_other_world=prm.allow_other_world, runtime=prm.runtime)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.old_statuses = OldStatuses(self.get_logger(), self.dropped_by, OLD_STATUS_SUMMARY_S)
@@ -418,7 +429,7 @@ class AgentNode(Node):
         self.swaps.start(str(initial))
         self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
                                f"{num_agents} agents on a {grid}x{grid} grid (observation "
-                               f"{self.observer.observation.name}), sensing {sensing}")
+                               f"{self.observer.observation.name}), sensing {sensing}{self.slot.runs_in()}")
         self.add_on_set_parameters_callback(self.swaps.on_set_parameters)
 
         self._connect(feed, num_agents)
@@ -656,8 +667,8 @@ def subscribe_team(node: Node, namespace: str | None, num_agents: int, agents: l
 
 
 def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
-    """Hand ``msg`` to every agent; those ready to decide and running the same bundle object
-    decide in one batched forward pass (the same greedy choice as one by one); an agent running a
+    """Hand ``msg`` to every agent; those ready to decide and running the same bundle object in the
+    same runtime decide in one batched forward pass (the same greedy choice as one by one); an agent running a
     controller decides on its own."""
     groups: dict[int, list] = {}
     for agent in agents:
@@ -667,14 +678,14 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
         if agent.slot.controller is not None:  # no network to batch: it decides from its team state
             agent._decide(*prepared)
             continue
-        groups.setdefault(id(agent.slot.current.bundle), []).append((agent, *prepared))
+        groups.setdefault(id(agent.slot.decider), []).append((agent, *prepared))
     for members in groups.values():
-        bundle = members[0][0].slot.current.bundle
+        decider = members[0][0].slot.decider
         obs = torch.stack([m[1] for m in members])
         mask = torch.stack([m[2] for m in members])
         try:
-            with torch.no_grad(), flush_denormals():
-                actions = bundle.act(obs, mask, greedy=True).tolist()
+            with torch.no_grad():
+                actions = decider.act(obs, mask).tolist()
         except Exception:
             # Fall back to one by one: each agent logs and keeps its own failure.
             for agent, o, mk, tick in members:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -51,10 +51,27 @@ def strip_cid(source: str) -> str:
 
 @dataclass
 class LoadedPolicy:
-    """A validated bundle and where it came from."""
+    """A validated bundle and where it came from, with its deciders (one per runtime asked for)."""
 
     bundle: object
     source: str
+    _deciders: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def decider(self, runtime: str = "auto"):
+        """The bundle's :class:`medc_training.bundle.runtime.Decider` in ``runtime`` ('auto',
+        'onnxruntime', 'torch'), made once and kept.
+
+        Raises:
+            PolicyRejected: ``runtime`` is unknown, or 'onnxruntime' cannot run this bundle here.
+        """
+        if runtime not in self._deciders:
+            from medc_training.bundle.runtime import RuntimeUnavailable, decider
+
+            try:
+                self._deciders[runtime] = decider(self.bundle, runtime)
+            except (ValueError, RuntimeUnavailable) as exc:
+                raise PolicyRejected(f"policy bundle {shown(self.source)}: {exc}") from exc
+        return self._deciders[runtime]
 
     @property
     def description(self) -> str:
@@ -253,13 +270,21 @@ class PolicySlot:
         grid: int | None = None,
         sensing: str | None = DEFAULT_SENSING,
         allow_other_world: bool = False,
+        runtime: str = "auto",
     ) -> None:
         """``observation``: the target-localization observation variant a bundle must take; None
         with a ``grid`` means "the one the bundle's manifest names" (its shape on that grid is then
         the observation shape, and :attr:`observation` follows the running bundle). ``sensing``:
         the team's sensing preset; a bundle trained under another is refused (None: no check).
         ``allow_other_world``: take a bundle trained in another world than the graph's grid world or
-        with domain randomisation (refused otherwise)."""
+        with domain randomisation (refused otherwise). ``runtime``: what runs a bundle's network
+        (:mod:`medc_training.bundle.runtime`: 'auto' takes onnxruntime where it agrees with PyTorch,
+        else PyTorch; 'onnxruntime' refuses a bundle it cannot run; 'torch')."""
+        from medc_training.bundle.runtime import RUNTIMES
+
+        if runtime not in RUNTIMES:
+            raise ValueError(f"runtime must be one of {', '.join(RUNTIMES)}, got {str(runtime)[:40]!r}")
+        self.runtime = runtime
         self.obs_shape = tuple(obs_shape)
         self.num_actions = num_actions
         self.application = application
@@ -295,6 +320,7 @@ class PolicySlot:
             obs_shape, observation = self._bundle_observation(source)
         loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application,
                                     self.max_forward_s, observation, self.sensing, self.allow_other_world)
+        loaded.decider(self.runtime)  # made (and checked) before the policy runs
         self.current = loaded
         self.obs_shape, self.observation = obs_shape, observation
         return loaded
@@ -324,8 +350,20 @@ class PolicySlot:
         if self.controller is not None:
             raise RuntimeError(f"controller {self.controller} decides from the team's state, not an "
                                "observation: medc_agents.controller.controller_move")
-        from medc_training.bundle import flush_denormals
-
-        with flush_denormals():  # subnormal activations cost no more than normal ones
-            action = self.current.bundle.act(obs.unsqueeze(0), mask.unsqueeze(0), greedy=True)
+        action = self.decider.act(obs.unsqueeze(0), mask.unsqueeze(0))
         return int(action[0])
+
+    def runs_in(self) -> str:
+        """What the logs add after a bundle's description: ``, network in <runtime>`` and, where
+        'auto' took PyTorch, why (empty for a controller or nothing)."""
+        decider = self.decider
+        if decider is None:
+            return ""
+        return f", network in {decider.runtime}" + (f" ({decider.note})" if decider.note else "")
+
+    @property
+    def decider(self):
+        """The running bundle's decider in this slot's runtime (None for a controller or nothing)."""
+        if not isinstance(self.current, LoadedPolicy):
+            return None
+        return self.current.decider(self.runtime)

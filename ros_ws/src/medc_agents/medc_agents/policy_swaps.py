@@ -87,7 +87,7 @@ class PolicySwaps:
         loaded = self.slot.swap(source)
         self.observer.use_observation(self.slot.observation)
         self.logger.info(f"now running policy {loaded.description} "
-                         f"(observation {self.observer.observation.name})")
+                         f"(observation {self.observer.observation.name}){self.slot.runs_in()}")
         for listener in self.listeners:
             listener(source, None)
         return loaded.description

@@ -65,13 +65,8 @@ class AgentMemory:
         """Agent ``index``'s observation [C,H,W] (``observation``: a parsed variant) and move mask
         [A] with the team at ``positions`` int64 [1,N,2] on ``walls`` bool [1,G,G]."""
         from medc_training.envs.grid import move_mask, pad_blocked
-        from medc_training.envs.tl_observation import observe
 
-        m = self.memory
-        estimate, posterior = m.source_maps(observation)
-        information = m.information_map(positions, walls) if observation.information else None
-        obs = observe(observation, positions, m.reading_map, m.visit_map, walls.float(), estimate,
-                      posterior_map=posterior, information_map=information)
+        obs = self.memory.observe_agent(positions, walls, index, observation)
         team_mask = move_mask(positions, pad_blocked(walls), self._deltas)
         self.positions, self.walls, self.team_mask = positions, walls, team_mask
-        return obs[0, index], team_mask[0, index]
+        return obs[0], team_mask[0, index]
