@@ -100,3 +100,20 @@ def test_deciding_leaves_the_threads_subnormals_as_they_were():
     for runtime in ("onnxruntime", "torch"):
         rt.decider(bundle, runtime).act(obs)
         assert float(tiny * tiny) != 0.0, runtime
+
+
+def test_agreement_counts_every_decision_of_every_episode_played_to_its_end(capsys):
+    from medc_training.radbench.cost import main, runtime_agreement
+    from medc_training.radbench.play import play_set
+
+    (s,) = load_sets(20, 3, obstructions=[5], snrs=["low"])
+    s = s.head(5)
+    found = runtime_agreement([s], WINDOW9, batch=3)  # two batches: 3 + 2 episodes
+    lengths = [r.length for r in play_set(s, WINDOW9)]
+    assert found["decisions"] == 3 * sum(lengths)  # each agent's move at each step of each episode
+    assert found["runtime"] == "onnxruntime" and found["differ"] == 0 and found["max_logit_gap"] <= rt.ATOL
+    with pytest.raises(ValueError, match="for a bundle"):
+        runtime_agreement([s], "greedy")
+    assert main(["--agreement", str(WINDOW9), "--episodes", "1"]) == 0
+    assert "greedy moves differ" in capsys.readouterr().out
+    assert main(["--agreement", "greedy", "--episodes", "1"]) == 2

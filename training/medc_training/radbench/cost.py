@@ -23,9 +23,13 @@ decisions are at their dearest.
 
 from __future__ import annotations
 
+import argparse
 import math
 import statistics
+import sys
 import time
+from collections.abc import Sequence
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -35,7 +39,7 @@ from ..stats import percentile
 from .play import BenchCore, core_policy, resolve_policy
 from .sets import BenchSet
 
-__all__ = ["decision_cost"]
+__all__ = ["decision_cost", "runtime_agreement"]
 
 
 def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto"):
@@ -140,3 +144,78 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
             if bundle is not None:
                 out["macs_per_decision"] = _macs(bundle, flat_obs)
     return out
+
+
+def runtime_agreement(sets: Sequence[BenchSet], policy: Any, *, batch: int = 200,
+                      runtime: str = "onnxruntime") -> dict[str, Any]:
+    """How often an agent node running ``policy``'s network in ``runtime`` would choose another
+    greedy move than PyTorch on the episodes of ``sets``, played to their end with PyTorch's moves
+    (each decision of each agent while its episode runs counted once): ``decisions``, ``differ``
+    (how many chose otherwise), ``share`` and the largest logit difference seen (``max_logit_gap``)."""
+    from medc_training.bundle.runtime import decider
+
+    bundle, observation = resolve_policy(policy)
+    if bundle is None:
+        raise ValueError("runtime agreement is measured for a bundle, not a controller")
+    other, reference = decider(bundle, runtime), decider(bundle, "torch")
+    decisions = differ = 0
+    gap = 0.0
+    for bench_set in sets:
+        for start in range(0, len(bench_set.episodes), batch):
+            rows = list(range(start, min(start + batch, len(bench_set.episodes))))
+            core = BenchCore(bench_set, rows, observation=observation)
+            obs, mask = core.reset()
+            live = torch.ones(len(rows), dtype=torch.bool)
+            while bool(live.any()):
+                flat_obs, flat_mask = obs.flatten(0, 1), mask.flatten(0, 1)
+                want_logits, _ = reference.heads(flat_obs)
+                got_logits, _ = other.heads(flat_obs)
+                want = reference.act(flat_obs, flat_mask).view(mask.shape[:2])
+                got = other.act(flat_obs, flat_mask).view(mask.shape[:2])
+                counted = live.unsqueeze(1).expand_as(want)
+                decisions += int(counted.sum())
+                differ += int(((want != got) & counted).sum())
+                gap = max(gap, float((want_logits - got_logits).abs().max()))
+                step = core.step(want)
+                live &= ~step.done
+                obs, mask = step.obs, step.mask
+    return {"runtime": other.runtime, "decisions": decisions, "differ": differ,
+            "share": differ / max(decisions, 1), "max_logit_gap": gap}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m medc_training.radbench.cost --agreement BUNDLE``: :func:`runtime_agreement` on a
+    set file (the frozen one of ``--grid``/``--agents``, or ``--sets-file``)."""
+    from .sets import SetFileError, load_sets
+
+    p = argparse.ArgumentParser(prog="python -m medc_training.radbench.cost",
+                                description="How often an agent node's runtime chooses another greedy "
+                                            "move than PyTorch on the benchmark's episodes")
+    p.add_argument("--agreement", required=True, metavar="BUNDLE", help="the policy bundle")
+    p.add_argument("--runtime", default="onnxruntime", choices=("onnxruntime", "torch"),
+                   help="the runtime compared with PyTorch (default onnxruntime)")
+    p.add_argument("--grid", type=int, choices=(20, 30), default=20)
+    p.add_argument("--agents", type=int, choices=(1, 3), default=3)
+    p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
+    p.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        if args.episodes is not None and args.episodes < 1:
+            raise ValueError("--episodes must be positive")
+        sets = (load_sets(path=args.sets_file) if args.sets_file is not None
+                else load_sets(args.grid, args.agents))
+        if args.episodes is not None:
+            sets = [s.head(args.episodes) for s in sets]
+        found = runtime_agreement(sets, args.agreement, runtime=args.runtime)
+    except (SetFileError, ValueError, OSError) as exc:
+        print(f"medc_training.radbench.cost: {exc}", file=sys.stderr)
+        return 2
+    print(f"{found['runtime']} against PyTorch on {sum(len(s.episodes) for s in sets)} episodes: "
+          f"{found['differ']} of {found['decisions']:,} greedy moves differ ({100 * found['share']:.4f}%), "
+          f"largest logit difference {found['max_logit_gap']:.2g}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
