@@ -852,14 +852,12 @@ class TeamMemory:
 
     def observe_agent(self, positions: torch.Tensor, walls: torch.Tensor, index: int,
                       spec: ObservationSpec | None = None) -> torch.Tensor:
-        """Agent ``index``'s observation float32 [B,C,H,W] of view ``spec`` (default: this memory's),
-        equal to that agent's row of :meth:`observe` (:func:`observe_agent`): what an agent node
-        builds to decide its own move."""
+        """Agent ``index``'s row of :meth:`observe` of view ``spec`` (default: this memory's), alone."""
         spec = self.spec if spec is None else parse_observation(spec)
         estimate, posterior = self.source_maps(spec)
         information = self.information_map(positions, walls) if spec.information else None
         return observe_agent(spec, positions, index, self.reading_map, self.visit_map, walls, estimate,
-                             posterior_map=posterior, information_map=information)
+                             posterior, information)
 
 
 def observe(
