@@ -117,3 +117,21 @@ def test_agreement_counts_every_decision_of_every_episode_played_to_its_end(caps
     assert main(["--agreement", str(WINDOW9), "--episodes", "1"]) == 0
     assert "greedy moves differ" in capsys.readouterr().out
     assert main(["--agreement", "greedy", "--episodes", "1"]) == 2
+
+
+def test_a_process_running_a_bundle_in_onnxruntime_leaves_no_temporary_file(tmp_path):
+    """onnxruntime's telemetry library writes a session file into the temporary folder when imported;
+    the decider imports it so that nothing is left there."""
+    import os
+    import subprocess
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    code = ("import torch; from medc_training.bundle import load_untrusted; "
+            "from medc_training.bundle.runtime import decider; "
+            f"b = load_untrusted({str(MLP)!r}); d = decider(b); d.act(torch.zeros(1, *b.obs_shape)); "
+            "print(d.runtime)")
+    done = subprocess.run([sys.executable, "-c", code], env=os.environ | {"TMPDIR": str(scratch)},
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == "onnxruntime", done.stderr[-2000:]
+    assert sorted(p.name for p in scratch.iterdir()) == []

@@ -145,6 +145,9 @@ class _Slot:
         self.current = SimpleNamespace(description=f"bundle {source}")
         return self.current
 
+    def runs_in(self) -> str:
+        return ""  # no network: the log line names no runtime
+
 
 def _swaps(fetched: list[str], ready: bool = True):
     from medc_agents.policy_slot import PolicyRejected

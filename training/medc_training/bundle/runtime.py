@@ -24,6 +24,9 @@ check, else PyTorch, and says which and why (:attr:`Decider.note`).
 from __future__ import annotations
 
 import io
+import os
+import sys
+import tempfile
 import warnings
 from typing import Any
 
@@ -117,11 +120,35 @@ class Decider:
         return logits.argmax(dim=-1)
 
 
+def _import_onnxruntime() -> Any:
+    """``import onnxruntime``, leaving no file behind: its telemetry library writes a session file
+    (``.ses``) into the temporary folder when the module is first imported, so the import runs with
+    ``TMPDIR`` pointed at a private folder removed right after (the process's own temporary folder,
+    which ``tempfile`` has already read, is unchanged); its telemetry events are switched off."""
+    if "onnxruntime" in sys.modules:
+        module = sys.modules["onnxruntime"]
+        if module is None:
+            raise ImportError("onnxruntime is blocked in this process")
+        return module
+    with tempfile.TemporaryDirectory(prefix="medc-onnxruntime-") as private:
+        before = os.environ.get("TMPDIR")
+        os.environ["TMPDIR"] = private
+        try:
+            import onnxruntime
+        finally:
+            if before is None:
+                os.environ.pop("TMPDIR", None)
+            else:
+                os.environ["TMPDIR"] = before
+    onnxruntime.disable_telemetry_events()
+    return onnxruntime
+
+
 def _session(bundle: PolicyBundle) -> Any:
     """An onnxruntime session of ``bundle``'s network that agrees with PyTorch on the probe
     observations; RuntimeUnavailable saying why not."""
     try:
-        import onnxruntime as ort
+        ort = _import_onnxruntime()
     except ImportError as exc:
         raise RuntimeUnavailable("onnxruntime is not installed (pip install -r requirements.txt); "
                                  "or run the policy in PyTorch (runtime 'torch')") from exc

@@ -29,7 +29,6 @@ import statistics
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -186,7 +185,7 @@ def runtime_agreement(sets: Sequence[BenchSet], policy: Any, *, batch: int = 200
 def main(argv: list[str] | None = None) -> int:
     """``python -m medc_training.radbench.cost --agreement BUNDLE``: :func:`runtime_agreement` on a
     set file (the frozen one of ``--grid``/``--agents``, or ``--sets-file``)."""
-    from .sets import SetFileError, load_sets
+    from .sets import SetFileError, add_set_arguments, sets_from_args
 
     p = argparse.ArgumentParser(prog="python -m medc_training.radbench.cost",
                                 description="How often an agent node's runtime chooses another greedy "
@@ -194,19 +193,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agreement", required=True, metavar="BUNDLE", help="the policy bundle")
     p.add_argument("--runtime", default="onnxruntime", choices=("onnxruntime", "torch"),
                    help="the runtime compared with PyTorch (default onnxruntime)")
-    p.add_argument("--grid", type=int, choices=(20, 30), default=20)
-    p.add_argument("--agents", type=int, choices=(1, 3), default=3)
-    p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
-    p.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
+    add_set_arguments(p)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        if args.episodes is not None and args.episodes < 1:
-            raise ValueError("--episodes must be positive")
-        sets = (load_sets(path=args.sets_file) if args.sets_file is not None
-                else load_sets(args.grid, args.agents))
-        if args.episodes is not None:
-            sets = [s.head(args.episodes) for s in sets]
+        sets = sets_from_args(args)
         found = runtime_agreement(sets, args.agreement, runtime=args.runtime)
     except (SetFileError, ValueError, OSError) as exc:
         print(f"medc_training.radbench.cost: {exc}", file=sys.stderr)

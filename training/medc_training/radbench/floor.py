@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -62,21 +61,12 @@ def floor_table(sets: list) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m medc_training.radbench.floor",
                                 description=__doc__.split("\n\n")[0])
-    p.add_argument("--grid", type=int, choices=(20, 30), default=20, help="the frozen file's area")
-    p.add_argument("--agents", type=int, choices=(1, 3), default=3, help="the frozen file's team size")
-    p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
-    p.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
-    args = p.parse_args(argv)
-    from .sets import SetFileError, load_sets
+    from .sets import SetFileError, add_set_arguments, sets_from_args
 
+    add_set_arguments(p)
+    args = p.parse_args(argv)
     try:
-        if args.episodes is not None and args.episodes < 1:
-            raise ValueError("--episodes must be positive")
-        sets = (load_sets(path=args.sets_file) if args.sets_file is not None
-                else load_sets(args.grid, args.agents))
-        if args.episodes is not None:
-            sets = [s.head(args.episodes) for s in sets]
-        table = floor_table(sets)
+        table = floor_table(sets_from_args(args))
     except (OSError, SetFileError, ValueError) as exc:
         print(f"floor: {exc}", file=sys.stderr)
         return 2

@@ -140,17 +140,11 @@ def _verify(bench_set: BenchSet, results: list[EpisodeResult]) -> None:
 def main(argv: list[str] | None = None) -> int:
     from medc_training.outfiles import AtomicOutput, check_output
 
-    from .sets import SetFileError, load_sets
+    from .sets import SetFileError, add_set_arguments, sets_from_args
 
     p = argparse.ArgumentParser(prog="python -m medc_training.radbench.oracle",
                                 description=__doc__.split("\n\n")[0])
-    p.add_argument("--grid", type=int, choices=(20, 30), default=20,
-                   help="the frozen file's area (default 20)")
-    p.add_argument("--agents", type=int, choices=(1, 3), default=3,
-                   help="the frozen file's team (default 3)")
-    p.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
-    p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
-    p.add_argument("--sha256", help="with --sets-file: the SHA-256 the file must have")
+    add_set_arguments(p, sha256=True)
     p.add_argument("--out", type=Path, help="write every episode here (medc-radbench episode lines)")
     p.add_argument("--overwrite", action="store_true", help="replace what is already at --out")
     p.add_argument("--verify", action="store_true",
@@ -158,14 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        if args.episodes is not None and args.episodes < 1:
-            raise ValueError("--episodes must be positive")
-        if args.sets_file is not None:
-            sets = load_sets(path=args.sets_file, sha256=args.sha256)
-        else:
-            sets = load_sets(args.grid, args.agents)
-        if args.episodes is not None:
-            sets = [s.head(args.episodes) for s in sets]
+        sets = sets_from_args(args)
         played = {s.id: oracle_results(s) for s in sets}
         if args.verify:
             for s in sets:

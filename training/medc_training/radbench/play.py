@@ -274,7 +274,11 @@ def resolve_policy(policy: Any) -> tuple[Any, str]:
     """(the loaded bundle or None, the observation the core must make) for ``policy`` as
     :func:`play_set` takes it. Raises ValueError for an unknown name or an unusable bundle."""
     bundle = _bundle(policy)
-    observation = CONTROLLER_OBSERVATION if bundle is None else (bundle.observation or "maps")
+    if bundle is not None:
+        observation = bundle.observation or "maps"
+    else:  # a factory may name the observation its policy reads (an attribute ``observation``)
+        observation = getattr(policy, "observation", None) if callable(policy) else None
+        observation = observation or CONTROLLER_OBSERVATION
     if bundle is None and not callable(policy) and policy not in policy_names():
         raise ValueError(f"unknown policy {str(policy)[:80]!r}: give one of {', '.join(policy_names())}, "
                          "a policy bundle or a factory")
@@ -318,7 +322,8 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     ``policy``: ``random`` (uniformly random valid moves), a controller's name
     (:data:`medc_training.controllers.CONTROLLERS`), a PolicyBundle or a bundle's path (played greedily
     on the observation it was trained on), or a callable ``factory(core) -> Policy`` (a
-    :data:`medc_training.evaluate.Policy` for that core). ``seed`` seeds the random policy's draws;
+    :data:`medc_training.evaluate.Policy` for that core; the core makes the observation named by the
+    factory's ``observation`` attribute where it has one). ``seed`` seeds the random policy's draws;
     ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream);
     ``departure`` how the world departs from the team's model (None: nominal); ``temperature`` > 0:
     a bundle samples its move from softmax(logits / temperature) with a stream seeded by ``seed``

@@ -49,6 +49,7 @@ __all__ = [
     "SETS_DIR",
     "BenchSet",
     "SetFileError",
+    "add_set_arguments",
     "file_name",
     "file_sha256",
     "generate_file",
@@ -56,6 +57,7 @@ __all__ = [
     "load_sets",
     "set_digest",
     "set_id",
+    "sets_from_args",
     "write_file",
 ]
 
@@ -287,3 +289,33 @@ def load_sets(grid: int = 20, agents: int = 1, obstructions: Iterable[int] | Non
     if not picked:
         raise SetFileError("no set matches those obstruction counts and SNR bins")
     return picked
+
+
+def add_set_arguments(parser, *, obstructions: bool = False, sha256: bool = False) -> None:
+    """The command-line options that choose the sets a diagnostic plays (:func:`sets_from_args`):
+    the frozen file of ``--grid`` and ``--agents`` or ``--sets-file`` (with ``sha256``:
+    ``--sha256``), with ``obstructions``: ``--obstructions``, and the first ``--episodes``."""
+    parser.add_argument("--grid", type=int, choices=(20, 30), default=20,
+                        help="the frozen file's area (default 20)")
+    parser.add_argument("--agents", type=int, choices=(1, 3), default=3,
+                        help="the frozen file's team (default 3)")
+    parser.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
+    if sha256:
+        parser.add_argument("--sha256", help="with --sets-file: the SHA-256 the file must have")
+    if obstructions:
+        parser.add_argument("--obstructions", type=int, nargs="+", help="only the sets of these counts")
+    parser.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
+
+
+def sets_from_args(args) -> list[BenchSet]:
+    """The sets :func:`add_set_arguments`'s options name, each cut to its first ``--episodes`` (named
+    as ``medc-radbench --episodes`` names them). ValueError for a non-positive ``--episodes``;
+    SetFileError as :func:`load_sets`."""
+    if args.episodes is not None and args.episodes < 1:
+        raise ValueError("--episodes must be positive")
+    counts, digest = getattr(args, "obstructions", None), getattr(args, "sha256", None)
+    if args.sets_file is not None:
+        sets = load_sets(path=args.sets_file, sha256=digest, obstructions=counts)
+    else:
+        sets = load_sets(args.grid, args.agents, obstructions=counts)
+    return sets if args.episodes is None else [s.head(args.episodes) for s in sets]

@@ -1,0 +1,79 @@
+"""medc_training.radbench.endgame: the team's own moves until the posterior's mode holds tau of the
+mass, shortest-path moves towards it after; its episode lines pair with the team's. Played on a
+set file generated here (not the frozen episodes)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from medc_training.bundle import load_bundle
+from medc_training.radbench.endgame import Endgame, main
+from medc_training.radbench.oracle import move_costs, success_field
+from medc_training.radbench.pairing import load_episodes, pair_table
+from medc_training.radbench.play import BenchCore, play_set
+from medc_training.radbench.sets import generate_file, load_sets, write_file
+
+ROOT = Path(__file__).resolve().parents[2]
+TEAM = ROOT / "docs/reproduction/learned-team/main-posterior-cnn9-ft/medc-s0/policy.safetensors"
+
+
+@pytest.fixture(scope="module")
+def sets_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("endgame") / "g20-a3.json"
+    write_file(generate_file(20, 3, episodes=6, seed=4051, obstructions=[6], snrs=["low", "high"]), path)
+    return path
+
+
+def test_tau_one_is_the_team_alone_and_a_lower_tau_plans_the_end(sets_file, one_thread):
+    bundle = load_bundle(TEAM)
+    for s in load_sets(path=sets_file):
+        never = Endgame(bundle, 1.0)
+        assert play_set(s, never) == play_set(s, bundle) and never.planned == 0 and never.decisions > 0
+        planner = Endgame(bundle, 0.9)
+        assert all(r.success for r in play_set(s, planner))
+        assert 0 < planner.planned < planner.decisions
+    for tau in (0.0, 1.5, -1.0):
+        with pytest.raises(ValueError, match="tau must be in"):
+            Endgame(bundle, tau)
+
+
+def test_the_endgame_walks_each_agent_a_shortest_path_to_the_mode(sets_file, monkeypatch, one_thread):
+    """Where the mode holds tau, every agent's best allowed move is one of its fewest-move moves
+    towards the mode's success region; elsewhere the scores are the network's."""
+    bundle = load_bundle(TEAM)
+    s = load_sets(path=sets_file)[0]
+    core = BenchCore(s, [0, 1], observation=bundle.observation)
+    obs, mask = core.reset()
+    g, n = core.grid, core.num_agents
+    free = (~core.walls[0]).flatten().nonzero().squeeze(1)
+    mode = int(free[len(free) // 2])
+    p = torch.full((2, g * g), 1.0 / (g * g))
+    p[0] = 0.0
+    p[0, mode] = 1.0  # episode 0 certain of a cell, episode 1 knows nothing
+    monkeypatch.setattr(core.memory, "posterior", lambda: p)
+    scores = Endgame(bundle, 0.9)(core)(obs.flatten(0, 1), mask.flatten(0, 1)).view(2, n, -1)
+    target = torch.tensor([[mode // g, mode % g]])
+    cost = move_costs(core.walls[:1], success_field(core.walls[:1], target, core.sensing), core.positions[:1])
+    for i in range(n):
+        best = int(scores[0, i].masked_fill(~mask[0, i], -math.inf).argmax())
+        assert cost[0, i, best] == cost[0, i].min() < math.inf
+    with torch.no_grad():
+        own, _ = bundle.net(obs.flatten(0, 1))
+    assert torch.equal(scores[1], own.view(2, n, -1)[1])
+
+
+def test_its_lines_pair_with_the_teams_lines(sets_file, tmp_path, capsys, one_thread):
+    from medc_training.cli.radbench import main as radbench
+
+    out, team = tmp_path / "endgame.jsonl", tmp_path / "team.jsonl"
+    argv = [str(TEAM), "--tau", "0.9", "--sets-file", str(sets_file), "--obstructions", "6",
+            "--episodes", "3", "--out", str(out)]
+    assert main(argv) == 0 and "medc-s0+endgame0.9: 6 episodes" in capsys.readouterr().out
+    assert main(argv) == 2 and "overwrite" in capsys.readouterr().err  # never replaced unasked
+    assert radbench([str(TEAM), "--sets-file", str(sets_file), "--grid", "20", "--agents", "3",
+                     "--obstructions", "6", "--episodes", "3", "--quiet", "--out", str(team)]) == 0
+    table = pair_table(load_episodes([team, out]), "medc-s0")
+    assert table["episodes"] == 6 and "paired" in table["groups"]["obs5-7"]["medc-s0+endgame0.9"]

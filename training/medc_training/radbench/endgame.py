@@ -1,0 +1,113 @@
+"""A learned team with a classical endgame: a probe of where the team's moves go.
+
+Until the team's source posterior holds at least ``tau`` of its mass on one cell, the bundle
+decides every move; from then on every agent that can reach that cell's success region walks a
+shortest path towards it through free cells, by the world's own moves (the oracle's
+:func:`~medc_training.radbench.oracle.success_field` and :func:`~medc_training.radbench.oracle.
+move_costs`, with the posterior's mode in place of the source), and the bundle decides again as soon
+as the mode holds less (a wrong mode is left when the readings there say so). ``tau`` = 1 never
+plans: the team alone. The team's memory is the one its observations are built from, so nothing
+the endgame reads is hidden from the team.
+
+    python -m medc_training.radbench.endgame BUNDLE --tau 0.9 --sets-file F --out E.episodes.jsonl
+
+writes ``medc-radbench`` episode lines (policy ``<bundle's folder>+endgame<tau>``), which
+``python -m medc_training.radbench.pairing`` pairs with the bundle's own lines on the same episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .oracle import move_costs, success_field
+
+__all__ = ["Endgame"]
+
+
+class Endgame:
+    """A play factory (:func:`~medc_training.radbench.play.play_set` takes it as a policy): the
+    bundle's moves, and shortest-path moves towards the posterior's mode once it holds ``tau``.
+    ``observation``: the bundle's, which the core makes; ``planned``: agent decisions the endgame
+    took, of ``decisions`` (every agent's, while its episode runs or not)."""
+
+    def __init__(self, bundle: Any, tau: float) -> None:
+        if not 0.0 < tau <= 1.0:
+            raise ValueError(f"tau must be in (0, 1], got {tau!r}")
+        self.bundle, self.tau = bundle, float(tau)
+        self.observation = bundle.observation or "maps"
+        self.planned = self.decisions = 0
+
+    def __call__(self, core):
+        from medc_training.evaluate import net_policy
+
+        net = net_policy(self.bundle.net, self.bundle.device)
+        n = core.num_agents
+
+        def scores(obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                logits = net(obs, mask)
+            self.decisions += mask.shape[0]
+            if self.tau >= 1.0:
+                return logits
+            top, cell = core.memory.posterior().max(1)  # [B]
+            rows = (top >= self.tau).nonzero().squeeze(1)
+            if rows.numel() == 0:
+                return logits
+            g = core.grid
+            mode = torch.stack((cell[rows] // g, cell[rows] % g), 1)
+            cost = move_costs(core.walls[rows], success_field(core.walls[rows], mode, core.sensing),
+                              core.positions[rows])  # [R, N, 8]; inf: not allowed, or no way there
+            reach = cost.isfinite().any(-1, keepdim=True)  # [R, N, 1]
+            out = logits.view(-1, n, logits.shape[-1]).clone()
+            out[rows] = torch.where(reach, torch.where(cost.isfinite(), -cost, -1e9), out[rows])
+            self.planned += int(reach.sum())
+            return out.view(-1, logits.shape[-1])
+
+        return scores
+
+
+def main(argv: list[str] | None = None) -> int:
+    from medc_training.outfiles import AtomicOutput, check_output
+
+    from .pairing import episode_record
+    from .play import _bundle, play_set
+    from .sets import SetFileError, add_set_arguments, sets_from_args
+
+    p = argparse.ArgumentParser(prog="python -m medc_training.radbench.endgame",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("bundle", help="the team's policy bundle")
+    p.add_argument("--tau", type=float, required=True,
+                   help="the posterior mass on its mode that starts the endgame (1: never)")
+    add_set_arguments(p, obstructions=True)
+    p.add_argument("--out", type=Path, required=True, help="write every played episode here (JSON lines)")
+    p.add_argument("--overwrite", action="store_true", help="replace what is already at --out")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        sets = sets_from_args(args)
+        bundle = _bundle(args.bundle)
+        policy = Endgame(bundle, args.tau)
+        name = f"{Path(args.bundle).parent.name}+endgame{args.tau:g}"
+        target = check_output(args.out, overwrite=args.overwrite)
+        lengths = []
+        with AtomicOutput(target, overwrite=args.overwrite) as out:
+            for s in sets:
+                for r in play_set(s, policy):
+                    out.file.write((json.dumps(episode_record(name, s, r)) + "\n").encode())
+                    lengths.append(r.length)
+    except (SetFileError, ValueError, OSError) as exc:
+        print(f"endgame: {exc}", file=sys.stderr)
+        return 2
+    print(f"{name}: {len(lengths)} episodes, mean {sum(lengths) / len(lengths):.3f} moves; the endgame took "
+          f"{policy.planned:,} of {policy.decisions:,} decisions")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
