@@ -111,6 +111,17 @@ def bundle_bytes(net: ActorCritic, manifest: Mapping[str, Any]) -> bytes:
     return data
 
 
+def allowed_logits(logits: torch.Tensor, mask: torch.Tensor | np.ndarray | None) -> torch.Tensor:
+    """``logits`` [M,A] with the moves ``mask`` (bool [M,A], True = allowed; None: all) disallows set
+    low (:func:`medc_training.nets.masked_logits`). ValueError for a mask of another shape."""
+    if mask is None:
+        return logits
+    mask_t = torch.as_tensor(mask, dtype=torch.bool, device=logits.device)
+    if mask_t.shape != logits.shape:
+        raise ValueError(f"mask must have shape {list(logits.shape)}, got {list(mask_t.shape)}")
+    return masked_logits(logits, mask_t)
+
+
 @dataclass(frozen=True)
 class PolicyBundle:
     """A loaded, verified bundle: its manifest and the rebuilt network (in eval mode)."""
@@ -156,12 +167,7 @@ class PolicyBundle:
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=device)
         with torch.no_grad():
             logits, _ = self.net(obs_t)
-        if mask is not None:
-            mask_t = torch.as_tensor(mask, dtype=torch.bool, device=device)
-            if mask_t.shape != logits.shape:
-                raise ValueError(f"mask must have shape {list(logits.shape)}, got {list(mask_t.shape)}")
-            logits = masked_logits(logits, mask_t)
-        return logits
+        return allowed_logits(logits, mask)
 
     def action_probs(self, obs: torch.Tensor | np.ndarray, mask: torch.Tensor | np.ndarray | None = None
                      ) -> torch.Tensor:

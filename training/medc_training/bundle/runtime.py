@@ -34,8 +34,7 @@ import numpy as np
 import torch
 
 from medc_training.bundle.dryrun import dry_run_observations, flush_denormals
-from medc_training.bundle.policy import PolicyBundle
-from medc_training.nets import masked_logits
+from medc_training.bundle.policy import PolicyBundle, allowed_logits
 
 __all__ = ["ATOL", "ONNX_OPSET", "RUNTIMES", "Decider", "Heads", "RuntimeUnavailable", "decider",
            "onnx_bytes"]
@@ -111,13 +110,7 @@ class Decider:
             mask: torch.Tensor | np.ndarray | None = None) -> torch.Tensor:
         """Actions int64 [M]: the most probable allowed move (``mask`` bool [M,A], True = allowed),
         as :meth:`PolicyBundle.act` with ``greedy=True`` chooses."""
-        logits, _ = self.heads(obs)
-        if mask is not None:
-            mask_t = torch.as_tensor(mask, dtype=torch.bool, device=logits.device)
-            if mask_t.shape != logits.shape:
-                raise ValueError(f"mask must have shape {list(logits.shape)}, got {list(mask_t.shape)}")
-            logits = masked_logits(logits, mask_t)
-        return logits.argmax(dim=-1)
+        return allowed_logits(self.heads(obs)[0], mask).argmax(dim=-1)
 
 
 def _import_onnxruntime() -> Any:

@@ -259,9 +259,8 @@ def _cost(args: argparse.Namespace) -> int:
     for policy in policies:
         c = decision_cost(bench_set, policy, batch=args.batch, runtime=args.runtime)
         out[str(policy)] = c
-        node = f"node {c['node_ms_p50']}/{c['node_ms_p99']} ms, " if "node_ms_p50" in c else ""
-        if "node_runtime" in c:
-            node = node.replace("node ", f"node ({c['node_runtime']}) ", 1)
+        label = f"node ({c['node_runtime']})" if "node_runtime" in c else "node"
+        node = f"{label} {c['node_ms_p50']}/{c['node_ms_p99']} ms, " if "node_ms_p50" in c else ""
         terms = c["likelihood_terms_per_decision"]
         work = (f"{terms:,} likelihood terms" if terms
                 else f"{c['macs_per_decision']:,.0f} MACs" if "macs_per_decision" in c else "")

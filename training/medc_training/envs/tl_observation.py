@@ -849,7 +849,6 @@ class TeamMemory:
         return observe(self.spec, positions[rows], self.reading_map[rows], self.visit_map[rows], walls[rows],
                        estimate, out=out, posterior_map=posterior, information_map=information)
 
-
     def observe_agent(self, positions: torch.Tensor, walls: torch.Tensor, index: int,
                       spec: ObservationSpec | None = None) -> torch.Tensor:
         """Agent ``index``'s row of :meth:`observe` of view ``spec`` (default: this memory's), alone."""

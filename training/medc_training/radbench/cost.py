@@ -151,6 +151,7 @@ def runtime_agreement(sets: Sequence[BenchSet], policy: Any, *, batch: int = 200
     greedy move than PyTorch on the episodes of ``sets``, played to their end with PyTorch's moves
     (each decision of each agent while its episode runs counted once): ``decisions``, ``differ``
     (how many chose otherwise), ``share`` and the largest logit difference seen (``max_logit_gap``)."""
+    from medc_training.bundle.policy import allowed_logits
     from medc_training.bundle.runtime import decider
 
     bundle, observation = resolve_policy(policy)
@@ -167,10 +168,9 @@ def runtime_agreement(sets: Sequence[BenchSet], policy: Any, *, batch: int = 200
             live = torch.ones(len(rows), dtype=torch.bool)
             while bool(live.any()):
                 flat_obs, flat_mask = obs.flatten(0, 1), mask.flatten(0, 1)
-                want_logits, _ = reference.heads(flat_obs)
-                got_logits, _ = other.heads(flat_obs)
-                want = reference.act(flat_obs, flat_mask).view(mask.shape[:2])
-                got = other.act(flat_obs, flat_mask).view(mask.shape[:2])
+                want_logits, got_logits = reference.heads(flat_obs)[0], other.heads(flat_obs)[0]
+                want = allowed_logits(want_logits, flat_mask).argmax(-1).view(mask.shape[:2])
+                got = allowed_logits(got_logits, flat_mask).argmax(-1).view(mask.shape[:2])
                 counted = live.unsqueeze(1).expand_as(want)
                 decisions += int(counted.sum())
                 differ += int(((want != got) & counted).sum())

@@ -668,8 +668,8 @@ def subscribe_team(node: Node, namespace: str | None, num_agents: int, agents: l
 
 def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
     """Hand ``msg`` to every agent; those ready to decide and running the same bundle object in the
-    same runtime decide in one batched forward pass (the same greedy choice as one by one); an agent running a
-    controller decides on its own."""
+    same runtime decide in one batched forward pass (the same greedy choice as one by one); an agent
+    running a controller decides on its own."""
     groups: dict[int, list] = {}
     for agent in agents:
         prepared = agent.on_status(msg, defer=True)
