@@ -13,13 +13,69 @@ import torch
 from medc_training.envs.grid import bfs_distance
 from medc_training.envs.tl_sensing import SensingModel, geometric_factor, parse_sensing, wall_rectangles
 
-__all__ = ["TEAM_SENSING", "episode_tensors", "world_rates"]
+__all__ = ["PRIOR_OPTIONS", "TEAM_SENSING", "background_prior", "episode_tensors", "prior_of", "team_sensing",
+           "world_rates"]
 
 #: The team's sensor model on the benchmark: the realistic preset (its name, so that bundles trained
 #: under it play) with the benchmark's strength range and the 6 x 8 strength x background levels
 #: every committed benchmark result used (the preset itself weighs 12 x 16: docs/radbench.md).
 TEAM_SENSING: SensingModel = parse_sensing({"name": "realistic", "strength": [100.0, 1000.0],
                                             "levels": [6, 8]})
+#: The options that widen (or narrow) the team estimator's background prior, all given or none: the
+#: range (counts/s) and its levels. A training world records them (hence a bundle's manifest), and a
+#: team whose bundles record them plays under that prior (``medc-radbench --prior-background``).
+PRIOR_OPTIONS: tuple[str, str, str] = ("prior_background_low", "prior_background_high",
+                                       "prior_background_levels")
+
+
+def background_prior(given: Any) -> tuple[float, float, int] | None:
+    """The checked background prior (low, high, levels) that ``given`` names: a mapping holding the
+    keys of :data:`PRIOR_OPTIONS` (all or none; none: None), a sequence (low, high, levels) or a
+    string ``"LOW,HIGH,LEVELS"``. Raises ValueError saying what is accepted."""
+    if given is None:
+        return None
+    if isinstance(given, dict):
+        present = [k for k in PRIOR_OPTIONS if given.get(k) is not None]
+        if not present:
+            return None
+        if len(present) != len(PRIOR_OPTIONS):
+            raise ValueError(f"give {', '.join(PRIOR_OPTIONS)} together (the estimator's background prior)")
+        values: Sequence[Any] = [given[k] for k in PRIOR_OPTIONS]
+    elif isinstance(given, str):
+        values = [v.strip() for v in given.split(",")]
+    else:
+        values = list(given)
+    if len(values) != 3:
+        raise ValueError("a background prior is LOW,HIGH,LEVELS (counts/s, counts/s, 2..64), got "
+                         f"{str(given)[:60]!r}")
+    try:
+        low, high = float(values[0]), float(values[1])
+        levels_f = float(values[2])
+    except (TypeError, ValueError):
+        raise ValueError(f"a background prior is LOW,HIGH,LEVELS numbers, got {str(given)[:60]!r}") from None
+    if isinstance(values[2], bool) or not levels_f.is_integer() or not 2 <= levels_f <= 64:
+        raise ValueError(f"the background prior's levels must be an integer in 2..64, got {values[2]!r}")
+    if not (0.0 < low < high <= 10_000.0):
+        raise ValueError(f"the background prior must have 0 < low < high <= 10000 counts/s, got {low:g}, {high:g}")
+    return low, high, int(levels_f)
+
+
+def team_sensing(prior: tuple[float, float, int] | None = None) -> SensingModel:
+    """The team's sensor model on the benchmark: :data:`TEAM_SENSING`, its background prior replaced
+    by ``prior`` (low, high, levels; None: unchanged). The readings channel's scale follows the
+    model's highest rate."""
+    if prior is None:
+        return TEAM_SENSING
+    low, high, levels = background_prior(prior)
+    return parse_sensing({**TEAM_SENSING.to_dict(), "background": [low, high],
+                          "levels": [TEAM_SENSING.levels[0], levels]})
+
+
+def prior_of(sensing: SensingModel) -> tuple[float, float, int] | None:
+    """The background prior by which ``sensing`` departs from :data:`TEAM_SENSING` (None: none)."""
+    if sensing.background == TEAM_SENSING.background and sensing.levels == TEAM_SENSING.levels:
+        return None
+    return sensing.background[0], sensing.background[1], sensing.levels[1]
 
 
 def episode_tensors(episodes: Sequence[Any], grid: int, slots: int, device: torch.device | str

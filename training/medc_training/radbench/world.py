@@ -42,7 +42,7 @@ from medc_training.envs.tl_observation import DEFAULT_OBSERVATION, TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, parse_sensing
 
 from .departure import jittered_positions
-from .physics import TEAM_SENSING, episode_tensors, world_rates
+from .physics import PRIOR_OPTIONS, TEAM_SENSING, background_prior, episode_tensors, team_sensing, world_rates
 from .scenario import GRIDS, MAX_STEPS, OBSTRUCTION_COUNTS, generate_set
 
 __all__ = ["OFF_NOMINAL_OPTIONS", "RANDOMISATION_OPTIONS", "SNR_MIX", "TRAIN_SEED_BASE", "WORLD",
@@ -106,7 +106,10 @@ class BenchWorld(TargetLocalization):
     ``sensing``: the team's model (``"realistic"`` or None: :data:`TEAM_SENSING`; it must have the
     world's cell size, the exact line of sight and obstructions that block it); ``pool``: episodes
     drawn at a time (each is played once, then a fresh pool is drawn); the rest: the domain
-    randomisation of the module docstring (defaults: none).
+    randomisation of the module docstring (defaults: none); ``prior_background_low``,
+    ``prior_background_high``, ``prior_background_levels`` (all or none): the team estimator's
+    background prior, uniform over that range at that many levels instead of the model's 10-50 counts/s
+    at 8 (:func:`~medc_training.radbench.physics.team_sensing`), recorded in :attr:`attributes`.
     """
 
     def __init__(self, num_envs: int = 1, device: str | torch.device = "cpu", seed: int | None = None,
@@ -116,7 +119,9 @@ class BenchWorld(TargetLocalization):
                  transmission_max: float = 0.0, efficiency_spread: float = 0.0, strength_spread: float = 1.0,
                  background_low: float | None = None, background_high: float | None = None,
                  position_noise_max: float = 0.0, walls_min: int = 0,
-                 snr_max: int = len(SNR_MIX) - 1) -> None:
+                 snr_max: int = len(SNR_MIX) - 1, prior_background_low: float | None = None,
+                 prior_background_high: float | None = None,
+                 prior_background_levels: int | None = None) -> None:
         if grid not in GRIDS:
             raise ValueError(f"the benchmark's world has grids of {sorted(GRIDS)} cells, got {grid!r}")
         if isinstance(walls, bool) or not isinstance(walls, int) or walls not in OBSTRUCTION_COUNTS:
@@ -134,8 +139,13 @@ class BenchWorld(TargetLocalization):
             transmission_max=transmission_max, efficiency_spread=efficiency_spread,
             strength_spread=strength_spread, position_noise_max=position_noise_max,
             background_low=background_low, background_high=background_high))
+        self.prior = background_prior(dict(zip(PRIOR_OPTIONS, (
+            prior_background_low, prior_background_high, prior_background_levels), strict=True)))
         if sensing is None or sensing == TEAM_SENSING.name:
-            sensing = TEAM_SENSING
+            sensing = team_sensing(self.prior)
+        elif self.prior is not None:
+            raise ValueError("the background prior options widen the team's own model; give them "
+                             f"without sensing (got sensing {str(sensing)[:40]!r})")
         sensing = parse_sensing(sensing)
         spec = GRIDS[grid]
         if sensing.cell_size_m != spec.cell_m or sensing.line != "exact" or sensing.attenuation != 0.0:
@@ -166,6 +176,7 @@ class BenchWorld(TargetLocalization):
                 "max_steps": self.max_steps, "sensing": self.sensing.name, "world": WORLD,
                 **({"walls_min": self.walls_min} if self.walls_min else {}),
                 **({"snr_max": self.snr_max} if self.snr_max < len(SNR_MIX) - 1 else {}),
+                **({} if self.prior is None else dict(zip(PRIOR_OPTIONS, self.prior, strict=True))),
                 **self.randomisation}
 
     def _draw_pool(self) -> None:
