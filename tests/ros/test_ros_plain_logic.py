@@ -269,6 +269,13 @@ def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_p
     assert team.current.source == str(realistic)
     follow = PolicySlot((5, 10, 10), 8, grid=10, sensing="realistic")  # the bundle's observation
     follow.swap(str(realistic))
+    # A bundle whose estimator was trained under a wider background prior than the preset's.
+    wider = make_bundle(tmp_path / "wider.safetensors", 5, sensing="realistic", environment={
+        "prior_background_low": 5.0, "prior_background_high": 100.0, "prior_background_levels": 16})
+    with pytest.raises(PolicyRejected, match="background prior 5-100 counts/s at 16 levels, but this "
+                                             "team's model weighs 10-50 at 16"):
+        team.swap(str(wider))
+    assert team.current.source == str(realistic)
     # The launcher: a preset given in the config must be every bundle's; null takes the bundle's.
     with pytest.raises(ValueError, match=both):
         resolve_policies(load_config(None, policy=str(realistic), sensing="paper-simple"))

@@ -32,6 +32,7 @@ from medc_training.bundle.manifest import (
     check_world,
     complete_manifest,
     manifest_observation,
+    manifest_prior,
     manifest_sensing,
     validate_manifest,
 )
@@ -57,6 +58,6 @@ __all__ = [
     "dry_run_seconds",
     "ensemble", "flush_denormals", "flush_subnormal", "json_depth",
     "load_bundle", "load_ensemble", "load_state", "load_untrusted", "manifest_observation",
-    "manifest_sensing",
+    "manifest_prior", "manifest_sensing",
     "parse_json", "printable", "read_manifest", "save_bundle", "save_state", "validate_manifest",
 ]

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from medc_training.bundle.fileformat import BundleError
-from medc_training.bundle.manifest import manifest_sensing
+from medc_training.bundle.manifest import manifest_prior, manifest_sensing
 from medc_training.bundle.policy import PolicyBundle, load_bundle
 
 __all__ = ["MAX_MEMBERS", "EnsembleNet", "ensemble", "load_ensemble"]
@@ -67,6 +67,7 @@ def ensemble(bundles: Sequence[PolicyBundle]) -> PolicyBundle:
             ("observation shape", tuple(b.obs_shape), tuple(first.obs_shape)),
             ("actions", b.action_names, first.action_names),
             ("sensing model", manifest_sensing(b.manifest), manifest_sensing(first.manifest)),
+            ("background prior", manifest_prior(b.manifest), manifest_prior(first.manifest)),
         ):
             if mine != theirs:
                 raise BundleError(f"ensemble member {k} has {what} {mine!r}, member 1 has {theirs!r}; "

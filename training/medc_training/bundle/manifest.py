@@ -136,18 +136,45 @@ def manifest_sensing(manifest: Mapping[str, Any]) -> str:
     return name
 
 
-def check_sensing(manifest: Mapping[str, Any], sensing: str, what: str = "this bundle") -> None:
+def manifest_prior(manifest: Mapping[str, Any]) -> tuple[float, float, int] | None:
+    """The background prior (low, high, levels) the team's estimator was trained under, from a
+    manifest's ``environment`` (``prior_background_low/high/levels``: a benchmark-world option); None
+    when it records none (the sensing model's own).
+
+    Raises:
+        BundleError: the manifest records a partial or malformed prior.
+    """
+    from medc_training.radbench.physics import background_prior
+
+    try:
+        return background_prior(dict(manifest.get("environment") or {}))
+    except ValueError as e:
+        raise BundleError(f"manifest: environment: {e}") from None
+
+
+def check_sensing(manifest: Mapping[str, Any], sensing: Any, what: str = "this bundle") -> None:
     """Refuse a target-localization bundle trained under another sensing preset than ``sensing``
-    (the team's). Raises BundleError naming both presets; ``what`` names the bundle in it."""
+    (the team's: a preset's name or a model), or whose estimator was trained under a background
+    prior (:func:`manifest_prior`) other than the team model's. Raises BundleError naming both;
+    ``what`` names the bundle in it."""
     from medc_training.envs.tl_sensing import parse_sensing
 
     mine = manifest_sensing(manifest)
-    team = parse_sensing(sensing).name
+    model = parse_sensing(sensing)
+    team = model.name
     if mine != team:
         raise BundleError(
             f"{what} was trained under the sensing model {mine!r}, but this team senses with {team!r}; "
             f"use a bundle trained with sensing {team!r} (environment.sensing in its manifest; none "
             f"means 'paper-simple'), or run the team with sensing {mine!r}"
+        )
+    prior = manifest_prior(manifest)
+    if prior is not None and (model.background, model.levels[1]) != (prior[:2], prior[2]):
+        raise BundleError(
+            f"{what}'s estimator was trained under the background prior {prior[0]:g}-{prior[1]:g} counts/s "
+            f"at {prior[2]} levels, but this team's model weighs {model.background[0]:g}-"
+            f"{model.background[1]:g} at {model.levels[1]}; run it under its own prior "
+            f"(medc-radbench --prior-background {prior[0]:g},{prior[1]:g},{prior[2]})"
         )
 
 

@@ -89,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the world departs from the team's and the searchers' model, e.g. transmission=0.3 "
                         "(obstructions let 30%% through), efficiency=0.7, strength_scale=2, background=80, "
                         "position_noise=0.2 (medc_training.radbench.departure; default: the nominal world)")
+    p.add_argument("--prior-background", metavar="LOW,HIGH,LEVELS",
+                   help="the team's estimator weighs backgrounds uniform over LOW-HIGH counts/s at LEVELS "
+                        "levels instead of the model's 10-50 at 8, for every policy of the run (a bundle "
+                        "trained under a prior plays under its own, and is refused under another)")
     p.add_argument("--temperature", type=float, default=0.0,
                    help="a bundle samples its move from softmax(logits / T) instead of taking the most "
                         "probable one (0, the default: the most probable; controllers are unaffected)")
@@ -310,13 +314,39 @@ def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, e
     return sets, source
 
 
+def _team_model(policies: list[str], prior: str | None):
+    """The team's model every policy of one run plays under: ``prior`` (``--prior-background``) over
+    :data:`~medc_training.radbench.physics.TEAM_SENSING` when given, else the background prior the
+    bundles record when every policy is a bundle recording the same one, else the nominal model.
+    Raises ValueError when the policies would need different models."""
+    from ..radbench.physics import background_prior, team_sensing
+    from ..radbench.play import policy_names, resolve_policy
+
+    if prior is not None:
+        return team_sensing(background_prior(prior))
+    from medc_training.bundle import manifest_prior
+
+    names = policy_names()
+    own = {p: (None if p in names else manifest_prior(resolve_policy(p)[0].manifest)) for p in policies}
+    priors = set(own.values())
+    if len(priors) > 1:
+        shown = ", ".join(f"{p if len(p) <= 60 else '...' + p[-57:]}: "
+                          + ("the model's" if v is None else f"{v[0]:g}-{v[1]:g} at {v[2]}")
+                          for p, v in own.items())
+        raise ValueError(f"the policies of one run share the team's model, but their background priors "
+                         f"differ ({shown}); play them in separate runs, or give --prior-background to "
+                         "play every one under it")
+    return team_sensing(priors.pop())
+
+
 def _play(args: argparse.Namespace) -> int:
     import torch
 
     from ..console import progress_bar
     from ..radbench.departure import Departure
     from ..radbench.pairing import episode_record
-    from ..radbench.play import TEAM_SENSING, play_set, policy_names
+    from ..radbench.physics import TEAM_SENSING
+    from ..radbench.play import play_set, policy_names
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--threads, --batch and --episodes must be positive")
@@ -336,12 +366,15 @@ def _play(args: argparse.Namespace) -> int:
     if reference not in policies:
         raise ValueError(f"--reference {reference!r} is not one of the policies played")
     sets, source = _play_sets(args, grid, agents, counts, snrs, episodes)
+    team = _team_model(policies, args.prior_background)
     grid, agents, file_digest = sets[0].grid, sets[0].agents, sets[0].file_sha256
     max_steps = sets[0].max_steps
     _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
                f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "
                f"episodes, policies {', '.join(policies)}"
-               + ("" if departure.nominal else f"; the world departs from the model: {departure.to_dict()}"))
+               + ("" if departure.nominal else f"; the world departs from the model: {departure.to_dict()}")
+               + ("" if team is TEAM_SENSING else f"; the estimator's background prior "
+                  f"{team.background[0]:g}-{team.background[1]:g} counts/s at {team.levels[1]} levels"))
     results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
@@ -351,7 +384,7 @@ def _play(args: argparse.Namespace) -> int:
         for s in sets:
             for policy in policies:
                 start = time.perf_counter()
-                played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run,
+                played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run, sensing=team,
                                   progress=bar.update, departure=departure, temperature=args.temperature)
                 seconds[policy] += time.perf_counter() - start
                 results[s.id][policy] = played
@@ -367,7 +400,7 @@ def _play(args: argparse.Namespace) -> int:
         "max_steps": max_steps,
         "set_file": source, "set_file_sha256": file_digest, "quick": bool(args.quick), "run": args.run,
         "episodes_per_set": len(sets[0].episodes), "policies": policies, "reference": reference,
-        "team_sensing": TEAM_SENSING.to_dict(), "departure": departure.to_dict(),
+        "team_sensing": team.to_dict(), "departure": departure.to_dict(),
         "temperature": args.temperature,
         "seconds": {p: round(v, 2) for p, v in seconds.items()},
         "sets": per_set, "pooled": pooled, "paired_pooled": pooled_pairs,

@@ -35,7 +35,7 @@ from typing import Any
 import torch
 
 from ..stats import percentile
-from .play import BenchCore, core_policy, resolve_policy
+from .play import BenchCore, core_policy, policy_sensing, resolve_policy
 from .sets import BenchSet
 
 __all__ = ["decision_cost", "runtime_agreement"]
@@ -98,7 +98,7 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
     out: dict[str, Any] = {"batch": batch, "agents": bench_set.agents, "grid": bench_set.grid}
     for label, b, count in (("b1", 1, node_steps), (f"b{batch}", batch, steps)):
         idx = [i % len(bench_set.episodes) for i in range(b)]
-        core = BenchCore(bench_set, idx, observation=observation)
+        core = BenchCore(bench_set, idx, observation=observation, sensing=policy_sensing(bundle))
         chosen = core_policy(core, policy, bundle)
         node = _node_call(policy, bundle, core, runtime) if b == 1 else None
         gen = torch.Generator().manual_seed(0)
@@ -163,7 +163,7 @@ def runtime_agreement(sets: Sequence[BenchSet], policy: Any, *, batch: int = 200
     for bench_set in sets:
         for start in range(0, len(bench_set.episodes), batch):
             rows = list(range(start, min(start + batch, len(bench_set.episodes))))
-            core = BenchCore(bench_set, rows, observation=observation)
+            core = BenchCore(bench_set, rows, observation=observation, sensing=policy_sensing(bundle))
             obs, mask = core.reset()
             live = torch.ones(len(rows), dtype=torch.bool)
             while bool(live.any()):

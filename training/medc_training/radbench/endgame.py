@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     from medc_training.outfiles import AtomicOutput, check_output
 
     from .pairing import episode_record
-    from .play import _bundle, play_set
+    from .play import _bundle, play_set, policy_sensing
     from .sets import SetFileError, add_set_arguments, sets_from_args
 
     p = argparse.ArgumentParser(prog="python -m medc_training.radbench.endgame",
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         lengths = []
         with AtomicOutput(target, overwrite=args.overwrite) as out:
             for s in sets:
-                for r in play_set(s, policy):
+                for r in play_set(s, policy, sensing=policy_sensing(bundle)):
                     out.file.write((json.dumps(episode_record(name, s, r)) + "\n").encode())
                     lengths.append(r.length)
     except (SetFileError, ValueError, OSError) as exc:

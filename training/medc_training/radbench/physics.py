@@ -56,7 +56,8 @@ def background_prior(given: Any) -> tuple[float, float, int] | None:
     if isinstance(values[2], bool) or not levels_f.is_integer() or not 2 <= levels_f <= 64:
         raise ValueError(f"the background prior's levels must be an integer in 2..64, got {values[2]!r}")
     if not (0.0 < low < high <= 10_000.0):
-        raise ValueError(f"the background prior must have 0 < low < high <= 10000 counts/s, got {low:g}, {high:g}")
+        raise ValueError("the background prior must have 0 < low < high <= 10000 counts/s, "
+                         f"got {low:g}, {high:g}")
     return low, high, int(levels_f)
 
 

@@ -39,13 +39,13 @@ from medc_training.envs.tl_observation import TeamMemory
 from medc_training.envs.tl_sensing import SensingModel, parse_sensing
 
 from .departure import Departure, jittered_positions
-from .physics import TEAM_SENSING, episode_tensors, world_rates
+from .physics import TEAM_SENSING, episode_tensors, team_sensing, world_rates
 from .results import EpisodeResult
 from .scenario import noise_uniforms
 from .sets import BenchSet
 
 __all__ = ["TEAM_SENSING", "BenchCore", "core_policy", "episode_tensors", "play_set", "poisson_counts",
-           "policy_names", "resolve_policy", "world_rates"]
+           "policy_names", "policy_sensing", "resolve_policy", "world_rates"]
 
 #: Observation of the core when a controller plays (they read the team memory, not the observation).
 CONTROLLER_OBSERVATION = "maps"
@@ -266,8 +266,23 @@ def _bundle(policy: Any):
         return None
     if bundle.application != BenchCore.name:
         raise ValueError(f"the benchmark plays {BenchCore.name}; this bundle is for {bundle.application!r}")
-    check_sensing(bundle.manifest, TEAM_SENSING.name, "the bundle")
+    check_sensing(bundle.manifest, policy_sensing(bundle), "the bundle")
     return bundle
+
+
+def policy_sensing(bundle: Any = None, sensing: SensingModel | str | dict | None = None) -> SensingModel:
+    """The team's model a policy plays under: ``sensing`` when given (a bundle trained under another
+    background prior is refused), else the bundle's own (:data:`TEAM_SENSING` with the background
+    prior its manifest records, if any), else :data:`TEAM_SENSING`. ``bundle``: as
+    :func:`resolve_policy` gave it (None: a controller or a factory)."""
+    from medc_training.bundle import check_sensing, manifest_prior
+
+    if sensing is not None:
+        model = TEAM_SENSING if sensing == TEAM_SENSING.name else parse_sensing(sensing)
+        if bundle is not None:
+            check_sensing(bundle.manifest, model, "the bundle")
+        return model
+    return TEAM_SENSING if bundle is None else team_sensing(manifest_prior(bundle.manifest))
 
 
 def resolve_policy(policy: Any) -> tuple[Any, str]:
@@ -325,6 +340,8 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     :data:`medc_training.evaluate.Policy` for that core; the core makes the observation named by the
     factory's ``observation`` attribute where it has one). ``seed`` seeds the random policy's draws;
     ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream);
+    ``sensing``: the team's model (:func:`policy_sensing`: None plays a bundle under the background
+    prior it was trained with, anything else under :data:`TEAM_SENSING`);
     ``departure`` how the world departs from the team's model (None: nominal); ``temperature`` > 0:
     a bundle samples its move from softmax(logits / temperature) with a stream seeded by ``seed``
     instead of taking the most probable one (controllers are unaffected). ``progress(n)`` is called
@@ -341,6 +358,7 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
         raise ValueError("temperature must be a number in [0, 100] (0: the most probable move), "
                          f"got {temperature!r}")
     sampled = bundle is not None and temperature > 0.0
+    sensing = policy_sensing(bundle, sensing)
     out: list[EpisodeResult] = []
     for lo in range(0, count, batch):
         chunk = list(range(lo, min(count, lo + batch)))
