@@ -77,3 +77,21 @@ def test_its_lines_pair_with_the_teams_lines(sets_file, tmp_path, capsys, one_th
                      "--obstructions", "6", "--episodes", "3", "--quiet", "--out", str(team)]) == 0
     table = pair_table(load_episodes([team, out]), "medc-s0")
     assert table["episodes"] == 6 and "paired" in table["groups"]["obs5-7"]["medc-s0+endgame0.9"]
+
+
+def test_under_a_background_prior_tau_one_plays_as_the_team_under_it(sets_file, tmp_path, capsys, one_thread):
+    from medc_training.cli.radbench import main as radbench
+
+    out, team = tmp_path / "endgame.jsonl", tmp_path / "team.jsonl"
+    common = ["--sets-file", str(sets_file), "--obstructions", "6", "--episodes", "3",
+              "--prior-background", "10,50,16"]
+    assert main([str(TEAM), "--tau", "1", *common, "--out", str(out)]) == 0
+    assert radbench([str(TEAM), *common, "--grid", "20", "--agents", "3", "--quiet", "--out", str(team)]) == 0
+    capsys.readouterr()
+    played = load_episodes([team, out])
+    alone, planned = played["medc-s0"], played["medc-s0+endgame1"]
+    assert alone.keys() == planned.keys() and len(alone) == 6
+    assert all((alone[k].length, alone[k].track_rmse_m) == (planned[k].length, planned[k].track_rmse_m)
+               for k in alone)
+    assert main([str(TEAM), "--tau", "1", *common[:-1], "5,100", "--out", str(out), "--overwrite"]) == 2
+    assert "LOW,HIGH,LEVELS" in capsys.readouterr().err

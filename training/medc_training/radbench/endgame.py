@@ -76,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     from medc_training.outfiles import AtomicOutput, check_output
 
     from .pairing import episode_record
+    from .physics import background_prior, team_sensing
     from .play import _bundle, play_set, policy_sensing
     from .sets import SetFileError, add_set_arguments, sets_from_args
 
@@ -85,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tau", type=float, required=True,
                    help="the posterior mass on its mode that starts the endgame (1: never)")
     add_set_arguments(p, obstructions=True)
+    p.add_argument("--prior-background", metavar="LOW,HIGH,LEVELS",
+                   help="the team's estimator weighs this background prior (as medc-radbench takes it)")
     p.add_argument("--out", type=Path, required=True, help="write every played episode here (JSON lines)")
     p.add_argument("--overwrite", action="store_true", help="replace what is already at --out")
     args = p.parse_args(argv)
@@ -93,12 +96,14 @@ def main(argv: list[str] | None = None) -> int:
         sets = sets_from_args(args)
         bundle = _bundle(args.bundle)
         policy = Endgame(bundle, args.tau)
+        sensing = policy_sensing(bundle, None if args.prior_background is None
+                                 else team_sensing(background_prior(args.prior_background)))
         name = f"{Path(args.bundle).parent.name}+endgame{args.tau:g}"
         target = check_output(args.out, overwrite=args.overwrite)
         lengths = []
         with AtomicOutput(target, overwrite=args.overwrite) as out:
             for s in sets:
-                for r in play_set(s, policy, sensing=policy_sensing(bundle)):
+                for r in play_set(s, policy, sensing=sensing):
                     out.file.write((json.dumps(episode_record(name, s, r)) + "\n").encode())
                     lengths.append(r.length)
     except (SetFileError, ValueError, OSError) as exc:
