@@ -84,3 +84,21 @@ def test_the_command_prints_the_table_and_a_json_line_last(tmp_path, capsys):
     out = capsys.readouterr().out.strip().splitlines()
     assert json.loads(out[-1])["goal_met"] is True
     assert any("searchers losing >= 1.25x: infotaxis -> medc-s0 held" in line for line in out)
+
+
+def test_judge_takes_one_labelled_team_and_shows_the_others_beside_it(tmp_path, capsys):
+    s, lt = _sweep(tmp_path, learned_far=9)  # past the bound
+    good = tmp_path / "good"
+    _write(good, "nominal", {"docs/y/medc-s0/policy.safetensors": [(8, True)] * 4})
+    _write(good, "background-80", {"docs/y/medc-s0/policy.safetensors": [(8.4, True)] * 4})
+    _write(good, "efficiency-1.3", {"docs/y/medc-s0/policy.safetensors": [(8, True)] * 4})
+    sweep = load_sweep([s, f"old={lt}", f"new={good}"])
+    assert mismatch_verdict(sweep, ["infotaxis"])["goal_met"] is False  # both judged: old fails
+    v = mismatch_verdict(sweep, ["infotaxis"], judge="new")
+    assert v["judged_policies"] == ["new:medc-s0"] and v["learned"] == ["new:medc-s0", "old:medc-s0"]
+    assert v["worlds"]["background-80"]["held"] == {"new:medc-s0": True} and v["goal_met"] is True
+    assert "old:medc-s0" in v["worlds"]["background-80"]["policies"]  # still shown
+    with pytest.raises(ValueError, match="no learned policy is labelled 'other'"):
+        mismatch_verdict(sweep, ["infotaxis"], judge="other")
+    assert main([str(s), f"old={lt}", f"new={good}", "--searchers", "infotaxis", "--judge", "new"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["goal_met"] is True

@@ -93,12 +93,17 @@ def _paired(mine: dict[tuple, EpisodeResult], theirs: dict[tuple, EpisodeResult]
 
 
 def mismatch_verdict(sweep: dict[str, Played], searchers: Sequence[str], reference: str | None = None,
-                     max_steps: int = MAX_STEPS) -> dict[str, Any]:
-    """The verdict (module docstring) of every policy of ``sweep`` not named in ``searchers``.
-    Raises ValueError when a searcher or learned policy is missing from a world, or none is learned."""
+                     max_steps: int = MAX_STEPS, judge: str | None = None) -> dict[str, Any]:
+    """The verdict (module docstring) of every policy of ``sweep`` not named in ``searchers``, or
+    only of those under the folder label ``judge`` (``LABEL:NAME``; the other learned policies are
+    rows to compare with). Raises ValueError when a searcher or learned policy is missing from a
+    world, or none is learned (or judged)."""
     learned = sorted({p for played in sweep.values() for p in played} - set(searchers))
     if not learned:
         raise ValueError("no learned policy in the sweep (every policy is a searcher)")
+    judged_policies = [p for p in learned if judge is None or p.startswith(f"{judge}:")]
+    if not judged_policies:
+        raise ValueError(f"no learned policy is labelled {judge!r} (they are {', '.join(learned)})")
     if reference is not None and reference not in searchers:
         raise ValueError(f"the reference {reference!r} is not one of the searchers {list(searchers)}")
     for world, played in sweep.items():
@@ -121,10 +126,11 @@ def mismatch_verdict(sweep: dict[str, Played], searchers: Sequence[str], referen
         entry: dict[str, Any] = {"policies": row, "searchers_losing": losing}
         if losing:
             entry["held"] = {p: row[p]["completion"] >= COMPLETION and row[p]["ratio"] <= BOUND
-                             for p in learned}
+                             for p in judged_policies}
         worlds[world] = entry
     judged = [w for w, e in worlds.items() if e["searchers_losing"]]
-    return {"searchers": list(searchers), "learned": learned, "reference": reference,
+    return {"searchers": list(searchers), "learned": learned, "judged_policies": judged_policies,
+            "reference": reference,
             "loss": LOSS, "completion": COMPLETION, "bound": BOUND, "worlds": worlds, "judged": judged,
             "goal_met": bool(judged) and all(all(worlds[w]["held"].values()) for w in judged)}
 
@@ -152,10 +158,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("folders", nargs="+", help="folders of the sweep's episode lines (WORLD.episodes.jsonl)")
     p.add_argument("--searchers", required=True, help="the searchers' policy names, comma-separated")
     p.add_argument("--reference", help="a searcher each learned policy is paired with")
+    p.add_argument("--judge", metavar="LABEL",
+                   help="judge only the learned policies of the folder given as LABEL=DIR (the others "
+                        "are shown beside them)")
     args = p.parse_args(argv)
     try:
         searchers = [s for s in args.searchers.split(",") if s]
-        verdict = mismatch_verdict(load_sweep(args.folders), searchers, args.reference)
+        verdict = mismatch_verdict(load_sweep(args.folders), searchers, args.reference, judge=args.judge)
     except (OSError, ValueError) as exc:
         print(f"mismatch_verdict: {exc}", file=sys.stderr)
         return 2
