@@ -340,8 +340,8 @@ def play_set(bench_set: BenchSet, policy: Any = "greedy", *, episodes: int | Non
     :data:`medc_training.evaluate.Policy` for that core; the core makes the observation named by the
     factory's ``observation`` attribute where it has one). ``seed`` seeds the random policy's draws;
     ``run`` picks the Monte Carlo run of the count noise (0: each episode's own stream);
-    ``sensing``: the team's model (:func:`policy_sensing`: None plays a bundle under the background
-    prior it was trained with, anything else under :data:`TEAM_SENSING`);
+    ``sensing``: the team's model (:func:`policy_sensing`; None: a bundle plays under the background
+    prior it was trained with, a controller or a factory under :data:`TEAM_SENSING`);
     ``departure`` how the world departs from the team's model (None: nominal); ``temperature`` > 0:
     a bundle samples its move from softmax(logits / temperature) with a stream seeded by ``seed``
     instead of taking the most probable one (controllers are unaffected). ``progress(n)`` is called
