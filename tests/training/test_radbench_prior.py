@@ -121,8 +121,10 @@ def test_one_run_plays_every_policy_under_one_model(tmp_path, capsys):
     _, wide_path, own_path = _bundles(tmp_path)
     args = ["--grid", "20", "--agents", "3", "--obstructions", "3", "--snr", "low", "--episodes", "2",
             "--quiet"]
-    assert main([str(wide_path), *args]) == 0  # a bundle alone: its own prior
-    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert main([str(wide_path), *args[:-1]]) == 0  # a bundle alone: its own prior, said in the header
+    text = capsys.readouterr().out
+    assert "the estimator's background prior 5-100 counts/s at 16 levels" in text
+    out = json.loads(text.strip().splitlines()[-1])
     assert out["team_sensing"]["background"] == [5.0, 100.0] and out["team_sensing"]["levels"] == [6, 16]
     for mixed in ([str(wide_path), str(own_path)], ["infotaxis", str(wide_path)]):
         assert main([*mixed, *args]) == 2

@@ -345,7 +345,7 @@ def _play(args: argparse.Namespace) -> int:
     from ..console import progress_bar
     from ..radbench.departure import Departure
     from ..radbench.pairing import episode_record
-    from ..radbench.physics import TEAM_SENSING
+    from ..radbench.physics import prior_of
     from ..radbench.play import play_set, policy_names
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
@@ -373,7 +373,7 @@ def _play(args: argparse.Namespace) -> int:
                f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "
                f"episodes, policies {', '.join(policies)}"
                + ("" if departure.nominal else f"; the world departs from the model: {departure.to_dict()}")
-               + ("" if team is TEAM_SENSING else f"; the estimator's background prior "
+               + ("" if prior_of(team) is None else f"; the estimator's background prior "
                   f"{team.background[0]:g}-{team.background[1]:g} counts/s at {team.levels[1]} levels"))
     results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
     seconds = dict.fromkeys(policies, 0.0)
