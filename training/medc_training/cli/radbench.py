@@ -314,20 +314,19 @@ def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, e
     return sets, source
 
 
-def _team_model(policies: list[str], prior: str | None):
+def _team_model(bundles: dict[str, Any], prior: str | None):
     """The team's model every policy of one run plays under: ``prior`` (``--prior-background``) over
     :data:`~medc_training.radbench.physics.TEAM_SENSING` when given, else the background prior the
     bundles record when every policy is a bundle recording the same one, else the nominal model.
-    Raises ValueError when the policies would need different models."""
-    from ..radbench.physics import background_prior, team_sensing
-    from ..radbench.play import policy_names, resolve_policy
-
-    if prior is not None:
-        return team_sensing(background_prior(prior))
+    ``bundles``: each policy's loaded bundle (None: a controller). Raises ValueError when the policies
+    would need different models."""
     from medc_training.bundle import manifest_prior
 
-    names = policy_names()
-    own = {p: (None if p in names else manifest_prior(resolve_policy(p)[0].manifest)) for p in policies}
+    from ..radbench.physics import team_sensing
+
+    if prior is not None:
+        return team_sensing(prior)
+    own = {p: None if b is None else manifest_prior(b.manifest) for p, b in bundles.items()}
     priors = set(own.values())
     if len(priors) > 1:
         shown = ", ".join(f"{p if len(p) <= 60 else '...' + p[-57:]}: "
@@ -346,7 +345,7 @@ def _play(args: argparse.Namespace) -> int:
     from ..radbench.departure import Departure
     from ..radbench.pairing import episode_record
     from ..radbench.physics import prior_of
-    from ..radbench.play import play_set, policy_names
+    from ..radbench.play import play_set, policy_names, resolve_policy
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
         raise ValueError("--threads, --batch and --episodes must be positive")
@@ -366,7 +365,9 @@ def _play(args: argparse.Namespace) -> int:
     if reference not in policies:
         raise ValueError(f"--reference {reference!r} is not one of the policies played")
     sets, source = _play_sets(args, grid, agents, counts, snrs, episodes)
-    team = _team_model(policies, args.prior_background)
+    # Each bundle is loaded and checked once for the whole run, not once per set.
+    bundles = {p: resolve_policy(p)[0] for p in policies}
+    team = _team_model(bundles, args.prior_background)
     grid, agents, file_digest = sets[0].grid, sets[0].agents, sets[0].file_sha256
     max_steps = sets[0].max_steps
     _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
@@ -384,7 +385,8 @@ def _play(args: argparse.Namespace) -> int:
         for s in sets:
             for policy in policies:
                 start = time.perf_counter()
-                played = play_set(s, policy, batch=args.batch, device=args.device, run=args.run, sensing=team,
+                played = play_set(s, bundles[policy] or policy, batch=args.batch, device=args.device,
+                                  run=args.run, sensing=team,
                                   progress=bar.update, departure=departure, temperature=args.temperature)
                 seconds[policy] += time.perf_counter() - start
                 results[s.id][policy] = played

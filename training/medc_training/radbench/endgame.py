@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     from medc_training.outfiles import AtomicOutput, check_output
 
     from .pairing import episode_record
-    from .physics import background_prior, team_sensing
+    from .physics import team_sensing
     from .play import _bundle, play_set, policy_sensing
     from .sets import SetFileError, add_set_arguments, sets_from_args
 
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         bundle = _bundle(args.bundle)
         policy = Endgame(bundle, args.tau)
         sensing = policy_sensing(bundle, None if args.prior_background is None
-                                 else team_sensing(background_prior(args.prior_background)))
+                                 else team_sensing(args.prior_background))
         name = f"{Path(args.bundle).parent.name}+endgame{args.tau:g}"
         target = check_output(args.out, overwrite=args.overwrite)
         lengths = []

@@ -61,13 +61,14 @@ def background_prior(given: Any) -> tuple[float, float, int] | None:
     return low, high, int(levels_f)
 
 
-def team_sensing(prior: tuple[float, float, int] | None = None) -> SensingModel:
+def team_sensing(prior: Any = None) -> SensingModel:
     """The team's sensor model on the benchmark: :data:`TEAM_SENSING`, its background prior replaced
-    by ``prior`` (low, high, levels; None: unchanged). The readings channel's scale follows the
-    model's highest rate."""
-    if prior is None:
+    by ``prior`` (any form :func:`background_prior` reads; None: unchanged). The readings channel's
+    scale follows the model's highest rate."""
+    checked = background_prior(prior)
+    if checked is None:
         return TEAM_SENSING
-    low, high, levels = background_prior(prior)
+    low, high, levels = checked
     return parse_sensing({**TEAM_SENSING.to_dict(), "background": [low, high],
                           "levels": [TEAM_SENSING.levels[0], levels]})
 
