@@ -4,6 +4,7 @@ set file generated here (not the frozen episodes)."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -95,3 +96,60 @@ def test_under_a_background_prior_tau_one_plays_as_the_team_under_it(sets_file, 
                for k in alone)
     assert main([str(TEAM), "--tau", "1", *common[:-1], "5,100", "--out", str(out), "--overwrite"]) == 2
     assert "LOW,HIGH,LEVELS" in capsys.readouterr().err
+
+
+def test_medc_radbench_endgame_plays_as_the_endgame_module_and_its_lines_say_so(sets_file, tmp_path, capsys,
+                                                                                 one_thread):
+    """``medc-radbench --endgame TAU``: every bundle plays with the endgame (the same episodes as
+    the module's), a controller beside it is unaffected, the lines carry the tau so a pairing names
+    the planned team apart, and a sampled team or a tau outside (0, 1] is refused."""
+    from medc_training.cli.radbench import main as radbench
+
+    out, module = tmp_path / "cli.jsonl", tmp_path / "module.jsonl"
+    common = ["--sets-file", str(sets_file), "--obstructions", "6", "--episodes", "3",
+              "--prior-background", "10,50,16"]
+    assert radbench([str(TEAM), "greedy", *common, "--agents", "3", "--endgame", "0.9", "--quiet",
+                     "--out", str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["endgame"] == 0.9
+    assert main([str(TEAM), "--tau", "0.9", *common, "--out", str(module)]) == 0
+    capsys.readouterr()
+    cli = load_episodes([out])
+    assert set(cli) == {"medc-s0+endgame0.9", "greedy"}
+    mine = load_episodes([module])["medc-s0+endgame0.9"]
+    assert cli["medc-s0+endgame0.9"] == mine and len(mine) == 6
+    for bad in (["--temperature", "0.5"], ["--endgame", "0"], ["--endgame", "1.5"]):
+        argv = [str(TEAM), *common, "--agents", "3", "--quiet", *bad]
+        if "--temperature" in bad:
+            argv += ["--endgame", "0.9"]
+        assert radbench(argv) == 2
+        assert "endgame" in capsys.readouterr().err
+
+
+def test_the_node_decision_cost_plans_with_the_endgame(one_thread, capsys):
+    """With an endgame, an agent node's decision cost includes its planning: at a tau every
+    posterior holds, each timed node decision plans; without one none does; ``medc-radbench
+    --cost`` measures under the team's model and endgame it is given, and says so."""
+    from medc_training.cli.radbench import main as radbench
+
+    from medc_training.radbench.cost import decision_cost
+    from medc_training.radbench.physics import team_sensing
+
+    (s,) = load_sets(grid=20, agents=3, obstructions=[3], snrs=["medium"])
+    bundle = load_bundle(TEAM)
+    planned = decision_cost(s, bundle, batch=2, steps=1, node_steps=3, sensing=team_sensing("10,50,16"),
+                            endgame=1e-9)
+    assert planned["endgame_decisions"] == 3 and planned["endgame_ms_p50"] > 0
+    alone = decision_cost(s, bundle, batch=2, steps=1, node_steps=3)
+    assert "endgame_decisions" not in alone and alone["node_ms_p50"] > 0
+    never = decision_cost(s, bundle, batch=2, steps=1, node_steps=3, endgame=1.0)
+    assert never["endgame_decisions"] == 0 and "endgame_ms_p50" not in never
+    with pytest.raises(ValueError, match="tau must be in"):
+        decision_cost(s, bundle, batch=2, steps=1, node_steps=3, endgame=0.0)
+    assert radbench(["--cost", str(TEAM), "--agents", "3", "--batch", "2", "--prior-background", "10,50,16",
+                     "--endgame", "0.9"]) == 0
+    printed = capsys.readouterr().out
+    assert "background prior 10-50 counts/s at 16 levels" in printed and "endgame at tau 0.9" in printed
+    out = json.loads(printed.strip().splitlines()[-1])
+    assert out["background_prior"] == [10, 50, 16] and out["endgame"] == 0.9
+    assert "endgame_decisions" in out["cost"][str(TEAM)]

@@ -93,6 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the team's estimator weighs backgrounds uniform over LOW-HIGH counts/s at LEVELS "
                         "levels instead of the model's 10-50 at 8, for every policy of the run (a bundle "
                         "trained under a prior plays under its own, and is refused under another)")
+    p.add_argument("--endgame", type=float, metavar="TAU",
+                   help="every bundle plays with the classical endgame: once the team's posterior holds TAU "
+                        "of its mass on one cell, each agent that can reach that cell's success region "
+                        "walks a shortest path there (medc_training.radbench.endgame; with --cost, in the "
+                        "agent node's decision too); 1: never; controllers are unaffected")
     p.add_argument("--temperature", type=float, default=0.0,
                    help="a bundle samples its move from softmax(logits / T) instead of taking the most "
                         "probable one (0, the default: the most probable; controllers are unaffected)")
@@ -250,21 +255,31 @@ def _cost(args: argparse.Namespace) -> int:
     import torch
 
     from ..radbench.cost import decision_cost
+    from ..radbench.physics import prior_of
+    from ..radbench.play import resolve_policy
     from ..radbench.sets import load_sets
 
     torch.set_num_threads(args.threads)
     grid, agents = args.grid or 20, args.agents or 1
     policies = list(args.policies) or list(QUICK["policies"])
     (bench_set,) = load_sets(grid, agents, obstructions=[3], snrs=["medium"])
+    bundles = {p: resolve_policy(p)[0] for p in policies}
+    team = _team_model(bundles, args.prior_background)
     out = {}
     big = f"b{args.batch}"
     _say(args, f"medc-radbench --cost: {bench_set.id} of grid {grid}, {agents} agent(s), one torch thread "
-               f"({args.threads}); ms per call p50/p99, decisions (one agent's move) per second")
+               f"({args.threads}); ms per call p50/p99, decisions (one agent's move) per second"
+               + _model_words(team) + ("" if args.endgame is None else f"; bundles with the endgame at "
+                                                                         f"tau {args.endgame:g}"))
     for policy in policies:
-        c = decision_cost(bench_set, policy, batch=args.batch, runtime=args.runtime)
+        c = decision_cost(bench_set, bundles[policy] or policy, batch=args.batch, runtime=args.runtime,
+                          sensing=team, endgame=args.endgame)
         out[str(policy)] = c
         label = f"node ({c['node_runtime']})" if "node_runtime" in c else "node"
         node = f"{label} {c['node_ms_p50']}/{c['node_ms_p99']} ms, " if "node_ms_p50" in c else ""
+        if "endgame_ms_p50" in c:
+            node += (f"the endgame planned {c['endgame_decisions']} of them at {c['endgame_ms_p50']}/"
+                     f"{c['endgame_ms_p99']} ms, ")
         terms = c["likelihood_terms_per_decision"]
         work = (f"{terms:,} likelihood terms" if terms
                 else f"{c['macs_per_decision']:,.0f} MACs" if "macs_per_decision" in c else "")
@@ -273,8 +288,19 @@ def _cost(args: argparse.Namespace) -> int:
                    f"({c[big]['decisions_per_s']:,.0f}/s), {node}{work}")
     print(json.dumps({"benchmark": "medc-radbench", "cost": out, "set": bench_set.id,
                       "set_sha256": bench_set.sha256, "grid": grid, "agents": agents,
-                      "threads": args.threads}))
+                      "threads": args.threads, "team_sensing": team.to_dict(), "endgame": args.endgame,
+                      "background_prior": prior_of(team)}))
     return 0
+
+
+def _model_words(team) -> str:
+    """The header's words for a team model other than the nominal one ('' for it)."""
+    from ..radbench.physics import prior_of
+
+    if prior_of(team) is None:
+        return ""
+    return (f"; the estimator's background prior {team.background[0]:g}-{team.background[1]:g} counts/s "
+            f"at {team.levels[1]} levels")
 
 
 def _episodes_file(path: Path | None, overwrite: bool):
@@ -344,7 +370,6 @@ def _play(args: argparse.Namespace) -> int:
     from ..console import progress_bar
     from ..radbench.departure import Departure
     from ..radbench.pairing import episode_record
-    from ..radbench.physics import prior_of
     from ..radbench.play import play_set, policy_names, resolve_policy
 
     if args.threads < 1 or args.batch < 1 or (args.episodes is not None and args.episodes < 1):
@@ -368,14 +393,21 @@ def _play(args: argparse.Namespace) -> int:
     # Each bundle is loaded and checked once for the whole run, not once per set.
     bundles = {p: resolve_policy(p)[0] for p in policies}
     team = _team_model(bundles, args.prior_background)
+    played_as = {p: bundles[p] or p for p in policies}
+    if args.endgame is not None:
+        from ..radbench.endgame import Endgame
+
+        if args.temperature:
+            raise ValueError("--endgame is a rule on the greedy team: give it without --temperature")
+        played_as.update({p: Endgame(b, args.endgame) for p, b in bundles.items() if b is not None})
     grid, agents, file_digest = sets[0].grid, sets[0].agents, sets[0].file_sha256
     max_steps = sets[0].max_steps
     _say(args, f"medc-radbench: {source} (sha256 {file_digest}), grid {grid} x {grid} cells of "
                f"{sets[0].cell_m:g} m, {agents} agent(s), {len(sets)} set(s) x {len(sets[0].episodes)} "
                f"episodes, policies {', '.join(policies)}"
                + ("" if departure.nominal else f"; the world departs from the model: {departure.to_dict()}")
-               + ("" if prior_of(team) is None else f"; the estimator's background prior "
-                  f"{team.background[0]:g}-{team.background[1]:g} counts/s at {team.levels[1]} levels"))
+               + _model_words(team)
+               + ("" if args.endgame is None else f"; bundles with the endgame at tau {args.endgame:g}"))
     results: dict[str, dict[str, list]] = {s.id: {} for s in sets}
     seconds = dict.fromkeys(policies, 0.0)
     total = len(policies) * sum(len(s.episodes) for s in sets)
@@ -385,13 +417,15 @@ def _play(args: argparse.Namespace) -> int:
         for s in sets:
             for policy in policies:
                 start = time.perf_counter()
-                played = play_set(s, bundles[policy] or policy, batch=args.batch, device=args.device,
+                played = play_set(s, played_as[policy], batch=args.batch, device=args.device,
                                   run=args.run, sensing=team,
                                   progress=bar.update, departure=departure, temperature=args.temperature)
                 seconds[policy] += time.perf_counter() - start
                 results[s.id][policy] = played
                 if out is not None:
                     extra = {**({"departure": departure.to_dict()} if not departure.nominal else {}),
+                             **({"endgame": args.endgame} if args.endgame is not None and bundles[policy]
+                                else {}),
                              **({"temperature": args.temperature}
                                 if args.temperature and policy not in names else {})}
                     for r in played:
@@ -403,7 +437,7 @@ def _play(args: argparse.Namespace) -> int:
         "set_file": source, "set_file_sha256": file_digest, "quick": bool(args.quick), "run": args.run,
         "episodes_per_set": len(sets[0].episodes), "policies": policies, "reference": reference,
         "team_sensing": team.to_dict(), "departure": departure.to_dict(),
-        "temperature": args.temperature,
+        "temperature": args.temperature, "endgame": args.endgame,
         "seconds": {p: round(v, 2) for p, v in seconds.items()},
         "sets": per_set, "pooled": pooled, "paired_pooled": pooled_pairs,
     }))

@@ -41,37 +41,52 @@ from .sets import BenchSet
 __all__ = ["decision_cost", "runtime_agreement"]
 
 
-def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto"):
+def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto",
+               endgame: float | None = None):
     """A callable doing one agent node's decision work on ``core`` (B = 1) for its last agent, a
-    bundle's network run in ``runtime`` (:mod:`medc_training.bundle.runtime`); None for random
-    moves."""
+    bundle's network run in ``runtime`` (:mod:`medc_training.bundle.runtime`), or, with ``endgame``
+    (a tau), a shortest path towards the posterior's mode once it holds tau of the mass and the agent
+    can reach its success region (:func:`~medc_training.radbench.endgame.planned_costs`); the
+    callable returns whether it planned. None for random moves."""
     from medc_training.controllers import CONTROLLERS, COORDINATED, controller_scores
 
     n = core.num_agents
     if bundle is not None:
         from medc_training.bundle.runtime import decider
 
-        runner = decider(bundle, runtime)
+        from .endgame import planned_costs
 
-        def forward(obs: torch.Tensor, mask: torch.Tensor) -> None:
-            # The node's two steps: the agent's observation from the team memory (its source maps
-            # from the posterior the step left, as a searcher's scores are; the agent's own window),
-            # then its greedy move from the network in the node's runtime.
+        runner = decider(bundle, runtime)
+        last = slice(n - 1, n)
+
+        def forward(obs: torch.Tensor, mask: torch.Tensor) -> bool:
+            # The node's steps: with an endgame, whether the posterior the step left holds tau on its
+            # mode, and if so this agent's shortest-path move; else the agent's observation from the
+            # team memory (its source maps from that posterior; the agent's own window), then its
+            # greedy move from the network in the node's runtime.
             with torch.no_grad():
+                if endgame is not None and endgame < 1.0:
+                    _, cost = planned_costs(core.memory.posterior(), core.walls, core.positions[:, last],
+                                            core.sensing, endgame)
+                    if cost is not None and bool(cost.isfinite().any()):
+                        int(cost.flatten().argmin())  # the planned move
+                        return True
                 view = core.memory.observe_agent(core.positions, core.walls, n - 1)
                 runner.act(view, core.mask[:, n - 1])
+            return False
 
         forward.runtime = runner.runtime
         return forward
     if isinstance(policy, str) and policy in CONTROLLERS:
         rows = slice(0, n) if policy in COORDINATED else slice(n - 1, n)
 
-        def decide(obs: torch.Tensor, mask: torch.Tensor) -> None:
+        def decide(obs: torch.Tensor, mask: torch.Tensor) -> bool:
             view = SimpleNamespace(memory=core.memory, positions=core.positions[:, rows], walls=core.walls,
                                    mask=core.mask[:, rows], noise=core.noise, name=core.name,
                                    observation_name=core.observation_name)
             with torch.no_grad():
                 controller_scores(policy, view)
+            return False
 
         return decide
     return None
@@ -86,24 +101,32 @@ def _macs(bundle: Any, obs: torch.Tensor) -> float | None:
 
 
 def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 5,
-                  node_steps: int = 20, runtime: str = "auto") -> dict[str, Any]:
+                  node_steps: int = 20, runtime: str = "auto", sensing: Any = None,
+                  endgame: float | None = None) -> dict[str, Any]:
     """Cost figures of ``policy`` (a name or a bundle, as :func:`~medc_training.radbench.play.play_set`
     takes it) on the first episodes of ``bench_set`` (module docstring): ``steps`` timed calls of the
     batched evaluator at B = ``batch`` (episodes repeated when the set has fewer), ``node_steps`` at
     B = 1, each after one untimed call; an agent node's decision with a bundle's network in ``runtime``
-    (``node_runtime``: the one it ran in)."""
+    (``node_runtime``: the one it ran in). ``sensing``: the team's model
+    (:func:`~medc_training.radbench.play.policy_sensing`); ``endgame``: a bundle's node decision plans
+    with the classical endgame at this tau (``endgame_decisions``: the node decisions it planned,
+    ``endgame_ms_p50/p99`` their cost; the batched figures are the network's alone)."""
     from medc_training import searchers
 
+    from .endgame import Endgame
+
     bundle, observation = resolve_policy(policy)
+    if endgame is not None and bundle is not None:
+        Endgame(bundle, endgame)  # tau checked
     out: dict[str, Any] = {"batch": batch, "agents": bench_set.agents, "grid": bench_set.grid}
     for label, b, count in (("b1", 1, node_steps), (f"b{batch}", batch, steps)):
         idx = [i % len(bench_set.episodes) for i in range(b)]
-        core = BenchCore(bench_set, idx, observation=observation, sensing=policy_sensing(bundle))
+        core = BenchCore(bench_set, idx, observation=observation, sensing=policy_sensing(bundle, sensing))
         chosen = core_policy(core, policy, bundle)
-        node = _node_call(policy, bundle, core, runtime) if b == 1 else None
+        node = _node_call(policy, bundle, core, runtime, endgame) if b == 1 else None
         gen = torch.Generator().manual_seed(0)
         obs, mask = core.reset()
-        calls, nodes, terms = [], [], []
+        calls, nodes, terms, plans = [], [], [], []
         for t in range(count + 1):
             flat_obs, flat_mask = obs.flatten(0, 1), mask.flatten(0, 1)
             searchers.STATS["likelihood_terms"] = 0
@@ -116,13 +139,15 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
             work = searchers.STATS["likelihood_terms"]
             if node is not None:
                 start = time.perf_counter()
-                node(flat_obs, flat_mask)
+                planned = node(flat_obs, flat_mask)
                 node_took = time.perf_counter() - start
             if t > 0:
                 calls.append(took)
                 terms.append(work)
                 if node is not None:
                     nodes.append(node_took)
+                    if planned:
+                        plans.append(node_took)
             actions = logits.view(mask.shape).masked_fill(~mask, -math.inf).argmax(-1)
             step = core.step(actions)
             obs, mask = step.obs, step.mask
@@ -140,6 +165,11 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
                 out["node_ms_p99"] = round(1000 * percentile(nodes, 99), 3)
                 if bundle is not None:
                     out["node_runtime"] = node.runtime
+                if endgame is not None and bundle is not None:
+                    out["endgame_decisions"] = len(plans)
+                    if plans:
+                        out["endgame_ms_p50"] = round(1000 * percentile(plans, 50), 3)
+                        out["endgame_ms_p99"] = round(1000 * percentile(plans, 99), 3)
             if bundle is not None:
                 out["macs_per_decision"] = _macs(bundle, flat_obs)
     return out

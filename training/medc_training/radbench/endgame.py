@@ -27,7 +27,23 @@ import torch
 
 from .oracle import move_costs, success_field
 
-__all__ = ["Endgame"]
+__all__ = ["Endgame", "planned_costs"]
+
+
+def planned_costs(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor, sensing: Any,
+                  tau: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Where the endgame plans, and what: (rows int64 [R], the episodes whose ``posterior`` float32
+    [B,G²] holds at least ``tau`` of its mass on one cell; cost float32 [R,N,8], per agent at
+    ``positions`` int64 [B,N,2] and move, the fewest moves to the success region (``sensing``'s
+    radius) of that cell through the free cells of ``walls`` bool [B,G,G], inf for a move not allowed
+    or with no way there; None when R = 0)."""
+    top, cell = posterior.max(1)
+    rows = (top >= tau).nonzero().squeeze(1)
+    if rows.numel() == 0:
+        return rows, None
+    g = walls.shape[-1]
+    mode = torch.stack((cell[rows] // g, cell[rows] % g), 1)
+    return rows, move_costs(walls[rows], success_field(walls[rows], mode, sensing), positions[rows])
 
 
 class Endgame:
@@ -37,16 +53,16 @@ class Endgame:
     took, of ``decisions`` (every agent's, while its episode runs or not)."""
 
     def __init__(self, bundle: Any, tau: float) -> None:
-        if not 0.0 < tau <= 1.0:
-            raise ValueError(f"tau must be in (0, 1], got {tau!r}")
+        if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0.0 < tau <= 1.0:
+            raise ValueError(f"the endgame's tau must be in (0, 1] (1: never plan), got {tau!r}")
         self.bundle, self.tau = bundle, float(tau)
         self.observation = bundle.observation or "maps"
         self.planned = self.decisions = 0
 
     def __call__(self, core):
-        from medc_training.evaluate import net_policy
+        from .play import core_policy
 
-        net = net_policy(self.bundle.net, self.bundle.device)
+        net = core_policy(core, self.bundle, self.bundle)  # the bundle's shape checked against the core's
         n = core.num_agents
 
         def scores(obs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -55,14 +71,10 @@ class Endgame:
             self.decisions += mask.shape[0]
             if self.tau >= 1.0:
                 return logits
-            top, cell = core.memory.posterior().max(1)  # [B]
-            rows = (top >= self.tau).nonzero().squeeze(1)
-            if rows.numel() == 0:
+            rows, cost = planned_costs(core.memory.posterior(), core.walls, core.positions, core.sensing,
+                                       self.tau)
+            if cost is None:
                 return logits
-            g = core.grid
-            mode = torch.stack((cell[rows] // g, cell[rows] % g), 1)
-            cost = move_costs(core.walls[rows], success_field(core.walls[rows], mode, core.sensing),
-                              core.positions[rows])  # [R, N, 8]; inf: not allowed, or no way there
             reach = cost.isfinite().any(-1, keepdim=True)  # [R, N, 1]
             out = logits.view(-1, n, logits.shape[-1]).clone()
             out[rows] = torch.where(reach, torch.where(cost.isfinite(), -cost, -1e9), out[rows])

@@ -42,7 +42,7 @@ def episode_record(policy: str, bench_set: Any, result: EpisodeResult, run: int 
                    ) -> dict[str, Any]:
     """One episode line (``medc-radbench --out``), as :func:`load_episodes` reads it: the policy, the
     set's grid, team and hash (``bench_set``, a :class:`~medc_training.radbench.sets.BenchSet`), the
-    count-noise run, ``extra`` (a departure, a temperature) and the result's fields."""
+    count-noise run, ``extra`` (a departure, a temperature, an endgame's tau) and the result's fields."""
     return {"policy": policy, "grid": bench_set.grid, "agents": bench_set.agents, "run": run,
             "set_sha256": bench_set.sha256, **extra, **result.to_json()}
 
@@ -64,6 +64,8 @@ def load_episodes(paths: Iterable[str | Path], parents: int = 1) -> dict[str, di
                     policy = _policy_name(str(doc["policy"]), parents)
                     if doc.get("temperature"):
                         policy += f"@T{float(doc['temperature']):g}"
+                    if doc.get("endgame") is not None:
+                        policy += f"+endgame{float(doc['endgame']):g}"
                 except (ValueError, KeyError, TypeError) as exc:
                     raise ValueError(f"{path}:{number}: not a medc-radbench episode line ({exc})") from None
                 episodes = out.setdefault(policy, {})
