@@ -5,6 +5,11 @@ with the same ``make_batched`` call and seed as training, so it produces the sam
 plus what a real UAV would publish that the core keeps internal (positions, raw readings,
 walls), read through the core's read-only state view (``env.state(0)``). The simulator node
 only converts this to and from messages.
+
+Two worlds (``SimConfig.world``): ``grid``, the grid world of the sensing presets, and
+``radbench``, the field benchmark's (``make_batched(..., world="radbench")``:
+``medc_training.radbench.world.BenchWorld``: solid obstructions, ``S / d² + B`` counts, fresh
+benchmark episodes drawn :data:`RADBENCH_POOL` at a time).
 """
 
 from __future__ import annotations
@@ -12,6 +17,38 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
+
+#: The worlds the simulator runs: the grid world and the field benchmark's.
+WORLDS: tuple[str, ...] = ("grid", "radbench")
+#: Benchmark episodes the radbench world draws at a time (each played once, then a fresh pool):
+#: a training world draws 2048, which takes the simulator seconds to start.
+RADBENCH_POOL = 64
+
+
+def check_world_options(config: SimConfig) -> None:
+    """Refuse a ``config`` whose options do not apply to its world: an unknown world, and in the
+    benchmark's world an end rule other than ``source`` (its core ends an episode when a UAV comes
+    within the success radius), a grid other than its areas, more obstructions than it draws or a
+    sensing preset other than ``realistic`` (its team model's). Raises ValueError saying what to set."""
+    if config.world not in WORLDS:
+        raise ValueError(f"world must be one of {', '.join(WORLDS)}, got {str(config.world)[:40]!r}")
+    if config.world != "radbench":
+        return
+    from medc_training.radbench.scenario import GRIDS, OBSTRUCTION_COUNTS
+
+    if config.end_on != "source":
+        raise ValueError(f"end_on {config.end_on!r} does not apply to the radbench world: its episodes end "
+                         "when a UAV comes within 1.1 cells of the source (or at max_steps): set end_on "
+                         "source")
+    if config.grid not in GRIDS:
+        raise ValueError(f"the radbench world has grids of {' or '.join(map(str, sorted(GRIDS)))} cells, got "
+                         f"grid {config.grid}; set grid to one of them")
+    if isinstance(config.walls, bool) or config.walls not in OBSTRUCTION_COUNTS:
+        raise ValueError("walls (the most obstructions of a radbench episode) must be "
+                         f"0..{max(OBSTRUCTION_COUNTS)}, got {config.walls!r}")
+    if config.sensing != "realistic":
+        raise ValueError(f"the radbench world senses with the realistic preset's team model, got sensing "
+                         f"{str(config.sensing)[:40]!r}; set sensing realistic")
 
 
 @dataclass(frozen=True)
@@ -32,6 +69,8 @@ class SimConfig:
     #: What ends an episode besides max_steps (medc_sim.episode_end): ``source``, ``declaration`` or
     #: ``either``.
     end_on: str = "source"
+    #: The world simulated (:data:`WORLDS`): ``grid`` or ``radbench``, the field benchmark's.
+    world: str = "grid"
 
 
 @dataclass
@@ -78,6 +117,17 @@ class SimCore:
 
         c = self.config
         check_end_rule(c.end_on)
+        check_world_options(c)
+        if c.world == "radbench":
+            # Readings are always Poisson counts there, and a UAV within the success radius ends the
+            # episode: the grid world's noise and end_on_find do not apply.
+            self.env = make_batched(TARGET_LOCALIZATION, num_envs=1, device="cpu", seed=c.seed,
+                                    world="radbench", agents=c.agents, walls=c.walls, grid=c.grid,
+                                    max_steps=c.max_steps,
+                                    reward_shaping=False, sensing=c.sensing, observation="maps",
+                                    pool=RADBENCH_POOL)
+            self.env.reset()
+            return
         model = parse_sensing(c.sensing)
         self.env = make_batched(
             TARGET_LOCALIZATION,

@@ -87,6 +87,13 @@ def declare_sim_parameters(node: Node) -> SimParameters:
             "'either' (whichever comes first)",
             True,
         ),
+        world=p(
+            "world", "grid",
+            "The world simulated: 'grid' (the sensing preset's grid world) or 'radbench' (the field "
+            "benchmark's: solid obstructions, walls 0..7, grid 20 or 30, sensing realistic, end_on source; "
+            "docs/ros-reference.md, 'The benchmark's world')",
+            True,
+        ),
     )
     mode = p("mode", "stepped", "'stepped' (wait for all moves) or 'realtime' (fixed rate)", True)
     if mode not in ("stepped", "realtime"):
@@ -170,8 +177,10 @@ class SimNode(Node):
         self.gate = StartGate(self.status_pub, self.move_subs, self.results_pub, prm.wait_for,
                               prm.results_readers)
         self._start_timers()
+        walls_words = "obstructions at most" if cfg.world == "radbench" else "walls"
         self.get_logger().info(
-            f"simulating {cfg.agents} agents, {cfg.walls} walls, {cfg.grid}x{cfg.grid} grid, "
+            f"simulating {cfg.agents} agents, {cfg.walls} {walls_words}, {cfg.grid}x{cfg.grid} grid in the "
+            f"{cfg.world} world, "
             f"seed {cfg.seed}, sensing {cfg.sensing}{' (Poisson counts)' if self.core.noise else ''}, "
             f"{self.mode} mode on {self.namespace_}"
         )
