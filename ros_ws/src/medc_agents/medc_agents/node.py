@@ -51,6 +51,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from medc_agents import guard
+from medc_agents.bench_team import check_endgame_tau, check_world, endgame_move, model_words, team_model
 from medc_agents.controller import controller_move, controller_name, controller_scenario
 from medc_agents.estimate import TeamEstimate
 from medc_agents.map_faults import MapFaults
@@ -143,6 +144,17 @@ def check_scenario_size(agents: int, grid: int) -> None:
                                  f"(MAX_BUNDLE_{key.upper()}); pass -p {key}:=<n> with n <= {most}")
 
 
+def running_words(slot, observer, num_agents: int, grid: int, prm: AgentParameters) -> str:
+    """The log line that says which policy an agent runs, on what, in which world, and whether the
+    classical endgame is on."""
+    endgame = "" if prm.endgame_tau >= 1.0 else (
+        f"; classical endgame on at tau {prm.endgame_tau:g} (a shortest path once the posterior's mode "
+        "holds it)")
+    return (f"running policy {slot.current.description} for {observer.agent_id} of {num_agents} agents on "
+            f"a {grid}x{grid} grid (observation {observer.observation.name}), sensing "
+            f"{model_words(observer.sensing)}, {prm.world} world{slot.runs_in()}{endgame}")
+
+
 def default_node_name(agent_id: str | None) -> str:
     """``medc_<agent_id>`` (e.g. medc_agent_1), unique per agent; ``medc_agent`` for an id that is
     not of the form agent_<i>."""
@@ -183,10 +195,38 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
     allow_other_world = bool(p(
         "allow_other_world",
         False,
-        "Run a bundle trained in another world than the graph's grid world or with domain randomisation "
-        "(its manifest's environment.world, randomisation options, walls_min, snr_max); false: it is refused",
+        "Run a bundle trained in another world than the graph's (the world parameter) or with domain "
+        "randomisation (its manifest's environment.world, randomisation options, walls_min, snr_max); false: "
+        "it is refused",
         True,
     ))
+    return dict(
+        agent_id=agent_id, namespace=namespace, agents=count("agents", num_agents),
+        grid=count("grid", grid), observation=str(observation),
+        resolution=number("resolution", resolution),
+        sensing=sensing, allow_other_world=allow_other_world, **_declare_world(p), **_declare_runtime(p))
+
+
+def _declare_world(p) -> dict:
+    """Declare the parameters that say the world the team plays and its estimator's prior (``p``
+    declares one parameter)."""
+    world = check_world(p(
+        "world", "grid",
+        "The world the team plays: 'grid' (the sensing preset's grid world) or 'radbench' (the field "
+        "benchmark's: maps of solid obstructions, the team's estimator the model bundles are trained "
+        "with there, sensing realistic; docs/ros-reference.md, 'The benchmark's world')",
+        True))
+    prior_background = str(p(
+        "prior_background", "",
+        "World radbench: the team estimator's background prior LOW,HIGH,LEVELS (counts/s, counts/s, "
+        "2..64), as medc-radbench --prior-background takes it; empty: the one the policy bundle's "
+        "manifest records, else the team model's own (10-50 counts/s at 8 levels)",
+        True))
+    return dict(world=world, prior_background=prior_background)
+
+
+def _declare_runtime(p) -> dict:
+    """Declare the parameters that say the registry and how a policy runs (``p`` declares one)."""
     bridge_service = p(
         "bridge_service",
         "registry/fetch_bundle",
@@ -217,11 +257,7 @@ def _declare_scenario(node: Node, agent_id: str | None) -> dict:
         True,
     )
     return dict(
-        agent_id=agent_id, namespace=namespace, agents=count("agents", num_agents),
-        grid=count("grid", grid), observation=str(observation),
-        resolution=number("resolution", resolution),
-        sensing=sensing, allow_other_world=allow_other_world, bridge_service=bridge_service,
-        application=application,
+        bridge_service=bridge_service, application=application,
         threads=count("torch_threads", threads, least=1), runtime=runtime,
         max_forward_s=seconds("policy_max_forward_s", max_forward_s))
 
@@ -271,6 +307,12 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
         "'source' or 'either'), so a cell the team stood on is not the source; false for a driver "
         "that ends episodes only on the team's declaration (a real one: it cannot know the source)",
         True))
+    endgame_tau = check_endgame_tau(p(
+        "endgame_tau", 1.0,
+        "The classical endgame: once the team's posterior holds at least this on one cell and this agent "
+        "can reach that cell's success region, it walks a shortest path there instead of the bundle's "
+        "move (medc-radbench --endgame); 1.0: never",
+        True))
     initial = p(
         "policy", "",
         "Path of the policy bundle (.safetensors) to run, or a classical controller's name "
@@ -278,7 +320,7 @@ def declare_agent_parameters(node: Node, agent_id: str | None) -> AgentParameter
     return AgentParameters(
         **scenario, stall_timeout_s=stall_timeout_s, lost_timeout_s=lost_timeout_s,
         session_hold_s=session_hold_s, recover_s=recover_s, edge_tolerance=edge_tolerance, noise=noise,
-        rule_out=rule_out, policy=str(initial))
+        rule_out=rule_out, endgame_tau=endgame_tau, policy=str(initial))
 
 
 @dataclass(frozen=True)
@@ -294,6 +336,8 @@ class AgentParameters:
     resolution: float
     sensing: str
     allow_other_world: bool
+    world: str
+    prior_background: str
     bridge_service: str
     application: str
     threads: int
@@ -306,6 +350,7 @@ class AgentParameters:
     edge_tolerance: float
     noise: bool
     rule_out: bool
+    endgame_tau: float
     policy: str
 
 
@@ -356,23 +401,43 @@ class MoveOut:
 
 class Decider:
     """This agent's move on an observation: the slot's classical controller on the team state, else
-    its policy. A policy failing on one observation must not take the node down: it is logged and
-    the observation kept on ``moves`` (MoveOut.unanswered) to decide again when the step is re-sent."""
+    the classical endgame's where it plans (medc_agents.bench_team), else its policy. A policy failing
+    on one observation must not take the node down: it is logged and the observation kept on
+    ``moves`` (MoveOut.unanswered) to decide again when the step is re-sent."""
 
-    def __init__(self, slot, observer, moves: MoveOut, noise: bool, logger) -> None:
+    def __init__(self, slot, observer, moves: MoveOut, noise: bool, logger, endgame_tau: float = 1.0) -> None:
         """``slot``: the agent's PolicySlot; ``observer``: its TeamObserver; ``noise``: readings are
-        Poisson counts (the gradient controller's flatness test)."""
+        Poisson counts (the gradient controller's flatness test); ``endgame_tau``: the posterior mass
+        on its mode that starts the endgame of a bundle's team (1.0: never)."""
         self.slot = slot
         self.observer = observer
         self.moves = moves
         self.noise = noise
         self.logger = logger
+        self.endgame_tau = endgame_tau
+        #: Moves the endgame decided.
+        self.planned = 0
+
+    def endgame(self, mask) -> int | None:
+        """The endgame's move on the step just observed, when a bundle runs and the endgame plans it."""
+        if self.endgame_tau >= 1.0 or self.slot.controller is not None:
+            return None
+        try:
+            move = endgame_move(self.observer, self.endgame_tau, mask)
+        except Exception as exc:  # the planner must never cost the team its move: the policy decides
+            self.logger.error(f"endgame not planned: {type(exc).__name__}: {printable(str(exc), 200)}")
+            return None
+        self.planned += move is not None
+        return move
 
     def decide(self, obs, mask, tick) -> int | None:
         """The move for ``tick``, or None when the policy failed on it."""
         try:
             if self.slot.controller is not None:
                 return controller_move(self.slot.controller, self.observer, mask, self.noise)
+            planned = self.endgame(mask)
+            if planned is not None:
+                return planned
             return self.slot.act(obs, mask)
         except Exception as exc:
             self.logger.error(f"policy failed on episode {tick.episode} step {tick.step}: "
@@ -399,15 +464,17 @@ class AgentNode(Node):
         self.stall_timeout_s = prm.stall_timeout_s
         #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
         self.noise = prm.noise
-        sensing, application, initial = prm.sensing, prm.application, prm.policy
+        application, initial = prm.application, prm.policy
         observation = explicit_observation = prm.observation
         num_agents, grid, observation = scenario_from_bundle(
             initial, prm.agents, prm.grid, observation, application or None)
+        sensing = team_model(prm.world, prm.sensing, prm.prior_background, initial)  # the preset's, or
+        self.endgame_tau = prm.endgame_tau  # the benchmark world's team model (medc_agents.bench_team)
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, prm.threads))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, prm.resolution,
                                      observation or DEFAULT_OBSERVATION, sensing, prm.rule_out,
-                                     prm.edge_tolerance)
+                                     prm.edge_tolerance, prm.world)
         #: Per-run id of this node, sent with every move (AgentMove.sender).
         self.sender = run_id()
         self.lost_watch = guard.LostWatch(num_agents, self.observer.index, prm.lost_timeout_s)
@@ -417,7 +484,7 @@ class AgentNode(Node):
         self.slot = PolicySlot(shape, NUM_ACTIONS, application or None, prm.max_forward_s,
                                observation=explicit_observation or None,
                                grid=grid if not explicit_observation else None, sensing=sensing,
-                               allow_other_world=prm.allow_other_world, runtime=prm.runtime)
+                               allow_other_world=prm.allow_other_world, runtime=prm.runtime, world=prm.world)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
         self.old_statuses = OldStatuses(self.get_logger(), self.dropped_by, OLD_STATUS_SUMMARY_S)
@@ -427,9 +494,7 @@ class AgentNode(Node):
         self.swap_listeners = self.swaps.listeners
 
         self.swaps.start(str(initial))
-        self.get_logger().info(f"running policy {self.slot.current.description} for {self.agent_id} of "
-                               f"{num_agents} agents on a {grid}x{grid} grid (observation "
-                               f"{self.observer.observation.name}), sensing {sensing}{self.slot.runs_in()}")
+        self.get_logger().info(running_words(self.slot, self.observer, num_agents, grid, prm))
         self.add_on_set_parameters_callback(self.swaps.on_set_parameters)
 
         self._connect(feed, num_agents)
@@ -450,7 +515,7 @@ class AgentNode(Node):
         self.moves = MoveOut(self.agent_id, self.sender,
                              lambda m: self.move_pub.publish(self.auth.sign(m, move_topic)),
                              lambda: self.get_clock().now().to_msg())
-        self.decider = Decider(self.slot, self.observer, self.moves, self.noise, log)
+        self.decider = Decider(self.slot, self.observer, self.moves, self.noise, log, self.endgame_tau)
         self.statuses = StatusIntake(self.gate, self.health, self.dropped_by, self.old_statuses.drop,
                                      self.observer.restart)
         self.readings = ReadingWatch(self.reading_check, self.health)
@@ -677,6 +742,10 @@ def decide_together(agents: list[AgentNode], msg: EpisodeStatus) -> None:
             continue
         if agent.slot.controller is not None:  # no network to batch: it decides from its team state
             agent._decide(*prepared)
+            continue
+        planned = agent.decider.endgame(prepared[1])
+        if planned is not None:  # the endgame plans this agent's move: no forward pass
+            agent.publish_move(prepared[2], planned)
             continue
         groups.setdefault(id(agent.slot.decider), []).append((agent, *prepared))
     for members in groups.values():

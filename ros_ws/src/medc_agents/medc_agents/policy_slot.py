@@ -91,6 +91,7 @@ def load_policy(
     observation: str | None = None,
     sensing: str | None = None,
     allow_other_world: bool = False,
+    world: str = "grid",
 ) -> LoadedPolicy:
     """Load and validate the bundle file at ``source`` for this observation/action space.
 
@@ -102,9 +103,10 @@ def load_policy(
     bundle that takes another variant is refused. ``sensing`` names the team's sensing preset
     (``medc_training.envs.tl_sensing.SENSING_PRESETS``): a target-localization bundle trained under
     another (its manifest's ``environment.sensing``; none = 'paper-simple') is refused, the message
-    naming both; None checks nothing. A bundle trained in another world than the graph's grid
-    world or with domain randomisation (``medc_training.bundle.check_world``) is refused unless
-    ``allow_other_world``.
+    naming both (or the team's model itself, the benchmark's with its background prior: a bundle
+    whose manifest records another prior is refused); None checks nothing. A bundle trained in
+    another world than ``world`` (the graph's: ``grid`` or ``radbench``) or with domain randomisation
+    (``medc_training.bundle.check_world``) is refused unless ``allow_other_world``.
 
     Raises:
         PolicyRejected: for every refusal and for any failure while loading (a RecursionError or
@@ -112,7 +114,7 @@ def load_policy(
     """
     try:
         return _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing,
-                            allow_other_world)
+                            allow_other_world, world)
     except PolicyRejected:
         raise
     except Exception as exc:  # a file or a message must never take the node down
@@ -167,7 +169,7 @@ def read_policy_manifest(source) -> dict:
 
 
 def _load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
-                 sensing=None, allow_other_world=False) -> LoadedPolicy:
+                 sensing=None, allow_other_world=False, world="grid") -> LoadedPolicy:
     from medc_training.bundle import (
         MAX_FORWARD_SECONDS,
         BundleError,
@@ -192,7 +194,7 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
     try:
         if sensing is not None and "sensing" in core_options(bundle.manifest.get("application")):
             check_sensing(bundle.manifest, sensing, f"policy bundle {shown(source)}")
-        check_world(bundle.manifest, "grid", allow_other_world, f"policy bundle {shown(source)}")
+        check_world(bundle.manifest, world, allow_other_world, f"policy bundle {shown(source)}")
     except BundleError as exc:
         raise PolicyRejected(str(exc)) from exc
     return LoadedPolicy(bundle=bundle, source=str(path))
@@ -203,7 +205,7 @@ def _load_policy(source, obs_shape, num_actions, application, max_forward_s, obs
 #: The least recently used are forgotten beyond ``MAX_CACHED_POLICIES`` bundles or
 #: ``MAX_CACHED_POLICY_BYTES`` bytes of weights (the latest is always kept); a forgotten bundle that
 #: no agent runs any more is freed, and one asked for again is loaded and checked again.
-_LOADED: OrderedDict[tuple[str, int, int, tuple, int, str | None, str | None, str | None, bool],
+_LOADED: OrderedDict[tuple[str, int, int, tuple, int, str | None, str | None, object, bool, str],
                      LoadedPolicy] = OrderedDict()
 MAX_CACHED_POLICIES = 4
 MAX_CACHED_POLICY_BYTES = 64 << 20
@@ -230,6 +232,7 @@ def load_policy_cached(
     observation: str | None = None,
     sensing: str | None = None,
     allow_other_world: bool = False,
+    world: str = "grid",
 ) -> LoadedPolicy:
     """:func:`load_policy`, reusing a bundle already validated in this process for the same file."""
     try:
@@ -244,13 +247,14 @@ def load_policy_cached(
             observation,
             sensing,
             bool(allow_other_world),
+            world,
         )
     except Exception:  # not stat-able (or not a path): load_policy gives the reason
         return load_policy(source, obs_shape, num_actions, application, max_forward_s, observation, sensing,
-                           allow_other_world)
+                           allow_other_world, world)
     if key not in _LOADED:
         _LOADED[key] = load_policy(source, obs_shape, num_actions, application, max_forward_s, observation,
-                                   sensing, allow_other_world)
+                                   sensing, allow_other_world, world)
     _LOADED.move_to_end(key)
     loaded = _LOADED[key]
     _evict()
@@ -271,15 +275,17 @@ class PolicySlot:
         sensing: str | None = DEFAULT_SENSING,
         allow_other_world: bool = False,
         runtime: str = "auto",
+        world: str = "grid",
     ) -> None:
         """``observation``: the target-localization observation variant a bundle must take; None
         with a ``grid`` means "the one the bundle's manifest names" (its shape on that grid is then
         the observation shape, and :attr:`observation` follows the running bundle). ``sensing``:
-        the team's sensing preset; a bundle trained under another is refused (None: no check).
-        ``allow_other_world``: take a bundle trained in another world than the graph's grid world or
-        with domain randomisation (refused otherwise). ``runtime``: what runs a bundle's network
-        (:mod:`medc_training.bundle.runtime`: 'auto' takes onnxruntime where it agrees with PyTorch,
-        else PyTorch; 'onnxruntime' refuses a bundle it cannot run; 'torch')."""
+        the team's sensing preset or model; a bundle trained under another is refused (None: no
+        check). ``world``: the graph's world (``grid``, ``radbench``); ``allow_other_world``: take a
+        bundle trained in another world or with domain randomisation (refused otherwise).
+        ``runtime``: what runs a bundle's network (:mod:`medc_training.bundle.runtime`: 'auto'
+        takes onnxruntime where it agrees with PyTorch, else PyTorch; 'onnxruntime' refuses a
+        bundle it cannot run; 'torch')."""
         from medc_training.bundle.runtime import RUNTIMES
 
         if runtime not in RUNTIMES:
@@ -294,6 +300,7 @@ class PolicySlot:
         self.grid = grid
         self.sensing = sensing
         self.allow_other_world = bool(allow_other_world)
+        self.world = world
         self.current: LoadedPolicy | ControllerPolicy | None = None
 
     @property
@@ -319,7 +326,8 @@ class PolicySlot:
         if self.follow_bundle:
             obs_shape, observation = self._bundle_observation(source)
         loaded = load_policy_cached(source, obs_shape, self.num_actions, self.application,
-                                    self.max_forward_s, observation, self.sensing, self.allow_other_world)
+                                    self.max_forward_s, observation, self.sensing, self.allow_other_world,
+                                    self.world)
         loaded.decider(self.runtime)  # made (and checked) before the policy runs
         self.current = loaded
         self.obs_shape, self.observation = obs_shape, observation

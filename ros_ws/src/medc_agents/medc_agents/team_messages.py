@@ -76,6 +76,23 @@ def check_wall_segments(walls: torch.Tensor, most: int) -> None:
                          "takes each as one rectangle")
 
 
+def check_obstructions(walls: torch.Tensor) -> None:
+    """Check that the blocked cells of bool ``walls`` [H,W] take at most ``OBSTRUCTION_SLOTS``
+    rectangles to cover (``medc_training.envs.wall_cover``: obstructions with a free cell between
+    them take one each).
+
+    Raises:
+        ValueError: more, saying how many and what to publish instead.
+    """
+    from medc_training.envs.wall_cover import OBSTRUCTION_SLOTS, cover_cells
+
+    count = len(cover_cells(walls.numpy()))
+    if count > OBSTRUCTION_SLOTS:
+        raise ValueError(f"map obstructions take {count} rectangles to cover, more than the "
+                         f"{OBSTRUCTION_SLOTS} the benchmark's world allows: publish fewer obstructions, or "
+                         "ones with a free cell between them (one rectangle each)")
+
+
 def faint_cells(msg) -> int:
     """How many cells of an OccupancyGrid hold 1..49: free by the contract's threshold, but maybe
     walls a driver meant (e.g. published as 1)."""
@@ -132,12 +149,15 @@ def value_from_reading(msg, expected_agent: str) -> float:
 
 
 def map_from_message(msg, grid: int, any_grid: bool, observation: str, exact: bool,
-                     resolution: float = 0.0) -> tuple[torch.Tensor, GridGeometry]:
+                     resolution: float = 0.0,
+                     obstructions: bool = False) -> tuple[torch.Tensor, GridGeometry]:
     """(walls bool [H,W], geometry) of a nav_msgs/OccupancyGrid an agent working on a ``grid`` x
     ``grid`` area can play: that size, or, when its ``observation`` (a name, for the message) does
     not depend on the grid's size (``any_grid``), any square of 5 to MAX_BUNDLE_GRID cells. ``exact``:
     the sensing preset's line of sight takes each wall as one rectangle (:func:`check_wall_segments`).
-    ``resolution``: metres per cell the map must have; 0 = whatever it says.
+    ``resolution``: metres per cell the map must have; 0 = whatever it says. ``obstructions``: the
+    walls are solid obstructions that may touch (the benchmark's world, :func:`check_obstructions`)
+    instead of wall segments.
 
     Raises:
         ValueError: a size, frame, wall layout or resolution the agent cannot play, with the reason.
@@ -160,7 +180,9 @@ def map_from_message(msg, grid: int, any_grid: bool, observation: str, exact: bo
     else:
         side = grid
     walls = walls_from_grid(msg, side, side)
-    if exact:
+    if obstructions:
+        check_obstructions(walls)
+    elif exact:
         check_wall_segments(walls, max(1, max_walls(side)))
     geometry = geometry_of(msg)
     if resolution > 0 and abs(geometry.resolution - resolution) > 1e-9 * resolution:

@@ -44,15 +44,19 @@ class TeamObserver:
 
     def __init__(self, agent_id: str, num_agents: int, grid: int, resolution: float = 0.0,
                  observation: str = "maps", sensing: str = "paper-simple", rule_out: bool = True,
-                 edge_tolerance: float = EDGE_TOLERANCE_CELLS) -> None:
+                 edge_tolerance: float = EDGE_TOLERANCE_CELLS, world: str = "grid") -> None:
         """``resolution``: metres per cell the maps must have (0: any). ``edge_tolerance``: cells
         outside the grid a pose may lie and be taken as the nearest edge cell. ``sensing``: the
         team's sensing preset (ValueError for an unknown one). ``rule_out``: the driver ends an
         episode when an agent finds the source, so cells stood on are not it. ``grid``: the
         starting grid; an ``egoR`` observation follows each episode's square map, ``maps`` takes
-        ``grid`` only."""
+        ``grid`` only. ``world``: ``grid`` (maps of wall segments) or ``radbench`` (the field
+        benchmark's: maps of solid obstructions; ``sensing`` is then its team model,
+        ``medc_agents.bench_team.team_model``)."""
         from medc_training.envs.observation import parse_observation
         from medc_training.envs.tl_sensing import parse_sensing
+
+        from medc_agents.bench_team import check_world
 
         self.agent_id = agent_id
         self.num_agents = num_agents
@@ -68,13 +72,14 @@ class TeamObserver:
         self.observation = parse_observation(observation)
         self.sensing = parse_sensing(sensing)
         self.rule_out = bool(rule_out)
+        self.world = check_world(world)
         #: The step answered and the one pending.
         self.clock = EpisodeClock()
         #: The maps held, and the poses and readings held (who is absent included).
         self.maps = MapStore()
         self.rounds = TeamRounds(num_agents)
         #: The team memory and the last observed step.
-        self.team = AgentMemory(grid, self.sensing, self.rule_out)
+        self.team = AgentMemory(grid, self.sensing, self.rule_out, self.world)
 
     # -- what the units hold, under the names the controllers and tests read ------------------
     @property
@@ -150,7 +155,8 @@ class TeamObserver:
         load = stamp_key(msg.info.map_load_time)
         try:
             walls, geometry = map_from_message(msg, self.height, self.any_grid, self.observation.name,
-                                               self.sensing.line == "exact", self.resolution)
+                                               self.sensing.line == "exact", self.resolution,
+                                               obstructions=self.world == "radbench")
         except ValueError as exc:
             self.maps.refuse(load, str(exc))
             raise
