@@ -304,3 +304,42 @@ def test_in_the_benchmarks_world_the_agent_takes_its_bundles_under_the_team_mode
         with pytest.raises(ValueError, match=r"endgame_tau must be a number in \(0, 1\]"):
             check_endgame_tau(tau)
     assert check_endgame_tau(1) == 1.0
+
+
+def test_the_launcher_takes_the_world_from_the_bundle_and_passes_the_prior_and_endgame(tmp_path):
+    """medc-launch with world null runs a benchmark bundle's world (and its scenario) in the simulator
+    and every agent, passes prior_background and endgame_tau to the agents, and refuses, before any
+    node starts, a bundle of one world in a graph of the other, saying what to set."""
+    from conftest import make_bundle
+    from medc_bringup.launcher import agent_parameters, load_config, resolve_policies, sim_parameters
+
+    cfg = load_config(None, policy=str(WINDOW9), prior_background="10,50,16", endgame_tau=0.9)
+    assert resolve_policies(cfg) == [str(WINDOW9)] * 3
+    sim = sim_parameters(cfg, episodes=2)
+    assert (sim["world"], sim["grid"], sim["walls"], sim["max_steps"], sim["sensing"]) == (
+        "radbench", 20, 7, 120, "realistic")
+    agent = agent_parameters(cfg, 1, str(WINDOW9))
+    assert (agent["world"], agent["prior_background"], agent["endgame_tau"]) == ("radbench", "10,50,16", 0.9)
+    default = load_config(None)
+    resolve_policies(default)  # the default team: classical controllers, in the grid world
+    assert default.world == "grid" and agent_parameters(default, 0, "infotaxis")["endgame_tau"] == 1.0
+    with pytest.raises(ValueError, match=r"trained in the 'radbench' world.*set world: radbench"):
+        resolve_policies(load_config(None, policy=str(WINDOW9), world="grid"))
+    gridded = make_bundle(tmp_path / "grid.safetensors", 10, grid=20, sensing="realistic")
+    with pytest.raises(ValueError, match=r"trained in the 'grid' world.*set world: grid"):
+        resolve_policies(load_config(None, policy=str(gridded), world="radbench"))
+    wide = make_bundle(tmp_path / "wide.safetensors", 9, grid=20, sensing="realistic", environment={
+        "world": "radbench", "prior_background_low": 5.0, "prior_background_high": 100.0,
+        "prior_background_levels": 16})
+    resolve_policies(load_config(None, policy=str(wide)))  # under its own prior
+    with pytest.raises(ValueError, match=r"background prior 5-100.*prior_background"):
+        resolve_policies(load_config(None, policy=str(wide), prior_background="10,50,16"))
+    with pytest.raises(ValueError, match="set end_on source"):
+        resolve_policies(load_config(None, policy=str(WINDOW9), end_on="declaration"))
+    with pytest.raises(ValueError, match="applies with world radbench only"):
+        resolve_policies(load_config(None, prior_background="10,50,16"))
+    for key, value, said in [("world", "moon", "world in .* must be one of grid, radbench"),
+                             ("prior_background", "10,50", "prior_background in .*LOW,HIGH,LEVELS"),
+                             ("endgame_tau", 1.5, r"endgame_tau must be a number in \(0, 1\]")]:
+        with pytest.raises(ValueError, match=said):
+            load_config(None, **{key: value})

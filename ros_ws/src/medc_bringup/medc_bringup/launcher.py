@@ -88,8 +88,15 @@ class LaunchConfig:
     policy: str = "models/team"
     policies: dict[str, str] = field(default_factory=dict)
     #: Run a bundle trained in another world or with domain randomisation (its manifest's
-    #: environment.world, randomisation options, walls_min, snr_max) in this graph's grid world anyway.
+    #: environment.world, randomisation options, walls_min, snr_max) in this graph's world anyway.
     allow_other_world: bool = False
+    #: The world the simulator and the agents play (grid, radbench); None = the policy bundle's
+    #: manifest's (environment.world; none = grid; a classical controller: grid).
+    world: str | None = None
+    #: The agents' background prior in the radbench world ("LOW,HIGH,LEVELS"; empty: the bundle's).
+    prior_background: str = ""
+    #: The agents' classical endgame (medc_agents.bench_team): the posterior mass that starts it.
+    endgame_tau: float = 1.0
     registry: dict[str, Any] = field(default_factory=lambda: {"enabled": False, "params": {}})
 
 
@@ -122,6 +129,8 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
         ("resolution", (int, float)),
         ("noise", bool),
         ("allow_other_world", bool),
+        ("prior_background", str),
+        ("endgame_tau", (int, float)),
         ("policy", str),
         ("policies", dict),
         ("registry", dict),
@@ -148,8 +157,29 @@ def load_config(path: str | os.PathLike[str] | None = None, **overrides: Any) ->
         if not isinstance(cfg.sensing, str) or cfg.sensing not in SENSING_PRESETS:
             raise ValueError(f"sensing in {path} must be one of {sorted(SENSING_PRESETS)} or null "
                              f"(the policy bundle's), got {cfg.sensing!r}")
+    _check_world_keys(cfg, path)
     cfg.rate_hz, cfg.resolution = float(cfg.rate_hz), float(cfg.resolution)
     return cfg
+
+
+def _check_world_keys(cfg: LaunchConfig, path: Path) -> None:
+    """Check ``world``, ``prior_background`` and ``endgame_tau`` of a launch config read from
+    ``path`` (ValueError saying what each takes)."""
+    from medc_agents.bench_team import WORLDS, check_endgame_tau
+    from medc_training.radbench.physics import background_prior
+
+    if cfg.world is not None and cfg.world not in WORLDS:
+        raise ValueError(f"world in {path} must be one of {', '.join(WORLDS)} or null (the policy bundle's), "
+                         f"got {cfg.world!r}")
+    if cfg.prior_background.strip():
+        try:
+            background_prior(cfg.prior_background)
+        except ValueError as exc:
+            raise ValueError(f"prior_background in {path}: {exc} (empty: the policy bundle's)") from None
+    try:
+        cfg.endgame_tau = check_endgame_tau(cfg.endgame_tau)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (launch config {path})") from None
 
 
 def _absolute(path: str, root: Path) -> Path:
@@ -176,7 +206,7 @@ def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
     from medc_training.bundle import BundleError, manifest_sensing, read_manifest
 
     missing = [k for k in SCENARIO_DEFAULTS if getattr(cfg, k) is None]
-    if not missing and cfg.sensing is not None:
+    if not missing and cfg.sensing is not None and cfg.world is not None:
         return
     if base is None:
         sample = None
@@ -189,12 +219,16 @@ def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
             env = manifest.get("environment") or {}
             if cfg.sensing is None:
                 cfg.sensing = manifest_sensing(manifest)
+            if cfg.world is None:
+                cfg.world = str(env.get("world", "grid"))
         except BundleError as exc:
             raise ValueError(f"policy {sample} is not a valid bundle: {exc}") from exc
     if cfg.sensing is None:
         from medc_training.envs.tl_sensing import DEFAULT_SENSING
 
         cfg.sensing = CONTROLLER_SENSING if base is None else DEFAULT_SENSING
+    if cfg.world is None:
+        cfg.world = "grid"
     defaults = CONTROLLER_DEFAULTS if base is None else SCENARIO_DEFAULTS
     for key in missing:
         value = env.get(key)
@@ -207,8 +241,12 @@ def _complete_scenario(cfg: LaunchConfig, base: Path | None) -> None:
 
 def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
     """Every bundle must take this scenario's observation (the variant its manifest names, on this
-    grid), have been trained under its sensing preset and, unless ``allow_other_world``, in the grid
-    world without domain randomisation, or its agent would refuse it."""
+    grid), have been trained under its sensing preset (in the radbench world: the team model under
+    the agents' background prior) and, unless ``allow_other_world``, in the graph's world without
+    domain randomisation, or its agent would refuse it; the simulator must take the scenario in its
+    world."""
+    from medc_agents.bench_team import team_model
+    from medc_sim.sim_core import SimConfig, check_world_options
     from medc_training.bundle import (
         BundleError,
         check_sensing,
@@ -234,13 +272,23 @@ def _check_fits(cfg: LaunchConfig, paths: list[str]) -> None:
                 f"{obs.get('height')} or use a bundle trained on this grid"
             )
         try:
-            check_sensing(manifest, cfg.sensing, f"policy {path}")
-        except BundleError as exc:  # its message names both presets and what to change
-            raise ValueError(f"{exc} (launch config key sensing)") from exc
-        try:
-            check_world(manifest, "grid", cfg.allow_other_world, f"policy {path}")
+            check_world(manifest, cfg.world, cfg.allow_other_world, f"policy {path}")
         except BundleError as exc:  # its message names the world, the options and the way around
-            raise ValueError(f"{exc} (launch config key allow_other_world)") from exc
+            mine = str((manifest.get("environment") or {}).get("world", "grid"))
+            where = "" if mine == cfg.world else (f"; to simulate its world set world: {mine[:40]} (or null, "
+                                                  "the policy bundle's) in the launch config")
+            raise ValueError(f"{exc} (launch config key allow_other_world){where}") from exc
+        try:
+            check_sensing(manifest, team_model(cfg.world, cfg.sensing, cfg.prior_background, path),
+                          f"policy {path}")
+        except (BundleError, ValueError) as exc:  # its message names both models and what to change
+            raise ValueError(f"{exc} (launch config keys sensing, prior_background)") from exc
+    try:  # what the agents and the simulator would refuse at their start
+        team_model(cfg.world, cfg.sensing, cfg.prior_background, "")
+        check_world_options(SimConfig(agents=cfg.agents, walls=cfg.walls, grid=cfg.grid, sensing=cfg.sensing,
+                                      end_on=cfg.end_on, world=cfg.world))
+    except ValueError as exc:
+        raise ValueError(f"{exc} (launch config)") from None
 
 
 def resolve_policies(cfg: LaunchConfig, root: Path | None = None) -> list[str]:
@@ -319,6 +367,7 @@ def sim_parameters(cfg: LaunchConfig, episodes: int = 0, extra_listeners: int = 
         "noise": cfg.noise,
         # None (resolve_policies not called): the node's default.
         **({} if cfg.sensing is None else {"sensing": cfg.sensing}),
+        **({} if cfg.world is None else {"world": cfg.world}),
         "mode": cfg.mode,
         "end_on": cfg.end_on,
         "rate_hz": cfg.rate_hz,
@@ -341,6 +390,9 @@ def agent_parameters(cfg: LaunchConfig, index: int, policy: str) -> dict[str, An
         # Only a finding that ends the episode lets the team rule out the cells it stood on.
         "source_ends_episode": cfg.end_on != "declaration",
         "allow_other_world": cfg.allow_other_world,
+        **({} if cfg.world is None else {"world": cfg.world}),
+        "prior_background": cfg.prior_background,
+        "endgame_tau": cfg.endgame_tau,
         "policy": policy,
     }
 
