@@ -131,7 +131,6 @@ def test_the_node_decision_cost_plans_with_the_endgame(one_thread, capsys):
     posterior holds, each timed node decision plans; without one none does; ``medc-radbench
     --cost`` measures under the team's model and endgame it is given, and says so."""
     from medc_training.cli.radbench import main as radbench
-
     from medc_training.radbench.cost import decision_cost
     from medc_training.radbench.physics import team_sensing
 
