@@ -301,7 +301,8 @@ def test_bundle_for_one_sensing_preset_is_refused_under_the_other(bundles, tmp_p
 def test_bundle_from_another_world_is_refused_unless_allowed(bundles, tmp_path):
     """A bundle trained in the benchmark's world with domain randomisation (its manifest's
     environment.world and options) is refused by the policy slot and the launcher, the message naming
-    the world and the options, and taken under allow_other_world, which every agent is given."""
+    the world and the options, and taken under allow_other_world, which every agent is given (here in
+    the grid world, set in the config: world null would take the bundle's)."""
     grid, other = bundles["a"], bundles["radbench"]
     said = "trained in the 'radbench' world with transmission_max=0.3, walls_min=2, but it is about to run"
     slot = PolicySlot((5, 10, 10), 8)
@@ -318,7 +319,7 @@ def test_bundle_from_another_world_is_refused_unless_allowed(bundles, tmp_path):
     with pytest.raises(ValueError, match=said):
         resolve_policies(load_config(None, policy=str(grid), policies={"agent_2": str(other)}))
     config = tmp_path / "launch.yaml"
-    config.write_text(f"policy: {other}\nallow_other_world: true\n")
+    config.write_text(f"policy: {other}\nallow_other_world: true\nworld: grid\n")
     cfg = load_config(config)
     assert resolve_policies(cfg) == [str(other)] * 3
     assert agent_parameters(cfg, 0, str(other))["allow_other_world"] is True
