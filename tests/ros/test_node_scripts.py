@@ -33,6 +33,10 @@ RANDOMISED = str(Path(__file__).resolve().parents[2] / "docs" / "reproduction" /
          "trained under the sensing model 'paper-simple', but this team senses with 'realistic'"),
         ("medc-agent", [f"policy:={RANDOMISED}", "sensing:=realistic"],
          "trained in the 'radbench' world with transmission_max=0.3, efficiency_spread=0.3"),
+        # The benchmark's world: what does not apply there is refused, saying what to set.
+        ("medc-sim", ["world:=radbench", "sensing:=realistic", "grid:=25"], "grids of 20 or 30 cells"),
+        ("medc-agent", [f"policy:={TEAM}", "world:=radbench"], "set sensing realistic"),
+        ("medc-agent", [f"policy:={TEAM}", "endgame_tau:=1.5"], "endgame_tau must be a number in (0, 1]"),
     ],
 )
 def test_bad_parameter_is_refused_clearly(script, params, message):
