@@ -144,15 +144,20 @@ def check_scenario_size(agents: int, grid: int) -> None:
                                  f"(MAX_BUNDLE_{key.upper()}); pass -p {key}:=<n> with n <= {most}")
 
 
+def endgame_words(tau: float) -> str:
+    """What the log lines of the running policy add for the classical endgame (empty when off)."""
+    if tau >= 1.0:
+        return ""
+    return f"; classical endgame on at tau {tau:g} (a shortest path once the posterior's mode holds it)"
+
+
 def running_words(slot, observer, num_agents: int, grid: int, prm: AgentParameters) -> str:
     """The log line that says which policy an agent runs, on what, in which world, and whether the
     classical endgame is on."""
-    endgame = "" if prm.endgame_tau >= 1.0 else (
-        f"; classical endgame on at tau {prm.endgame_tau:g} (a shortest path once the posterior's mode "
-        "holds it)")
     return (f"running policy {slot.current.description} for {observer.agent_id} of {num_agents} agents on "
             f"a {grid}x{grid} grid (observation {observer.observation.name}), sensing "
-            f"{model_words(observer.sensing)}, {prm.world} world{slot.runs_in()}{endgame}")
+            f"{model_words(observer.sensing)}, {prm.world} world{slot.runs_in()}"
+            f"{endgame_words(prm.endgame_tau)}")
 
 
 def default_node_name(agent_id: str | None) -> str:
@@ -463,13 +468,12 @@ class AgentNode(Node):
         self.bridge_service = contract.team_name(self.names_ns, prm.bridge_service)
         self.stall_timeout_s = prm.stall_timeout_s
         #: Readings are Poisson counts (what the gradient controller's flatness test assumes).
-        self.noise = prm.noise
+        self.noise, self.endgame_tau = prm.noise, prm.endgame_tau  # and the classical endgame's tau
         application, initial = prm.application, prm.policy
         observation = explicit_observation = prm.observation
         num_agents, grid, observation = scenario_from_bundle(
             initial, prm.agents, prm.grid, observation, application or None)
-        sensing = team_model(prm.world, prm.sensing, prm.prior_background, initial)  # the preset's, or
-        self.endgame_tau = prm.endgame_tau  # the benchmark world's team model (medc_agents.bench_team)
+        sensing = team_model(prm.world, prm.sensing, prm.prior_background, initial)  # or the benchmark's
         # A one-observation forward pass is far too small to gain from threads; contention costs ms.
         torch.set_num_threads(max(1, prm.threads))
         self.observer = TeamObserver(self.agent_id, num_agents, grid, prm.resolution,
@@ -487,9 +491,10 @@ class AgentNode(Node):
                                allow_other_world=prm.allow_other_world, runtime=prm.runtime, world=prm.world)
         #: Messages dropped as invalid, by kind (pose, radiation, map, status, policy).
         self.dropped_by: Counter[str] = Counter()
-        self.old_statuses = OldStatuses(self.get_logger(), self.dropped_by, OLD_STATUS_SUMMARY_S)
-        fetch = BridgeFetch(self.create_client, self.bridge_service, self.agent_id, self.get_logger())
-        self.swaps = PolicySwaps(self.slot, self.observer, self.get_logger(), self.dropped_by, fetch)
+        log, note = self.get_logger(), endgame_words(prm.endgame_tau)
+        self.old_statuses = OldStatuses(log, self.dropped_by, OLD_STATUS_SUMMARY_S)
+        fetch = BridgeFetch(self.create_client, self.bridge_service, self.agent_id, log)
+        self.swaps = PolicySwaps(self.slot, self.observer, log, self.dropped_by, fetch, note)
         #: Called with (source, None) after each swap and (source, reason) after each refusal.
         self.swap_listeners = self.swaps.listeners
 

@@ -55,15 +55,18 @@ class PolicySwaps:
     """The policy swaps of one agent: each source is validated by ``slot``; the observer then takes
     the slot's observation; a refusal is logged and the running policy keeps running."""
 
-    def __init__(self, slot, observer, logger, dropped_by: Counter, fetch: Callable[[str], None]) -> None:
+    def __init__(self, slot, observer, logger, dropped_by: Counter, fetch: Callable[[str], None],
+                 note: str = "") -> None:
         """``slot``: the agent's PolicySlot; ``observer``: its TeamObserver; ``dropped_by``: its count
         of dropped messages by kind (a refused policy message adds 'policy'); ``fetch``: asks for a
-        bundle by content id (raises PolicyRejected when it cannot)."""
+        bundle by content id (raises PolicyRejected when it cannot); ``note``: what the log line of
+        a swap adds (the classical endgame, when it is on)."""
         self.slot = slot
         self.observer = observer
         self.logger = logger
         self.dropped_by = dropped_by
         self.fetch = fetch
+        self.note = note
         #: Called with (source, None) after each swap and (source, reason) after each refusal.
         self.listeners: list[Callable[[str, str | None], None]] = []
 
@@ -87,7 +90,7 @@ class PolicySwaps:
         loaded = self.slot.swap(source)
         self.observer.use_observation(self.slot.observation)
         self.logger.info(f"now running policy {loaded.description} "
-                         f"(observation {self.observer.observation.name}){self.slot.runs_in()}")
+                         f"(observation {self.observer.observation.name}){self.slot.runs_in()}{self.note}")
         for listener in self.listeners:
             listener(source, None)
         return loaded.description
