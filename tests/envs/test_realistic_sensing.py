@@ -61,6 +61,12 @@ def test_wall_rectangles_recover_every_segment() -> None:
     assert got0 == [(0.5, 1.5, 1.5, 5.5), (4.5, 7.5, 8.5, 8.5)]
     got1 = [tuple(r) for r in rects[1].tolist() if r[2] > r[0]]
     assert got1 == [(2.5, -0.5, 4.5, 0.5)]
+    # More slots than a small map has cells: the segments, then empty slots.
+    tiny = torch.zeros((1, 2, 2), dtype=torch.bool)
+    tiny[0, 0, :] = True
+    roomy = wall_rectangles(tiny, 6)
+    assert roomy.shape == (1, 6, 4)
+    assert [tuple(r) for r in roomy[0].tolist() if r[2] > r[0]] == [(-0.5, -0.5, 0.5, 1.5)]
 
 
 def test_the_core_draws_strength_and_background_per_episode_and_always_counts_poisson() -> None:

@@ -236,6 +236,13 @@ def test_a_malformed_set_file_says_what_is_wrong(tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(SetFileError, match=r"set obs0-low: malformed episode: a cell is \[row, col\]"):
         load_file(path)
+    doc = json.loads((SETS_DIR / "g20-a1.json").read_text())
+    two = next(s for s in doc["sets"] if s["obstructions"] == 2)
+    first = two["episodes"][0]["obs"][0]
+    two["episodes"][0]["obs"][1] = [first[2] + 1, first[1], first[2] + 2, first[3]]  # right below it
+    path.write_text(json.dumps(doc))
+    with pytest.raises(SetFileError, match=r"touch or overlap: .* keep at least one free cell"):
+        load_file(path)
     path.write_text("{not json")
     with pytest.raises(SetFileError, match="is not JSON"):
         load_file(path)

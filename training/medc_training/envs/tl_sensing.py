@@ -508,7 +508,9 @@ def wall_rectangles(walls: torch.Tensor, most: int | None = None) -> torch.Tenso
     dr = down_run.flatten(1).gather(1, order).float()
     dc = right_run.flatten(1).gather(1, order).float()
     found = torch.stack((r0 - 0.5, c0 - 0.5, r0 + dr - 0.5, c0 + dc - 0.5), -1)
-    return torch.where(valid.unsqueeze(-1), found, rects)
+    k = order.shape[1]  # most, or every cell of a map smaller than that
+    rects[:, :k] = torch.where(valid.unsqueeze(-1), found, rects[:, :k])
+    return rects
 
 
 def _run_length(walls: torch.Tensor) -> torch.Tensor:

@@ -260,6 +260,13 @@ class Episode:
             raise ValueError(f"episode seed must be an integer in 0..2**63-1, got {seed!r}")
         if not starts:
             raise ValueError("an episode needs at least one start")
+        for i, a in enumerate(obstructions):
+            for b in obstructions[i + 1:]:
+                if _touch(a, b):
+                    raise ValueError(f"obstructions {list(a)} and {list(b)} touch or overlap: the "
+                                     "benchmark's layouts keep at least one free cell between two (diagonals "
+                                     "included), which its line-of-sight rule relies on; merge them into one "
+                                     "or move one")
         return cls(source, float(strength), background, starts, obstructions, seed)
 
 
