@@ -37,7 +37,7 @@ def test_tau_one_is_the_team_alone_and_a_lower_tau_plans_the_end(sets_file, one_
         assert all(r.success for r in play_set(s, planner))
         assert 0 < planner.planned < planner.decisions
     for tau in (0.0, 1.5, -1.0):
-        with pytest.raises(ValueError, match="tau must be in"):
+        with pytest.raises(ValueError, match="tau must be a number in"):
             Endgame(bundle, tau)
 
 
@@ -143,7 +143,7 @@ def test_the_node_decision_cost_plans_with_the_endgame(one_thread, capsys):
     assert "endgame_decisions" not in alone and alone["node_ms_p50"] > 0
     never = decision_cost(s, bundle, batch=2, steps=1, node_steps=3, endgame=1.0)
     assert never["endgame_decisions"] == 0 and "endgame_ms_p50" not in never
-    with pytest.raises(ValueError, match="tau must be in"):
+    with pytest.raises(ValueError, match="tau must be a number in"):
         decision_cost(s, bundle, batch=2, steps=1, node_steps=3, endgame=0.0)
     assert radbench(["--cost", str(TEAM), "--agents", "3", "--batch", "2", "--prior-background", "10,50,16",
                      "--endgame", "0.9"]) == 0

@@ -46,18 +46,17 @@ def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto",
     """A callable doing one agent node's decision work on ``core`` (B = 1) for its last agent, a
     bundle's network run in ``runtime`` (:mod:`medc_training.bundle.runtime`), or, with ``endgame``
     (a tau), a shortest path towards the posterior's mode once it holds tau of the mass and the agent
-    can reach its success region (:func:`~medc_training.radbench.endgame.planned_costs`); the
-    callable returns whether it planned. None for random moves."""
+    can reach its success region (:func:`~medc_training.radbench.endgame.agent_move`, the agent
+    nodes' own decision); the callable returns whether it planned. None for random moves."""
     from medc_training.controllers import CONTROLLERS, COORDINATED, controller_scores
 
     n = core.num_agents
     if bundle is not None:
         from medc_training.bundle.runtime import decider
 
-        from .endgame import planned_costs
+        from .endgame import agent_move
 
         runner = decider(bundle, runtime)
-        last = slice(n - 1, n)
 
         def forward(obs: torch.Tensor, mask: torch.Tensor) -> bool:
             # The node's steps: with an endgame, whether the posterior the step left holds tau on its
@@ -65,12 +64,10 @@ def _node_call(policy: Any, bundle: Any, core: BenchCore, runtime: str = "auto",
             # team memory (its source maps from that posterior; the agent's own window), then its
             # greedy move from the network in the node's runtime.
             with torch.no_grad():
-                if endgame is not None and endgame < 1.0:
-                    _, cost = planned_costs(core.memory.posterior(), core.walls, core.positions[:, last],
-                                            core.sensing, endgame)
-                    if cost is not None and bool(cost.isfinite().any()):
-                        int(cost.flatten().argmin())  # the planned move
-                        return True
+                if endgame is not None and agent_move(core.memory.posterior(), core.walls, core.positions,
+                                                      core.sensing, endgame, n - 1,
+                                                      core.mask[0, n - 1]) is not None:
+                    return True
                 view = core.memory.observe_agent(core.positions, core.walls, n - 1)
                 runner.act(view, core.mask[:, n - 1])
             return False
@@ -113,11 +110,11 @@ def decision_cost(bench_set: BenchSet, policy: Any, *, batch: int, steps: int = 
     ``endgame_ms_p50/p99`` their cost; the batched figures are the network's alone)."""
     from medc_training import searchers
 
-    from .endgame import Endgame
+    from .endgame import check_tau
 
     bundle, observation = resolve_policy(policy)
     if endgame is not None and bundle is not None:
-        Endgame(bundle, endgame)  # tau checked
+        check_tau(endgame)
     out: dict[str, Any] = {"batch": batch, "agents": bench_set.agents, "grid": bench_set.grid}
     for label, b, count in (("b1", 1, node_steps), (f"b{batch}", batch, steps)):
         idx = [i % len(bench_set.episodes) for i in range(b)]

@@ -27,7 +27,14 @@ import torch
 
 from .oracle import move_costs, success_field
 
-__all__ = ["Endgame", "planned_costs"]
+__all__ = ["Endgame", "agent_move", "check_tau", "planned_costs"]
+
+
+def check_tau(tau: Any, what: str = "the endgame's tau") -> float:
+    """``tau`` as a float in (0, 1] (1: never plan); ValueError naming it as ``what`` otherwise."""
+    if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0.0 < tau <= 1.0:
+        raise ValueError(f"{what} must be a number in (0, 1] (1: never plan), got {tau!r}")
+    return float(tau)
 
 
 def planned_costs(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor, sensing: Any,
@@ -46,6 +53,32 @@ def planned_costs(posterior: torch.Tensor, walls: torch.Tensor, positions: torch
     return rows, move_costs(walls[rows], success_field(walls[rows], mode, sensing), positions[rows])
 
 
+def _move_scores(cost: torch.Tensor) -> torch.Tensor:
+    """Scores whose greedy choice is a move with the fewest moves left (``cost`` [..., 8]; a move not
+    allowed or with no way there scores lowest)."""
+    return torch.where(cost.isfinite(), -cost, -1e9)
+
+
+def agent_move(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor, sensing: Any,
+               tau: float, agent: int, mask: torch.Tensor) -> int | None:
+    """One agent's endgame move in one episode (``posterior`` [1,G²], ``walls`` [1,G,G], the team at
+    ``positions`` [1,N,2]; ``mask`` bool [8]: the agent's allowed moves), as an agent node decides it:
+    the first allowed move with the fewest moves left, the evaluator's greedy choice over
+    :func:`_move_scores`; None when ``tau`` >= 1, the posterior's mode holds less than ``tau`` or
+    agent ``agent`` cannot reach the mode's success region."""
+    if tau >= 1.0:
+        return None
+    from medc_training.nets import masked_logits
+
+    _, cost = planned_costs(posterior, walls, positions, sensing, tau)
+    if cost is None:
+        return None
+    own = cost[0, agent]  # [8]
+    if not bool(own.isfinite().any()):
+        return None
+    return int(masked_logits(_move_scores(own).unsqueeze(0), mask.unsqueeze(0)).argmax(-1)[0])
+
+
 class Endgame:
     """A play factory (:func:`~medc_training.radbench.play.play_set` takes it as a policy): the
     bundle's moves, and shortest-path moves towards the posterior's mode once it holds ``tau``.
@@ -53,9 +86,7 @@ class Endgame:
     took, of ``decisions`` (every agent's, while its episode runs or not)."""
 
     def __init__(self, bundle: Any, tau: float) -> None:
-        if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0.0 < tau <= 1.0:
-            raise ValueError(f"the endgame's tau must be in (0, 1] (1: never plan), got {tau!r}")
-        self.bundle, self.tau = bundle, float(tau)
+        self.bundle, self.tau = bundle, check_tau(tau)
         self.observation = bundle.observation or "maps"
         self.planned = self.decisions = 0
 
@@ -77,7 +108,7 @@ class Endgame:
                 return logits
             reach = cost.isfinite().any(-1, keepdim=True)  # [R, N, 1]
             out = logits.view(-1, n, logits.shape[-1]).clone()
-            out[rows] = torch.where(reach, torch.where(cost.isfinite(), -cost, -1e9), out[rows])
+            out[rows] = torch.where(reach, _move_scores(cost), out[rows])
             self.planned += int(reach.sum())
             return out.view(-1, logits.shape[-1])
 

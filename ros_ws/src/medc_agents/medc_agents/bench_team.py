@@ -33,10 +33,10 @@ def check_world(world: object) -> str:
 
 
 def check_endgame_tau(tau: object) -> float:
-    """``tau`` as a float in (0, 1] (1: never plan); ValueError saying so."""
-    if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0.0 < float(tau) <= 1.0:
-        raise ValueError(f"endgame_tau must be a number in (0, 1] (1.0: never plan), got {tau!r}")
-    return float(tau)
+    """``tau`` as a float in (0, 1] (1: never plan); ValueError naming the parameter otherwise."""
+    from medc_training.radbench.endgame import check_tau
+
+    return check_tau(tau, "endgame_tau")
 
 
 def team_model(world: str, sensing: str, prior_background: str, policy: str):
@@ -104,19 +104,9 @@ def endgame_move(observer, tau: float, mask: torch.Tensor) -> int | None:
     """This agent's endgame move on its team state (``observer``: a TeamObserver after
     ``observe()``), or None when the endgame does not plan it: ``tau`` >= 1, the posterior's mode holds
     less than ``tau``, or this agent cannot reach the mode's success region. ``mask`` bool [8]: this
-    agent's move mask. The move is the greedy choice the evaluator makes over the planner's costs:
-    the first allowed move with the fewest moves left."""
-    if tau >= 1.0:
-        return None
-    from medc_training.nets import masked_logits
-    from medc_training.radbench.endgame import planned_costs
+    agent's move mask. The move is :func:`medc_training.radbench.endgame.agent_move`'s: the first
+    allowed move with the fewest moves left."""
+    from medc_training.radbench.endgame import agent_move
 
-    posterior = observer.memory.posterior()
-    _, cost = planned_costs(posterior, observer.walls, observer.positions, observer.sensing, tau)
-    if cost is None:
-        return None
-    own = cost[0, observer.index]  # [8]
-    if not bool(own.isfinite().any()):
-        return None
-    scores = torch.where(own.isfinite(), -own, -1e9)
-    return int(masked_logits(scores.unsqueeze(0), mask.unsqueeze(0)).argmax(-1)[0])
+    return agent_move(observer.memory.posterior(), observer.walls, observer.positions, observer.sensing, tau,
+                      observer.index, mask)
