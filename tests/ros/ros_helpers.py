@@ -58,6 +58,21 @@ def feed_step(observers, core, stamp, map_stamp, ids, geometry) -> None:
         o.add_status(messages.status_msg(ids, core.episode, core.step, stamp, map_stamp))
 
 
+def observe_as_reference(observers, ref_obs, ref_mask, gen) -> list[int]:
+    """Check that every observer is ready and observes, bit for bit, its row of the reference
+    environment's observation ``ref_obs`` [1,N,...] and move mask ``ref_mask`` [1,N,A]; return one
+    random valid move per agent (drawn from ``gen``)."""
+    import torch
+
+    actions = []
+    for i, o in enumerate(observers):
+        assert o.ready()
+        obs, mask, _ = o.observe()
+        assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
+        actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
+    return actions
+
+
 def reference_episodes(
     bundle: Path, episodes: int, *, seed: int, agents: int, walls: int, grid: int, max_steps: int,
     sensing: str | None = None,

@@ -30,6 +30,7 @@ from medc_training.radbench.physics import PRIOR_OPTIONS, background_prior, team
 from medc_training.radbench.play import BenchCore
 from medc_training.radbench.scenario import generate_set
 from medc_training.radbench.sets import BenchSet
+from ros_helpers import observe_as_reference
 
 RADBENCH = dict(world="radbench", agents=3, walls=7, grid=20, max_steps=120, sensing="realistic", seed=3)
 
@@ -152,12 +153,7 @@ def test_agent_observation_in_the_benchmarks_world_equals_the_training_worlds(ob
             for o in observers:
                 o.add_map(messages.grid_msg(core.walls(), map_stamp, 1.0))
         _feed(observers, core.env.state(0), core.episode, Time(sec=sec), map_stamp, geometry)
-        actions = []
-        for i, o in enumerate(observers):
-            assert o.ready()
-            obs, mask, _ = o.observe()
-            assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
-            actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
+        actions = observe_as_reference(observers, ref_obs, ref_mask, gen)
         result = core.advance(actions)
         out = ref.step(torch.tensor([actions]))
         ref_obs, ref_mask = out.obs, out.mask

@@ -21,7 +21,7 @@ from medc_sim.moves import MoveBook, MoveRejected
 from medc_sim.sim_core import SimConfig, SimCore
 from medc_training.envs import make_batched
 from medc_training.envs.grid import ACTIONS
-from ros_helpers import feed_step
+from ros_helpers import feed_step, observe_as_reference
 
 IDS = ["agent_0", "agent_1", "agent_2"]
 GEO10 = GridGeometry(10, 10, 1.0)
@@ -71,12 +71,7 @@ def _play_observation_parity(noise, observation, walls, sensing=None):
             for o in observers:
                 o.add_map(messages.grid_msg(core.walls(), map_stamp, 1.0))
         feed_step(observers, core, Time(sec=sec), map_stamp, IDS, GEO10)
-        actions = []
-        for i, o in enumerate(observers):
-            assert o.ready()
-            obs, mask, _ = o.observe()
-            assert torch.equal(obs, ref_obs[0, i]) and torch.equal(mask, ref_mask[0, i])
-            actions.append(int(torch.rand(8, generator=gen).masked_fill(~mask, -1).argmax()))
+        actions = observe_as_reference(observers, ref_obs, ref_mask, gen)
         target = core.target()
         # Every move is valid (masked), so this is where the agents stand after it.
         moved = [(r + ACTIONS[a][0], c + ACTIONS[a][1]) for (r, c), a in zip(core.positions(), actions)]
