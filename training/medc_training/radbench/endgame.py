@@ -1,18 +1,28 @@
 """A learned team with a classical endgame: a probe of where the team's moves go.
 
-Until the team's source posterior holds at least ``tau`` of its mass on one cell, the bundle
-decides every move; from then on every agent that can reach that cell's success region walks a
-shortest path towards it through free cells, by the world's own moves (the oracle's
-:func:`~medc_training.radbench.oracle.success_field` and :func:`~medc_training.radbench.oracle.
-move_costs`, with the posterior's mode in place of the source), and the bundle decides again as soon
-as the mode holds less (a wrong mode is left when the readings there say so). ``tau`` = 1 never
-plans: the team alone. The team's memory is the one its observations are built from, so nothing
-the endgame reads is hidden from the team.
+Until the team's source posterior says where to stand with probability ``tau``, the bundle decides
+every move; from then on every agent that can reach such a place walks a shortest path towards it
+through free cells, by the world's own moves (the oracle's :func:`~medc_training.radbench.oracle.
+move_costs` over a breadth-first field), and the bundle decides again as soon as the posterior says
+less (a wrong place is left when the readings there say so). Two triggers (:data:`TRIGGERS`):
 
-    python -m medc_training.radbench.endgame BUNDLE --tau 0.9 --sets-file F --out E.episodes.jsonl
+- ``mode`` (the default): the posterior's mode holds at least ``tau`` of its mass; the places are
+  the mode's success region (:func:`~medc_training.radbench.oracle.success_field` with the mode in
+  place of the source).
+- ``region``: some free cell has at least ``tau`` of the mass within its success radius (the
+  probability that an agent standing there has found the source); the places are every such cell.
+  A mode holding ``tau`` makes its whole success region such places, so this trigger plans wherever
+  ``mode`` does, and earlier where the mass is spread over a few neighbouring cells.
 
-writes ``medc-radbench`` episode lines (policy ``<bundle's folder>+endgame<tau>``), which
-``python -m medc_training.radbench.pairing`` pairs with the bundle's own lines on the same episodes.
+``tau`` = 1 never plans: the team alone. The team's memory is the one its observations are built
+from, so nothing the endgame reads is hidden from the team.
+
+    python -m medc_training.radbench.endgame BUNDLE --tau 0.9 [--trigger region] --sets-file F \
+        --out E.episodes.jsonl
+
+writes ``medc-radbench`` episode lines (policy ``<bundle's folder>+endgame<tau>``, ``-region`` added
+under that trigger), which ``python -m medc_training.radbench.pairing`` pairs with the bundle's own
+lines on the same episodes.
 """
 
 from __future__ import annotations
@@ -25,9 +35,15 @@ from typing import Any
 
 import torch
 
+from medc_training.envs.grid import bfs_distance
+
 from .oracle import move_costs, success_field
 
-__all__ = ["Endgame", "agent_move", "check_tau", "planned_costs"]
+__all__ = ["TRIGGERS", "Endgame", "agent_move", "check_tau", "check_trigger", "planned_costs",
+           "standing_mass"]
+
+#: What starts the endgame (module docstring).
+TRIGGERS: tuple[str, ...] = ("mode", "region")
 
 
 def check_tau(tau: Any, what: str = "the endgame's tau") -> float:
@@ -37,13 +53,41 @@ def check_tau(tau: Any, what: str = "the endgame's tau") -> float:
     return float(tau)
 
 
+def check_trigger(trigger: Any, what: str = "the endgame's trigger") -> str:
+    """``trigger`` if it is one of :data:`TRIGGERS`; ValueError naming it as ``what`` otherwise."""
+    if trigger not in TRIGGERS:
+        raise ValueError(f"{what} must be one of {', '.join(TRIGGERS)}, got {trigger!r}")
+    return trigger
+
+
+def standing_mass(posterior: torch.Tensor, walls: torch.Tensor, sensing: Any) -> torch.Tensor:
+    """float32 [B,G,G]: per free cell of ``walls`` bool [B,G,G], the mass of ``posterior`` float32
+    [B,G²] within ``sensing``'s success radius of it (the probability that an agent standing there
+    has found the source); 0 on walls."""
+    b, g = walls.shape[0], walls.shape[-1]
+    r = int(sensing.success_radius)
+    offsets = torch.arange(-r, r + 1, device=walls.device)
+    d2 = offsets.view(-1, 1) ** 2 + offsets.view(1, -1) ** 2
+    kernel = sensing.within_reach(d2).to(posterior.dtype).view(1, 1, 2 * r + 1, 2 * r + 1)
+    mass = torch.nn.functional.conv2d(posterior.view(b, 1, g, g), kernel, padding=r).view(b, g, g)
+    return mass.masked_fill(walls, 0.0)
+
+
 def planned_costs(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor, sensing: Any,
-                  tau: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+                  tau: float, trigger: str = "mode") -> tuple[torch.Tensor, torch.Tensor | None]:
     """Where the endgame plans, and what: (rows int64 [R], the episodes whose ``posterior`` float32
-    [B,G²] holds at least ``tau`` of its mass on one cell; cost float32 [R,N,8], per agent at
-    ``positions`` int64 [B,N,2] and move, the fewest moves to the success region (``sensing``'s
-    radius) of that cell through the free cells of ``walls`` bool [B,G,G], inf for a move not allowed
-    or with no way there; None when R = 0)."""
+    [B,G²] starts the endgame under ``trigger`` (module docstring); cost float32 [R,N,8], per agent
+    at ``positions`` int64 [B,N,2] and move, the fewest moves to the trigger's places through the
+    free cells of ``walls`` bool [B,G,G], inf for a move not allowed or with no way there; None when
+    R = 0)."""
+    if trigger == "region":
+        mass = standing_mass(posterior, walls, sensing)
+        rows = (mass.flatten(1).amax(1) >= tau).nonzero().squeeze(1)
+        if rows.numel() == 0:
+            return rows, None
+        free = ~walls[rows]
+        field = bfs_distance(free, free & (mass[rows] >= tau))
+        return rows, move_costs(walls[rows], field, positions[rows])
     top, cell = posterior.max(1)
     rows = (top >= tau).nonzero().squeeze(1)
     if rows.numel() == 0:
@@ -60,17 +104,17 @@ def _move_scores(cost: torch.Tensor) -> torch.Tensor:
 
 
 def agent_move(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Tensor, sensing: Any,
-               tau: float, agent: int, mask: torch.Tensor) -> int | None:
+               tau: float, agent: int, mask: torch.Tensor, trigger: str = "mode") -> int | None:
     """One agent's endgame move in one episode (``posterior`` [1,G²], ``walls`` [1,G,G], the team at
     ``positions`` [1,N,2]; ``mask`` bool [8]: the agent's allowed moves), as an agent node decides it:
     the first allowed move with the fewest moves left, the evaluator's greedy choice over
-    :func:`_move_scores`; None when ``tau`` >= 1, the posterior's mode holds less than ``tau`` or
-    agent ``agent`` cannot reach the mode's success region."""
+    :func:`_move_scores`; None when ``tau`` >= 1, the posterior does not start the endgame under
+    ``trigger`` or agent ``agent`` cannot reach the trigger's places."""
     if tau >= 1.0:
         return None
     from medc_training.nets import masked_logits
 
-    _, cost = planned_costs(posterior, walls, positions, sensing, tau)
+    _, cost = planned_costs(posterior, walls, positions, sensing, tau, trigger)
     if cost is None:
         return None
     own = cost[0, agent]  # [8]
@@ -81,12 +125,13 @@ def agent_move(posterior: torch.Tensor, walls: torch.Tensor, positions: torch.Te
 
 class Endgame:
     """A play factory (:func:`~medc_training.radbench.play.play_set` takes it as a policy): the
-    bundle's moves, and shortest-path moves towards the posterior's mode once it holds ``tau``.
-    ``observation``: the bundle's, which the core makes; ``planned``: agent decisions the endgame
-    took, of ``decisions`` (every agent's, while its episode runs or not)."""
+    bundle's moves, and shortest-path moves to where the posterior says to stand once it says so
+    with probability ``tau`` under ``trigger`` (module docstring). ``observation``: the bundle's,
+    which the core makes; ``planned``: agent decisions the endgame took, of ``decisions`` (every
+    agent's, while its episode runs or not)."""
 
-    def __init__(self, bundle: Any, tau: float) -> None:
-        self.bundle, self.tau = bundle, check_tau(tau)
+    def __init__(self, bundle: Any, tau: float, trigger: str = "mode") -> None:
+        self.bundle, self.tau, self.trigger = bundle, check_tau(tau), check_trigger(trigger)
         self.observation = bundle.observation or "maps"
         self.planned = self.decisions = 0
 
@@ -103,7 +148,7 @@ class Endgame:
             if self.tau >= 1.0:
                 return logits
             rows, cost = planned_costs(core.memory.posterior(), core.walls, core.positions, core.sensing,
-                                       self.tau)
+                                       self.tau, self.trigger)
             if cost is None:
                 return logits
             reach = cost.isfinite().any(-1, keepdim=True)  # [R, N, 1]
@@ -127,7 +172,10 @@ def main(argv: list[str] | None = None) -> int:
                                 description=__doc__.split("\n\n")[0])
     p.add_argument("bundle", help="the team's policy bundle")
     p.add_argument("--tau", type=float, required=True,
-                   help="the posterior mass on its mode that starts the endgame (1: never)")
+                   help="the posterior mass that starts the endgame (1: never)")
+    p.add_argument("--trigger", choices=TRIGGERS, default="mode",
+                   help="mode: the mass on the posterior's mode; region: the mass within the success "
+                        "radius of a free cell (default: mode)")
     add_set_arguments(p, obstructions=True)
     p.add_argument("--prior-background", metavar="LOW,HIGH,LEVELS",
                    help="the team's estimator weighs this background prior (as medc-radbench takes it)")
@@ -138,10 +186,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sets = sets_from_args(args)
         bundle = _bundle(args.bundle)
-        policy = Endgame(bundle, args.tau)
+        policy = Endgame(bundle, args.tau, args.trigger)
         sensing = policy_sensing(bundle, None if args.prior_background is None
                                  else team_sensing(args.prior_background))
-        name = f"{Path(args.bundle).parent.name}+endgame{args.tau:g}"
+        name = f"{Path(args.bundle).parent.name}+endgame{args.tau:g}" + (
+            "" if args.trigger == "mode" else f"-{args.trigger}")
         target = check_output(args.out, overwrite=args.overwrite)
         lengths = []
         with AtomicOutput(target, overwrite=args.overwrite) as out:
