@@ -259,6 +259,21 @@ def test_a_head_of_a_set_is_balanced_over_the_snr_subbins():
         assert edges[i % 4] < max(e.snrs()) <= edges[i % 4 + 1]
 
 
+def test_a_part_of_a_set_keeps_each_episodes_index_and_says_which_it_is():
+    (s,) = load_sets(20, 3, obstructions=[7], snrs=["high"])
+    part = s.part(40, 60)
+    assert part.id == "obs7-high[40:100]" and part.episodes == s.episodes[40:100]
+    assert part.first == 40 and part.sha256 == s.sha256
+    assert s.part(0, 12).id == s.head(12).id == "obs7-high[:12]" and s.part(0) is s
+    assert s.part(190).id == "obs7-high[190:200]" and len(s.part(190, 50).episodes) == 10
+    for bad, message in (((200, 4), "first episode must be 0..199"), ((-1, 4), "first episode"),
+                         ((4, 0), "at least one episode")):
+        with pytest.raises(ValueError, match=message):
+            s.part(*bad)
+    with pytest.raises(ValueError, match="already a part"):
+        part.part(0, 4)
+
+
 # ------------------------------------------------------------------ metrics
 
 

@@ -66,6 +66,58 @@ def test_the_endgame_walks_each_agent_a_shortest_path_to_the_mode(sets_file, mon
     assert torch.equal(scores[1], own.view(2, n, -1)[1])
 
 
+def test_the_standing_mass_is_the_posterior_within_the_success_radius():
+    """Per free cell, the mass within the success radius (1.1 cells: the cell and its four
+    neighbours), summed by hand; 0 on walls."""
+    from medc_training.radbench.endgame import standing_mass
+    from medc_training.radbench.physics import TEAM_SENSING
+
+    g = 6
+    walls = torch.zeros(1, g, g, dtype=torch.bool)
+    walls[0, 0, :3] = True
+    p = torch.rand(1, g * g, generator=torch.Generator().manual_seed(3))
+    p = p / p.sum()
+    mass = standing_mass(p, walls, TEAM_SENSING)[0]
+    grid = p.view(g, g)
+    for r in range(g):
+        for c in range(g):
+            want = sum(float(grid[r + dr, c + dc]) for dr, dc in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1))
+                       if 0 <= r + dr < g and 0 <= c + dc < g)
+            assert mass[r, c].item() == pytest.approx(0.0 if walls[0, r, c] else want, abs=1e-6)
+
+
+def test_the_region_trigger_plans_where_the_mode_does_and_where_the_mass_is_spread():
+    """Where the mode holds tau (> 0.5) the region trigger's places are the mode's success region,
+    so both give the same costs; where tau of the mass lies on two neighbouring cells only the
+    region trigger plans, towards the cells from which both are within reach; a bad trigger is
+    refused."""
+    from medc_training.radbench.endgame import planned_costs
+    from medc_training.radbench.physics import TEAM_SENSING
+
+    g = 12
+    walls = torch.zeros(2, g, g, dtype=torch.bool)
+    walls[:, 4, 2:9] = True
+    p = torch.full((2, g * g), 1e-5)
+    p[0, 8 * g + 6] = 1.0
+    p[1, 8 * g + 6] = p[1, 8 * g + 7] = 0.5
+    p = p / p.sum(1, keepdim=True)
+    positions = torch.tensor([[[0, 0], [11, 11], [2, 6]]] * 2)
+    rows, mode_cost = planned_costs(p, walls, positions, TEAM_SENSING, 0.9, "mode")
+    assert rows.tolist() == [0]
+    rows, region_cost = planned_costs(p, walls, positions, TEAM_SENSING, 0.9, "region")
+    assert rows.tolist() == [0, 1] and torch.equal(region_cost[0], mode_cost[0])
+    both = torch.tensor([[8, 6], [8, 7]])  # the only cells with both within 1.1 cells
+    field = success_field(walls[1:].expand(2, g, g), both, TEAM_SENSING)
+    goal = (field == 0).all(0)
+    assert goal.sum() == 2 and goal[8, 6] and goal[8, 7]
+    from medc_training.envs.grid import bfs_distance
+
+    want = move_costs(walls[1:], bfs_distance(~walls[1:], goal.unsqueeze(0)), positions[1:])
+    assert torch.equal(region_cost[1], want[0])
+    with pytest.raises(ValueError, match="trigger must be one of mode, region"):
+        Endgame(load_bundle(TEAM), 0.9, "cell")
+
+
 def test_its_lines_pair_with_the_teams_lines(sets_file, tmp_path, capsys, one_thread):
     from medc_training.cli.radbench import main as radbench
 

@@ -92,6 +92,17 @@ def test_an_episode_plays_the_same_in_any_batch_and_policies_pair_up():
     assert calls == [2, 1]
 
 
+def test_a_part_of_a_set_plays_its_episodes_as_the_whole_set_does():
+    """Episodes 2..4 played as a part give the lines of the same episodes in the whole set: the same
+    results under their own indices, the part's id."""
+    (s,) = load_sets(20, 3, obstructions=[2], snrs=["medium"])
+    whole = play_set(s.head(5), "greedy", batch=5)
+    part = play_set(s.part(2, 3), "greedy", batch=3)
+    assert [r.index for r in part] == [2, 3, 4] and {r.set_id for r in part} == {"obs2-medium[2:5]"}
+    assert [(r.length, r.success, r.track_rmse_m) for r in part] == \
+        [(r.length, r.success, r.track_rmse_m) for r in whole[2:]]
+
+
 def test_play_refuses_what_it_cannot_play():
     (s,) = load_sets(20, 1, obstructions=[0], snrs=["low"])
     with pytest.raises(ValueError, match="unknown policy 'nonsense'"):

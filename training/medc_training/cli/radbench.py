@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int,
                    help="the first N episodes of each set (default all 200; a multiple of 4 keeps the SNR "
                         "sub-bins balanced)")
+    p.add_argument("--first", type=int, default=0,
+                   help="start at this episode of each set (default 0: --episodes N plays episodes 0..N-1; "
+                        "episode lines keep each episode's index in its set)")
     p.add_argument("--reference", help="the policy the others are compared with (default the first)")
     p.add_argument("--sets-file", type=Path, help="a set file of your own instead of the frozen one")
     p.add_argument("--sha256", help="with --sets-file: the SHA-256 the file must have")
@@ -322,8 +325,8 @@ def _line(record: dict) -> bytes:
 def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, episodes: int | None
                ) -> tuple[list, str]:
     """(the sets to play, where they come from): ``--sets-file``'s (ValueError when ``--grid`` or
-    ``--agents`` disagree with it) or the committed file of ``grid`` and ``agents``; the first
-    ``episodes`` of each when given."""
+    ``--agents`` disagree with it) or the committed file of ``grid`` and ``agents``; ``episodes`` of
+    each from its episode ``--first`` when either is given."""
     from ..radbench.sets import file_name, load_sets
 
     if args.sets_file is not None:
@@ -335,8 +338,8 @@ def _play_sets(args: argparse.Namespace, grid: int, agents: int, counts, snrs, e
     else:
         sets = load_sets(grid, agents, obstructions=counts, snrs=snrs)
         source = file_name(grid, agents)
-    if episodes is not None:
-        sets = [s.head(episodes) for s in sets]
+    if episodes is not None or args.first:
+        sets = [s.part(args.first, episodes) for s in sets]
     return sets, source
 
 

@@ -104,7 +104,7 @@ class BenchCore(TargetLocalization):
                          grid=bench_set.grid, max_steps=bench_set.max_steps, observation=observation,
                          sensing=sensing, posterior=True, end_on_find=True)
         self.bench_set = bench_set
-        self.episode_index = tuple(int(i) for i in episodes)
+        self.episode_index = tuple(bench_set.first + int(i) for i in episodes)
         self.threshold = float(threshold)
         # The core checks its own wall count against its layout generator's limit; the set's
         # obstructions are its own (up to 7 rectangles), so the memory keeps a slot for each.

@@ -83,7 +83,8 @@ class SetFileError(ValueError):
 class BenchSet:
     """One benchmark set: ``episodes`` on a ``grid`` x ``grid`` area for ``agents`` agents, all with
     ``obstructions`` obstructions and a start SNR in bin ``snr``; ``sha256`` its digest
-    (:func:`set_digest`), ``source`` the file it came from (with that file's SHA-256)."""
+    (:func:`set_digest`), ``source`` the file it came from (with that file's SHA-256); ``first`` the
+    index in the whole set of ``episodes[0]`` (0 but for a :meth:`part`), which episode lines carry."""
 
     id: str
     grid: int
@@ -96,15 +97,33 @@ class BenchSet:
     sha256: str
     source: str = ""
     file_sha256: str = ""
+    first: int = 0
 
     def head(self, count: int) -> BenchSet:
         """The first ``count`` episodes (a balanced subset when ``count`` is a multiple of 4: episode
         i comes from SNR sub-bin i % 4); the digest stays the whole set's, the id says the subset."""
-        if count >= len(self.episodes):
+        return self.part(0, count)
+
+    def part(self, start: int, count: int | None = None) -> BenchSet:
+        """``count`` episodes (all that are left when None) from episode ``start`` on, each keeping its
+        index in the whole set (a balanced subset when both are multiples of 4); the id says the
+        subset (``obs5-low[40:100]``; ``[:N]`` from episode 0, as :meth:`head`). ValueError for a
+        negative ``start`` or one at or past the set's end, or a ``count`` below 1."""
+        if self.first:
+            raise ValueError(f"set {self.id} is already a part of its set")
+        if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < len(self.episodes):
+            raise ValueError(f"the first episode must be 0..{len(self.episodes) - 1} (set {self.id} has "
+                             f"{len(self.episodes)}), got {start!r}")
+        stop = len(self.episodes) if count is None else start + count
+        if count is not None and count < 1:
+            raise ValueError(f"a part of a set needs at least one episode, got {count!r}")
+        if start == 0 and stop >= len(self.episodes):
             return self
-        return BenchSet(f"{self.id}[:{count}]", self.grid, self.cell_m, self.agents, self.max_steps,
-                        self.obstructions, self.snr, self.episodes[:count], self.sha256, self.source,
-                        self.file_sha256)
+        stop = min(stop, len(self.episodes))
+        name = f"{self.id}[:{stop}]" if start == 0 else f"{self.id}[{start}:{stop}]"
+        return BenchSet(name, self.grid, self.cell_m, self.agents, self.max_steps, self.obstructions,
+                        self.snr, self.episodes[start:stop], self.sha256, self.source, self.file_sha256,
+                        start)
 
 
 def set_id(obstructions: int, snr: str) -> str:
@@ -294,7 +313,7 @@ def load_sets(grid: int = 20, agents: int = 1, obstructions: Iterable[int] | Non
 def add_set_arguments(parser, *, obstructions: bool = False, sha256: bool = False) -> None:
     """The command-line options that choose the sets a diagnostic plays (:func:`sets_from_args`):
     the frozen file of ``--grid`` and ``--agents`` or ``--sets-file`` (with ``sha256``:
-    ``--sha256``), with ``obstructions``: ``--obstructions``, and the first ``--episodes``."""
+    ``--sha256``), with ``obstructions``: ``--obstructions``, and ``--episodes`` from ``--first``."""
     parser.add_argument("--grid", type=int, choices=(20, 30), default=20,
                         help="the frozen file's area (default 20)")
     parser.add_argument("--agents", type=int, choices=(1, 3), default=3,
@@ -305,12 +324,16 @@ def add_set_arguments(parser, *, obstructions: bool = False, sha256: bool = Fals
     if obstructions:
         parser.add_argument("--obstructions", type=int, nargs="+", help="only the sets of these counts")
     parser.add_argument("--episodes", type=int, help="the first N episodes of each set (default all)")
+    parser.add_argument("--first", type=int, default=0,
+                        help="with --episodes: start at this episode of each set (default 0; episode lines "
+                             "keep each episode's index in its set)")
 
 
 def sets_from_args(args) -> list[BenchSet]:
-    """The sets :func:`add_set_arguments`'s options name, each cut to its first ``--episodes`` (named
-    as ``medc-radbench --episodes`` names them). ValueError for a non-positive ``--episodes``;
-    SetFileError as :func:`load_sets`."""
+    """The sets :func:`add_set_arguments`'s options name, each cut to ``--episodes`` from its episode
+    ``--first`` (named as ``medc-radbench --episodes`` names them; :meth:`BenchSet.part`). ValueError
+    for a non-positive ``--episodes`` or a ``--first`` outside the sets; SetFileError as
+    :func:`load_sets`."""
     if args.episodes is not None and args.episodes < 1:
         raise ValueError("--episodes must be positive")
     counts, digest = getattr(args, "obstructions", None), getattr(args, "sha256", None)
@@ -318,4 +341,7 @@ def sets_from_args(args) -> list[BenchSet]:
         sets = load_sets(path=args.sets_file, sha256=digest, obstructions=counts)
     else:
         sets = load_sets(args.grid, args.agents, obstructions=counts)
-    return sets if args.episodes is None else [s.head(args.episodes) for s in sets]
+    first = getattr(args, "first", 0)
+    if args.episodes is None and not first:
+        return sets
+    return [s.part(first, args.episodes) for s in sets]
