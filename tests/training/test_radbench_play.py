@@ -126,6 +126,17 @@ def test_cli_plays_a_subset_and_ends_with_json_naming_the_hashes(capsys):
     assert any("sha256" in line for line in out[:-1])
 
 
+def test_cli_plays_a_part_of_every_set_from_first_and_its_lines_keep_the_indices(tmp_path, capsys):
+    out = tmp_path / "part.jsonl"
+    assert main(["greedy", "--obstructions", "0", "--snr", "low", "--first", "40", "--episodes", "3",
+                 "--quiet", "--out", str(out)]) == 0
+    assert set(json.loads(capsys.readouterr().out.strip().splitlines()[-1])["sets"]) == {"obs0-low[40:43]"}
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(d["set_id"], d["index"]) for d in lines] == [("obs0-low[40:43]", i) for i in (40, 41, 42)]
+    assert main(["greedy", "--obstructions", "0", "--snr", "low", "--first", "200", "--quiet"]) == 2
+    assert "first episode must be 0..199" in capsys.readouterr().err
+
+
 def test_cli_lists_the_frozen_sets_and_refuses_a_changed_file(tmp_path, capsys):
     assert main(["--list", "--quiet"]) == 0
     listed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
