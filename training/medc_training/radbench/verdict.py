@@ -260,7 +260,7 @@ def _print_frozen(v: dict[str, Any]) -> None:
 
 
 def _print_gate(v: dict[str, Any]) -> None:
-    print(f"{v['episodes']} validation episodes, {v['seeds']} seeds; candidate - other:")
+    print(f"{v['episodes']} paired episodes, {v['seeds']} seeds; candidate - other:")
     for name, g in v["groups"].items():
         seeds = ", ".join(f"#{k} {m:.2f} {_fmt(i)}" for k, (m, i) in
                           enumerate(zip(g["candidate_means"], g["per_seed"])))
@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--budget", type=int, required=True, help="the runs' training budget (censoring)")
     s.add_argument("--focus", default="medc", help="the method whose claim is judged (default medc)")
     g = sub.add_parser("gate", help="candidate bundles against other bundles of the same seeds, "
-                                    "on the validation episodes")
+                                    "on the episodes both played (the validation episodes for a gate)")
     g.add_argument("--candidate", nargs="+", required=True,
                    help="one episode-line file per training seed: the candidate bundles' play")
     g.add_argument("--against", nargs="+", required=True,
