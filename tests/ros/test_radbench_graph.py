@@ -1,7 +1,8 @@
-"""The field benchmark's world in the ROS graph: the window-9 team (a committed bundle trained there)
-plays its episodes to their end with the classical endgame and a given background prior, in one
-process (move for move the benchmark's training world with medc-radbench --endgame's policy) and as
-medc-launch's node processes (the results arrive, the logs say the world and the endgame)."""
+"""The field benchmark's world in the ROS graph: the shipped window-9 team (models/radbench, trained
+there) plays its episodes to their end with the classical endgame and a given background prior, in
+one process (move for move the benchmark's training world with medc-radbench --endgame's policy) and
+as medc-launch's node processes under its shipped launch config (the results arrive, the logs say
+the world and the endgame)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,10 @@ import pytest
 from ros_helpers import _play_traced, run_launcher, spin_until
 
 ROOT = Path(__file__).resolve().parents[2]
-#: The window-9 team: environment.world radbench, 3 agents, 20x20, 7 obstructions, 120 steps.
-WINDOW9 = ROOT / "docs/reproduction/learned-team/main-posterior-cnn9-ft/medc-s0/policy.safetensors"
+#: The shipped window-9 team: environment.world radbench, 3 agents, 20x20, 7 obstructions, 120 steps.
+WINDOW9 = ROOT / "models/radbench/g20-a3.safetensors"
+#: Its launch config: the prior and the endgame below.
+SHIPPED_CONFIG = ROOT / "models/radbench/g20-a3.yaml"
 PRIOR = "10,50,16"
 TAU = 0.9
 EPISODES = 2
@@ -57,15 +60,13 @@ def test_the_window9_team_plays_the_benchmarks_world_in_the_graph_as_on_the_benc
 
 @pytest.mark.timing
 @pytest.mark.ros
-def test_medc_launch_runs_the_benchmarks_world_from_the_bundle_alone(tmp_path):
-    """`medc-launch --policy <window-9 bundle>` takes the benchmark's world from the manifest, starts
-    the simulator and three agent processes in it with the endgame and the prior, and the episode
-    results arrive."""
-    config = tmp_path / "launch.yaml"
-    config.write_text(json.dumps({"prior_background": PRIOR, "endgame_tau": TAU}))  # JSON is YAML
+def test_medc_launch_runs_the_shipped_team_from_its_config_alone(tmp_path):
+    """`medc-launch --config models/radbench/g20-a3.yaml` takes the benchmark's world from the
+    bundle's manifest, starts the simulator and three agent processes in it with the endgame and the
+    prior the config names, and the episode results arrive."""
     log = tmp_path / "nodes.log"
-    code, out = run_launcher(["--config", str(config), "--policy", str(WINDOW9), "--episodes", str(EPISODES),
-                              "--timeout", "400"], tmp_path, 460, log)
+    code, out = run_launcher(["--config", str(SHIPPED_CONFIG), "--episodes", str(EPISODES), "--timeout", "400"],
+                             tmp_path, 460, log)
     text = log.read_text()
     assert code == 0, text[-3000:]
     lines = out.strip().splitlines()

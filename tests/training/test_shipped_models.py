@@ -38,3 +38,46 @@ def test_every_expert_loads_and_matches_its_name(path):
         assert bundle.manifest["application"] in ("fleet_coordination", "maze_cleaning")
         assert path.stem.split("-")[1].startswith(f"A{env['agents']}")
     assert path.stat().st_size < 2_000_000
+
+
+def test_the_benchmark_team_and_its_config_say_how_it_was_judged():
+    """models/radbench/g20-a3: a bundle of the benchmark's world (3 agents, 20 x 20, up to 7
+    obstructions, 120 moves) on the window-9 observation, and a launch config that plays it under
+    the 16-level prior with the endgame at 0.9, taking the world from the manifest."""
+    import yaml
+    from medc_training.radbench.endgame import check_tau
+    from medc_training.radbench.physics import team_sensing
+
+    bundle = load_bundle(MODELS / "radbench" / "g20-a3.safetensors")
+    env = bundle.manifest["environment"]
+    assert (env["world"], env["agents"], env["grid"], env["walls"], env["max_steps"]) == ("radbench", 3, 20, 7, 120)
+    assert bundle.observation == "ego9+estimate+posterior" and bundle.manifest["training"]["method"] == "medc"
+    config = yaml.safe_load((MODELS / "radbench" / "g20-a3.yaml").read_text())
+    assert config == {"policy": "models/radbench/g20-a3.safetensors", "prior_background": "10,50,16",
+                      "endgame_tau": 0.9}
+    assert (MODELS.parent / config["policy"]).is_file() and check_tau(config["endgame_tau"]) == 0.9
+    assert team_sensing(config["prior_background"]).levels[1] == 16
+
+
+def test_the_benchmark_team_plays_a_frozen_set_shorter_than_the_strongest_searcher_did():
+    """On one frozen 20 x 20 set with 6 obstructions (the first 12 episodes), the shipped team with
+    its config's prior and endgame completes every episode, in fewer moves in all than the committed
+    `infotaxis-exact` play of the same episodes."""
+    import json
+
+    from medc_training.radbench.endgame import Endgame
+    from medc_training.radbench.physics import team_sensing
+    from medc_training.radbench.play import play_set
+    from medc_training.radbench.sets import load_sets
+
+    (s,) = load_sets(20, 3, obstructions=[6], snrs=["medium"])
+    played = play_set(s.head(12), Endgame(load_bundle(MODELS / "radbench" / "g20-a3.safetensors"), 0.9),
+                      sensing=team_sensing("10,50,16"))
+    searcher = {}
+    path = MODELS.parent / "docs/reproduction/radbench/searchers/g20-a3.episodes.jsonl"
+    for line in path.read_text().splitlines():
+        d = json.loads(line)
+        if d["policy"] == "infotaxis-exact" and d["set_sha256"] == s.sha256 and d["index"] < 12:
+            searcher[d["index"]] = d["length"] if d["success"] else 120
+    assert len(searcher) == 12 and all(r.success for r in played)
+    assert sum(r.length for r in played) < sum(searcher.values())
