@@ -65,8 +65,8 @@ def test_medc_launch_runs_the_shipped_team_from_its_config_alone(tmp_path):
     bundle's manifest, starts the simulator and three agent processes in it with the endgame and the
     prior the config names, and the episode results arrive."""
     log = tmp_path / "nodes.log"
-    code, out = run_launcher(["--config", str(SHIPPED_CONFIG), "--episodes", str(EPISODES), "--timeout", "400"],
-                             tmp_path, 460, log)
+    code, out = run_launcher(["--config", str(SHIPPED_CONFIG), "--episodes", str(EPISODES),
+                              "--timeout", "400"], tmp_path, 460, log)
     text = log.read_text()
     assert code == 0, text[-3000:]
     lines = out.strip().splitlines()

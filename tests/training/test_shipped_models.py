@@ -50,7 +50,8 @@ def test_the_benchmark_team_and_its_config_say_how_it_was_judged():
 
     bundle = load_bundle(MODELS / "radbench" / "g20-a3.safetensors")
     env = bundle.manifest["environment"]
-    assert (env["world"], env["agents"], env["grid"], env["walls"], env["max_steps"]) == ("radbench", 3, 20, 7, 120)
+    assert (env["world"], env["agents"], env["grid"], env["walls"], env["max_steps"]) == \
+        ("radbench", 3, 20, 7, 120)
     assert bundle.observation == "ego9+estimate+posterior" and bundle.manifest["training"]["method"] == "medc"
     config = yaml.safe_load((MODELS / "radbench" / "g20-a3.yaml").read_text())
     assert config == {"policy": "models/radbench/g20-a3.safetensors", "prior_background": "10,50,16",
