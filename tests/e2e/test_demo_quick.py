@@ -87,6 +87,14 @@ def test_graph_runs_trained_policies(demo: tuple[dict, Path]) -> None:
     assert all(1 <= n <= 50 for n in team["episode_lengths"])
     assert team["mean_length"] < team["random_episode_length"]
     assert team["success_rate"] > 0.5
+    # The field benchmark's world: the shipped benchmark team and the strongest searcher play the same
+    # number of episodes there (the benchmark's 120-move cap), each finding the source.
+    bench = summary["graph_benchmark"]
+    assert not bench["skipped"] and bench["config"] == "models/radbench/g20-a3.yaml"
+    assert bench["searcher_policy"] == "infotaxis-exact"
+    for side in (bench["team"], bench["searcher"]):
+        assert side["episodes"] == 5 and all(1 <= n <= 120 for n in side["episode_lengths"])
+        assert side["success_rate"] > 0.5
 
 
 def test_training_and_report(demo: tuple[dict, Path]) -> None:

@@ -16,7 +16,9 @@ On the embedded defaults (an in-process Ethereum chain, a local IPFS-compatible 
 6. the ROS 2 graph (simulator + one policy node per agent, separate processes over DDS) runs
    the newly trained policy for a few episodes, printed live, then infotaxis on the same episodes
    (the classical searcher a user would field there, which no learned team has beaten yet), then
-   the shipped team (models/team) in the regime it was trained for;
+   the shipped team (models/team) in the regime it was trained for, then the field benchmark's
+   20 x 20 world (BENCH_CONFIG): the shipped benchmark team, which beats the strongest classical
+   searcher there, and that searcher (BENCH_SEARCHER) on the same episodes;
 7. a summary, a Markdown report with figures, and one JSON line.
 
 ``--quick`` shrinks the budgets (the end-to-end test runs it).
@@ -290,6 +292,8 @@ class _Graph:
     shipped_team: dict[str, Any]
     #: The classical searcher (SEARCHER) on the new policy's episodes in the graph.
     searcher: dict[str, Any] = field(default_factory=lambda: {"skipped": True})
+    #: The benchmark's world: the shipped benchmark team and BENCH_SEARCHER on the same episodes.
+    benchmark: dict[str, Any] = field(default_factory=lambda: {"skipped": True})
 
 
 TARGET = {"agents": 3, "walls": 2}
@@ -307,6 +311,12 @@ SEARCHER = "infotaxis"
 ONE_SEED = ("one seed: a measurement, not a verdict; docs/reproduction/claims/report.md has the claims "
             "over 5 seeds in this regime")
 EXPERTS_REQUESTED = 3
+#: The shipped team of the field benchmark's 20 x 20 world, as a launch config (its bundle, the
+#: estimator's prior and the endgame it was judged with; models/README.md, "models/radbench/"): on the
+#: benchmark's frozen episodes it takes 11.58 moves where BENCH_SEARCHER takes 14.20.
+BENCH_CONFIG = ("models", "radbench", "g20-a3.yaml")
+#: The strongest classical searcher there, played on the same episodes under its own model.
+BENCH_SEARCHER = "infotaxis-exact"
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -550,7 +560,8 @@ def _run_graph_phase(demo: _Demo, training: _Training, episodes: int) -> _Graph:
     team_path = root / "models" / "team" / "A3W2.safetensors"
     if team_path.is_file():
         graph_team = _run_shipped_team(demo, team_path, episodes)
-    return _Graph(random_len, graph, graph_team, searcher)
+    benchmark = _run_benchmark(demo, episodes)
+    return _Graph(random_len, graph, graph_team, searcher, benchmark)
 
 
 def _run_searcher(demo: _Demo, cfg, episodes: int) -> dict[str, Any]:
@@ -584,6 +595,37 @@ def _run_shipped_team(demo: _Demo, team_path: Path, episodes: int) -> dict[str, 
         TARGET["agents"], TARGET["walls"], cfg.grid, cfg.max_steps, 200, args.seed + 5, sensing=sensing)
     say.say(f"shipped team: mean episode length {result['mean_length']:.1f} (random moves there: "
             f"{result['random_episode_length']:.1f}); success {result['success_rate']:.0%}")
+    return result
+
+
+def _run_benchmark(demo: _Demo, episodes: int) -> dict[str, Any]:
+    """The graph in the field benchmark's world: the shipped benchmark team from its launch config,
+    then BENCH_SEARCHER on the same episodes (same seed, the scenario the team's manifest records)."""
+    import yaml
+    from medc_training.bundle import read_manifest
+
+    say, args = demo.say, demo.args
+    config = demo.root.joinpath(*BENCH_CONFIG)
+    if not config.is_file():
+        return {"skipped": True}
+    policy = demo.root / yaml.safe_load(config.read_text())["policy"]
+    env = read_manifest(policy.read_bytes())["environment"]
+    name = config.relative_to(demo.root)
+    say.say(f"the field benchmark's {env['grid']}x{env['grid']} world (RAD-A2C's physics, up to "
+            f"{env['walls']} obstructions): the shipped benchmark team ({name}), then {BENCH_SEARCHER}, "
+            "the strongest classical searcher there, on the same episodes:")
+    team = launch_graph(config, episodes, args.seed, quiet=demo.quiet)
+    searcher_yaml = demo.out / "launch-benchmark-searcher.yaml"
+    searcher_yaml.write_text(yaml.safe_dump({
+        "world": env["world"], "agents": env["agents"], "walls": env["walls"], "grid": env["grid"],
+        "max_steps": env["max_steps"], "seed": args.seed, "mode": "stepped", "policy": BENCH_SEARCHER}))
+    searcher = launch_graph(searcher_yaml, episodes, args.seed, quiet=demo.quiet)
+    result = {"skipped": False, "config": str(name), "searcher_policy": BENCH_SEARCHER,
+              "team": _graph_summary(team), "searcher": _graph_summary(searcher)}
+    say.say(f"benchmark team: mean episode length {team['mean_length']:.1f}, success "
+            f"{team['success_rate']:.0%}; {BENCH_SEARCHER}: {searcher['mean_length']:.1f}, success "
+            f"{searcher['success_rate']:.0%} "
+            f"({episodes} episodes: a glimpse; the benchmark's 960 frozen episodes are in models/README.md)")
     return result
 
 
@@ -630,6 +672,7 @@ def _summarise(demo: _Demo, allocation: _Allocation, training: _Training, settle
         "graph": _graph_summary(graph.graph),
         "graph_searcher": _graph_summary(graph.searcher, "policy"),
         "graph_shipped_team": _graph_summary(graph.shipped_team, "random_episode_length"),
+        "graph_benchmark": graph.benchmark,
         "trajectory": traj,
         "gas": dict(demo.gas),
         "timings_s": say.timings,
@@ -650,8 +693,6 @@ def run_graph(policy: Path | str, target: dict, cfg, episodes: int, seed: int, o
     """Run ``medc-launch`` (simulator + one agent node per agent, each its own process) for
     ``episodes`` episodes with ``policy`` (a bundle, or a classical controller by name) under
     ``sensing`` (None: the bundle's); its per-episode lines are shown live (not ``quiet``)."""
-    import subprocess
-
     import yaml
 
     launch_yaml = out / "launch.yaml"
@@ -659,7 +700,13 @@ def run_graph(policy: Path | str, target: dict, cfg, episodes: int, seed: int, o
         "agents": target["agents"], "walls": target["walls"], "grid": cfg.grid, "max_steps": cfg.max_steps,
         "seed": seed, "mode": "stepped", "policy": str(policy), **({"sensing": sensing} if sensing else {}),
     }))
-    cmd = [str(Path(sys.executable).parent / "medc-launch"), "--config", str(launch_yaml),
+    return launch_graph(launch_yaml, episodes, seed, quiet=quiet)
+
+
+def launch_graph(config: Path, episodes: int, seed: int, quiet: bool = False) -> dict:
+    """Run ``medc-launch --config config`` with ``seed`` for ``episodes`` episodes and return its
+    JSON line; its per-episode lines are shown live (not ``quiet``)."""
+    cmd = [str(Path(sys.executable).parent / "medc-launch"), "--config", str(config), "--seed", str(seed),
            "--episodes", str(episodes), "--timeout", "300"]
     last_json = None
     with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
@@ -787,6 +834,15 @@ def _graph_lines(s: dict) -> list[str]:
                   f"episodes, lengths {t['episode_lengths']}, mean {t['mean_length']:.1f}, success "
                   f"{t['success_rate']:.0%}; random moves average {t['random_episode_length']:.1f} steps "
                   "there."]
+    b = s.get("graph_benchmark") or {}
+    if not b.get("skipped", True):
+        team, searcher = b["team"], b["searcher"]
+        lines += ["", f"The field benchmark's world, the shipped benchmark team (`{b['config']}`): lengths "
+                  f"{team['episode_lengths']}, mean {team['mean_length']:.1f}, success "
+                  f"{team['success_rate']:.0%}; {b['searcher_policy']} on the same episodes: lengths "
+                  f"{searcher['episode_lengths']}, mean {searcher['mean_length']:.1f}, success "
+                  f"{searcher['success_rate']:.0%} (on the benchmark's 960 frozen episodes: 11.58 moves "
+                  "against 14.20, models/README.md)."]
     return lines
 
 
