@@ -40,24 +40,28 @@ def test_every_expert_loads_and_matches_its_name(path):
     assert path.stat().st_size < 2_000_000
 
 
-def test_the_benchmark_team_and_its_config_say_how_it_was_judged():
-    """models/radbench/g20-a3: a bundle of the benchmark's world (3 agents, 20 x 20, up to 7
+@pytest.mark.parametrize("grid", [20, 30])
+def test_the_benchmark_teams_and_their_configs_say_how_they_were_judged(grid):
+    """models/radbench/gG-a3: a bundle of the benchmark's world (3 agents, G x G, up to 7
     obstructions, 120 moves) on the window-9 observation, and a launch config that plays it under
-    the 16-level prior with the endgame at 0.9, taking the world from the manifest."""
+    the 16-level prior with the endgame at 0.9, taking the world from the manifest; the grid-30 bundle
+    was trained under that prior and records it."""
     import yaml
     from medc_training.radbench.endgame import check_tau
     from medc_training.radbench.physics import team_sensing
 
-    bundle = load_bundle(MODELS / "radbench" / "g20-a3.safetensors")
+    bundle = load_bundle(MODELS / "radbench" / f"g{grid}-a3.safetensors")
     env = bundle.manifest["environment"]
     assert (env["world"], env["agents"], env["grid"], env["walls"], env["max_steps"]) == \
-        ("radbench", 3, 20, 7, 120)
+        ("radbench", 3, grid, 7, 120)
     assert bundle.observation == "ego9+estimate+posterior" and bundle.manifest["training"]["method"] == "medc"
-    config = yaml.safe_load((MODELS / "radbench" / "g20-a3.yaml").read_text())
-    assert config == {"policy": "models/radbench/g20-a3.safetensors", "prior_background": "10,50,16",
+    config = yaml.safe_load((MODELS / "radbench" / f"g{grid}-a3.yaml").read_text())
+    assert config == {"policy": f"models/radbench/g{grid}-a3.safetensors", "prior_background": "10,50,16",
                       "endgame_tau": 0.9}
     assert (MODELS.parent / config["policy"]).is_file() and check_tau(config["endgame_tau"]) == 0.9
     assert team_sensing(config["prior_background"]).levels[1] == 16
+    if grid == 30:
+        assert env["prior_background_levels"] == 16
 
 
 def test_the_benchmark_team_plays_a_frozen_set_shorter_than_the_strongest_searcher_did():
